@@ -1,0 +1,160 @@
+"""``bluesky-offsets`` command line.
+
+Each sub-command is a thin layer over the library.  Modules outside this
+file register their own sub-commands through an ``add_cli(subparsers)``
+function listed in :data:`EXTENSIONS`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import json
+import logging
+import sys
+
+import numpy as np
+
+from .parameters import METRIXS, ParameterError
+
+EXTENSIONS: list[str] = [
+    # "module:function" pairs, each adding sub-commands.
+]
+
+
+class CliError(Exception):
+    """A user error: printed without a traceback, exit status 2."""
+
+
+# --------------------------------------------------------------------------- #
+# params
+# --------------------------------------------------------------------------- #
+def _cmd_params(args) -> int:
+    records = METRIXS.as_records()
+    if args.json:
+        print(json.dumps({"table": METRIXS.name, "version": METRIXS.version, "parameters": records}, indent=2))
+        return 0
+    print(f"METRIXS parameter table (version {METRIXS.version}): {len(records)} parameters, "
+          f"{sum(not r['motorized'] for r in records)} fixed-but-unknown (*)")
+    print(f"{'#':>2}  {'name':32s} {'unit':5s} {'low':>11s} {'high':>11s} {'reference':>13s}  description")
+    for i, r in enumerate(records):
+        flag = "*" if not r["motorized"] else " "
+        print(f"{i:2d}{flag} {r['name']:32s} {r['unit']:5s} {r['low']:11.4f} {r['high']:11.4f} "
+              f"{r['reference']:13.6f}  {r['description']}")
+    return 0
+
+
+# --------------------------------------------------------------------------- #
+# simulate
+# --------------------------------------------------------------------------- #
+def _parse_sets(items: list[str]) -> dict[str, float]:
+    out = {}
+    for item in items or []:
+        if "=" not in item:
+            raise CliError(f"--set expects NAME=VALUE, got {item!r}")
+        name, value = item.split("=", 1)
+        try:
+            out[name.strip()] = float(value)
+        except ValueError:
+            raise CliError(f"--set {name}: {value!r} is not a number") from None
+    return out
+
+
+def _sparkline(h: np.ndarray) -> str:
+    blocks = " ▁▂▃▄▅▆▇█"
+    m = h.max()
+    if m <= 0:
+        return " " * len(h)
+    return "".join(blocks[int(round(v / m * 8))] for v in h)
+
+
+def _cmd_simulate(args) -> int:
+    from .twin import Twin
+
+    values = METRIXS.from_mapping(_parse_sets(args.set))
+    overrides = {}
+    if args.chamber:
+        tx, ty, tz = args.chamber
+        overrides["ImagePlane"] = {"translationXerror": tx, "translationYerror": ty, "translationZerror": tz}
+    outside = METRIXS.outside_box(values)
+    twin = Twin(scheduler="inline", n_rays=args.rays)
+    result = twin.trace(values, overrides=overrides, keep_rays=True)
+    summary = result.summary()
+    hist = twin.hist
+    if args.json:
+        out = {"engine": twin.engine.version, "parameters": METRIXS.to_mapping(values),
+               "chamber_translation": list(args.chamber) if args.chamber else [0.0, 0.0, 0.0],
+               "outside_sampling_box": outside, **summary,
+               "hist_x": result.hist_x.tolist(), "hist_y": result.hist_y.tolist(),
+               "edges_x": hist.edges_x.tolist(), "edges_y": hist.edges_y.tolist()}
+        print(json.dumps(out, indent=2))
+    else:
+        print(f"engine: {twin.engine.version}; {args.rays} source rays")
+        changed = {k: v for k, v in _parse_sets(args.set).items()}
+        print(f"configuration: reference RML{' with ' + str(changed) if changed else ''}")
+        if outside:
+            print(f"note: outside the surrogate's sampling box (a model would extrapolate): {', '.join(outside)}")
+        print(f"transmission: {summary['transmission']:.4f}  ({summary['n_hits']} rays on the screen)")
+        if "centroid_x" in summary:
+            print(f"centroid: x = {summary['centroid_x']:+.4f} mm, y = {summary['centroid_y']:+.4f} mm")
+            print(f"width (std): x = {summary['width_x']:.4f} mm, y = {summary['width_y']:.4f} mm")
+        print(f"x histogram [{hist.range_x[0]:g}, {hist.range_x[1]:g}] mm, sum {result.hist_x.sum():.4f}:")
+        print(f"  |{_sparkline(result.hist_x)}|")
+        print(f"y histogram [{hist.range_y[0]:g}, {hist.range_y[1]:g}] mm, sum {result.hist_y.sum():.4f}:")
+        print(f"  |{_sparkline(result.hist_y)}|")
+    if args.plot:
+        from .plotting import plot_footprint
+        plot_footprint(result, hist, args.plot, title=f"METRIXS twin, {args.rays} rays")
+        if not args.json:
+            print(f"plot written to {args.plot}")
+    return 0
+
+
+# --------------------------------------------------------------------------- #
+# entry point
+# --------------------------------------------------------------------------- #
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="bluesky-offsets",
+                                     description="Offset finding for the METRIXS beamline's digital twin.")
+    parser.add_argument("-v", "--verbose", action="store_true", help="log more")
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    p = sub.add_parser("params", help="print the 34-parameter table")
+    p.add_argument("--json", action="store_true", help="machine-readable output")
+    p.set_defaults(func=_cmd_params)
+
+    p = sub.add_parser("simulate", help="trace one configuration with the RAYX twin")
+    p.add_argument("--set", action="append", metavar="NAME=VALUE",
+                   help="change a parameter from the reference RML value (repeatable)")
+    p.add_argument("--rays", type=int, default=20000, help="source rays (default 20000)")
+    p.add_argument("--chamber", type=float, nargs=3, metavar=("TX", "TY", "TZ"),
+                   help="focus-chamber translation in mm (detector property, not one of the 34)")
+    p.add_argument("--json", action="store_true", help="machine-readable output")
+    p.add_argument("--plot", metavar="FILE.png", help="footprint scatter with both histograms")
+    p.set_defaults(func=_cmd_simulate)
+
+    for ext in EXTENSIONS:
+        module, func = ext.split(":")
+        getattr(importlib.import_module(module), func)(sub)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING,
+                        format="%(levelname)s %(name)s: %(message)s")
+    if getattr(args, "rays", 1) is not None and getattr(args, "rays", 1) < 1:
+        parser.error("--rays must be positive")
+    try:
+        return int(args.func(args) or 0)
+    except (CliError, ParameterError) as exc:
+        print(f"bluesky-offsets {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

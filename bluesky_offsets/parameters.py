@@ -1,0 +1,329 @@
+"""The 34 METRIXS beamline parameters: the one source of truth.
+
+The table follows Table 1 of Meier et al. (2025).  Each parameter knows the
+RML element and field it drives, its unit, its sampling box ``[low, high]``,
+whether a motor moves it, and the value the reference RML holds.
+
+The box is the *sampling box of the surrogate*, not a physical limit: the twin
+accepts any finite value, and :meth:`ParameterTable.outside_box` says which
+values a surrogate would have to extrapolate to.
+
+Normalized coordinates map ``low -> 0`` and ``high -> 1``.  Offsets are given
+in normalized units (fractions of each range) and are at most
+:data:`MAX_OFFSET` = 0.2 in magnitude, as in the paper.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import asdict, dataclass
+
+import numpy as np
+
+MAX_OFFSET = 0.2
+"""Largest offset magnitude, in normalized units (20 % of each range)."""
+
+
+class ParameterError(ValueError):
+    """Malformed parameter input; the message names the offending parameter."""
+
+
+@dataclass(frozen=True)
+class Parameter:
+    """One beamline parameter.
+
+    Attributes
+    ----------
+    name : str
+        Paper/RML-style name, ``"<component>.<field>"``.
+    element : str
+        Name of the RML object it acts on.
+    field : str
+        RML field it sets: a misalignment (``translationXerror`` ...) or an
+        element property (``openingWidth``, ``radius`` ...).
+    unit : str
+        ``"mm"`` or ``"mrad"``.
+    low, high : float
+        Uniform sampling box of the surrogate (paper Table 1).
+    motorized : bool
+        ``False`` for the six fixed-but-unknown radii and half-axes.
+    reference : float
+        Value in the reference RML (the nominal configuration).
+    device : str
+        ``"<component>.<axis>"`` attribute path used by the ophyd devices.
+    description : str
+        Human-readable meaning.
+    """
+
+    name: str
+    element: str
+    field: str
+    unit: str
+    low: float
+    high: float
+    motorized: bool
+    reference: float
+    device: str
+    description: str
+
+    @property
+    def component(self) -> str:
+        return self.name.split(".", 1)[0]
+
+    @property
+    def span(self) -> float:
+        return self.high - self.low
+
+
+def _p(name, element, field, unit, low, high, reference, device, description, motorized=True):
+    return Parameter(name, element, field, unit, float(low), float(high), motorized, float(reference),
+                     device, description)
+
+
+_SRC, _ASBL, _M1, _SG, _XS, _E1, _E2 = (
+    "U41_318eV", "ASBL", "M1-Cylinder", "Spherical Grating", "Exit Slit", "E1", "E2")
+
+METRIXS_PARAMETERS: tuple[Parameter, ...] = (
+    _p("U41_318eV.translationXerror", _SRC, "translationXerror", "mm", -0.25, 0.25, 0, "source.tx",
+       "source horizontal position"),
+    _p("U41_318eV.translationYerror", _SRC, "translationYerror", "mm", -0.25, 0.25, 0, "source.ty",
+       "source vertical position"),
+    _p("U41_318eV.rotationXerror", _SRC, "rotationXerror", "mrad", -0.05, 0.05, 0, "source.rx",
+       "source vertical pointing"),
+    _p("U41_318eV.rotationYerror", _SRC, "rotationYerror", "mrad", -0.05, 0.05, 0, "source.ry",
+       "source horizontal pointing"),
+    _p("ASBL.totalWidth", _ASBL, "openingWidth", "mm", 1.9, 2.1, 2.0, "asbl.width",
+       "aperture (ASBL) horizontal opening"),
+    _p("ASBL.totalHeight", _ASBL, "openingHeight", "mm", 0.9, 1.1, 2.0, "asbl.height",
+       "aperture (ASBL) vertical opening"),
+    _p("ASBL.translationXerror", _ASBL, "translationXerror", "mm", -0.2, 0.2, 0, "asbl.tx",
+       "aperture horizontal position"),
+    _p("ASBL.translationYerror", _ASBL, "translationYerror", "mm", -0.2, 0.2, 0, "asbl.ty",
+       "aperture vertical position"),
+    _p("M1_Cylinder.radius", _M1, "radius", "mm", 174.06, 174.36, 174.21, "m1.radius",
+       "M1 sagittal radius", motorized=False),
+    _p("M1_Cylinder.rotationXerror", _M1, "rotationXerror", "mrad", -0.25, 0.25, 0, "m1.rx",
+       "M1 pitch"),
+    _p("M1_Cylinder.rotationYerror", _M1, "rotationYerror", "mrad", -1, 1, 0, "m1.ry", "M1 yaw"),
+    _p("M1_Cylinder.rotationZerror", _M1, "rotationZerror", "mrad", -1, 1, 0, "m1.rz", "M1 roll"),
+    _p("M1_Cylinder.translationXerror", _M1, "translationXerror", "mm", -1, 1, 0, "m1.tx",
+       "M1 lateral translation (across the surface)"),
+    _p("M1_Cylinder.translationYerror", _M1, "translationYerror", "mm", -1, 1, 0, "m1.ty",
+       "M1 translation along the surface normal"),
+    _p("SphericalGrating.radius", _SG, "radius", "mm", 109741, 109841, 109791, "grating.radius",
+       "grating meridional radius", motorized=False),
+    _p("SphericalGrating.rotationYerror", _SG, "rotationYerror", "mrad", -1, 1, 0, "grating.ry",
+       "grating yaw"),
+    _p("SphericalGrating.rotationZerror", _SG, "rotationZerror", "mrad", -2.5, 2.5, 0, "grating.rz",
+       "grating roll"),
+    _p("ExitSlit.totalHeight", _XS, "openingHeight", "mm", 0.009, 0.011, 0.1, "exit_slit.height",
+       "exit slit opening (dispersive direction)"),
+    _p("ExitSlit.translationZerror", _XS, "translationZerror", "mm", -150, 150, 0, "exit_slit.tz",
+       "exit slit position along the beam"),
+    _p("ExitSlit.rotationZerror", _XS, "rotationZerror", "mrad", -0.3, 0.3, 0, "exit_slit.rz",
+       "exit slit rotation about the beam"),
+    _p("E1.longHalfAxisA", _E1, "longHalfAxisA", "mm", 20600, 20900, 20750, "e1.a",
+       "E1 ellipse long half-axis", motorized=False),
+    _p("E1.shortHalfAxisB", _E1, "shortHalfAxisB", "mm", 300.7217, 304.7217, 302.721702601, "e1.b",
+       "E1 ellipse short half-axis", motorized=False),
+    _p("E1.rotationXerror", _E1, "rotationXerror", "mrad", -1.5, 1.5, 0, "e1.rx", "E1 pitch"),
+    _p("E1.rotationYerror", _E1, "rotationYerror", "mrad", -7.5, 7.5, 0, "e1.ry", "E1 yaw"),
+    _p("E1.rotationZerror", _E1, "rotationZerror", "mrad", 7, 14, 0, "e1.rz", "E1 roll"),
+    _p("E1.translationYerror", _E1, "translationYerror", "mm", -1, 1, 0, "e1.ty",
+       "E1 translation along the surface normal"),
+    _p("E1.translationZerror", _E1, "translationZerror", "mm", -1, 1, 0, "e1.tz",
+       "E1 translation along the mirror"),
+    _p("E2.longHalfAxisA", _E2, "longHalfAxisA", "mm", 4325, 4425, 4375, "e2.a",
+       "E2 ellipse long half-axis", motorized=False),
+    _p("E2.shortHalfAxisB", _E2, "shortHalfAxisB", "mm", 96.1561, 98.1561, 97.1560870104, "e2.b",
+       "E2 ellipse short half-axis", motorized=False),
+    _p("E2.rotationXerror", _E2, "rotationXerror", "mrad", -0.5, 0.5, 0, "e2.rx", "E2 pitch"),
+    _p("E2.rotationYerror", _E2, "rotationYerror", "mrad", -7.5, 7.5, 0, "e2.ry", "E2 yaw"),
+    _p("E2.rotationZerror", _E2, "rotationZerror", "mrad", 22, 32, 0, "e2.rz", "E2 roll"),
+    _p("E2.translationYerror", _E2, "translationYerror", "mm", -1, 1, 0, "e2.ty",
+       "E2 translation along the surface normal"),
+    _p("E2.translationZerror", _E2, "translationZerror", "mm", -1, 1, 0, "e2.tz",
+       "E2 translation along the mirror"),
+)
+
+
+def _finite_array(values, n: int, names: Sequence[str], what: str) -> np.ndarray:
+    try:
+        arr = np.asarray(values, dtype=float)
+    except (TypeError, ValueError) as exc:
+        raise ParameterError(f"{what}: cannot convert to numbers ({exc})") from None
+    if arr.ndim == 0 or arr.shape[-1] != n:
+        raise ParameterError(
+            f"{what}: expected a vector of {n} parameters in table order, got shape {arr.shape}")
+    bad = ~np.isfinite(arr)
+    if bad.any():
+        col = int(np.argwhere(bad)[0][-1])
+        raise ParameterError(f"{what}: parameter {names[col]!r} is not finite ({arr[..., col].ravel()[0]})")
+    return arr
+
+
+class ParameterTable:
+    """Ordered, immutable table of beamline parameters with conversions.
+
+    All conversion methods accept a single vector ``(n,)`` or a batch
+    ``(..., n)`` in table order and validate shape and finiteness.
+    """
+
+    def __init__(self, parameters: Iterable[Parameter], *, name: str = "metrixs"):
+        self.parameters: tuple[Parameter, ...] = tuple(parameters)
+        self.name = name
+        self.names: tuple[str, ...] = tuple(p.name for p in self.parameters)
+        if len(set(self.names)) != len(self.names):
+            raise ParameterError("duplicate parameter names in table")
+        self._index = {n: i for i, n in enumerate(self.names)}
+        self.low = np.array([p.low for p in self.parameters])
+        self.high = np.array([p.high for p in self.parameters])
+        self.span = self.high - self.low
+        self.reference = np.array([p.reference for p in self.parameters])
+        self.motorized = np.array([p.motorized for p in self.parameters])
+
+    # -- lookup -------------------------------------------------------------
+    def __len__(self) -> int:
+        return len(self.parameters)
+
+    def __iter__(self):
+        return iter(self.parameters)
+
+    def __getitem__(self, name: str) -> Parameter:
+        return self.parameters[self.index(name)]
+
+    def index(self, name: str) -> int:
+        try:
+            return self._index[name]
+        except KeyError:
+            close = [n for n in self.names if name.lower() in n.lower()]
+            hint = f"; did you mean {close[0]!r}?" if close else ""
+            raise ParameterError(f"unknown parameter {name!r}{hint}") from None
+
+    @property
+    def motorized_names(self) -> tuple[str, ...]:
+        return tuple(p.name for p in self.parameters if p.motorized)
+
+    @property
+    def fixed_names(self) -> tuple[str, ...]:
+        return tuple(p.name for p in self.parameters if not p.motorized)
+
+    # -- validation and conversion -----------------------------------------
+    def validate(self, values, what: str = "parameter vector") -> np.ndarray:
+        """Return ``values`` as a float array after checking length and finiteness."""
+        return _finite_array(values, len(self), self.names, what)
+
+    def from_mapping(self, mapping: Mapping[str, float], base=None) -> np.ndarray:
+        """Build a vector from ``{name: value}``; unspecified entries come from ``base``
+        (default: the reference configuration)."""
+        vec = np.array(self.reference if base is None else self.validate(base), dtype=float, copy=True)
+        for name, value in mapping.items():
+            i = self.index(name)
+            try:
+                v = float(value)
+            except (TypeError, ValueError):
+                raise ParameterError(f"parameter {name!r}: value {value!r} is not a number") from None
+            if not math.isfinite(v):
+                raise ParameterError(f"parameter {name!r}: value {v} is not finite")
+            vec[i] = v
+        return vec
+
+    def to_mapping(self, values) -> dict[str, float]:
+        vec = self.validate(values)
+        if vec.ndim != 1:
+            raise ParameterError("to_mapping takes a single parameter vector")
+        return {n: float(v) for n, v in zip(self.names, vec)}
+
+    def normalize(self, values) -> np.ndarray:
+        """Physical values -> normalized coordinates (box maps to [0, 1])."""
+        return (self.validate(values) - self.low) / self.span
+
+    def denormalize(self, normalized) -> np.ndarray:
+        """Normalized coordinates -> physical values."""
+        return self.validate(normalized, "normalized vector") * self.span + self.low
+
+    def offsets_to_physical(self, offsets) -> np.ndarray:
+        """Normalized offsets (fractions of each range) -> physical offsets."""
+        off = self.validate(offsets, "offset vector")
+        self.check_offsets(off)
+        return off * self.span
+
+    def offsets_to_normalized(self, offsets) -> np.ndarray:
+        """Physical offsets -> normalized offsets (fractions of each range)."""
+        off = self.validate(offsets, "offset vector") / self.span
+        self.check_offsets(off)
+        return off
+
+    def check_offsets(self, normalized_offsets, limit: float = MAX_OFFSET) -> None:
+        off = self.validate(normalized_offsets, "offset vector")
+        too_big = np.abs(off) > limit + 1e-12
+        if too_big.any():
+            col = int(np.argwhere(too_big)[0][-1])
+            raise ParameterError(
+                f"offset of {self.names[col]!r} is {off[..., col].ravel()[0]:+.4f} of its range; "
+                f"offsets are limited to ±{limit:.2f}")
+
+    def sample_uniform(self, n: int, rng: np.random.Generator) -> np.ndarray:
+        """``n`` vectors drawn uniformly from the sampling box (paper Sec. 3.1)."""
+        return self.low + rng.random((n, len(self))) * self.span
+
+    def sample_offsets(self, rng: np.random.Generator, limit: float = MAX_OFFSET,
+                       size: int | None = None) -> np.ndarray:
+        """Normalized offsets drawn uniformly in ``[-limit, limit]`` (paper Sec. 3.2)."""
+        shape = (len(self),) if size is None else (size, len(self))
+        return rng.uniform(-limit, limit, shape)
+
+    def outside_box(self, values) -> list[str]:
+        """Names of parameters whose value lies outside the sampling box, i.e. where a
+        surrogate trained on the box would have to extrapolate."""
+        vec = self.validate(values)
+        if vec.ndim != 1:
+            raise ParameterError("outside_box takes a single parameter vector")
+        tol = 1e-9 * np.maximum(1.0, np.abs(self.span))
+        out = (vec < self.low - tol) | (vec > self.high + tol)
+        return [n for n, o in zip(self.names, out) if o]
+
+    # -- identity -----------------------------------------------------------
+    def as_records(self) -> list[dict]:
+        return [dict(asdict(p), component=p.component, fixed_but_unknown=not p.motorized)
+                for p in self.parameters]
+
+    def fingerprint(self) -> dict:
+        """What a model trained on this table must agree with: names, order, ranges."""
+        return {"name": self.name,
+                "names": list(self.names),
+                "low": [float(x) for x in self.low],
+                "high": [float(x) for x in self.high]}
+
+    @property
+    def version(self) -> str:
+        """Short content hash of names, order and ranges (stored with runs and models)."""
+        blob = json.dumps(self.fingerprint(), sort_keys=True).encode()
+        return hashlib.sha256(blob).hexdigest()[:12]
+
+    def diff(self, fingerprint: Mapping) -> list[str]:
+        """Human-readable differences between this table and a stored fingerprint."""
+        problems = []
+        theirs = list(fingerprint.get("names", []))
+        if theirs != list(self.names):
+            missing = [n for n in self.names if n not in theirs]
+            extra = [n for n in theirs if n not in self.names]
+            if missing or extra:
+                problems.append(f"parameters differ: missing {missing}, unexpected {extra}")
+            else:
+                problems.append("parameter order differs")
+            return problems
+        for i, n in enumerate(self.names):
+            lo, hi = fingerprint["low"][i], fingerprint["high"][i]
+            if not (np.isclose(lo, self.low[i], rtol=1e-12, atol=0) and
+                    np.isclose(hi, self.high[i], rtol=1e-12, atol=0)):
+                problems.append(f"range of {n!r} differs: stored [{lo}, {hi}], "
+                                f"current [{self.low[i]}, {self.high[i]}]")
+        return problems
+
+
+METRIXS = ParameterTable(METRIXS_PARAMETERS)
+"""The METRIXS table of the paper (34 parameters, 28 motorized)."""

@@ -1,0 +1,253 @@
+"""Reading and writing RAY-UI's RML beamline files.
+
+An :class:`RmlBeamline` is an ordered list of :class:`RmlObject` (source,
+elements, image plane), each an ordered list of ``<param>`` entries.  The
+world position and orientation of every object are *computed* from the
+element chain (:mod:`bluesky_offsets.geometry`) when the file is written:
+whatever world vectors an input file held are replaced.  That is what makes
+misalignments real for RAYX, which reads the world vectors only.
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+import xml.etree.ElementTree as ET
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from .geometry import (MISALIGNMENT_KEYS, ChainLink, Frame, Misalignment, chain_frames,
+                       ellipsoid_tangent_angle)
+
+WORLD_KEYS = ("worldPosition", "worldXdirection", "worldYdirection", "worldZdirection")
+MIRROR_TYPES = {"Plane Mirror", "Cylinder", "Ellipsoid", "Toroid", "Sphere", "Cone", "Paraboloid",
+                "Experts Optics", "Cubic"}
+GRATING_TYPES = {"Plane Grating", "Spherical Grating", "Toroidal Grating"}
+FLAT_TYPES = {"Slit", "ImagePlane", "Foil"}
+
+
+class RmlError(ValueError):
+    """An RML file or object that cannot be understood."""
+
+
+@dataclass
+class RmlParam:
+    id: str
+    value: str
+    attrs: dict[str, str] = field(default_factory=dict)
+
+
+@dataclass
+class RmlObject:
+    """One ``<object>`` of an RML beamline."""
+
+    name: str
+    type: str
+    params: dict[str, RmlParam] = field(default_factory=dict)
+
+    # -- parameter access ---------------------------------------------------
+    def has(self, pid: str) -> bool:
+        return pid in self.params
+
+    def get(self, pid: str) -> str:
+        try:
+            return self.params[pid].value
+        except KeyError:
+            raise RmlError(f"{self.name!r} ({self.type}) has no parameter {pid!r}") from None
+
+    def get_float(self, pid: str, default: float | None = None) -> float:
+        if pid not in self.params and default is not None:
+            return default
+        try:
+            return float(self.get(pid))
+        except ValueError:
+            raise RmlError(f"{self.name!r}: parameter {pid!r} = {self.get(pid)!r} is not a number") from None
+
+    def comment(self, pid: str) -> str:
+        return self.params[pid].attrs.get("comment", "") if pid in self.params else ""
+
+    def set(self, pid: str, value, comment: str | None = None) -> None:
+        """Set (or add) a scalar parameter, keeping its attributes."""
+        if isinstance(value, (bool, np.bool_)):
+            raise RmlError(f"{self.name!r}: parameter {pid!r} takes a number, not a bool")
+        if isinstance(value, (int, np.integer)):
+            text = str(int(value))
+        elif isinstance(value, (float, np.floating)):
+            text = _fmt(value)
+        else:
+            text = str(value)
+        if pid in self.params:
+            self.params[pid].value = text
+            if comment is not None:
+                self.params[pid].attrs["comment"] = comment
+        else:
+            attrs = {} if comment is None else {"comment": comment}
+            attrs["enabled"] = "T"
+            self.params[pid] = RmlParam(pid, text, attrs)
+
+    # -- geometry -----------------------------------------------------------
+    @property
+    def is_source(self) -> bool:
+        return "Source" in self.type
+
+    @property
+    def misalignment(self) -> Misalignment:
+        """The object's alignment errors (zero when RAY-UI's switch says "No")."""
+        if self.has("alignmentError") and self.comment("alignmentError") not in ("Yes", ""):
+            return Misalignment()
+        return Misalignment.from_rml({k: self.get_float(k) for k in MISALIGNMENT_KEYS if self.has(k)})
+
+    def set_misalignment(self, **values: float) -> None:
+        """Set alignment errors by RML key (``translationXerror=...``) and switch them on."""
+        for key, value in values.items():
+            if key not in MISALIGNMENT_KEYS:
+                raise RmlError(f"{key!r} is not an alignment error ({', '.join(MISALIGNMENT_KEYS)})")
+            if self.is_source and key in ("translationZerror", "rotationZerror"):
+                raise RmlError(f"source {self.name!r} has no {key}")
+            self.set(key, float(value))
+        self.set("alignmentError", 0, comment="Yes")
+
+    def chain_link(self) -> ChainLink:
+        """How this object sits in the element chain."""
+        deg = math.radians
+        mis = self.misalignment
+        if self.is_source:
+            return ChainLink(misalignment=mis, is_source=True)
+        if self.type == "ImagePlane":
+            return ChainLink(distance=self.get_float("distanceImagePlane"), misalignment=mis)
+        distance = self.get_float("distancePreceding")
+        azimuth = deg(self.get_float("azimuthalAngle", 0.0))
+        if self.type in FLAT_TYPES:
+            return ChainLink(distance, azimuth, 0.0, 0.0, mis)
+        if self.type in GRATING_TYPES:
+            alpha, beta = self.get_float("alpha"), self.get_float("beta")
+            return ChainLink(distance, azimuth, deg(90.0 - alpha), deg(90.0 + beta), mis)
+        if self.type in MIRROR_TYPES:
+            theta = deg(self.get_float("grazingIncAngle"))
+            tau = 0.0
+            if self.type == "Ellipsoid" and self.comment("misalignmentCoordinateSystem") == "Ellipsoid":
+                tau = ellipsoid_tangent_angle(
+                    self.get_float("longHalfAxisA"), self.get_float("shortHalfAxisB"),
+                    deg(self.get_float("designGrazingIncAngle", self.get_float("grazingIncAngle"))),
+                    self.get_float("entranceArmLength"), self.get_float("exitArmLength"))
+            return ChainLink(distance, azimuth, theta, theta, mis, tau)
+        raise RmlError(f"object {self.name!r}: element type {self.type!r} is not supported")
+
+
+@dataclass
+class RmlBeamline:
+    objects: list[RmlObject]
+    version: str = "1.15"
+
+    def __getitem__(self, name: str) -> RmlObject:
+        for obj in self.objects:
+            if obj.name == name:
+                return obj
+        raise RmlError(f"no object named {name!r}; objects: {[o.name for o in self.objects]}")
+
+    def copy(self) -> RmlBeamline:
+        return copy.deepcopy(self)
+
+    @property
+    def sources(self) -> list[RmlObject]:
+        return [o for o in self.objects if o.is_source]
+
+    @property
+    def elements(self) -> list[RmlObject]:
+        return [o for o in self.objects if not o.is_source]
+
+    def frames(self) -> list[Frame]:
+        """World frames of all objects, misalignments applied."""
+        if len(self.sources) != 1 or not self.objects[0].is_source:
+            raise RmlError("expected exactly one source, first in the beamline")
+        return chain_frames([o.chain_link() for o in self.objects])
+
+    def to_xml(self) -> str:
+        frames = self.frames()
+        lab = ET.Element("lab")
+        ET.SubElement(lab, "version").text = self.version
+        bl = ET.SubElement(lab, "beamline")
+        for obj, frame in zip(self.objects, frames):
+            node = ET.SubElement(bl, "object", {"name": obj.name, "type": obj.type})
+            world = dict(zip(WORLD_KEYS, (frame.position, frame.x, frame.y, frame.z)))
+            written_world = False
+            for p in obj.params.values():
+                if p.id in WORLD_KEYS:
+                    continue
+                ET.SubElement(node, "param", {"id": p.id, **p.attrs}).text = p.value
+                if p.id == "rotationZerror" or (obj.is_source and p.id == "rotationYerror"):
+                    _write_world(node, world)
+                    written_world = True
+            if not written_world:
+                _write_world(node, world)
+        ET.indent(lab, space=" ")
+        return "<?xml version='1.0' encoding='UTF-8'?>\n" + ET.tostring(lab, encoding="unicode") + "\n"
+
+    def write(self, path: str | Path) -> Path:
+        path = Path(path)
+        path.write_text(self.to_xml())
+        return path
+
+
+def _fmt(v) -> str:
+    return repr(float(v))
+
+
+def _write_world(node: ET.Element, world: Mapping[str, np.ndarray]) -> None:
+    for key, vec in world.items():
+        p = ET.SubElement(node, "param", {"id": key, "enabled": "F"})
+        for axis, comp in zip("xyz", vec):
+            ET.SubElement(p, axis).text = _fmt(comp + 0.0)
+
+
+def read_rml(path: str | Path) -> RmlBeamline:
+    """Parse an RML file into an :class:`RmlBeamline` (world vectors are kept as read
+    in :func:`read_world_vectors`, but recomputed on write)."""
+    try:
+        root = ET.parse(path).getroot()
+    except (ET.ParseError, OSError) as exc:
+        raise RmlError(f"cannot read RML {path}: {exc}") from None
+    return _from_root(root)
+
+
+def _from_root(root: ET.Element) -> RmlBeamline:
+    version = (root.findtext("version") or "1.15").strip()
+    bl = root.find("beamline")
+    if bl is None:
+        raise RmlError("RML has no <beamline>")
+    objects = []
+    for node in bl.iter("object"):
+        params: dict[str, RmlParam] = {}
+        for p in node.findall("param"):
+            pid = p.get("id")
+            attrs = {k: v for k, v in p.attrib.items() if k != "id"}
+            params[pid] = RmlParam(pid, (p.text or "").strip(), attrs)
+        objects.append(RmlObject(node.get("name"), node.get("type"), params))
+    if not objects:
+        raise RmlError("RML beamline has no objects")
+    return RmlBeamline(objects, version)
+
+
+def read_world_vectors(path: str | Path) -> dict[str, dict[str, np.ndarray]]:
+    """World vectors exactly as stored in an RML file, per object name."""
+    root = ET.parse(path).getroot()
+    out: dict[str, dict[str, np.ndarray]] = {}
+    for node in root.find("beamline").iter("object"):
+        vecs = {}
+        for p in node.findall("param"):
+            if p.get("id") in WORLD_KEYS:
+                vecs[p.get("id")] = np.array([float(p.findtext(a)) for a in "xyz"])
+        out[node.get("name")] = vecs
+    return out
+
+
+def make_object(name: str, type_: str, params: Iterable[tuple]) -> RmlObject:
+    """Build an object from ``(id, value)`` or ``(id, value, comment)`` tuples."""
+    obj = RmlObject(name, type_)
+    for entry in params:
+        pid, value, *rest = entry
+        obj.set(pid, value, comment=rest[0] if rest else None)
+    return obj
