@@ -417,7 +417,7 @@ class Twin:
             else:
                 n = self.n_workers or os.cpu_count() or 1
                 self._cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
-                                             dashboard_address=None, env={"OMP_NUM_THREADS": "1"},
+                                             dashboard_address="127.0.0.1:0", env={"OMP_NUM_THREADS": "1"},
                                              host="127.0.0.1")
                 self._client = Client(self._cluster)
         return self._client

@@ -1,0 +1,72 @@
+"""The twin's own repeat noise: the floor no model can beat.
+
+Two traces of the same configuration differ because RAYX samples the source
+afresh.  Their histogram MSE is the *repeat-noise MSE*.  For a histogram of
+``N`` source rays with bin probabilities ``p_i`` the counts are multinomial,
+so the expected repeat MSE over ``B`` bins is ``2 / (N B) Σ p_i (1 - p_i)``.
+:func:`expected_repeat_mse` evaluates that; :func:`measure_noise_floor`
+measures it with the twin; the measured floor ships in
+``bluesky_offsets/data/noise_floor.json`` (see ``benchmarks/bench_twin.py``).
+"""
+
+from __future__ import annotations
+
+import json
+from importlib import resources
+
+import numpy as np
+
+NOISE_FLOOR_FILE = "noise_floor.json"
+
+
+def histogram_mse(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """MSE over all bins of concatenated x/y histograms (last axis), as in the paper."""
+    return np.mean((np.asarray(a) - np.asarray(b)) ** 2, axis=-1)
+
+
+def expected_repeat_mse(hist: np.ndarray, n_rays: int) -> np.ndarray:
+    """Expected MSE between two independent traces with bin fractions ``hist``.
+
+    ``hist`` is (..., bins) of fractions of source rays (x and y histograms
+    concatenated); the variance of each bin fraction is ``p (1 - p) / N``.
+    """
+    p = np.clip(np.asarray(hist, dtype=float), 0.0, 1.0)
+    return 2.0 * np.mean(p * (1.0 - p), axis=-1) / float(n_rays)
+
+
+def good_configurations(twin, n: int, rng: np.random.Generator, *, min_hits: int = 10,
+                        screen_rays: int = 500, max_draws: int = 20000) -> np.ndarray:
+    """``n`` configurations drawn uniformly from the sampling box that put at least
+    ``min_hits`` rays (at ``screen_rays`` source rays) on the screen."""
+    found: list[np.ndarray] = []
+    draws = 0
+    while len(found) < n and draws < max_draws:
+        batch = twin.table.sample_uniform(max(4 * (n - len(found)), 16), rng)
+        draws += len(batch)
+        res = twin.trace_batch(batch, n_rays=screen_rays, progress=False)
+        found.extend(batch[res.n_hits >= min_hits])
+    if len(found) < n:
+        raise RuntimeError(f"only {len(found)} non-empty configurations in {draws} draws")
+    return np.asarray(found[:n])
+
+
+def measure_noise_floor(twin, configurations: np.ndarray, n_rays: int, seed: int = 0) -> dict:
+    """Measure the repeat-noise MSE: every configuration traced twice with independent seeds."""
+    a = twin.trace_batch(configurations, n_rays=n_rays, seed=seed, progress=False)
+    b = twin.trace_batch(configurations, n_rays=n_rays, seed=seed + 10_000_019, progress=False)
+    ha = np.concatenate([a.hist_x, a.hist_y], axis=1)
+    hb = np.concatenate([b.hist_x, b.hist_y], axis=1)
+    mse = histogram_mse(ha, hb)
+    nonempty = (a.n_hits > 0) & (b.n_hits > 0)
+    expected = expected_repeat_mse(0.5 * (ha + hb), n_rays)
+    return {"n_rays": int(n_rays), "n_configurations": int(len(configurations)),
+            "repeat_mse_mean": float(mse.mean()), "repeat_mse_median": float(np.median(mse)),
+            "repeat_mse_nonempty_mean": float(mse[nonempty].mean()) if nonempty.any() else 0.0,
+            "expected_mse_mean": float(expected.mean()),
+            "per_configuration": mse.tolist()}
+
+
+def load_noise_floor() -> dict:
+    """The noise floor measured at package build time, keyed by ray count (str)."""
+    text = resources.files("bluesky_offsets").joinpath("data", NOISE_FLOOR_FILE).read_text()
+    return json.loads(text)
