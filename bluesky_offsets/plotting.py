@@ -29,6 +29,15 @@ def plot_footprint(result, hist, path: str | Path, title: str = "") -> Path:
     rays = result.rays if result.rays is not None else np.empty((0, 2))
     if len(rays):
         ax.scatter(rays[:, 0], rays[:, 1], s=1, alpha=0.3, color="C0", rasterized=True)
+        # the focus is far smaller than the histogram window: add a zoom on it
+        cx, cy = np.median(rays, axis=0)
+        sx, sy = (max(5 * float(np.std(rays[:, k])), 0.01) for k in (0, 1))
+        ins = ax.inset_axes([0.62, 0.62, 0.36, 0.36])
+        ins.scatter(rays[:, 0], rays[:, 1], s=1, alpha=0.3, color="C0", rasterized=True)
+        ins.set_xlim(cx - sx, cx + sx)
+        ins.set_ylim(cy - sy, cy + sy)
+        ins.set_title("zoom", fontsize=8)
+        ins.tick_params(labelsize=7)
     ax.set_xlabel("x on screen [mm]")
     ax.set_ylabel("y on screen [mm]")
     ax.set_xlim(*hist.range_x)

@@ -1,0 +1,40 @@
+"""The repository's contract: README commands, CI script, packaging."""
+
+import re
+import tomllib
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _readme_commands():
+    text = (ROOT / "README.md").read_text()
+    block = re.search(r"```bash\n(.*?)```", text, re.S)
+    assert block and text.index("```bash") < 40, "README must open with the set-up commands"
+    return [line for line in block.group(1).splitlines() if line.strip()]
+
+
+def test_readme_opens_with_two_commands():
+    main_job, tests = _readme_commands()
+    assert main_job.endswith("bluesky-offsets demo")
+    assert "pytest" in tests
+    for cmd in (main_job, tests):
+        assert "pip install torch==2.13.0 &&" in cmd  # the CPU build first
+
+
+def test_ci_runs_the_readme_test_command():
+    _, tests = _readme_commands()
+    ci = (ROOT / ".ci" / "run").read_text()
+    test_part = tests.split(". .venv/bin/activate && ", 1)[1]
+    assert test_part in ci
+    assert "python3 -m venv" in ci
+
+
+def test_pyproject():
+    meta = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]
+    assert meta["scripts"]["bluesky-offsets"] == "bluesky_offsets.cli:main"
+    assert meta["requires-python"] == ">=3.11"
+    torch = [d for d in meta["dependencies"] if d.startswith("torch")]
+    assert torch == ["torch>=2.3,<3"]  # admits the installed CPU 2.13.0, pulls nothing else
+    for d in ("bluesky_offsets", "sim_iocs", "plans", "tests"):
+        assert (ROOT / d).is_dir()
