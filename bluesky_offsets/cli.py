@@ -19,6 +19,7 @@ from .parameters import METRIXS, ParameterError
 
 EXTENSIONS: list[str] = [
     # "module:function" pairs, each adding sub-commands.
+    "bluesky_offsets.demo:add_cli",
 ]
 
 
