@@ -120,7 +120,8 @@ def build_beamline(values, *, overrides: Mapping[str, Mapping[str, object]] | No
         alignment errors (``translationZerror`` ...) are added to those the
         parameters set, other fields replace the value.  This is how the
         focus-chamber translation (``{"ImagePlane": {"translationZerror": 5}}``)
-        and the physical effects reach the twin.
+        and the physical effects reach the twin.  A ``"type"`` entry changes
+        the element type (and then admits the new type's fields).
     n_rays : int, optional
         Number of source rays written to the source.
     """
@@ -141,11 +142,17 @@ def build_beamline(values, *, overrides: Mapping[str, Mapping[str, object]] | No
         except RmlError:
             raise RmlError(f"override names unknown object {name!r}; objects: "
                            f"{[o.name for o in bl.objects]}") from None
+        new_type = fields.get("type")
+        if new_type is not None:
+            # a structural change (e.g. M1 becoming a toroid): the new type's fields may be added
+            obj.type = str(new_type)
         for key, value in fields.items():
+            if key == "type":
+                continue
             if key in MISALIGNMENT_KEYS:
                 mis.setdefault(name, {})
                 mis[name][key] = mis[name].get(key, 0.0) + float(value)
-            elif not obj.has(key):
+            elif not obj.has(key) and new_type is None:
                 raise RmlError(f"override: {name!r} has no field {key!r}")
             else:
                 obj.set(key, value if isinstance(value, str) else float(value))

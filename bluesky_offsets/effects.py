@@ -1,0 +1,311 @@
+"""Physical effects the offset model lacks: named causes with parameters.
+
+Offsets explain only part of the gap between a twin and its beamline.  Each
+:class:`Effect` here is a physical cause with parameters (unit, prior range,
+0 = absent) and its implementation:
+
+* **twin level** — a change of the RAYX beamline, as RML overrides
+  ``{object: {field: value}}`` (element translations, slope errors, source
+  size, photon energy, grating line density, an M1 thermal bump ...);
+* **detector level** — a change of the measured histograms (blur,
+  background, intensity scale), applicable to twin *and* surrogate output.
+
+Adding an effect is one small class::
+
+    class EntranceSlitShift(Effect):
+        name = "entrance_slit_shift"
+        description = "entrance slit displaced horizontally"
+        parameters = (EffectParameter("x", "mm", -2.0, 2.0, "horizontal shift"),)
+
+        def overrides(self, v):
+            return {"Entrance-Slit": {"translationXerror": v["x"]}}
+
+    register(EntranceSlitShift())
+
+The registry :data:`EFFECTS` is what the diagnosis ranks.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass
+
+import numpy as np
+
+from .metrixs import IMAGE_PLANE, SOURCE, nominal_beamline
+
+_NOMINAL = nominal_beamline()
+
+
+@dataclass(frozen=True)
+class EffectParameter:
+    name: str
+    unit: str
+    low: float
+    high: float
+    description: str = ""
+
+    @property
+    def span(self) -> float:
+        return self.high - self.low
+
+
+class Effect:
+    """Base class: override :meth:`overrides` (twin level) and/or :meth:`apply_histograms`."""
+
+    name: str = ""
+    description: str = ""
+    parameters: tuple[EffectParameter, ...] = ()
+    level: str = "twin"  # or "detector"
+    order: int = 0  # detector effects apply in this order: blur, gain, then background
+
+    # -- values -------------------------------------------------------------
+    def values(self, values: Mapping[str, float] | Iterable[float] | None = None) -> dict[str, float]:
+        """Complete ``{parameter: value}`` (missing = 0 = absent), checked for finiteness."""
+        names = [p.name for p in self.parameters]
+        if values is None:
+            out = {}
+        elif isinstance(values, Mapping):
+            unknown = set(values) - set(names)
+            if unknown:
+                raise ValueError(f"effect {self.name!r} has no parameter {sorted(unknown)}; it has {names}")
+            out = dict(values)
+        else:
+            seq = list(values)
+            if len(seq) != len(names):
+                raise ValueError(f"effect {self.name!r} takes {len(names)} values ({names}), got {len(seq)}")
+            out = dict(zip(names, seq))
+        full = {n: float(out.get(n, 0.0)) for n in names}
+        for n, v in full.items():
+            if not math.isfinite(v):
+                raise ValueError(f"effect {self.name!r}: {n} = {v} is not finite")
+        return full
+
+    def is_absent(self, values: Mapping[str, float]) -> bool:
+        return all(v == 0.0 for v in self.values(values).values())
+
+    # -- implementation -----------------------------------------------------
+    def overrides(self, values: Mapping[str, float]) -> dict[str, dict[str, object]]:
+        """RML overrides for the twin (twin-level effects)."""
+        return {}
+
+    def apply_histograms(self, hist_x: np.ndarray, hist_y: np.ndarray, values: Mapping[str, float],
+                         spec) -> tuple[np.ndarray, np.ndarray]:
+        """Transform histograms (..., bins) (detector-level effects)."""
+        return hist_x, hist_y
+
+    def __repr__(self) -> str:
+        return f"<Effect {self.name}: {', '.join(f'{p.name} [{p.unit}]' for p in self.parameters)}>"
+
+
+EFFECTS: dict[str, Effect] = {}
+
+
+def register(effect: Effect) -> Effect:
+    if not effect.name or effect.name in EFFECTS:
+        raise ValueError(f"effect name {effect.name!r} is empty or already registered")
+    EFFECTS[effect.name] = effect
+    return effect
+
+
+def get(name: str) -> Effect:
+    try:
+        return EFFECTS[name]
+    except KeyError:
+        raise ValueError(f"unknown effect {name!r}; known: {sorted(EFFECTS)}") from None
+
+
+def twin_overrides(effects: Mapping[str, Mapping[str, float]]) -> dict[str, dict[str, object]]:
+    """Merge the RML overrides of several effects ``{effect name: values}``.
+
+    Alignment errors of the same object add up; other fields must not clash.
+    """
+    merged: dict[str, dict[str, object]] = {}
+    for name, values in effects.items():
+        eff = get(name)
+        for obj, fields in eff.overrides(eff.values(values)).items():
+            target = merged.setdefault(obj, {})
+            for key, val in fields.items():
+                if key.endswith("error") and key in target:
+                    target[key] = float(target[key]) + float(val)
+                elif key in target and target[key] != val:
+                    raise ValueError(f"effects disagree on {obj}.{key}")
+                else:
+                    target[key] = val
+    return merged
+
+
+def apply_detector_effects(hist_x, hist_y, effects: Mapping[str, Mapping[str, float]], spec):
+    """Apply the detector-level effects among ``effects`` to histograms, in physical
+    order (blur and gain act on the signal, background adds to it)."""
+    chosen = sorted(((get(n), v) for n, v in effects.items()), key=lambda ev: ev[0].order)
+    for eff, values in chosen:
+        if eff.level == "detector":
+            hist_x, hist_y = eff.apply_histograms(hist_x, hist_y, eff.values(values), spec)
+    return hist_x, hist_y
+
+
+# --------------------------------------------------------------------------- #
+# twin-level effects
+# --------------------------------------------------------------------------- #
+class ChamberTranslation(Effect):
+    name = "chamber_translation"
+    description = "focus-measurement chamber displaced (x, y across the beam; z along it)"
+    parameters = (EffectParameter("x", "mm", -1.0, 1.0, "horizontal"),
+                  EffectParameter("y", "mm", -1.0, 1.0, "vertical"),
+                  EffectParameter("z", "mm", -33.0, 33.0, "along the beam"))
+
+    def overrides(self, v):
+        return {IMAGE_PLANE: {"translationXerror": v["x"], "translationYerror": v["y"],
+                              "translationZerror": v["z"]}}
+
+
+class ChamberTranslationZ(Effect):
+    name = "chamber_z"
+    description = "focus-measurement chamber displaced along the beam (defocus)"
+    parameters = (EffectParameter("z", "mm", -33.0, 33.0, "along the beam"),)
+
+    def overrides(self, v):
+        return {IMAGE_PLANE: {"translationZerror": v["z"]}}
+
+
+class ChamberRotation(Effect):
+    name = "chamber_rotation"
+    description = "focus-measurement screen rotated about the beam"
+    parameters = (EffectParameter("angle", "mrad", -100.0, 100.0, "rotation about the beam axis"),)
+
+    def overrides(self, v):
+        return {IMAGE_PLANE: {"rotationZerror": v["angle"]}}
+
+
+class SourceSizeDivergence(Effect):
+    name = "source_size_divergence"
+    description = "electron-beam size and divergence differ from the model (relative change)"
+    parameters = (EffectParameter("size", "rel", -0.5, 1.0, "relative change of the source size"),
+                  EffectParameter("divergence", "rel", -0.5, 1.0, "relative change of the divergence"))
+
+    def overrides(self, v):
+        src = _NOMINAL[SOURCE]
+        s, d = 1.0 + v["size"], 1.0 + v["divergence"]
+        if s <= 0 or d <= 0:
+            raise ValueError("source size and divergence must stay positive (relative change > -1)")
+        return {SOURCE: {"sourceWidth": src.get_float("sourceWidth") * s,
+                         "sourceHeight": src.get_float("sourceHeight") * s,
+                         "horDiv": src.get_float("horDiv") * d, "verDiv": src.get_float("verDiv") * d}}
+
+
+class PhotonEnergyOffset(Effect):
+    name = "photon_energy"
+    description = "photon energy differs from the monochromator setting (undulator/energy calibration)"
+    # the exit slit passes a few 10 meV at 318 eV: 50 meV already empties the screen
+    parameters = (EffectParameter("delta", "eV", -0.05, 0.05, "photon-energy offset"),)
+
+    def overrides(self, v):
+        return {SOURCE: {"photonEnergy": _NOMINAL[SOURCE].get_float("photonEnergy") + v["delta"]}}
+
+
+class SlopeError(Effect):
+    """Extra rms meridional and sagittal slope error of one mirror, added in quadrature."""
+
+    level = "twin"
+
+    def __init__(self, element: str, key: str, high: float = 5.0):
+        self.element, self.name = element, f"slope_error_{key}"
+        self.description = f"{element}: figure (slope) errors larger than specified"
+        self.parameters = (EffectParameter("meridional", "µrad", 0.0, high, "extra rms slope error"),
+                           EffectParameter("sagittal", "µrad", 0.0, 4 * high, "extra rms slope error"))
+
+    def overrides(self, v):
+        obj = _NOMINAL[self.element]
+        urad_to_arcsec = 1e-6 * 180 / math.pi * 3600  # RAYX takes arcsec
+        mer = math.hypot(obj.get_float("slopeErrorMer"), v["meridional"] * urad_to_arcsec)
+        sag = math.hypot(obj.get_float("slopeErrorSag"), v["sagittal"] * urad_to_arcsec)
+        return {self.element: {"slopeErrorMer": mer, "slopeErrorSag": sag}}
+
+
+class ThermalBump(Effect):
+    """Heat load bulges M1: modelled by the bump's central meridional curvature,
+    a convex radius R = -sigma^2 / h over the illuminated length (RAYX ignores
+    RAY-UI's thermalDistortion fields, so M1 becomes a toroid)."""
+
+    name = "thermal_bump_m1"
+    description = "M1 thermal bump (convex meridional curvature from the heat load)"
+    parameters = (EffectParameter("height", "nm", 0.0, 500.0, "bump height"),)
+    sigma_mm = 25.0
+    min_height_nm = 25.0  # below: |R| > 2.5e7 mm, beyond RAYX's toroid precision; treated as absent
+
+    def overrides(self, v):
+        h = v["height"]
+        if h < 0:
+            raise ValueError("thermal bump height must be >= 0 (a bulge)")
+        if h < self.min_height_nm:
+            return {}
+        radius = -(self.sigma_mm ** 2) / (h * 1e-6)
+        m1 = _NOMINAL["M1-Cylinder"]
+        return {"M1-Cylinder": {"type": "Toroid", "longRadius": radius,
+                                "shortRadius": m1.get_float("radius")}}
+
+
+class LineDensityError(Effect):
+    name = "grating_line_density"
+    description = "grating line density differs from its nominal value"
+    parameters = (EffectParameter("delta", "l/mm", -0.3, 0.3, "line-density error"),)
+
+    def overrides(self, v):
+        sg = _NOMINAL["Spherical Grating"]
+        return {"Spherical Grating": {"lineDensity": sg.get_float("lineDensity") + v["delta"]}}
+
+
+# --------------------------------------------------------------------------- #
+# detector-level effects (histograms; twin and surrogate alike)
+# --------------------------------------------------------------------------- #
+def _gauss_blur(h: np.ndarray, sigma_bins: float) -> np.ndarray:
+    if sigma_bins <= 0:
+        return h
+    n = h.shape[-1]
+    idx = np.arange(n)
+    kernel = np.exp(-0.5 * ((idx[:, None] - idx[None, :]) / sigma_bins) ** 2)
+    kernel /= kernel.sum(axis=0, keepdims=True)  # keeps the total inside the window
+    return h @ kernel
+
+
+class DetectorBlur(Effect):
+    name = "detector_blur"
+    description = "finite resolution of the screen/camera (Gaussian blur)"
+    level = "detector"
+    parameters = (EffectParameter("sigma", "mm", 0.0, 0.3, "rms blur"),)
+
+    def apply_histograms(self, hx, hy, v, spec):
+        wx = (spec.range_x[1] - spec.range_x[0]) / spec.bins_x
+        wy = (spec.range_y[1] - spec.range_y[0]) / spec.bins_y
+        return _gauss_blur(np.asarray(hx), v["sigma"] / wx), _gauss_blur(np.asarray(hy), v["sigma"] / wy)
+
+
+class Background(Effect):
+    name = "background"
+    description = "uniform background on the screen (stray light, dark signal)"
+    level = "detector"
+    order = 2
+    parameters = (EffectParameter("level", "fraction/bin", 0.0, 2e-3, "background per bin"),)
+
+    def apply_histograms(self, hx, hy, v, spec):
+        return np.asarray(hx) + v["level"], np.asarray(hy) + v["level"]
+
+
+class IntensityScale(Effect):
+    name = "intensity_scale"
+    description = "detector gain / beam current differs (relative change of all counts)"
+    level = "detector"
+    order = 1
+    parameters = (EffectParameter("delta", "rel", -0.3, 0.3, "relative intensity change"),)
+
+    def apply_histograms(self, hx, hy, v, spec):
+        return np.asarray(hx) * (1 + v["delta"]), np.asarray(hy) * (1 + v["delta"])
+
+
+for _eff in (ChamberTranslation(), ChamberTranslationZ(), ChamberRotation(), SourceSizeDivergence(),
+             PhotonEnergyOffset(), SlopeError("M1-Cylinder", "m1"), SlopeError("E1", "e1"),
+             SlopeError("E2", "e2"), ThermalBump(), LineDensityError(), DetectorBlur(), Background(),
+             IntensityScale()):
+    register(_eff)

@@ -1,0 +1,110 @@
+"""The effects library: each effect is a real change of the twin (or the detector)."""
+
+import numpy as np
+import pytest
+
+from bluesky_offsets import effects as E
+from bluesky_offsets.parameters import METRIXS
+from bluesky_offsets.twin import HistogramSpec, Twin
+
+REQUIRED = {"chamber_translation", "chamber_z", "chamber_rotation", "source_size_divergence", "photon_energy",
+            "slope_error_m1", "slope_error_e1", "slope_error_e2", "thermal_bump_m1", "grating_line_density",
+            "detector_blur", "background", "intensity_scale"}
+
+
+@pytest.fixture(scope="module")
+def twin():
+    return Twin(scheduler="inline", n_rays=20_000)
+
+
+@pytest.fixture(scope="module")
+def base(twin):
+    return twin.trace(METRIXS.reference, keep_rays=True, seed=3).summary()
+
+
+def test_library_has_the_required_effects():
+    assert REQUIRED <= set(E.EFFECTS)
+    for eff in E.EFFECTS.values():
+        assert eff.description and eff.parameters and eff.level in ("twin", "detector")
+        for p in eff.parameters:
+            assert p.low <= 0 <= p.high and p.unit
+
+
+@pytest.mark.parametrize("name", sorted(n for n in REQUIRED if E.get(n).level == "twin"))
+def test_zero_is_absent(twin, name):
+    eff = E.get(name)
+    a = twin.trace(METRIXS.reference, n_rays=3000, seed=9, overrides=E.twin_overrides({name: {}}))
+    b = twin.trace(METRIXS.reference, n_rays=3000, seed=9)
+    np.testing.assert_array_equal(a.hist_x, b.hist_x)
+    np.testing.assert_array_equal(a.hist_y, b.hist_y)
+    assert eff.is_absent({})
+
+
+@pytest.mark.parametrize("name, values, signature", [
+    ("chamber_z", {"z": 20.0}, lambda d: d["width_y"] > 0.015 and d["width_x"] < -0.01),
+    ("chamber_translation", {"x": 0.5, "y": -0.3}, lambda d: abs(d["centroid_x"] + 0.5) < 0.02
+     and abs(d["centroid_y"] - 0.3) < 0.02),
+    ("source_size_divergence", {"divergence": 1.0}, lambda d: d["transmission"] < -0.2),
+    ("photon_energy", {"delta": 0.03}, lambda d: d["transmission"] < -0.3),
+    ("grating_line_density", {"delta": 0.2}, lambda d: d["transmission"] < -0.3),
+    ("slope_error_e2", {"meridional": 5.0}, lambda d: d["width_y"] > 0.002 and abs(d["width_x"]) < 0.001),
+    ("slope_error_e1", {"meridional": 5.0}, lambda d: d["width_x"] > 0.002 and abs(d["width_y"]) < 0.001),
+    ("slope_error_m1", {"meridional": 5.0, "sagittal": 20.0}, lambda d: d["width_x"] > 0.001),
+    ("thermal_bump_m1", {"height": 200.0}, lambda d: d["width_x"] > 0.01 and abs(d["transmission"]) < 0.01),
+])
+def test_twin_effect_signatures(twin, base, name, values, signature):
+    s = twin.trace(METRIXS.reference, keep_rays=True, seed=3, overrides=E.twin_overrides({name: values})).summary()
+    d = {k: s.get(k, 0.0) - base[k] for k in ("transmission", "centroid_x", "centroid_y", "width_x", "width_y")}
+    assert signature(d), d
+
+
+def test_chamber_rotation_rotates_an_elongated_footprint(twin):
+    # defocused screen: an elongated spot, whose orientation the rotation changes
+    v = METRIXS.reference
+    a = twin.trace(v, keep_rays=True, seed=4, overrides={"ImagePlane": {"translationZerror": -60.0}})
+    b = twin.trace(v, keep_rays=True, seed=4, overrides=E.twin_overrides(
+        {"chamber_rotation": {"angle": 100.0}, "chamber_z": {"z": -60.0}}))
+    ca, cb = np.cov(a.rays.T), np.cov(b.rays.T)
+    assert abs(cb[0, 1] - ca[0, 1]) > 0.05 * np.sqrt(ca[0, 0] * ca[1, 1])
+
+
+def test_detector_effects():
+    spec = HistogramSpec()
+    hx = np.zeros(50)
+    hx[25] = 0.5
+    hy = np.zeros(50)
+    hy[20] = 0.5
+    bx, by = E.apply_detector_effects(hx, hy, {"detector_blur": {"sigma": 0.4}}, spec)
+    assert bx.sum() == pytest.approx(0.5) and bx.max() < 0.5 and by.max() < bx.max()
+    gx, _ = E.apply_detector_effects(hx, hy, {"background": {"level": 1e-3}, "intensity_scale": {"delta": -0.1}},
+                                     spec)
+    assert gx[25] == pytest.approx(0.45 + 1e-3) and gx[0] == pytest.approx(1e-3)
+
+
+def test_bad_effect_input():
+    with pytest.raises(ValueError, match="unknown effect 'warp'"):
+        E.twin_overrides({"warp": {}})
+    with pytest.raises(ValueError, match="no parameter"):
+        E.twin_overrides({"chamber_z": {"w": 1.0}})
+    with pytest.raises(ValueError, match="not finite"):
+        E.twin_overrides({"chamber_z": {"z": float("nan")}})
+    with pytest.raises(ValueError, match="takes 3 values"):
+        E.get("chamber_translation").values([1.0])
+
+
+def test_a_user_effect_is_one_small_class(twin):
+    class EntranceSlitShift(E.Effect):
+        name = "entrance_slit_shift_test"
+        description = "entrance slit displaced horizontally"
+        parameters = (E.EffectParameter("x", "mm", -8.0, 8.0, "horizontal shift"),)
+
+        def overrides(self, v):
+            return {"Entrance-Slit": {"translationXerror": v["x"]}}
+
+    E.register(EntranceSlitShift())
+    try:
+        moved = twin.trace(METRIXS.reference, n_rays=3000, seed=1,
+                           overrides=E.twin_overrides({"entrance_slit_shift_test": {"x": 8.0}}))
+        assert moved.transmission < 0.5  # the 10 mm wide slit now clips the beam
+    finally:
+        del E.EFFECTS["entrance_slit_shift_test"]
