@@ -1,0 +1,284 @@
+"""Model vs. measurement: noise-aware misfit, residual signatures, where the model fails.
+
+Everything here is a pure function of histograms (fractions of source rays,
+``(n_configurations, bins)`` for x and for y) and ray counts, so it serves the
+twin, the surrogate and stored measurement runs alike.
+
+Noise model: a measured bin fraction ``m`` from ``N`` source rays has
+variance ``p (1 - p) / N`` (multinomial counts).  A model histogram traced by
+the twin with ``N_model`` rays adds ``p (1 - p) / N_model``; a surrogate adds
+its own error variance ``model_var``.  ``p`` is floored at one ray so empty
+bins next to signal still count.  A correct model has ``chi2 / dof ≈ 1``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+SIGNATURE_NAMES = ("intensity", "centroid", "width", "skewness", "tails")
+
+
+class MeasurementError(ValueError):
+    """Measurement data that cannot be compared (shape, NaN, table mismatch)."""
+
+
+def check_histograms(hist_x, hist_y, bins_x: int = 50, bins_y: int = 50, what: str = "measurement"):
+    """Validate a stack of x/y histograms; return float arrays (n, bins)."""
+    hx = np.asarray(hist_x, dtype=float)
+    hy = np.asarray(hist_y, dtype=float)
+    if hx.ndim == 1:
+        hx, hy = hx[None], hy[None]
+    if hx.ndim != 2 or hx.shape[1] != bins_x:
+        raise MeasurementError(f"{what}: x histograms must be (configurations, {bins_x}), got {hx.shape}")
+    if hy.shape != (hx.shape[0], bins_y):
+        raise MeasurementError(f"{what}: y histograms must be ({hx.shape[0]}, {bins_y}), got {hy.shape}")
+    for name, h in (("x", hx), ("y", hy)):
+        bad = ~np.isfinite(h)
+        if bad.any():
+            i, j = np.argwhere(bad)[0]
+            raise MeasurementError(f"{what}: {name} histogram of configuration {i} has a non-finite bin {j}")
+        if (h < 0).any():
+            i = int(np.argwhere(h < 0)[0][0])
+            raise MeasurementError(f"{what}: {name} histogram of configuration {i} has negative bins")
+    return hx, hy
+
+
+@dataclass
+class Misfit:
+    """Noise-aware misfit of a model against measured histograms."""
+
+    chi2: np.ndarray            # per configuration
+    dof: np.ndarray             # bins that carry signal, per configuration
+    mse: np.ndarray             # per configuration, x and y bins together
+    expected_mse: np.ndarray    # per configuration, for a correct model
+    pulls_x: np.ndarray         # (n, bins) normalized residuals (measured - model) / sigma
+    pulls_y: np.ndarray
+
+    @property
+    def chi2_total(self) -> float:
+        return float(self.chi2.sum())
+
+    @property
+    def dof_total(self) -> int:
+        return int(self.dof.sum())
+
+    @property
+    def chi2_reduced(self) -> np.ndarray:
+        return self.chi2 / np.maximum(self.dof, 1)
+
+    @property
+    def chi2_reduced_total(self) -> float:
+        return self.chi2_total / max(self.dof_total, 1)
+
+    @property
+    def mse_total(self) -> float:
+        return float(self.mse.mean())
+
+    @property
+    def expected_mse_total(self) -> float:
+        return float(self.expected_mse.mean())
+
+    def beyond_noise(self, n_sigma: float = 3.0) -> np.ndarray:
+        """Configurations whose chi2 exceeds its expectation by ``n_sigma`` (chi2 with dof)."""
+        return self.chi2 > self.dof + n_sigma * np.sqrt(2 * np.maximum(self.dof, 1))
+
+    def total_beyond_noise(self, n_sigma: float = 3.0) -> bool:
+        return self.chi2_total > self.dof_total + n_sigma * np.sqrt(2 * max(self.dof_total, 1))
+
+    def as_dict(self) -> dict:
+        return {"chi2_total": self.chi2_total, "dof_total": self.dof_total,
+                "chi2_reduced_total": self.chi2_reduced_total, "mse_total": self.mse_total,
+                "expected_mse_total": self.expected_mse_total,
+                "chi2_reduced": self.chi2_reduced.tolist(), "mse": self.mse.tolist(),
+                "configurations_beyond_noise": np.flatnonzero(self.beyond_noise()).tolist()}
+
+
+def misfit(meas_x, meas_y, model_x, model_y, n_rays: int | Sequence[int], *,
+           model_rays: int | None = None, model_var: float = 0.0) -> Misfit:
+    """Chi-square and MSE of model histograms against measured ones.
+
+    Parameters
+    ----------
+    meas_x, meas_y, model_x, model_y : array_like (n, bins)
+        Fractions of source rays per bin.
+    n_rays : int or sequence of int
+        Source rays (ray budget) of each measurement.
+    model_rays : int, optional
+        Rays of a twin-traced model (its own noise); ``None`` for a mean model (surrogate).
+    model_var : float
+        Extra per-bin variance of the model (e.g. a surrogate's test MSE).
+    """
+    mx, my = check_histograms(meas_x, meas_y)
+    fx, fy = check_histograms(model_x, model_y, mx.shape[1], my.shape[1], what="model")
+    if fx.shape[0] != mx.shape[0]:
+        raise MeasurementError(f"{mx.shape[0]} measured configurations but {fx.shape[0]} modelled")
+    n = np.broadcast_to(np.asarray(n_rays, dtype=float), (mx.shape[0],))[:, None]
+    if (n <= 0).any():
+        raise MeasurementError("ray budgets must be positive")
+
+    def _pulls(m, f):
+        p = np.maximum(0.5 * (m + f), 1.0 / n)
+        var = p * (1 - p) / n + model_var
+        if model_rays:
+            var = var + p * (1 - p) / model_rays
+        signal = (m > 0) | (f > 0)
+        pull = np.where(signal, (m - f) / np.sqrt(var), 0.0)
+        return pull, signal, p
+
+    px, sx, ppx = _pulls(mx, fx)
+    py, sy, ppy = _pulls(my, fy)
+    chi2 = (px ** 2).sum(1) + (py ** 2).sum(1)
+    dof = sx.sum(1) + sy.sum(1)
+    mse = np.concatenate([(mx - fx) ** 2, (my - fy) ** 2], axis=1).mean(1)
+    # a correct model: E[(m - f)^2] = var per bin
+    var_factor = 1.0 / n + (1.0 / model_rays if model_rays else 0.0)
+    exp_mse = (np.concatenate([ppx * (1 - ppx) * sx, ppy * (1 - ppy) * sy], axis=1) * var_factor
+               + model_var).mean(1)
+    return Misfit(chi2, dof, mse, exp_mse, px, py)
+
+
+# --------------------------------------------------------------------------- #
+# residual signatures
+# --------------------------------------------------------------------------- #
+def moments(hist: np.ndarray, centers: np.ndarray) -> dict[str, np.ndarray]:
+    """Intensity, centroid, width (std), skewness and tail fraction of histograms (n, bins).
+
+    Tails: the share of the intensity outside the peak bin ±2 bins (robust for the
+    narrow foci that span only a few bins).
+    """
+    h = np.asarray(hist, dtype=float)
+    tot = h.sum(-1)
+    safe = np.where(tot > 0, tot, 1.0)
+    mu = (h * centers).sum(-1) / safe
+    var = (h * (centers - mu[..., None]) ** 2).sum(-1) / safe
+    sd = np.sqrt(var)
+    skew = np.where(sd > 0, (h * (centers - mu[..., None]) ** 3).sum(-1) / safe / np.maximum(sd, 1e-12) ** 3, 0.0)
+    peak = h.argmax(-1)
+    idx = np.arange(h.shape[-1])
+    core = np.abs(idx - peak[..., None]) <= 2
+    tails = np.where(tot > 0, (h * ~core).sum(-1) / safe, 0.0)
+    empty = tot <= 0
+    return {"intensity": tot, "centroid": np.where(empty, 0.0, mu), "width": np.where(empty, 0.0, sd),
+            "skewness": np.where(empty, 0.0, skew), "tails": tails}
+
+
+@dataclass
+class Signature:
+    """Model-minus-measurement differences of the histogram moments, per axis and configuration."""
+
+    delta: dict[str, np.ndarray] = field(default_factory=dict)  # "x.centroid" -> (n,)
+
+    def mean(self) -> dict[str, float]:
+        return {k: float(np.mean(v)) for k, v in self.delta.items()}
+
+    def as_vector(self, keys: Sequence[str] | None = None) -> np.ndarray:
+        keys = keys or sorted(self.delta)
+        return np.stack([self.delta[k] for k in keys], axis=-1)
+
+
+def residual_signature(meas_x, meas_y, model_x, model_y, spec) -> Signature:
+    """How the model differs from the measurement, in physical terms, per configuration:
+    lost intensity, centroid shift, width change, asymmetry and tails, per axis."""
+    out = {}
+    for axis, m, f, c in (("x", meas_x, model_x, spec.centers_x), ("y", meas_y, model_y, spec.centers_y)):
+        mm, fm = moments(m, c), moments(f, c)
+        for k in SIGNATURE_NAMES:
+            out[f"{axis}.{k}"] = fm[k] - mm[k]
+    return Signature(out)
+
+
+def correlate_with_parameters(signature: Signature, configurations: np.ndarray, names: Sequence[str],
+                              top: int = 5) -> list[tuple[str, str, float]]:
+    """Strongest Pearson correlations between residual signatures and the commanded parameters
+    across configurations: ``(signature, parameter, r)``, largest |r| first."""
+    cfg = np.asarray(configurations, dtype=float)
+    out = []
+    for key, d in signature.delta.items():
+        if np.std(d) == 0:
+            continue
+        for j, name in enumerate(names):
+            col = cfg[:, j]
+            if np.std(col) == 0:
+                continue
+            r = float(np.corrcoef(d, col)[0, 1])
+            if np.isfinite(r):
+                out.append((key, name, r))
+    out.sort(key=lambda t: -abs(t[2]))
+    return out[:top]
+
+
+def failing_regions(misfit_: Misfit, spec, n_sigma: float = 3.0) -> list[dict]:
+    """Where the misfit sits: per failing configuration and axis, the bins whose pulls
+    exceed ``n_sigma`` and whether they lie in the core or the tails of the footprint."""
+    out = []
+    for i in np.flatnonzero(misfit_.beyond_noise(n_sigma)):
+        for axis, pulls, centers in (("x", misfit_.pulls_x[i], spec.centers_x),
+                                     ("y", misfit_.pulls_y[i], spec.centers_y)):
+            bad = np.flatnonzero(np.abs(pulls) > n_sigma)
+            if bad.size:
+                out.append({"configuration": int(i), "axis": axis,
+                            "range_mm": [float(centers[bad.min()]), float(centers[bad.max()])],
+                            "max_pull": float(pulls[bad][np.argmax(np.abs(pulls[bad]))]),
+                            "chi2_share": float((pulls[bad] ** 2).sum() / max(misfit_.chi2[i], 1e-300))})
+    return out
+
+
+# --------------------------------------------------------------------------- #
+# plots
+# --------------------------------------------------------------------------- #
+def plot_overlays(meas_x, meas_y, model_x, model_y, spec, path, misfit_: Misfit | None = None,
+                  max_configurations: int = 8, title: str = "measured vs model"):
+    """Per configuration: measured and modelled x/y histograms, residuals below."""
+    from .plotting import _plt
+    plt = _plt()
+    n = min(len(meas_x), max_configurations)
+    fig, axes = plt.subplots(4, n, figsize=(2.6 * n, 7.5), squeeze=False, sharex="row",
+                             gridspec_kw={"height_ratios": (3, 1, 3, 1)}, constrained_layout=True)
+    for i in range(n):
+        for row, (m, f, edges, lab) in enumerate(((meas_x, model_x, spec.edges_x, "x"),
+                                                  (meas_y, model_y, spec.edges_y, "y"))):
+            ax, axr = axes[2 * row, i], axes[2 * row + 1, i]
+            ax.stairs(m[i], edges, color="C1", label="measured", lw=1.5)
+            ax.stairs(f[i], edges, color="C0", label="model", lw=1.2)
+            nz = np.flatnonzero((m[i] > 0) | (f[i] > 0))
+            if nz.size:
+                lo, hi = edges[max(nz.min() - 2, 0)], edges[min(nz.max() + 3, len(edges) - 1)]
+                ax.set_xlim(lo, hi)
+            axr.stairs(m[i] - f[i], edges, color="C3", fill=True)
+            axr.axhline(0, color="k", lw=0.5)
+            if i == 0:
+                ax.set_ylabel(f"{lab}: fraction/bin")
+                axr.set_ylabel("resid.")
+            if row == 1:
+                axr.set_xlabel(f"{lab} [mm]")
+        t = f"config {i}"
+        if misfit_ is not None:
+            t += f"\nχ²/dof {misfit_.chi2_reduced[i]:.2f}"
+        axes[0, i].set_title(t, fontsize=9)
+    axes[0, 0].legend(fontsize=7)
+    fig.suptitle(title)
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return path
+
+
+def plot_residual_maps(misfit_: Misfit, spec, path, title: str = "normalized residuals (measured − model) / σ"):
+    """Per-bin pulls across configurations, for x and y."""
+    from .plotting import _plt
+    plt = _plt()
+    fig, axes = plt.subplots(1, 2, figsize=(11, 0.35 * len(misfit_.chi2) + 2), constrained_layout=True)
+    lim = max(3.0, float(np.percentile(np.abs(np.concatenate([misfit_.pulls_x, misfit_.pulls_y])), 99)))
+    for ax, pulls, rng, lab in ((axes[0], misfit_.pulls_x, spec.range_x, "x"),
+                                (axes[1], misfit_.pulls_y, spec.range_y, "y")):
+        im = ax.imshow(pulls, aspect="auto", cmap="RdBu_r", vmin=-lim, vmax=lim,
+                       extent=(rng[0], rng[1], len(pulls) - 0.5, -0.5), interpolation="nearest")
+        ax.set_xlabel(f"{lab} [mm]")
+        ax.set_ylabel("configuration")
+    fig.colorbar(im, ax=axes, label="pull")
+    fig.suptitle(title)
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return path

@@ -1,0 +1,69 @@
+"""Model vs. measurement on twin data: misfit within noise when the model is right,
+beyond noise and with the right signature when an effect is missing."""
+
+import numpy as np
+import pytest
+
+from bluesky_offsets import effects as E
+from bluesky_offsets.diagnostics import (MeasurementError, correlate_with_parameters, failing_regions, misfit,
+                                         plot_overlays, plot_residual_maps, residual_signature)
+from bluesky_offsets.parameters import METRIXS
+from bluesky_offsets.twin import HistogramSpec, Twin
+
+N_MEAS, N_MODEL = 10_000, 40_000
+
+
+@pytest.fixture(scope="module")
+def data():
+    twin = Twin(scheduler="inline")
+    rng = np.random.default_rng(5)
+    cfgs = np.tile(METRIXS.reference, (8, 1))
+    cfgs[:, METRIXS.index("E1.rotationXerror")] = rng.uniform(-0.6, 0.6, 8)
+    cfgs[:, METRIXS.index("E2.rotationXerror")] = rng.uniform(-0.3, 0.3, 8)
+    hidden = E.twin_overrides({"chamber_z": {"z": 20.0}})
+
+    def run(overrides, n, seed):
+        res = [twin.trace(c, n_rays=n, seed=seed + i, overrides=overrides) for i, c in enumerate(cfgs)]
+        return np.stack([r.hist_x for r in res]), np.stack([r.hist_y for r in res])
+
+    return {"cfgs": cfgs, "meas": run(hidden, N_MEAS, 100), "right": run(hidden, N_MODEL, 200),
+            "wrong": run({}, N_MODEL, 300)}
+
+
+def test_correct_model_is_within_noise(data):
+    (mx, my), (fx, fy) = data["meas"], data["right"]
+    m = misfit(mx, my, fx, fy, N_MEAS, model_rays=N_MODEL)
+    assert 0.6 < m.chi2_reduced_total < 1.5
+    assert not m.total_beyond_noise()
+    assert m.mse_total < 2 * m.expected_mse_total
+
+
+def test_missing_effect_is_beyond_noise_with_its_signature(data, tmp_path):
+    (mx, my), (fx, fy) = data["meas"], data["wrong"]
+    m = misfit(mx, my, fx, fy, N_MEAS, model_rays=N_MODEL)
+    assert m.chi2_reduced_total > 5 and m.total_beyond_noise()
+    assert m.beyond_noise().sum() >= 6
+    spec = HistogramSpec()
+    sig = residual_signature(mx, my, fx, fy, spec).mean()
+    # chamber 20 mm downstream: the measured spot is wider in y and narrower in x than modelled
+    assert sig["y.width"] < -0.01 and sig["x.width"] > 0.01
+    assert abs(sig["x.intensity"]) < 0.02
+    regions = failing_regions(m, spec)
+    assert regions and {r["axis"] for r in regions} <= {"x", "y"}
+    corr = correlate_with_parameters(residual_signature(mx, my, fx, fy, spec), data["cfgs"], METRIXS.names)
+    assert all(name in ("E1.rotationXerror", "E2.rotationXerror") for _, name, _ in corr)
+    assert plot_overlays(mx, my, fx, fy, spec, tmp_path / "o.png", m).stat().st_size > 10_000
+    assert plot_residual_maps(m, spec, tmp_path / "r.png").stat().st_size > 5_000
+
+
+@pytest.mark.parametrize("mutate, message", [
+    (lambda x, y: (x[:, :40], y), r"x histograms must be \(configurations, 50\)"),
+    (lambda x, y: (x, y[:3]), r"y histograms must be"),
+    (lambda x, y: (np.where(np.arange(50) == 7, np.nan, x), y), "non-finite bin 7"),
+    (lambda x, y: (x, -y), "negative"),
+])
+def test_bad_measurements_are_refused(data, mutate, message):
+    mx, my = mutate(*data["meas"])
+    fx, fy = data["right"]
+    with pytest.raises(MeasurementError, match=message):
+        misfit(mx, my, fx, fy, N_MEAS)
