@@ -20,6 +20,7 @@ from .parameters import METRIXS, ParameterError
 EXTENSIONS: list[str] = [
     # "module:function" pairs, each adding sub-commands.
     "bluesky_offsets.demo:add_cli",
+    "bluesky_offsets.surrogate_cli:add_cli",
 ]
 
 

@@ -1,0 +1,333 @@
+"""The neural surrogate of the twin: 34 beamline parameters -> x and y histograms.
+
+Paper Sec. 3.1: min-max normalized inputs and outputs, seven linear layers,
+Mish after every layer but the last, 100 outputs (50 x bins then 50 y bins,
+in the twin's units: fraction of source rays per bin).
+
+A :class:`Surrogate` is the network plus everything needed to use it safely:
+the parameter table it was trained on (names, order, ranges), the histogram
+spec, the normalization, where its data came from and how well it did.
+:func:`load` refuses a checkpoint that does not match the current table or
+histogram spec, and reports truncated or corrupt files instead of returning
+a half-loaded model.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import io
+import json
+import os
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from importlib import resources
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import nn
+
+from .parameters import METRIXS, ParameterTable
+from .twin import HistogramSpec
+
+FORMAT = "bluesky-offsets-surrogate/1"
+DEFAULT_CHECKPOINT = "surrogate.pt"
+
+
+class SurrogateError(RuntimeError):
+    """A checkpoint that cannot be used: missing, corrupt, or made for another table/spec."""
+
+
+# --------------------------------------------------------------------------- #
+# network
+# --------------------------------------------------------------------------- #
+@dataclass(frozen=True)
+class Architecture:
+    """Fully connected net: ``n_layers`` linear layers of ``width``, Mish in between."""
+
+    n_inputs: int = 34
+    n_outputs: int = 100
+    width: int = 512
+    n_layers: int = 7
+
+    def __post_init__(self):
+        if self.n_layers < 2:
+            raise ValueError("n_layers must be >= 2")
+        if self.width < 1:
+            raise ValueError("width must be positive")
+
+
+class SurrogateNet(nn.Module):
+    """The bare network, normalized inputs -> normalized outputs."""
+
+    def __init__(self, arch: Architecture):
+        super().__init__()
+        sizes = [arch.n_inputs] + [arch.width] * (arch.n_layers - 1) + [arch.n_outputs]
+        layers: list[nn.Module] = []
+        for i, (a, b) in enumerate(zip(sizes[:-1], sizes[1:])):
+            layers.append(nn.Linear(a, b))
+            if i < arch.n_layers - 1:
+                layers.append(nn.Mish())
+        self.layers = nn.Sequential(*layers)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.layers(x)
+
+
+@dataclass
+class Normalization:
+    """Min-max normalization of inputs (the table's box) and outputs (histogram values).
+
+    ``out_low``/``out_span`` have one entry per output bin; a "global" output
+    normalization simply repeats one value (keeps the loss proportional to the
+    histogram MSE, which is what the finder compares).
+    """
+
+    in_low: np.ndarray
+    in_span: np.ndarray
+    out_low: np.ndarray
+    out_span: np.ndarray
+    mode: str = "global"
+
+    @classmethod
+    def fit(cls, table: ParameterTable, hist: np.ndarray, mode: str = "global") -> Normalization:
+        hist = np.asarray(hist, dtype=np.float64)
+        if mode == "global":
+            lo = np.full(hist.shape[1], hist.min())
+            hi = np.full(hist.shape[1], hist.max())
+        elif mode == "per-bin":
+            lo, hi = hist.min(axis=0), hist.max(axis=0)
+        else:
+            raise ValueError(f"output normalization must be 'global' or 'per-bin', got {mode!r}")
+        span = np.where(hi - lo > 0, hi - lo, 1.0)
+        return cls(table.low.copy(), table.span.copy(), lo, span, mode)
+
+    def to_dict(self) -> dict:
+        return {"in_low": self.in_low.tolist(), "in_span": self.in_span.tolist(),
+                "out_low": self.out_low.tolist(), "out_span": self.out_span.tolist(), "mode": self.mode}
+
+    @classmethod
+    def from_dict(cls, d: Mapping) -> Normalization:
+        return cls(np.asarray(d["in_low"], float), np.asarray(d["in_span"], float),
+                   np.asarray(d["out_low"], float), np.asarray(d["out_span"], float), d.get("mode", "global"))
+
+
+# --------------------------------------------------------------------------- #
+# the model artifact
+# --------------------------------------------------------------------------- #
+@dataclass
+class Surrogate:
+    """Trained network + the context it is valid in.
+
+    Attributes
+    ----------
+    net : SurrogateNet
+    arch : Architecture
+    norm : Normalization
+    table : dict
+        Fingerprint of the parameter table (``ParameterTable.fingerprint()``).
+    histogram : dict
+        ``HistogramSpec.fingerprint()``.
+    provenance : dict
+        Data the model was trained on (store, samples, rays, draw scheme, twin version).
+    metrics : dict
+        Test metrics (MSE in histogram units) and training history summary.
+    training : dict
+        Training options used.
+    """
+
+    net: SurrogateNet
+    arch: Architecture
+    norm: Normalization
+    table: dict
+    histogram: dict
+    provenance: dict = field(default_factory=dict)
+    metrics: dict = field(default_factory=dict)
+    training: dict = field(default_factory=dict)
+
+    @classmethod
+    def new(cls, arch: Architecture, norm: Normalization, table: ParameterTable = METRIXS,
+            hist: HistogramSpec | None = None, **kw) -> Surrogate:
+        hist = hist or HistogramSpec()
+        if arch.n_inputs != len(table) or arch.n_outputs != hist.bins_x + hist.bins_y:
+            raise ValueError(f"architecture {arch} does not fit {len(table)} parameters and "
+                             f"{hist.bins_x}+{hist.bins_y} bins")
+        return cls(SurrogateNet(arch), arch, norm, table.fingerprint(), hist.fingerprint(), **kw)
+
+    # -- inference --------------------------------------------------------------
+    @property
+    def device(self) -> torch.device:
+        return next(self.net.parameters()).device
+
+    def to(self, device) -> Surrogate:
+        self.net.to(device)
+        return self
+
+    def _norm_tensors(self, device, dtype):
+        key = (str(device), dtype)
+        cache = getattr(self, "_cache", None)
+        if cache is None or cache[0] != key:
+            t = lambda a: torch.as_tensor(a, device=device, dtype=dtype)  # noqa: E731
+            cache = (key, t(self.norm.in_low), t(self.norm.in_span), t(self.norm.out_low), t(self.norm.out_span))
+            self._cache = cache
+        return cache[1:]
+
+    def predict(self, params, *, normalized: bool = False, chunk_size: int = 65536, device=None,
+                clamp: bool = True):
+        """Histograms for a batch of parameter vectors.
+
+        Parameters
+        ----------
+        params : array-like or Tensor, shape (..., n_params)
+            Physical values in table order, or normalized coordinates (box ->
+            [0, 1]) with ``normalized=True``.  Any leading shape, e.g.
+            (candidates, configurations, 34).
+        chunk_size : int
+            Rows per forward pass (bounds memory; gradients flow through all chunks).
+        device : str or torch.device, optional
+            Where to compute (default: the model's device).  A tensor result
+            stays there.
+        clamp : bool
+            Clamp outputs at 0 (histograms are non-negative).
+
+        Returns
+        -------
+        Tensor or ndarray, shape (..., bins_x + bins_y)
+            x bins then y bins, fraction of source rays per bin.  A Tensor
+            input gives a Tensor (differentiable w.r.t. the input); anything
+            else gives a NumPy array.
+        """
+        as_numpy = not isinstance(params, torch.Tensor)
+        dev = torch.device(device) if device is not None else self.device
+        if dev != self.device:
+            self.net.to(dev)
+        x = torch.as_tensor(np.asarray(params, dtype=np.float32) if as_numpy else params)
+        if x.shape[-1] != self.arch.n_inputs:
+            raise ValueError(f"expected parameter vectors of length {self.arch.n_inputs} "
+                             f"(table order), got shape {tuple(x.shape)}")
+        dtype = next(self.net.parameters()).dtype
+        x = x.to(device=dev, dtype=dtype)
+        lead = x.shape[:-1]
+        x = x.reshape(-1, x.shape[-1])
+        in_low, in_span, out_low, out_span = self._norm_tensors(dev, dtype)
+        if not normalized:
+            x = (x - in_low) / in_span
+        outs = []
+        with torch.no_grad() if as_numpy else contextlib.nullcontext():
+            for i in range(0, max(x.shape[0], 1), chunk_size):
+                y = self.net(x[i:i + chunk_size]) * out_span + out_low
+                outs.append(y.clamp_min(0.0) if clamp else y)
+        y = torch.cat(outs) if outs else x.new_zeros((0, self.arch.n_outputs))
+        y = y.reshape(*lead, self.arch.n_outputs)
+        return y.detach().cpu().numpy() if as_numpy else y
+
+    def split(self, hist):
+        """(..., 100) -> x part (..., bins_x), y part (..., bins_y)."""
+        bx = self.histogram["bins_x"]
+        return hist[..., :bx], hist[..., bx:]
+
+    # -- persistence --------------------------------------------------------------
+    def metadata(self) -> dict:
+        n_par = sum(p.numel() for p in self.net.parameters())
+        return {"format": FORMAT, "arch": self.arch.__dict__, "n_weights": int(n_par),
+                "table": self.table, "table_version": _table_version(self.table),
+                "histogram": self.histogram, "normalization": self.norm.to_dict(),
+                "provenance": self.provenance, "metrics": self.metrics, "training": self.training}
+
+    def save(self, path: str | os.PathLike, *, metadata_json: bool = True) -> Path:
+        """Write the checkpoint atomically (and ``<name>.json`` with the metadata)."""
+        path = Path(path)
+        state = {k: v.detach().cpu().contiguous() for k, v in self.net.state_dict().items()}
+        meta = self.metadata()
+        meta["weights_sha256"] = _weights_digest(state)
+        buf = io.BytesIO()
+        torch.save({"meta": json.dumps(meta), "state_dict": state}, buf)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_name(path.name + ".tmp")
+        tmp.write_bytes(buf.getvalue())
+        os.replace(tmp, path)
+        if metadata_json:
+            meta_out = {k: v for k, v in meta.items() if k != "normalization"}
+            path.with_suffix(".json").write_text(json.dumps(meta_out, indent=2) + "\n")
+        return path
+
+
+def _weights_digest(state: Mapping[str, torch.Tensor]) -> str:
+    h = hashlib.sha256()
+    for k in sorted(state):
+        h.update(k.encode())
+        h.update(state[k].detach().cpu().contiguous().numpy().tobytes())
+    return h.hexdigest()
+
+
+def _table_version(fp: Mapping) -> str:
+    return hashlib.sha256(json.dumps(dict(fp), sort_keys=True).encode()).hexdigest()[:12]
+
+
+def default_checkpoint() -> Path:
+    """The checkpoint shipped with the package."""
+    return Path(str(resources.files("bluesky_offsets") / "data" / DEFAULT_CHECKPOINT))
+
+
+def read_metadata(path: str | os.PathLike) -> dict:
+    """Metadata of a checkpoint, without building the network."""
+    return _read(Path(path))[0]
+
+
+def _read(path: Path) -> tuple[dict, dict]:
+    if not path.exists():
+        raise SurrogateError(f"surrogate checkpoint {path} does not exist")
+    try:
+        blob = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as exc:  # zip reader / unpickler errors of truncated or foreign files
+        raise SurrogateError(f"surrogate checkpoint {path} is truncated or corrupt "
+                             f"({type(exc).__name__}: {str(exc).splitlines()[0][:200]})") from None
+    if not isinstance(blob, dict) or "meta" not in blob or "state_dict" not in blob:
+        raise SurrogateError(f"{path} is not a bluesky-offsets surrogate checkpoint")
+    try:
+        meta = json.loads(blob["meta"])
+    except (TypeError, json.JSONDecodeError) as exc:
+        raise SurrogateError(f"surrogate checkpoint {path}: metadata unreadable ({exc})") from None
+    if meta.get("format") != FORMAT:
+        raise SurrogateError(f"{path}: unsupported checkpoint format {meta.get('format')!r} (expected {FORMAT})")
+    return meta, blob["state_dict"]
+
+
+def load(path: str | os.PathLike | None = None, *, table: ParameterTable = METRIXS,
+         hist: HistogramSpec | None = None, device=None) -> Surrogate:
+    """Load a checkpoint (default: the shipped one) after checking it fits ``table`` and ``hist``.
+
+    Raises
+    ------
+    SurrogateError
+        Missing, truncated or corrupt file; parameter table or histogram spec
+        mismatch (the message names what differs).
+    """
+    path = Path(path) if path is not None else default_checkpoint()
+    hist = hist or HistogramSpec()
+    meta, state = _read(path)
+    problems = table.diff(meta.get("table", {}))
+    if problems:
+        raise SurrogateError(f"surrogate checkpoint {path} was trained on a different parameter table "
+                             f"than the current one ({table.name} {table.version}): {'; '.join(problems)}")
+    want = hist.fingerprint()
+    got = meta.get("histogram", {})
+    hdiff = [f"{k}: checkpoint {got.get(k)!r}, current {want[k]!r}" for k in want if got.get(k) != want[k]]
+    if hdiff:
+        raise SurrogateError(f"surrogate checkpoint {path} uses a different histogram spec: {'; '.join(hdiff)}")
+    if _weights_digest(state) != meta.get("weights_sha256"):
+        raise SurrogateError(f"surrogate checkpoint {path} is corrupt: weights do not match their checksum")
+    try:
+        arch = Architecture(**meta["arch"])
+        norm = Normalization.from_dict(meta["normalization"])
+        net = SurrogateNet(arch)
+        net.load_state_dict(state, strict=True)
+    except Exception as exc:
+        raise SurrogateError(f"surrogate checkpoint {path} is inconsistent ({type(exc).__name__}: {exc})") from None
+    net.eval()
+    model = Surrogate(net, arch, norm, meta["table"], meta["histogram"], meta.get("provenance", {}),
+                      meta.get("metrics", {}), meta.get("training", {}))
+    if device is not None:
+        model.to(device)
+    return model

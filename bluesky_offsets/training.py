@@ -1,0 +1,328 @@
+"""Training the surrogate: the paper's recipe (Sec. 3.1) as the default, every choice an option.
+
+Recipe: min-max normalized inputs and outputs, 7 linear layers with Mish,
+Adam (lr 1e-4), ExponentialLR (gamma 0.999, stepped once per epoch), batch 32,
+"good" samples (>= 10 rays on the screen) and "bad" ones shown 3:1, an
+80/10/10 train/validation/test split, MSE loss on the normalized outputs.
+
+A run directory holds ``state.pt`` (everything needed to resume: model,
+optimizer, scheduler, RNG, history; written atomically every epoch),
+``best.pt`` (the best model so far as a loadable surrogate checkpoint) and
+``history.json``.  The best model by validation MSE is the result; training
+stops early after ``patience`` epochs without improvement.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import os
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from .dataset import GOOD_MIN_RAYS, Dataset
+from .parameters import METRIXS, ParameterTable
+from .surrogate import Architecture, Normalization, Surrogate
+from .twin import HistogramSpec
+
+log = logging.getLogger(__name__)
+
+
+class TrainingError(RuntimeError):
+    """Training cannot start or resume as asked."""
+
+
+@dataclass
+class TrainConfig:
+    """Training options (defaults: the paper's recipe).
+
+    Attributes
+    ----------
+    epochs : int
+        Maximum epochs (paper: 300).
+    batch_size : int
+        Samples per optimizer step (paper: 32).
+    lr : float
+        Adam learning rate (paper: 1e-4).
+    gamma : float
+        ExponentialLR decay per epoch (paper: 0.999).
+    good_min_rays : int
+        Rays on the screen (full trace) for a sample to count as "good" (paper: 10).
+    good_fraction : float
+        Share of good samples in each epoch's stream (paper 3:1 -> 0.75); bad samples
+        are drawn with replacement to fill the rest.  ``None``: plain shuffling.
+    split : tuple
+        Train/validation/test fractions (paper: 0.8/0.1/0.1), random by ``seed``.
+    width, n_layers : int
+        Network width and number of linear layers (paper: 7 layers; width not
+        given there, 512 here).
+    output_norm : str
+        "global" (one min/max for all bins: the loss stays proportional to the
+        histogram MSE) or "per-bin".
+    patience : int
+        Early stop after this many epochs without a better validation MSE (0: never).
+    epoch_samples : int, optional
+        Samples per epoch; default ``n_good_train / good_fraction``.
+    device : str
+        "auto" (CUDA when available), "cpu" or "cuda".
+    seed : int
+        Split, initialization and sampling seed.
+    threads : int, optional
+        torch CPU threads (default: torch's choice).
+    max_minutes : float, optional
+        Stop (cleanly, after an epoch) when this wall time is used up.
+    """
+
+    epochs: int = 300
+    batch_size: int = 32
+    lr: float = 1e-4
+    gamma: float = 0.999
+    good_min_rays: int = GOOD_MIN_RAYS
+    good_fraction: float | None = 0.75
+    split: tuple[float, float, float] = (0.8, 0.1, 0.1)
+    width: int = 512
+    n_layers: int = 7
+    output_norm: str = "global"
+    patience: int = 30
+    epoch_samples: int | None = None
+    device: str = "auto"
+    seed: int = 0
+    threads: int | None = None
+    max_minutes: float | None = None
+
+    def __post_init__(self):
+        self.split = tuple(float(s) for s in self.split)
+        if len(self.split) != 3 or any(s < 0 for s in self.split) or not math.isclose(sum(self.split), 1.0):
+            raise ValueError(f"split must be three fractions summing to 1, got {self.split}")
+        if self.good_fraction is not None and not 0 < self.good_fraction < 1:
+            raise ValueError(f"good_fraction must be in (0, 1), got {self.good_fraction}")
+        for name in ("epochs", "batch_size", "width", "n_layers"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"{name} must be positive")
+        if self.lr <= 0 or not 0 < self.gamma <= 1:
+            raise ValueError("lr must be > 0 and gamma in (0, 1]")
+        if self.device not in ("auto", "cpu", "cuda"):
+            raise ValueError(f"device must be auto, cpu or cuda, got {self.device!r}")
+
+    def to_dict(self) -> dict:
+        d = asdict(self)
+        d["split"] = list(self.split)
+        return d
+
+    def resolved_device(self) -> torch.device:
+        if self.device == "auto":
+            return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+        if self.device == "cuda" and not torch.cuda.is_available():
+            raise TrainingError("device 'cuda' requested but torch sees no CUDA device")
+        return torch.device(self.device)
+
+
+# the keys that must agree to resume a run
+_RESUME_KEYS = ("batch_size", "lr", "gamma", "good_min_rays", "good_fraction", "split", "width", "n_layers",
+                "output_norm", "epoch_samples", "seed")
+
+
+def split_indices(n: int, fractions, seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Random train/validation/test indices (sorted), reproducible by ``seed``."""
+    perm = np.random.default_rng(seed).permutation(n)
+    n_tr = int(round(fractions[0] * n))
+    n_va = int(round(fractions[1] * n))
+    return np.sort(perm[:n_tr]), np.sort(perm[n_tr:n_tr + n_va]), np.sort(perm[n_tr + n_va:])
+
+
+def epoch_order(good: np.ndarray, bad: np.ndarray, good_fraction: float | None, n_samples: int | None,
+                rng: np.random.Generator) -> np.ndarray:
+    """Sample indices of one epoch: good and bad shown ``good_fraction : 1 - good_fraction``.
+
+    Every good sample appears (about) once per epoch; bad samples fill the rest,
+    drawn without replacement while they last.
+    """
+    if good_fraction is None or len(good) == 0 or len(bad) == 0:
+        allidx = np.concatenate([good, bad])
+        n = n_samples or len(allidx)
+        return rng.choice(allidx, size=n, replace=n > len(allidx))
+    n = n_samples or int(math.ceil(len(good) / good_fraction))
+    n_good = int(round(n * good_fraction))
+    n_bad = n - n_good
+    g = _draw(good, n_good, rng)
+    b = _draw(bad, n_bad, rng)
+    out = np.concatenate([g, b])
+    rng.shuffle(out)
+    return out
+
+
+def _draw(pool: np.ndarray, n: int, rng) -> np.ndarray:
+    reps = [rng.permutation(pool) for _ in range(n // len(pool))]
+    reps.append(rng.choice(pool, size=n % len(pool), replace=False))
+    return np.concatenate(reps)
+
+
+def _metrics(model: Surrogate, x: torch.Tensor, y: torch.Tensor, n_hits: np.ndarray) -> dict:
+    """MSE in histogram units (fraction of source rays), overall and on non-empty samples."""
+    if len(x) == 0:
+        return {"n": 0}
+    with torch.no_grad():
+        pred = model.predict(x, normalized=True)
+        se = ((pred - y) ** 2).mean(dim=1).cpu().numpy()
+    ne = n_hits > 0
+    return {"n": int(len(se)), "mse": float(se.mean()),
+            "mse_nonempty": float(se[ne].mean()) if ne.any() else float("nan"), "n_nonempty": int(ne.sum())}
+
+
+def _save_atomic(obj, path: Path) -> None:
+    tmp = path.with_name(path.name + ".tmp")
+    torch.save(obj, tmp)
+    os.replace(tmp, path)
+
+
+def train(data: Dataset, run_dir: str | os.PathLike, config: TrainConfig | None = None, *,
+          resume: bool = True, progress: bool = True, table: ParameterTable = METRIXS,
+          hist: HistogramSpec | None = None) -> Surrogate:
+    """Train a surrogate on ``data``; returns the best model (by validation MSE) with test metrics.
+
+    With ``resume`` (default) a run directory holding ``state.pt`` continues
+    where it stopped, provided the dataset and the options agree.
+    """
+    from tqdm.auto import tqdm
+
+    config = config or TrainConfig()
+    hist = hist or HistogramSpec()
+    run_dir = Path(run_dir)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    device = config.resolved_device()
+    if config.threads:
+        torch.set_num_threads(config.threads)
+    if len(data) < 10:
+        raise TrainingError(f"dataset has only {len(data)} samples; need at least 10")
+
+    Y = data.hist.astype(np.float32)
+    tr, va, te = split_indices(len(data), config.split, config.seed)
+    norm = Normalization.fit(table, Y[tr], config.output_norm)
+    X = torch.as_tensor(table.normalize(data.params), dtype=torch.float32, device=device)
+    Yn = torch.as_tensor((Y - norm.out_low) / norm.out_span, dtype=torch.float32, device=device)
+    Yt = torch.as_tensor(Y, device=device)
+    good_tr = tr[data.n_hits[tr] >= config.good_min_rays]
+    bad_tr = tr[data.n_hits[tr] < config.good_min_rays]
+
+    arch = Architecture(len(table), hist.bins_x + hist.bins_y, config.width, config.n_layers)
+    provenance = {"dataset": data.meta.get("path"), "n_samples": len(data),
+                  "n_train": len(tr), "n_val": len(va), "n_test": len(te),
+                  "n_good": int((data.n_hits >= config.good_min_rays).sum()),
+                  "n_nonempty": int((data.n_hits > 0).sum()),
+                  "n_rays": data.meta["settings"]["n_rays"], "scheme": data.meta["settings"]["scheme"],
+                  "scheme_text": data.meta.get("scheme"), "dataset_seed": data.meta["settings"]["seed"],
+                  "twin": data.meta.get("engine"), "table_version": data.meta.get("table_version"),
+                  "dataset_complete": data.meta.get("complete"),
+                  "generation_cpu_s": data.meta.get("stats", {}).get("cpu_s")}
+    torch.manual_seed(config.seed)
+    model = Surrogate.new(arch, norm, table, hist, provenance=provenance, training=config.to_dict())
+    model.to(device)
+    opt = torch.optim.Adam(model.net.parameters(), lr=config.lr)
+    sched = torch.optim.lr_scheduler.ExponentialLR(opt, gamma=config.gamma)
+    rng = np.random.default_rng(config.seed + 1)
+    state_path, best_path = run_dir / "state.pt", run_dir / "best.pt"
+    history: list[dict] = []
+    start_epoch, best_val, stale, elapsed = 0, math.inf, 0, 0.0
+
+    if resume and state_path.exists():
+        try:
+            st = torch.load(state_path, map_location=device, weights_only=False)
+        except Exception as exc:
+            raise TrainingError(f"cannot resume from {state_path} ({type(exc).__name__}: {exc}); "
+                                "remove it to start over") from None
+        old = st["config"]
+        diff = [k for k in _RESUME_KEYS if json.dumps(old.get(k)) != json.dumps(config.to_dict().get(k))]
+        if st["dataset"] != {"path": provenance["dataset"], "n_samples": len(data)}:
+            diff.append(f"dataset ({st['dataset']} vs {provenance['dataset']}, {len(data)} samples)")
+        if diff:
+            raise TrainingError(f"{run_dir} holds a run with different {', '.join(diff)}; "
+                                "use another run directory or the same options")
+        model.net.load_state_dict(st["model"])
+        opt.load_state_dict(st["optimizer"])
+        sched.load_state_dict(st["scheduler"])
+        rng.bit_generator.state = st["rng"]
+        torch.set_rng_state(st["torch_rng"])
+        history, best_val, stale = st["history"], st["best_val"], st["stale"]
+        start_epoch, elapsed = st["epoch"], st.get("elapsed", 0.0)
+        log.info("resuming %s at epoch %d", run_dir, start_epoch)
+
+    loss_fn = torch.nn.MSELoss()
+    t_start = time.perf_counter() - elapsed
+    epochs = tqdm(range(start_epoch, config.epochs), desc="epochs", unit="epoch", disable=not progress,
+                  initial=start_epoch, total=config.epochs)
+    for epoch in epochs:
+        t_ep = time.perf_counter()
+        model.net.train()
+        order = epoch_order(good_tr, bad_tr, config.good_fraction, config.epoch_samples, rng)
+        order_t = torch.as_tensor(order, device=device)
+        n_batches = int(math.ceil(len(order) / config.batch_size))
+        running = 0.0
+        bar = tqdm(range(n_batches), desc=f"epoch {epoch + 1}", unit="batch", leave=False,
+                   disable=not progress, mininterval=1.0)
+        for b in bar:
+            idx = order_t[b * config.batch_size:(b + 1) * config.batch_size]
+            pred = model.net(X[idx])
+            loss = loss_fn(pred, Yn[idx])
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            opt.step()
+            running = 0.98 * running + 0.02 * loss.item() if b else loss.item()
+            if b % 200 == 0:
+                bar.set_postfix(loss=f"{running:.3e}", refresh=False)
+        bar.close()
+        sched.step()
+        model.net.eval()
+        val = _metrics(model, X[va], Yt[va], data.n_hits[va])
+        train_s = time.perf_counter() - t_ep
+        rec = {"epoch": epoch + 1, "train_loss": running, "val_mse": val.get("mse"),
+               "val_mse_nonempty": val.get("mse_nonempty"), "lr": opt.param_groups[0]["lr"],
+               "seconds": train_s, "samples": len(order)}
+        history.append(rec)
+        improved = val.get("mse", math.inf) < best_val
+        if improved:
+            best_val, stale = val["mse"], 0
+            model.metrics = {"val": val, "epoch": epoch + 1}
+            model.save(best_path, metadata_json=False)
+        else:
+            stale += 1
+        elapsed = time.perf_counter() - t_start
+        _save_atomic({"model": model.net.state_dict(), "optimizer": opt.state_dict(),
+                      "scheduler": sched.state_dict(), "rng": rng.bit_generator.state,
+                      "torch_rng": torch.get_rng_state(), "history": history, "best_val": best_val,
+                      "stale": stale, "epoch": epoch + 1, "elapsed": elapsed, "config": config.to_dict(),
+                      "dataset": {"path": provenance["dataset"], "n_samples": len(data)}}, state_path)
+        (run_dir / "history.json").write_text(json.dumps(history, indent=1))
+        epochs.set_postfix(loss=f"{running:.3e}", val_mse=f"{val.get('mse', float('nan')):.3e}",
+                           val_ne=f"{val.get('mse_nonempty', float('nan')):.3e}", refresh=False)
+        if config.patience and stale >= config.patience:
+            log.info("early stop after epoch %d (%d epochs without improvement)", epoch + 1, stale)
+            break
+        if config.max_minutes is not None and elapsed > 60 * config.max_minutes:
+            log.info("time budget of %.1f min used up after epoch %d", config.max_minutes, epoch + 1)
+            break
+    epochs.close()
+
+    from .surrogate import load
+    if not best_path.exists():
+        raise TrainingError(f"no epoch finished in {run_dir}")
+    best = load(best_path, table=table, hist=hist, device=device)
+    best.net.eval()
+    test = _metrics(best, X[te], Yt[te], data.n_hits[te])
+    val = _metrics(best, X[va], Yt[va], data.n_hits[va])
+    n_trained = sum(h["samples"] for h in history)
+    t_train = sum(h["seconds"] for h in history)
+    best.metrics = {"test": test, "val": val, "best_epoch": best.metrics.get("epoch"),
+                    "epochs_run": len(history), "train_seconds": round(t_train, 1),
+                    "train_samples_per_s": round(n_trained / t_train, 1) if t_train else None,
+                    "device": str(device), "torch": torch.__version__,
+                    "first_train_loss": history[0]["train_loss"] if history else None,
+                    "last_train_loss": history[-1]["train_loss"] if history else None,
+                    "units": "MSE over all 100 bins, histogram values as fraction of source rays"}
+    best.save(best_path)
+    return best
+
