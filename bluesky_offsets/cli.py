@@ -21,6 +21,7 @@ EXTENSIONS: list[str] = [
     # "module:function" pairs, each adding sub-commands.
     "bluesky_offsets.demo:add_cli",
     "bluesky_offsets.surrogate_cli:add_cli",
+    "bluesky_offsets.finder_cli:add_cli",
 ]
 
 

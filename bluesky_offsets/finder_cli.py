@@ -1,0 +1,188 @@
+"""``bluesky-offsets find``: the offset finder's evaluation harness (thin layer).
+
+Repeated seeded runs of the methods on the paper's problem, final MSE mean ±
+std, the loss curves (Fig. 5), identifiability at the best solution, and -
+with ``--twin-check`` - the twin re-simulating the compensated configurations
+(histogram MSE, Sinkhorn divergence vs. the twin's repeat noise) and the
+footprint plots (Fig. 6).  Everything lands in ``--out`` (JSON + PNG).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from pathlib import Path
+
+import numpy as np
+
+from .cli import CliError
+
+DEFAULT_METHODS = "smart-walker,monte-carlo,gradient,cmaes"
+
+
+def _fmt(x) -> str:
+    return "inf" if x is None or not math.isfinite(x) else f"{x:.3g}"
+
+
+def _cmd_find(args) -> int:
+    import torch
+
+    from . import finder as F
+    from . import finder_eval as E
+    from . import identifiability as I
+
+    methods = [m.strip() for m in args.methods.split(",") if m.strip()]
+    unknown = [m for m in methods if m not in F.METHODS]
+    if unknown:
+        raise CliError(f"unknown method(s) {unknown}; choose from {', '.join(F.METHODS)}")
+    if args.runs < 1:
+        raise CliError("--runs must be positive")
+    if args.candidates < 1 or args.iterations < 1:
+        raise CliError("--candidates and --iterations must be positive")
+    if not 0 < args.fast_fraction <= 1:
+        raise CliError("--fast-fraction must be in (0, 1]")
+    try:
+        model = F.load_forward_model(args.model, device=args.device)
+    except F.FinderError as exc:
+        raise CliError(str(exc)) from None
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    twin = None
+    if args.observe == "twin" or args.twin_check:
+        from .twin import Twin
+        twin = Twin(n_rays=args.rays, scheduler=args.scheduler)
+
+    E_paper = args.candidates * (args.iterations + 1)
+    evaluations = args.evaluations or E_paper
+    seconds = args.seconds
+    paper = {"smart-walker": {"candidates": args.candidates}, "monte-carlo": {"candidates": args.candidates}}
+    settings = {m: paper.get(m, {}) for m in methods}
+    budgets = {}
+    for m in methods:
+        ev = evaluations if m in paper else max(1, int(evaluations * args.fast_fraction))
+        budgets[m] = F.Budget(evaluations=ev, seconds=seconds)
+
+    def make(seed):
+        return F.make_problem(model, seed=seed, observe=args.observe, twin=twin, n_rays=args.rays,
+                              n_configurations=args.configurations)
+
+    log_lines = []
+
+    def log(msg):
+        log_lines.append(msg)
+        if not args.quiet:
+            print(msg, flush=True)
+
+    seeds = list(range(args.seed, args.seed + args.runs))
+    t0 = time.perf_counter()
+    problems, results = E.run_methods(model, settings, budgets, seeds, make, threads=args.threads,
+                                      progress=not args.no_progress, log=log)
+    summary = E.summarize(problems, results)
+    target = summary["smart-walker"]["mse_mean"] if "smart-walker" in summary else None
+    reach = E.reach_table(results, target) if target is not None else {}
+    report = {"model": str(args.model or "shipped"), "device": str(F.model_device(model)),
+              "threads": args.threads or torch.get_num_threads(), "observe": args.observe, "seeds": seeds,
+              "budgets": {m: {"evaluations": b.evaluations, "seconds": b.seconds} for m, b in budgets.items()},
+              "problem": problems[0].summary(), "summary": summary, "reach_smart_walker_mse": reach,
+              "results": {m: [r.to_dict() for r in rs] for m, rs in results.items()},
+              "wall_seconds": None}
+    E.plot_curves(results, out / "curves.png", target=target,
+                  title=f"offset finder, {args.runs} runs, {problems[0].n} configurations, {args.observe} observations")
+
+    # identifiability at the best solution of the best method on the first problem
+    best_m = min(summary, key=lambda m: summary[m]["mse_mean"])
+    r0, p0 = results[best_m][0], problems[0]
+    rep = I.analyze(p0, model, r0.offsets, model_mse=getattr(model, "test_mse", 0.0),
+                    solutions=r0.solutions, solution_losses=r0.solution_losses)
+    curve = I.configuration_curve(p0, model, r0.offsets, model_mse=getattr(model, "test_mse", 0.0))
+    I.plot_identifiability(rep, out / "identifiability.png", curve, p0.true_offsets)
+    report["identifiability"] = {"method": best_m, "seed": seeds[0], **rep.to_dict(),
+                                 "configuration_curve": {k: (v.tolist() if isinstance(v, np.ndarray) else v)
+                                                         for k, v in curve.items()}}
+    (out / "identifiability.txt").write_text(rep.table() + "\n")
+
+    if args.twin_check:
+        checks = {}
+        for m in methods:
+            rows = []
+            for r, p in list(zip(results[m], problems))[:args.twin_check]:
+                c = E.twin_check(twin, p, r.offsets, n_rays=args.check_rays, seed=int(p.seed or 0) + 1)
+                rows.append({k: v for k, v in c.items() if not k.startswith("_")})
+            checks[m] = {"runs": len(rows),
+                         "sinkhorn_compensated": float(np.mean([c["sinkhorn_compensated"] for c in rows])),
+                         "sinkhorn_repeat": float(np.mean([c["sinkhorn_repeat"] for c in rows])),
+                         "mse_compensated": float(np.mean([c["mse_compensated"] for c in rows])),
+                         "mse_repeat": float(np.mean([c["mse_repeat"] for c in rows])), "per_run": rows}
+            log(f"twin check {m}: Sinkhorn {checks[m]['sinkhorn_compensated']:.3e} (repeat "
+                f"{checks[m]['sinkhorn_repeat']:.3e}), histogram MSE {checks[m]['mse_compensated']:.3e} "
+                f"(repeat {checks[m]['mse_repeat']:.3e})")
+        report["twin_check"] = checks
+        for m in ("smart-walker", best_m):
+            if m in results:
+                E.plot_footprints(twin, problems[0], results[m][0].offsets, out / f"footprints_{m}.png",
+                                  n_rays=args.check_rays, title=f"{m}, seed {seeds[0]}: twin re-simulation")
+    if twin is not None:
+        twin.close()
+    report["wall_seconds"] = time.perf_counter() - t0
+    report["log"] = log_lines
+    (out / "results.json").write_text(json.dumps(report, indent=1, default=float) + "\n")
+
+    if args.json:
+        print(json.dumps({k: report[k] for k in ("summary", "reach_smart_walker_mse", "budgets")}, indent=2,
+                         default=float))
+    else:
+        print(f"\n{'method':14s} {'evaluations':>11s} {'final MSE':>22s} {'param RMSE':>14s} {'s/run':>7s}"
+              f"   to reach smart walker's MSE (median evals / s, runs)")
+        for m, s in summary.items():
+            rc = reach.get(m, {})
+            print(f"{m:14s} {s['evaluations']:11d} {s['mse_mean']:10.3e} ± {s['mse_std']:9.3e} "
+                  f"{(s['rmse_mean'] or 0):6.3f} ± {(s['rmse_std'] or 0):5.3f} {s['seconds_mean']:7.1f}   "
+                  f"{_fmt(rc.get('evaluations_median'))} / {_fmt(rc.get('seconds_median'))} "
+                  f"({rc.get('reached', 0)}/{rc.get('runs', 0)})")
+        if "smart-walker" in summary and "monte-carlo" in summary:
+            ratio = summary["monte-carlo"]["mse_mean"] / summary["smart-walker"]["mse_mean"]
+            print(f"Monte Carlo / smart walker final MSE: {ratio:.1f}x (paper: 28x)")
+        print(f"identifiability ({best_m}, seed {seeds[0]}): {rep.summary()['n_determined']} determined, "
+              f"{rep.summary()['n_weak']} weak, {rep.summary()['n_undetermined']} undetermined "
+              f"-> {out / 'identifiability.txt'}")
+        print(f"results and plots in {out}/")
+    return 0
+
+
+def add_cli(sub) -> None:
+    """Register ``find``."""
+    p = sub.add_parser("find", help="offset finder: repeated seeded runs of the methods on the paper's problem",
+                       description="Build the paper's offset problem (random bright configurations, hidden "
+                                   "offsets up to ±20 %%) for each seed, run each method, and report final MSE "
+                                   "mean ± std, loss curves (Fig. 5), evaluations/seconds to reach the smart "
+                                   "walker's MSE, identifiability, and optionally the twin re-simulation "
+                                   "(Sinkhorn, footprints, Fig. 6).")
+    p.add_argument("--model", default=None, help="surrogate checkpoint (default: the shipped one)")
+    p.add_argument("--methods", default=DEFAULT_METHODS, help=f"comma-separated (default {DEFAULT_METHODS})")
+    p.add_argument("--runs", type=int, default=10, help="seeded runs per method (default 10)")
+    p.add_argument("--seed", type=int, default=0, help="first seed (default 0)")
+    p.add_argument("--candidates", type=int, default=512,
+                   help="smart walker / Monte Carlo candidates per iteration (default 512; paper 1e6 on a GPU)")
+    p.add_argument("--iterations", type=int, default=200, help="smart walker iterations (default 200, the paper's)")
+    p.add_argument("--evaluations", type=int, default=None,
+                   help="evaluation budget of smart walker and Monte Carlo (default candidates x (iterations+1))")
+    p.add_argument("--fast-fraction", type=float, default=0.1,
+                   help="budget share of the other methods (default 0.1: they must reach the walker's MSE "
+                        "within a tenth of its evaluations)")
+    p.add_argument("--seconds", type=float, default=None, help="also stop each run after this many seconds")
+    p.add_argument("--configurations", type=int, default=16, help="configurations per problem (default 16, n > 15)")
+    p.add_argument("--observe", choices=("surrogate", "twin"), default="surrogate",
+                   help="observations from the surrogate (paper) or the RAYX twin with noise")
+    p.add_argument("--rays", type=int, default=100_000, help="rays of twin observations (default 1e5)")
+    p.add_argument("--twin-check", type=int, default=0, metavar="RUNS",
+                   help="re-simulate the first RUNS runs of each method with the twin: Sinkhorn, MSE, footprints")
+    p.add_argument("--check-rays", type=int, default=20_000, help="rays of the twin check (default 2e4)")
+    p.add_argument("--scheduler", default=None, help="Dask scheduler for the twin ('inline' = no Dask)")
+    p.add_argument("--device", default=None, help="torch device (default: cpu)")
+    p.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's)")
+    p.add_argument("--out", default="out/find", help="output directory (default out/find)")
+    p.add_argument("--json", action="store_true", help="print the summary as JSON")
+    p.add_argument("--quiet", action="store_true", help="no per-run lines")
+    p.add_argument("--no-progress", action="store_true", help="no progress bars")
+    p.set_defaults(func=_cmd_find)
