@@ -252,8 +252,11 @@ def make_problem(model, seed: int = 0, *, n_configurations: int = 16, min_hist_s
     than 15 (``n_configurations - 1``) offset configurations carry enough rays
     (model histogram sum over x and y > ``min_hist_sum``) wins; its first
     ``n_configurations`` such configurations make the problem.  With
-    ``inside_box`` (default, as in the authors' later code) the true, offset
-    configurations must also lie inside the box, where the surrogate is valid.
+    ``inside_box`` (default; the authors' later code requires it too) each
+    configuration is drawn uniformly where both it and its true, offset
+    version lie inside the box, where the surrogate is valid and the
+    twin and surrogate can be compared; ``inside_box=False`` draws from the
+    whole box and lets the model extrapolate up to ``limit`` beyond it.
 
     ``observe`` = ``"surrogate"`` takes the observations from the model (the
     paper's setting); ``"twin"`` traces the true configurations with the
@@ -279,22 +282,29 @@ def make_problem(model, seed: int = 0, *, n_configurations: int = 16, min_hist_s
         raise FinderError(f"region must have low < high, got {region}")
     from tqdm.auto import tqdm
     for rnd in tqdm(range(max_rounds), desc="searching a problem", disable=not progress):
-        configs = lo + rng.random((candidate_configurations, P)) * (hi - lo)
-        configs[:, fixed] = lo[fixed] + rng.random(int(fixed.sum())) * (hi - lo)[fixed]
         offsets = table.sample_offsets(rng, limit, size=offset_trials)
-        true = configs[None, :, :] + offsets[:, None, :]  # (trials, configs, P)
+        if inside_box:
+            # draw each configuration where both it and it + offset lie in the region (no rejection:
+            # rejecting would keep only ~0.9^34 = 3 % of the draws)
+            lo_t = np.maximum(lo, lo - offsets)[:, None, :]
+            hi_t = np.minimum(hi, hi - offsets)[:, None, :]
+        else:
+            lo_t, hi_t = lo[None, None, :], hi[None, None, :]
+        u = rng.random((offset_trials, candidate_configurations, P))
+        u[:, :, fixed] = rng.random((offset_trials, 1, int(fixed.sum())))  # one value per beamline
+        configs = lo_t + u * (hi_t - lo_t)  # (trials, configs, P)
+        true = configs + offsets[:, None, :]
         hist = _predict(model, true, device, dtype)
         good = hist.sum(axis=-1) > min_hist_sum
-        if inside_box:
-            good &= ((true >= lo) & (true <= hi)).all(axis=-1)
         counts = good.sum(axis=1)
         winners = np.flatnonzero(counts >= n_configurations)
         if len(winners):
             t = int(winners[0])
             rows = np.flatnonzero(good[t])[:n_configurations]
-            c, o = configs[rows], offsets[t]
+            c, o = configs[t, rows], offsets[t]
             meta = {"round": rnd, "good_fraction": float(good[t].mean()), "min_hist_sum": min_hist_sum,
-                    "candidate_configurations": candidate_configurations, "offset_trials": offset_trials}
+                    "candidate_configurations": candidate_configurations, "offset_trials": offset_trials,
+                    "inside_box": inside_box}
             if observe == "surrogate":
                 return OffsetProblem(c, hist[t, rows], o, "surrogate", limit, 0.0, None, seed, table, meta)
             from .noise import expected_repeat_mse

@@ -26,6 +26,14 @@ def _fmt(x) -> str:
 
 
 def _cmd_find(args) -> int:
+    from . import finder as F
+    try:
+        return _find(args)
+    except F.FinderError as exc:
+        raise CliError(str(exc)) from None
+
+
+def _find(args) -> int:
     import torch
 
     from . import finder as F

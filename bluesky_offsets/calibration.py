@@ -1,0 +1,396 @@
+"""Bluesky side of the offset finder: find offsets in a run, apply them to the model.
+
+* :class:`OffsetFinder` - the pluggable finder callable for a ``find_offsets``
+  plan: measured configurations (physical, as the motors report them) and
+  histograms in, a :class:`Calibration` (offsets, uncertainties,
+  determined-or-not, loss curve) out.  It runs a global method (default
+  multi-start gradient through the surrogate) and, when a twin is given,
+  polishes the result against the twin itself (:func:`twin_polish`), since
+  the surrogate's own error is far above a 1e5-ray measurement's noise.
+* :func:`find_offsets_run` - a plan: opens a run, runs the finder in a
+  worker thread and streams its progress live as ``finder`` events
+  (evaluations, seconds, best MSE; plot them with :class:`LossPlot` or
+  bluesky's ``LivePlot``), then emits the result as one ``offsets`` event
+  (offsets, sigma, status, loss curve) and returns the :class:`Calibration`.
+* :func:`apply_offsets` - a plan that updates the model (a
+  :class:`CalibratedModel`: the twin and/or the surrogate seen through the
+  offsets), never the motors, and records what it applied in a run.
+"""
+
+from __future__ import annotations
+
+import json
+import queue
+import threading
+import time
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from datetime import datetime, timezone
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from . import finder as F
+from . import identifiability as I
+from .parameters import MAX_OFFSET, METRIXS, ParameterTable
+
+
+# --------------------------------------------------------------------------- #
+# the result
+# --------------------------------------------------------------------------- #
+@dataclass
+class Calibration:
+    """Offsets found for the real beamline, with what the data say about each.
+
+    ``offsets`` / ``sigma`` are normalized (fractions of each parameter's
+    range); :meth:`physical_offsets` converts.  ``status`` per parameter:
+    determined / weak / undetermined (see :mod:`bluesky_offsets.identifiability`).
+    """
+
+    offsets: np.ndarray
+    sigma: np.ndarray
+    status: list[str]
+    loss: float
+    method: str
+    history: dict = field(default_factory=dict)
+    twin_mse: float | None = None
+    repeat_mse: float | None = None
+    table_version: str = METRIXS.version
+    names: tuple[str, ...] = METRIXS.names
+    source_uid: str | None = None
+    created: str = field(default_factory=lambda: datetime.now(timezone.utc).isoformat(timespec="seconds"))
+    extra: dict = field(default_factory=dict)
+
+    def physical_offsets(self, table: ParameterTable = METRIXS) -> np.ndarray:
+        return np.asarray(self.offsets) * table.span
+
+    def physical_sigma(self, table: ParameterTable = METRIXS) -> np.ndarray:
+        return np.asarray(self.sigma) * table.span
+
+    def true_values(self, commanded, table: ParameterTable = METRIXS) -> np.ndarray:
+        """What the beamline really is at ``commanded`` physical settings, per this calibration."""
+        return table.validate(commanded, "commanded configuration") + self.physical_offsets(table)
+
+    def to_dict(self) -> dict:
+        return {"offsets": np.asarray(self.offsets).tolist(), "sigma": np.asarray(self.sigma).tolist(),
+                "status": list(self.status), "loss": self.loss, "method": self.method,
+                "history": {k: [float(v) for v in vals] for k, vals in self.history.items()},
+                "twin_mse": self.twin_mse, "repeat_mse": self.repeat_mse, "table_version": self.table_version,
+                "names": list(self.names), "source_uid": self.source_uid, "created": self.created,
+                "extra": self.extra}
+
+    def save(self, path) -> Path:
+        path = Path(path)
+        path.write_text(json.dumps(self.to_dict(), indent=1) + "\n")
+        return path
+
+    @classmethod
+    def load(cls, path, table: ParameterTable = METRIXS) -> Calibration:
+        d = json.loads(Path(path).read_text())
+        if d.get("table_version") != table.version:
+            raise F.FinderError(f"calibration {path} was made for parameter table {d.get('table_version')}, "
+                                f"the model uses {table.version}")
+        return cls(np.asarray(d["offsets"]), np.asarray(d["sigma"]), d["status"], d["loss"], d["method"],
+                   d.get("history", {}), d.get("twin_mse"), d.get("repeat_mse"), d["table_version"],
+                   tuple(d["names"]), d.get("source_uid"), d.get("created", ""), d.get("extra", {}))
+
+    def report(self, table: ParameterTable = METRIXS) -> str:
+        lines = [f"offsets ({self.method}, MSE {self.loss:.3e}"
+                 + (f", twin MSE {self.twin_mse:.3e} vs repeat {self.repeat_mse:.3e}" if self.twin_mse else "") + ")"]
+        phys, ps = self.physical_offsets(table), self.physical_sigma(table)
+        for p, o, s, st in zip(table, phys, ps, self.status):
+            lines.append(f"  {p.name:32s} {o:+11.5f} ± {s:9.5f} {p.unit:4s} {st}")
+        return "\n".join(lines)
+
+
+# --------------------------------------------------------------------------- #
+# twin polish
+# --------------------------------------------------------------------------- #
+def twin_polish(problem: F.OffsetProblem, model, twin, offsets, *, iterations: int = 4, n_rays: int | None = None,
+                damping: float = 1e-3, seed: int = 0, progress: bool = False,
+                callback: Callable[[dict], None] | None = None) -> tuple[np.ndarray, list[float]]:
+    """Gauss-Newton steps on the *twin's* residuals with the surrogate's Jacobian.
+
+    The surrogate finds the right valley but its own error (~1e-6 per bin)
+    is far above the counting noise of a 1e5-ray measurement (~4e-8): the
+    twin at the surrogate's optimum is off by the surrogate's error.  Each
+    step traces the configurations at the current offsets with the twin,
+    takes the residual to the observations, and solves the noise-weighted,
+    Levenberg-damped normal equations with the surrogate's Jacobian there.  A
+    step is kept only if the twin's MSE falls.  Returns the offsets and the
+    twin MSE after each accepted step (first entry: at the start).
+    """
+    N = int(n_rays or problem.n_rays or 100_000)
+    lim = problem.limit
+    obs = problem.observations
+    var = I.bin_variance(obs, N) * 2.0  # observation and twin trace are both noisy
+
+    def trace(o, s):
+        res = twin.trace_batch(problem.physical_configurations(o), n_rays=N, seed=s, progress=progress)
+        return np.concatenate([res.hist_x, res.hist_y], axis=1)
+
+    o = np.asarray(offsets, dtype=float).copy()
+    h = trace(o, seed)
+    mse = [float(np.mean((h - obs) ** 2))]
+    lam = damping
+    for it in range(iterations):
+        J = I.jacobian(model, problem.configurations, o).reshape(-1, problem.n_parameters)
+        r = (h - obs).reshape(-1)
+        w = 1.0 / var.reshape(-1)
+        A = J.T @ (J * w[:, None])
+        g = J.T @ (w * r)
+        scale = np.sqrt(np.clip(np.diag(A), 1e-30, None))
+        for _ in range(4):  # Levenberg: raise the damping until the twin agrees the step helps
+            step = -np.linalg.solve(A + lam * np.diag(scale ** 2) + 1e-12 * np.eye(len(A)), g)
+            cand = np.clip(o + step, -lim, lim)
+            hc = trace(cand, seed + 1000 * (it + 1))
+            m = float(np.mean((hc - obs) ** 2))
+            if m < mse[-1]:
+                o, h = cand, hc
+                mse.append(m)
+                lam = max(lam / 3, 1e-6)
+                break
+            lam *= 10
+        else:
+            break
+        if callback:
+            callback({"iteration": it + 1, "twin_mse": mse[-1]})
+    return o, mse
+
+
+# --------------------------------------------------------------------------- #
+# the finder callable
+# --------------------------------------------------------------------------- #
+@dataclass
+class OffsetFinder:
+    """The pluggable finder for a ``find_offsets`` plan.
+
+    ``finder(configurations, histograms, n_rays=..., callback=...) -> Calibration``
+    with ``configurations`` (n, 34) physical (motor read-backs; the fixed
+    parameters at their nominal values) and ``histograms`` (n, 100) or
+    (n, 2, 50).  ``callback`` receives progress dicts (evaluations, seconds,
+    loss).  With a ``twin``, the result is polished against the twin and the
+    twin's MSE to the measurement is reported next to the expected repeat
+    noise.
+    """
+
+    model: object = None  # ForwardModel; None: the shipped surrogate
+    method: str = "gradient"
+    budget: F.Budget = field(default_factory=lambda: F.Budget(evaluations=20_000, seconds=120))
+    settings: dict = field(default_factory=dict)
+    twin: object = None
+    polish_iterations: int = 4
+    seed: int = 0
+    limit: float = MAX_OFFSET
+    threads: int | None = 1
+    progress: bool = False
+
+    def __post_init__(self):
+        if self.model is None:
+            self.model = F.load_forward_model()
+
+    def __call__(self, configurations, histograms, *, n_rays: int | None = None,
+                 callback: Callable[[dict], None] | None = None, uid: str | None = None) -> Calibration:
+        problem = F.problem_from_measurements(configurations, histograms, n_rays=n_rays, limit=self.limit,
+                                              metadata={"uid": uid} if uid else None)
+        res = F.find_offsets(problem, self.model, self.method, self.budget, seed=self.seed, progress=self.progress,
+                             callback=callback, threads=self.threads, **self.settings)
+        offsets, history = res.offsets, dict(res.history)
+        twin_mse = repeat = None
+        extra = {"evaluations": res.evaluations, "seconds": res.seconds, "settings": res.settings}
+        if self.twin is not None and self.polish_iterations:
+            def cb(d):
+                if callback:
+                    callback({"evaluations": res.evaluations, "seconds": res.seconds, "loss": d["twin_mse"],
+                              "stage": "twin polish"})
+            offsets, mses = twin_polish(problem, self.model, self.twin, offsets, iterations=self.polish_iterations,
+                                        n_rays=n_rays, seed=self.seed, callback=cb)
+            twin_mse = mses[-1]
+            from .noise import expected_repeat_mse
+            repeat = float(expected_repeat_mse(problem.observations, int(n_rays or 100_000)).mean())
+            extra["twin_polish_mse"] = mses
+        model_mse = getattr(self.model, "test_mse", 0.0)
+        rep = I.analyze(problem, self.model, offsets, model_mse=model_mse, solutions=res.solutions,
+                        solution_losses=res.solution_losses)
+        extra["identifiability"] = rep.summary()
+        extra["pairs"] = rep.pairs()
+        return Calibration(offsets=offsets, sigma=rep.sigma, status=rep.status, loss=res.loss, method=self.method,
+                           history=history, twin_mse=twin_mse, repeat_mse=repeat, source_uid=uid, extra=extra)
+
+
+# --------------------------------------------------------------------------- #
+# plans
+# --------------------------------------------------------------------------- #
+def _signals(prefix: str = "finder"):
+    from ophyd import Signal
+    return {"evaluations": Signal(name=f"{prefix}_evaluations", value=0),
+            "seconds": Signal(name=f"{prefix}_seconds", value=0.0),
+            "loss": Signal(name=f"{prefix}_loss", value=float("nan"))}
+
+
+def find_offsets_run(configurations, histograms, finder: Callable, *, n_rays: int | None = None,
+                     uid: str | None = None, md: Mapping | None = None, poll: float = 0.2):
+    """Plan: run ``finder`` on a measurement inside a Bluesky run, live.
+
+    Emits ``finder`` events while it works (``finder_evaluations``,
+    ``finder_seconds``, ``finder_loss``), then one ``offsets`` event with
+    ``offsets`` / ``offsets_sigma`` (normalized), ``offsets_physical``,
+    ``offsets_status`` (0 determined, 1 weak, 2 undetermined) and the loss
+    curve; the start document names the measurement run (``measurement_uid``).
+    Returns the :class:`Calibration`.
+    """
+    import bluesky.plan_stubs as bps
+    from ophyd import Signal
+
+    progress_q: queue.Queue = queue.Queue()
+    box: dict = {}
+
+    def work():
+        try:
+            box["result"] = finder(configurations, histograms, n_rays=n_rays, callback=progress_q.put, uid=uid)
+        except BaseException as exc:  # re-raised in the plan, where the RunEngine reports it
+            box["error"] = exc
+
+    sig = _signals()
+    md = {"plan_name": "find_offsets", "measurement_uid": uid, "n_configurations": int(len(configurations)),
+          "table_version": METRIXS.version, "parameter_names": list(METRIXS.names), **dict(md or {})}
+    yield from bps.open_run(md=md)
+    thread = threading.Thread(target=work, name="offset-finder", daemon=True)
+    thread.start()
+
+    def drain():
+        while True:
+            try:
+                d = progress_q.get_nowait()
+            except queue.Empty:
+                return
+            yield from bps.mv(sig["evaluations"], int(d["evaluations"]), sig["seconds"], float(d["seconds"]),
+                              sig["loss"], float(d["loss"]))
+            yield from bps.trigger_and_read(list(sig.values()), name="finder")
+
+    while thread.is_alive():
+        yield from bps.sleep(poll)
+        yield from drain()
+    thread.join()
+    yield from drain()
+    if "error" in box:
+        yield from bps.close_run(exit_status="fail", reason=str(box["error"]))
+        raise box["error"]
+    cal: Calibration = box["result"]
+    status_code = {"determined": 0, "weak": 1, "undetermined": 2}
+    out = [Signal(name="offsets", value=np.asarray(cal.offsets)),
+           Signal(name="offsets_sigma", value=np.asarray(cal.sigma)),
+           Signal(name="offsets_physical", value=cal.physical_offsets()),
+           Signal(name="offsets_status", value=np.array([status_code[s] for s in cal.status])),
+           Signal(name="loss_curve_evaluations", value=np.asarray(cal.history.get("evaluations", []), float)),
+           Signal(name="loss_curve_loss", value=np.asarray(cal.history.get("loss", []), float)),
+           Signal(name="final_mse", value=float(cal.loss)),
+           Signal(name="twin_mse", value=float(cal.twin_mse) if cal.twin_mse is not None else float("nan"))]
+    yield from bps.trigger_and_read(out, name="offsets")
+    yield from bps.close_run()
+    return cal
+
+
+class CalibratedModel:
+    """The digital twin and/or surrogate seen through the found offsets.
+
+    ``trace(commanded)`` / ``predict(commanded)`` take the settings the
+    operator commands (physical) and evaluate the model at what the real
+    beamline is believed to be (commanded + offsets).  :func:`apply_offsets`
+    updates it; the motors are never moved.
+    """
+
+    def __init__(self, twin=None, forward_model=None, calibration: Calibration | None = None,
+                 table: ParameterTable = METRIXS):
+        self.twin, self.forward_model, self.table = twin, forward_model, table
+        self.calibration = calibration
+        self.history: list[Calibration] = []
+
+    @property
+    def offsets(self) -> np.ndarray:
+        return np.zeros(len(self.table)) if self.calibration is None else np.asarray(self.calibration.offsets)
+
+    def set_calibration(self, cal: Calibration | None) -> None:
+        if cal is not None and cal.table_version != self.table.version:
+            raise F.FinderError(f"calibration for table {cal.table_version}, model uses {self.table.version}")
+        if self.calibration is not None:
+            self.history.append(self.calibration)
+        self.calibration = cal
+
+    def true_values(self, commanded) -> np.ndarray:
+        return self.table.validate(commanded, "commanded configuration") + self.offsets * self.table.span
+
+    def trace(self, commanded, **kw):
+        if self.twin is None:
+            raise F.FinderError("this calibrated model has no twin")
+        return self.twin.trace(self.true_values(commanded), **kw)
+
+    def predict(self, commanded) -> np.ndarray:
+        if self.forward_model is None:
+            raise F.FinderError("this calibrated model has no forward model")
+        x = self.table.normalize(commanded) + self.offsets
+        with torch.no_grad():
+            return self.forward_model(torch.as_tensor(x, dtype=F.model_dtype(self.forward_model))).double().numpy()
+
+
+def apply_offsets(model: CalibratedModel, calibration: Calibration, *, md: Mapping | None = None):
+    """Plan: put ``calibration`` into ``model`` (not the motors) and record it in a run.
+
+    The run's one ``applied`` event holds the normalized and physical
+    offsets; the start document names the run the offsets came from.
+    """
+    import bluesky.plan_stubs as bps
+    from ophyd import Signal
+
+    md = {"plan_name": "apply_offsets", "offsets_uid": calibration.source_uid, "method": calibration.method,
+          "table_version": calibration.table_version, **dict(md or {})}
+    yield from bps.open_run(md=md)
+    before = Signal(name="offsets_before", value=model.offsets.copy())
+    model.set_calibration(calibration)
+    after = Signal(name="offsets_applied", value=np.asarray(calibration.offsets))
+    phys = Signal(name="offsets_applied_physical", value=calibration.physical_offsets(model.table))
+    yield from bps.trigger_and_read([before, after, phys], name="applied")
+    yield from bps.close_run()
+    return calibration
+
+
+class LossPlot:
+    """Bluesky callback: the finder's best MSE vs. evaluations, live, on a log scale.
+
+    Subscribe it to the RunEngine (``RE.subscribe(LossPlot())``); it follows
+    ``finder`` events and, with ``path``, saves the figure when the run stops.
+    """
+
+    def __init__(self, path=None, ax=None):
+        from .plotting import _plt
+        self.plt = _plt()
+        self.path = path
+        if ax is None:
+            self.fig, self.ax = self.plt.subplots(figsize=(6, 4), constrained_layout=True)
+        else:
+            self.ax, self.fig = ax, ax.figure
+        self._desc: set[str] = set()
+        self.x: list[float] = []
+        self.y: list[float] = []
+        (self.line,) = self.ax.loglog([], [], "o-", ms=3)
+        self.ax.set_xlabel("evaluations")
+        self.ax.set_ylabel("best MSE")
+        self.ax.grid(alpha=0.3, which="both")
+
+    def __call__(self, name, doc):
+        if name == "start":
+            self.x, self.y = [], []
+            self.ax.set_title(f"offset finder {doc.get('uid', '')[:8]}")
+        elif name == "descriptor" and doc.get("name") == "finder":
+            self._desc.add(doc["uid"])
+        elif name == "event" and doc["descriptor"] in self._desc:
+            d = doc["data"]
+            if d["finder_loss"] > 0 and d["finder_evaluations"] > 0:
+                self.x.append(d["finder_evaluations"])
+                self.y.append(d["finder_loss"])
+                self.line.set_data(self.x, self.y)
+                self.ax.relim()
+                self.ax.autoscale_view()
+        elif name == "stop" and self.path:
+            self.fig.savefig(self.path, dpi=100)
