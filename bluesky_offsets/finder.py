@@ -575,6 +575,11 @@ class MonteCarlo:
             tr.update(x, obj(x))
 
 
+def _screen_size(screen: int, starts: int, tr: _Tracker) -> int:
+    """The uniform screen takes at most a quarter of a small evaluation budget."""
+    return max(min(screen, int(tr.remaining_evaluations() // 4)), min(starts, tr.cap(starts)), 1)
+
+
 @dataclass
 class GradientMultiStart:
     """Multi-start projected Adam through the differentiable model.
@@ -597,7 +602,7 @@ class GradientMultiStart:
 
     def run(self, obj: Objective, tr: _Tracker, gen: torch.Generator) -> None:
         P, lim = obj.problem.n_parameters, obj.limit
-        x0 = _uniform(tr.cap(self.screen), P, lim, gen, obj)
+        x0 = _uniform(_screen_size(self.screen, self.starts, tr), P, lim, gen, obj)
         l0 = obj(x0)
         tr.update(x0, l0)
         k = min(self.starts, len(x0))
@@ -645,7 +650,7 @@ class CMAES:
     def run(self, obj: Objective, tr: _Tracker, gen: torch.Generator) -> None:
         import cma
         P, lim = obj.problem.n_parameters, obj.limit
-        x0 = _uniform(tr.cap(self.screen), P, lim, gen, obj)
+        x0 = _uniform(_screen_size(self.screen, 1, tr), P, lim, gen, obj)
         l0 = obj(x0)
         tr.update(x0, l0)
         start = x0[int(torch.argmin(l0))].double().cpu().numpy()

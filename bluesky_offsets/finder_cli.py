@@ -48,6 +48,8 @@ def _find(args) -> int:
         raise CliError("--runs must be positive")
     if args.candidates < 1 or args.iterations < 1:
         raise CliError("--candidates and --iterations must be positive")
+    if args.min_hist_sum is None:
+        args.min_hist_sum = F.PAPER_MIN_HIST_SUM
     if not 0 < args.fast_fraction <= 1:
         raise CliError("--fast-fraction must be in (0, 1]")
     try:
@@ -73,7 +75,7 @@ def _find(args) -> int:
 
     def make(seed):
         return F.make_problem(model, seed=seed, observe=args.observe, twin=twin, n_rays=args.rays,
-                              n_configurations=args.configurations)
+                              n_configurations=args.configurations, min_hist_sum=args.min_hist_sum)
 
     log_lines = []
 
@@ -118,8 +120,10 @@ def _find(args) -> int:
                 c = E.twin_check(twin, p, r.offsets, n_rays=args.check_rays, seed=int(p.seed or 0) + 1)
                 rows.append({k: v for k, v in c.items() if not k.startswith("_")})
             checks[m] = {"runs": len(rows),
-                         "sinkhorn_compensated": float(np.mean([c["sinkhorn_compensated"] for c in rows])),
-                         "sinkhorn_repeat": float(np.mean([c["sinkhorn_repeat"] for c in rows])),
+                         "sinkhorn_compensated": float(np.nanmean([c["sinkhorn_compensated"] for c in rows])),
+                         "sinkhorn_repeat": float(np.nanmean([c["sinkhorn_repeat"] for c in rows])),
+                         "dark_true": int(sum(c["dark_true"] for c in rows)),
+                         "dark_mismatch": int(sum(c["dark_mismatch"] for c in rows)),
                          "mse_compensated": float(np.mean([c["mse_compensated"] for c in rows])),
                          "mse_repeat": float(np.mean([c["mse_repeat"] for c in rows])), "per_run": rows}
             log(f"twin check {m}: Sinkhorn {checks[m]['sinkhorn_compensated']:.3e} (repeat "
@@ -180,6 +184,9 @@ def add_cli(sub) -> None:
                         "within a tenth of its evaluations)")
     p.add_argument("--seconds", type=float, default=None, help="also stop each run after this many seconds")
     p.add_argument("--configurations", type=int, default=16, help="configurations per problem (default 16, n > 15)")
+    p.add_argument("--min-hist-sum", type=float, default=None,
+                   help="a configuration is bright if its x+y histogram sum exceeds this (fraction of source "
+                        "rays; default the paper's 0.5 in its units = 0.113)")
     p.add_argument("--observe", choices=("surrogate", "twin"), default="surrogate",
                    help="observations from the surrogate (paper) or the RAYX twin with noise")
     p.add_argument("--rays", type=int, default=100_000, help="rays of twin observations (default 1e5)")

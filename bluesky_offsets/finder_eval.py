@@ -134,11 +134,12 @@ def sinkhorn(a: np.ndarray, b: np.ndarray, *, reg: float = SINKHORN_REG, max_poi
     """Debiased Sinkhorn divergence (POT) between two ray clouds (n, 2) in mm, squared-Euclidean cost.
 
     Clouds larger than ``max_points`` are subsampled at random (the cost is
-    quadratic in the points).  An empty cloud against a non-empty one is inf.
+    quadratic in the points).  NaN if a cloud is empty (no rays on the
+    screen: the divergence is undefined; :func:`twin_check` counts those).
     """
     import ot
     if len(a) == 0 or len(b) == 0:
-        return 0.0 if len(a) == len(b) else math.inf
+        return math.nan
     rng = rng or np.random.default_rng(0)
     if len(a) > max_points:
         a = a[rng.choice(len(a), max_points, replace=False)]
@@ -171,9 +172,13 @@ def twin_check(twin, problem: F.OffsetProblem, offsets, *, n_rays: int = 20_000,
     rep_sk = np.array([sinkhorn(rays[i], rays[n + i], reg=reg, max_points=sinkhorn_points, rng=rng) for i in range(n)])
     comp_sk = np.array([sinkhorn(rays[2 * n + i], rays[i], reg=reg, max_points=sinkhorn_points, rng=rng)
                         for i in range(n)])
+    dark_true = int(sum(len(rays[i]) == 0 for i in range(n)))
+    dark_mismatch = int(sum((len(rays[i]) == 0) != (len(rays[2 * n + i]) == 0) for i in range(n)))
     return {"n_rays": n_rays, "sinkhorn_reg_mm2": reg, "sinkhorn_points": sinkhorn_points,
             "mse_compensated": float(comp_mse.mean()), "mse_repeat": float(rep_mse.mean()),
-            "sinkhorn_compensated": float(np.mean(comp_sk)), "sinkhorn_repeat": float(np.mean(rep_sk)),
+            "sinkhorn_compensated": float(np.nanmean(comp_sk)) if np.isfinite(comp_sk).any() else math.nan,
+            "sinkhorn_repeat": float(np.nanmean(rep_sk)) if np.isfinite(rep_sk).any() else math.nan,
+            "dark_true": dark_true, "dark_mismatch": dark_mismatch,
             "per_configuration": {"mse_compensated": comp_mse.tolist(), "mse_repeat": rep_mse.tolist(),
                                   "sinkhorn_compensated": comp_sk.tolist(), "sinkhorn_repeat": rep_sk.tolist()},
             "sinkhorn_seconds": time.perf_counter() - t0,
