@@ -60,7 +60,7 @@ def test_problem_is_the_papers_and_reproducible(model, problem):
 def test_method_finds_offsets_within_budget(model, problem, method):
     budget = F.Budget(evaluations=3000)
     seen = []
-    r = F.find_offsets(problem, model, method, budget, seed=1, progress=False, callback=seen.append,
+    r = F.find_offsets(problem, model, method, budget, seed=1, progress=False, threads=1, callback=seen.append,
                        **SETTINGS[method])
     start = F.final_mse(problem, model, np.zeros(34))
     assert r.method == method and r.evaluations <= 3000
@@ -79,9 +79,9 @@ def test_method_finds_offsets_within_budget(model, problem, method):
 
 
 def test_seeded_runs_repeat(model, problem):
-    a = F.find_offsets(problem, model, "smart-walker", F.Budget(evaluations=1000), seed=7, progress=False,
+    a = F.find_offsets(problem, model, "smart-walker", F.Budget(evaluations=1000), seed=7, progress=False, threads=1,
                        **SETTINGS["smart-walker"])
-    b = F.find_offsets(problem, model, "smart-walker", F.Budget(evaluations=1000), seed=7, progress=False,
+    b = F.find_offsets(problem, model, "smart-walker", F.Budget(evaluations=1000), seed=7, progress=False, threads=1,
                        **SETTINGS["smart-walker"])
     np.testing.assert_array_equal(a.offsets, b.offsets)
     assert a.history["loss"] == b.history["loss"]
@@ -89,7 +89,7 @@ def test_seeded_runs_repeat(model, problem):
 
 def test_smart_walker_beats_monte_carlo_and_gradient_beats_both(model, problem):
     budget = F.Budget(evaluations=4000)
-    res = {m: F.find_offsets(problem, model, m, budget, seed=2, progress=False, **SETTINGS[m])
+    res = {m: F.find_offsets(problem, model, m, budget, seed=2, progress=False, threads=1, **SETTINGS[m])
            for m in ("smart-walker", "monte-carlo", "gradient")}
     assert res["smart-walker"].loss < res["monte-carlo"].loss
     assert res["gradient"].loss < res["smart-walker"].loss
@@ -99,7 +99,7 @@ def test_smart_walker_beats_monte_carlo_and_gradient_beats_both(model, problem):
 
 
 def test_time_budget_is_respected(model, problem):
-    r = F.find_offsets(problem, model, "monte-carlo", F.Budget(seconds=0.5), seed=0, progress=False,
+    r = F.find_offsets(problem, model, "monte-carlo", F.Budget(seconds=0.5), seed=0, progress=False, threads=1,
                        candidates=64)
     assert r.seconds < 0.5 + 1.0
     assert r.history["seconds"][-1] >= 0.5 or r.evaluations > 0
@@ -113,7 +113,7 @@ def test_twin_observations_carry_noise(model):
     np.testing.assert_array_equal(p.configurations, ref.configurations)  # the same problem, observed by RAYX
     assert p.source == "twin" and p.n_rays == 2000 and p.noise_mse > 0
     assert p.metadata["surrogate_vs_twin_mse"] > 0
-    r = F.find_offsets(p, model, "gradient", F.Budget(evaluations=1500), seed=0, progress=False,
+    r = F.find_offsets(p, model, "gradient", F.Budget(evaluations=1500), seed=0, progress=False, threads=1,
                        **SETTINGS["gradient"])
     assert r.loss < F.final_mse(p, model, np.zeros(34))
 

@@ -91,7 +91,7 @@ def test_twin_polish_lowers_the_twins_misfit(model):
     from bluesky_offsets.twin import Twin
     twin = Twin(scheduler="inline")
     p = F.make_problem(model, seed=3, region=REGION, limit=LIMIT, observe="twin", twin=twin, n_rays=3000)
-    r = F.find_offsets(p, model, "gradient", F.Budget(evaluations=1500), seed=0, progress=False,
+    r = F.find_offsets(p, model, "gradient", F.Budget(evaluations=1500), seed=0, progress=False, threads=1,
                        starts=8, screen=128, lr=LIMIT / 10)
     o, mses = C.twin_polish(p, model, twin, r.offsets, iterations=2, n_rays=3000)
     assert len(mses) >= 1 and all(b < a for a, b in zip(mses, mses[1:]))

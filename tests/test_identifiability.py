@@ -39,7 +39,7 @@ def model():
 @pytest.fixture(scope="module")
 def solved(model):
     p = F.make_problem(model, seed=5, region=REGION, limit=LIMIT)
-    r = F.find_offsets(p, model, "gradient", F.Budget(evaluations=3000), seed=0, progress=False,
+    r = F.find_offsets(p, model, "gradient", F.Budget(evaluations=3000), seed=0, progress=False, threads=1,
                        starts=8, screen=128, lr=LIMIT / 10)
     return p, r
 
