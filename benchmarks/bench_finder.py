@@ -24,6 +24,8 @@ import platform
 import sys
 from pathlib import Path
 
+import numpy as np
+
 
 def _fmt(x, spec=".3g"):
     return "never" if x is None or not math.isfinite(x) else format(x, spec)
@@ -90,11 +92,55 @@ def markdown(res: dict, command: str) -> str:
     return "\n".join(lines) + "\n"
 
 
+def _reach(runs: list[dict], target: float) -> dict:
+    ev, sec = [], []
+    for r in runs:
+        loss = np.asarray(r["history"]["loss"])
+        hit = np.flatnonzero(loss <= target)
+        ev.append(r["history"]["evaluations"][hit[0]] if len(hit) else math.inf)
+        sec.append(r["history"]["seconds"][hit[0]] if len(hit) else math.inf)
+    ev, sec = np.asarray(ev, float), np.asarray(sec, float)
+    return {"reached": int(np.isfinite(ev).sum()), "runs": len(runs), "evaluations_median": float(np.median(ev)),
+            "seconds_median": float(np.median(sec)), "evaluations_max": float(ev.max()), "seconds_max": float(sec.max())}
+
+
+def merge(dirs: list[Path]) -> dict:
+    """Combine the results of several ``find`` runs (methods split over processes) into one."""
+    parts = [json.loads((d / "results.json").read_text()) for d in dirs]
+    res = dict(parts[0])
+    for key in ("summary", "budgets", "results"):
+        res[key] = {k: v for part in parts for k, v in part[key].items()}
+    for part in parts[1:]:
+        if part["seeds"] != res["seeds"]:
+            raise SystemExit(f"cannot merge runs with different seeds: {part['seeds']} vs {res['seeds']}")
+        if "twin_check" in part:
+            res.setdefault("twin_check", {}).update(part["twin_check"])
+        if "smart-walker" in part["summary"]:
+            res["identifiability"] = part.get("identifiability", res.get("identifiability"))
+    res["wall_seconds"] = max(p["wall_seconds"] for p in parts)
+    if "smart-walker" in res["summary"]:
+        target = res["summary"]["smart-walker"]["mse_mean"]
+        res["reach_smart_walker_mse"] = {m: _reach(runs, target) for m, runs in res["results"].items()}
+    return res
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--out", default="data/bench_finder")
     ap.add_argument("--markdown-only", action="store_true", help="only format an existing results.json")
+    ap.add_argument("--merge", nargs="+", type=Path, default=None,
+                    help="format the merged results of these output directories (methods run in separate "
+                         "processes with the same seeds)")
     args, rest = ap.parse_known_args(argv)
+    if args.merge:
+        res = merge(args.merge)
+        import torch
+        res["torch"] = torch.__version__
+        md = markdown(res, "merged: " + ", ".join(str(d) for d in args.merge) + (" " + " ".join(rest) if rest else ""))
+        Path(args.out).mkdir(parents=True, exist_ok=True)
+        (Path(args.out) / "section.md").write_text(md)
+        print(md)
+        return 0
     out = Path(args.out)
     find_args = ["find", "--out", str(out), *rest]
     command = "python benchmarks/bench_finder.py --out " + str(out) + (" " + " ".join(rest) if rest else "")

@@ -174,8 +174,8 @@ def add_cli(sub) -> None:
     p.add_argument("--methods", default=DEFAULT_METHODS, help=f"comma-separated (default {DEFAULT_METHODS})")
     p.add_argument("--runs", type=int, default=10, help="seeded runs per method (default 10)")
     p.add_argument("--seed", type=int, default=0, help="first seed (default 0)")
-    p.add_argument("--candidates", type=int, default=512,
-                   help="smart walker / Monte Carlo candidates per iteration (default 512; paper 1e6 on a GPU)")
+    p.add_argument("--candidates", type=int, default=256,
+                   help="smart walker / Monte Carlo candidates per iteration (default 256; paper 1e6 on a GPU)")
     p.add_argument("--iterations", type=int, default=200, help="smart walker iterations (default 200, the paper's)")
     p.add_argument("--evaluations", type=int, default=None,
                    help="evaluation budget of smart walker and Monte Carlo (default candidates x (iterations+1))")
