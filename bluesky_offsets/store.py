@@ -1,0 +1,280 @@
+"""The run store: Bluesky runs in a tiled catalog, measurements loaded back as arrays.
+
+By default the catalog is embedded and persistent: a SQLite catalog plus
+array/table storage in a user data directory
+(``platformdirs.user_data_path("bluesky-offsets") / "runs"``), served
+in-process, written by ``bluesky_tiled_plugins.TiledWriter``.  The location
+can be changed with the ``BLUESKY_OFFSETS_STORE`` environment variable or
+the ``location`` argument, which may also be a tiled server URL
+(``http://host:8000``, API key from ``TILED_API_KEY``).
+
+Typical use::
+
+    store = open_store()                 # or open_store("/data/metrixs-runs")
+    RE.subscribe(store.writer)
+    (uid,) = RE(measure_configurations(configs, beamline, chamber))
+    m = store.load_measurement(uid)      # m.configurations (n, 34), m.hist_x (n, 50), m.hist_y (n, 50)
+"""
+
+from __future__ import annotations
+
+import os
+import warnings
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from .parameters import METRIXS, ParameterTable
+
+ENV_STORE = "BLUESKY_OFFSETS_STORE"
+
+
+def default_store_location() -> str:
+    """``$BLUESKY_OFFSETS_STORE`` or ``<user data dir>/bluesky-offsets/runs``."""
+    env = os.environ.get(ENV_STORE)
+    if env:
+        return env
+    try:
+        from platformdirs import user_data_path
+        base = user_data_path("bluesky-offsets", appauthor=False)
+    except ImportError:  # pragma: no cover - platformdirs is a dependency
+        base = Path.home() / ".local" / "share" / "bluesky-offsets"
+    return str(base / "runs")
+
+
+# --------------------------------------------------------------------------- #
+# measurements as arrays
+# --------------------------------------------------------------------------- #
+@dataclass
+class Measurement:
+    """Configurations and the focus-chamber histograms measured at them.
+
+    Attributes
+    ----------
+    configurations : ndarray, shape (n, P)
+        Commanded configurations in twin coordinates (table order).
+    hist_x, hist_y : ndarray, shape (n, 50)
+        Measured histograms (fraction of source rays per bin).
+    names : tuple of str
+        Parameter names (table order).
+    uid : str or None
+        Run uid when the measurement comes from a stored run.
+    total_counts : ndarray, shape (n,), optional
+        Rays on the screen per configuration.
+    images : ndarray, shape (n, ny, nx), optional
+        2-D histograms when recorded.
+    metadata : dict
+        The run's start document (or the plan's metadata).
+    """
+
+    configurations: np.ndarray
+    hist_x: np.ndarray
+    hist_y: np.ndarray
+    names: tuple[str, ...] = METRIXS.names
+    uid: str | None = None
+    total_counts: np.ndarray | None = None
+    images: np.ndarray | None = None
+    metadata: dict = field(default_factory=dict)
+
+    def __post_init__(self):
+        self.configurations = np.atleast_2d(np.asarray(self.configurations, dtype=float))
+        self.hist_x = np.atleast_2d(np.asarray(self.hist_x, dtype=float))
+        self.hist_y = np.atleast_2d(np.asarray(self.hist_y, dtype=float))
+        self.names = tuple(self.names)
+        n = len(self.configurations)
+        if self.hist_x.shape[0] != n or self.hist_y.shape[0] != n:
+            raise ValueError(f"measurement: {n} configurations but {self.hist_x.shape[0]} x and "
+                             f"{self.hist_y.shape[0]} y histograms")
+        if self.configurations.shape[1] != len(self.names):
+            raise ValueError(f"measurement: configurations have {self.configurations.shape[1]} columns "
+                             f"for {len(self.names)} parameter names")
+
+    def __len__(self) -> int:
+        return len(self.configurations)
+
+    @property
+    def truth_id(self) -> str | None:
+        return self.metadata.get("truth_id")
+
+    @property
+    def table_version(self) -> str | None:
+        return self.metadata.get("parameter_table_version")
+
+    @property
+    def histograms(self) -> np.ndarray:
+        """``(n, 100)``: x then y histogram per configuration (the surrogate's output layout)."""
+        return np.concatenate([self.hist_x, self.hist_y], axis=1)
+
+    def check_table(self, table: ParameterTable = METRIXS) -> None:
+        """Raise if the measurement was taken with a different parameter table."""
+        if tuple(self.names) != tuple(table.names):
+            raise ValueError(f"measurement {self.uid or ''} uses other parameters than table {table.name!r}: "
+                             f"{table.diff({'names': list(self.names), 'low': [], 'high': []})}")
+        v = self.table_version
+        if v is not None and v != table.version:
+            raise ValueError(f"measurement {self.uid or ''} was taken with parameter-table version {v}, "
+                             f"current is {table.version} (ranges changed)")
+
+
+def _key(keys, suffix: str, preferred: str | None = None) -> str:
+    if preferred and preferred in keys:
+        return preferred
+    hits = [k for k in keys if k == suffix or k.endswith("-" + suffix) or k.endswith("_" + suffix)]
+    if len(hits) != 1:
+        raise KeyError(f"cannot tell which data key holds {suffix!r}: candidates {hits or sorted(keys)}")
+    return hits[0]
+
+
+def measurement_from_run(run, *, stream: str = "primary") -> Measurement:
+    """Arrays of a measurement run (a tiled BlueskyRun node)."""
+    start = dict(run.metadata["start"])
+    uid = start.get("uid")
+    if "configurations" not in start:
+        raise ValueError(f"run {uid} has no 'configurations' in its metadata: not a measure_configurations run")
+    names = tuple(start.get("parameter_names", METRIXS.names))
+    configs = np.asarray(start["configurations"], dtype=float)
+    if stream not in run:
+        return Measurement(configs[:0], np.zeros((0, 50)), np.zeros((0, 50)), names, uid, metadata=start)
+    ds = run[stream].read()
+    keys = list(ds.data_vars) if hasattr(ds, "data_vars") else list(ds)
+    hk = start.get("hist_keys", {})
+    kx, ky = _key(keys, "hist_x", hk.get("x")), _key(keys, "hist_y", hk.get("y"))
+    hist_x, hist_y = np.asarray(ds[kx]), np.asarray(ds[ky])
+    idx_key = next((k for k in keys if k.endswith("config_index")), None)
+    idx = np.asarray(ds[idx_key], dtype=int) if idx_key else np.arange(len(hist_x))
+    counts = images = None
+    try:
+        counts = np.asarray(ds[_key(keys, "total_counts", hk.get("counts"))])
+    except KeyError:
+        pass
+    try:
+        img = np.asarray(ds[_key(keys, "image", hk.get("image"))])
+        shape = start.get("image_shape")
+        if shape and img.ndim == 2 and img.shape[1] == int(np.prod(shape)):
+            images = img.reshape(len(img), *shape)
+    except KeyError:
+        pass
+    stop = run.metadata.get("stop") or {}
+    md = dict(start, exit_status=stop.get("exit_status"))
+    return Measurement(configs[idx], hist_x, hist_y, names, uid, counts, images, md)
+
+
+# --------------------------------------------------------------------------- #
+# the catalog
+# --------------------------------------------------------------------------- #
+class RunStore:
+    """A tiled catalog of Bluesky runs: embedded (a directory) or a tiled server (URL).
+
+    Parameters
+    ----------
+    location : str or Path, optional
+        Directory of an embedded catalog (created if missing) or ``http(s)://`` URL
+        of a tiled server.  Default: :func:`default_store_location`.
+    api_key : str, optional
+        For a server; default ``$TILED_API_KEY``.
+    """
+
+    def __init__(self, location: str | os.PathLike | None = None, *, api_key: str | None = None):
+        loc = str(location) if location is not None else default_store_location()
+        self.location = loc
+        self._context = None
+        if loc.startswith(("http://", "https://")):
+            from tiled.client import from_uri
+            self.client = from_uri(loc, api_key=api_key or os.environ.get("TILED_API_KEY"))
+        else:
+            self.client = self._embedded(Path(loc).expanduser())
+        self._writer = None
+
+    def _embedded(self, path: Path):
+        from tiled.catalog import from_uri as catalog_from_uri
+        from tiled.client import Context, from_context
+        from tiled.server.app import build_app
+
+        try:
+            (path / "data").mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise OSError(f"run store: cannot create {path}: {exc}") from None
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # tiled's in-process client warns about httpx/starlette
+            adapter = catalog_from_uri(f"sqlite:///{path / 'catalog.db'}",
+                                       writable_storage=[str(path / "data"), f"duckdb:///{path / 'tables.duckdb'}"],
+                                       init_if_not_exists=True)
+            self._context = Context.from_app(build_app(adapter))
+        return from_context(self._context)
+
+    @property
+    def writer(self):
+        """A ``TiledWriter`` callback for ``RE.subscribe`` (one per store)."""
+        if self._writer is None:
+            from bluesky_tiled_plugins import TiledWriter
+            self._writer = TiledWriter(self.client)
+        return self._writer
+
+    def subscribe(self, RE) -> int:
+        """Send ``RE``'s documents to this store; returns the subscription token."""
+        return RE.subscribe(self.writer)
+
+    def __getitem__(self, uid: str):
+        try:
+            return self.client[uid]
+        except KeyError:
+            raise KeyError(f"no run {uid!r} in the store at {self.location}") from None
+
+    def __contains__(self, uid: str) -> bool:
+        return uid in self.client
+
+    def __len__(self) -> int:
+        return len(self.client)
+
+    def uids(self, n: int | None = None) -> list[str]:
+        """Run uids, most recent last (the last ``n`` when given)."""
+        keys = list(self.client.keys())
+        return keys[-n:] if n else keys
+
+    def load_measurement(self, uid: str, *, table: ParameterTable | None = METRIXS) -> Measurement:
+        """Configurations x histograms of a measurement run (checked against ``table``)."""
+        m = measurement_from_run(self[uid])
+        if table is not None:
+            m.check_table(table)
+        return m
+
+    def close(self) -> None:
+        if self._context is not None:
+            self._context.close()
+            self._context = None
+
+    def __enter__(self) -> RunStore:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def __repr__(self) -> str:
+        return f"RunStore({self.location!r})"
+
+
+def open_store(location: str | os.PathLike | None = None, **kwargs) -> RunStore:
+    """Open (creating if needed) the run store at ``location`` (see :class:`RunStore`)."""
+    return RunStore(location, **kwargs)
+
+
+def load_measurement(uid: str, location: str | os.PathLike | None = None,
+                     table: ParameterTable | None = METRIXS) -> Measurement:
+    """Load one measurement run by uid from the store at ``location`` (default store)."""
+    with open_store(location) as store:
+        return store.load_measurement(uid, table=table)
+
+
+def as_measurement(obj, store: RunStore | str | None = None) -> Measurement:
+    """A :class:`Measurement` from itself, a run uid, or a mapping of its fields."""
+    if isinstance(obj, Measurement):
+        return obj
+    if isinstance(obj, str):
+        if isinstance(store, RunStore):
+            return store.load_measurement(obj)
+        return load_measurement(obj, store)
+    if isinstance(obj, Mapping):
+        return Measurement(**obj)
+    raise TypeError(f"cannot make a measurement from {type(obj).__name__}")

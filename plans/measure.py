@@ -1,0 +1,206 @@
+"""Measure the focus-chamber footprint at a list of beamline configurations.
+
+Absolute positions are unknown at the beamline (that is what the offsets
+are), so configurations are reached by *differences*: each motor goes to
+its position at the start of the plan plus the configuration's difference
+from the ``reference`` configuration (the configuration, in twin
+coordinates, that the motors stand at when the plan starts).  At the end —
+also after an error, a stop or an abort — every motor returns to where it
+started.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping
+from typing import Any
+
+import bluesky.plan_stubs as bps
+import bluesky.preprocessors as bpp
+import numpy as np
+from bluesky.utils import MsgGenerator
+
+from bluesky_offsets.parameters import METRIXS, ParameterTable
+from bluesky_offsets.store import Measurement
+from bluesky_offsets.twin import HistogramSpec
+
+from .motion import as_configurations, check_limits, move_to, read_positions, resolve_motors, return_to
+
+
+class CommandedConfiguration:
+    """Readable holding the configuration being measured (index and twin-coordinate vector),
+    so that every event says which configuration it belongs to."""
+
+    def __init__(self, n_parameters: int, name: str = "commanded"):
+        self.name = name
+        self.parent = None
+        self._index = -1
+        self._vector = np.full(n_parameters, np.nan)
+        self._time = 0.0
+
+    def update(self, index: int, vector: np.ndarray) -> None:
+        import time
+        self._index, self._vector, self._time = int(index), np.asarray(vector, float), time.time()
+
+    def read(self) -> dict:
+        return {"config_index": {"value": self._index, "timestamp": self._time},
+                "configuration": {"value": self._vector, "timestamp": self._time}}
+
+    def describe(self) -> dict:
+        return {"config_index": {"source": "plan", "dtype": "integer", "shape": []},
+                "configuration": {"source": "plan", "dtype": "array", "shape": [len(self._vector)],
+                                  "dtype_numpy": "<f8"}}
+
+
+def _signal_name(device, attr: str) -> str | None:
+    sig = getattr(device, attr, None)
+    return getattr(sig, "name", None) if sig is not None else None
+
+
+def _optional_read(device, attr: str) -> MsgGenerator[Any]:
+    sig = getattr(device, attr, None)
+    if sig is None:
+        return None
+    try:
+        value = yield from bps.rd(sig)
+    except Exception:
+        return None
+    return value
+
+
+def _reference_vector(reference, start: Mapping, table: ParameterTable) -> np.ndarray:
+    if reference is None:  # the motors' readbacks are twin coordinates
+        return table.from_mapping(start)
+    if isinstance(reference, Mapping):
+        return table.from_mapping(reference)
+    return table.validate(reference, "reference configuration")
+
+
+def scan_configurations(configurations, beamline, chamber, *, reference=None, table: ParameterTable = METRIXS,
+                        md: Mapping | None = None, keep_going: Callable[[int, dict], bool] | None = None,
+                        read_motors: bool = True) -> MsgGenerator[Measurement]:
+    """Core of :func:`measure_configurations` and the on-beamline ray search.
+
+    ``keep_going(index, reading)`` (optional) is called after each event and
+    ends the scan early when it returns False.
+    """
+    motors = resolve_motors(beamline, table)
+    configs = as_configurations(configurations, table)
+    start = yield from read_positions(motors)
+    ref = _reference_vector(reference, start, table)
+    col = {n: table.index(n) for n in motors}
+    targets = [{n: start[n] + (cfg[col[n]] - ref[col[n]]) for n in motors} for cfg in configs]
+    yield from check_limits(motors, targets)  # all of them, before anything moves
+
+    truth_id = yield from _optional_read(chamber, "truth_id")
+    n_rays = yield from _optional_read(chamber, "num_rays")
+    hist = HistogramSpec()
+    commanded = CommandedConfiguration(len(table))
+    _md = {
+        "plan_name": "measure_configurations",
+        "purpose": "offset finding: footprints at known configuration differences",
+        "parameter_table": table.name,
+        "parameter_table_version": table.version,
+        "parameter_names": list(table.names),
+        "configurations": configs.tolist(),
+        "n_configurations": len(configs),
+        "reference": ref.tolist(),
+        # start documents allow no dots in keys: per-motor values as lists in table order
+        "motorized_names": list(motors),
+        "start_positions": [start[n] for n in motors],
+        "motor_names": [getattr(m, "name", str(m)) for m in motors.values()],
+        "detectors": [getattr(chamber, "name", str(chamber))],
+        "hist_keys": {k: v for k, v in {"x": _signal_name(chamber, "hist_x"), "y": _signal_name(chamber, "hist_y"),
+                                        "counts": _signal_name(chamber, "total_counts"),
+                                        "image": _signal_name(chamber, "image")}.items() if v},
+        "histogram": hist.fingerprint(),
+        "image_shape": [hist.bins_y, hist.bins_x],
+        "hints": {"dimensions": [(["time"], "primary")]},
+    }
+    if truth_id:
+        _md["truth_id"] = str(truth_id)
+    if n_rays is not None:
+        _md["n_rays"] = int(n_rays)
+    _md.update(md or {})
+
+    readings: list[dict] = []
+    devices = [chamber, commanded, *(motors.values() if read_motors else ())]
+
+    def body():
+        for k, (cfg, target) in enumerate(zip(configs, targets)):
+            yield from move_to(motors, target)
+            commanded.update(k, cfg)
+            reading = yield from bps.trigger_and_read(devices)
+            readings.append(reading)
+            if keep_going is not None and not keep_going(k, reading):
+                break
+
+    uid = yield from bpp.finalize_wrapper(bpp.run_wrapper(body(), md=_md), return_to(motors, start))
+    return _measurement(readings, configs, table, uid, _md)
+
+
+def _value(reading: dict, suffix: str, preferred: str | None):
+    if preferred and preferred in reading:
+        return reading[preferred]["value"]
+    keys = [k for k in reading if k.endswith("-" + suffix) or k.endswith("_" + suffix) or k == suffix]
+    if len(keys) != 1:
+        raise KeyError(f"cannot find the {suffix!r} reading among {sorted(reading)}")
+    return reading[keys[0]]["value"]
+
+
+def _measurement(readings, configs, table, uid, md) -> Measurement:
+    keys = md.get("hist_keys", {})
+    n = len(readings)
+    if n == 0:
+        return Measurement(configs[:0], np.zeros((0, 50)), np.zeros((0, 50)), table.names, uid, metadata=md)
+    hx = np.array([_value(r, "hist_x", keys.get("x")) for r in readings], dtype=float)
+    hy = np.array([_value(r, "hist_y", keys.get("y")) for r in readings], dtype=float)
+    try:
+        counts = np.array([_value(r, "total_counts", keys.get("counts")) for r in readings])
+    except KeyError:
+        counts = None
+    idx = [int(r["config_index"]["value"]) for r in readings]
+    return Measurement(configs[idx], hx, hy, table.names, uid, counts, None, dict(md))
+
+
+def measure_configurations(configurations, beamline, chamber, *, reference=None,
+                           table: ParameterTable = METRIXS, md: Mapping | None = None,
+                           read_motors: bool = True) -> MsgGenerator[Measurement]:
+    """Measure both focus-chamber histograms at each configuration; one event per configuration.
+
+    Parameters
+    ----------
+    configurations : array_like or sequence of mapping
+        ``(n, 34)`` configurations in twin coordinates (table order), ``(n, 28)``
+        motorized values, or ``{parameter name: value}`` mappings.  Fixed
+        parameters stay at their design values.
+    beamline : mapping or device
+        Motors by parameter name or device path (see :mod:`plans.motion`).
+    chamber : Triggerable and Readable
+        The focus-chamber detector; its readings must include ``hist_x`` and
+        ``hist_y`` (data keys ending in those names).
+    reference : array_like or mapping, optional
+        Twin-coordinate configuration the motors stand at when the plan starts;
+        default: their readbacks.  Motor *i* goes to ``start_i + (config_i - reference_i)``.
+    table : ParameterTable
+        Parameter table (default METRIXS).
+    md : mapping, optional
+        Extra run metadata.
+    read_motors : bool
+        Also record every motor's readback in each event (default True).
+
+    Returns
+    -------
+    Measurement
+        The configurations and histograms just taken (also in the run store
+        when a ``TiledWriter`` is subscribed); ``uid`` is the run's uid.
+
+    Notes
+    -----
+    Run metadata: ``parameter_table_version``, ``parameter_names``,
+    ``configurations``, ``reference``, ``start_positions``, ``truth_id``
+    (simulation only, read from the chamber), ``hist_keys``.  All targets are
+    checked against the motor limits before anything moves; a violation raises
+    :class:`plans.motion.MotorLimitError` and leaves every motor where it was.
+    """
+    return (yield from scan_configurations(configurations, beamline, chamber, reference=reference,
+                                           table=table, md=md, read_motors=read_motors))

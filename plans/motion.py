@@ -1,0 +1,180 @@
+"""Plan stubs for moving the beamline between configurations.
+
+Device-agnostic: a *beamline* is any of
+
+* a mapping ``{parameter name or device path: movable}``,
+* an object with a ``motors`` mapping (``bluesky_offsets.devices.MetrixsBeamline``,
+  ``make_beamline_v1(...)``),
+* an object whose attribute paths follow the table's ``device`` paths
+  (``beamline.e1.rx``).
+
+Motors need the bluesky ``Movable`` and ``Readable`` protocols; limits are
+read from ``low_limit_travel``/``high_limit_travel`` (ophyd and ophyd-async
+motor records) or a ``limits`` tuple when present.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+
+import bluesky.plan_stubs as bps
+import numpy as np
+from bluesky.utils import MsgGenerator
+
+from bluesky_offsets.parameters import METRIXS, ParameterError, ParameterTable
+
+
+class MotorLimitError(ValueError):
+    """A requested configuration lies outside a motor's limits; nothing was moved."""
+
+
+class MotionError(RuntimeError):
+    """A motor did not arrive where it was sent."""
+
+
+def resolve_motors(beamline, table: ParameterTable = METRIXS) -> dict:
+    """``{parameter name: movable}`` for the motorized parameters of ``table`` (table order)."""
+    if isinstance(beamline, Mapping):
+        source = beamline
+    elif isinstance(getattr(beamline, "motors", None), Mapping):
+        source = beamline.motors
+    else:
+        source = None
+    out, missing = {}, []
+    for p in table:
+        if not p.motorized:
+            continue
+        if source is not None:
+            dev = source.get(p.name, source.get(p.device))
+        else:
+            dev = beamline
+            for part in p.device.split("."):
+                dev = getattr(dev, part, None)
+                if dev is None:
+                    break
+        if dev is None:
+            missing.append(p.name)
+        else:
+            out[p.name] = dev
+    if missing:
+        raise ValueError(f"beamline lacks motors for {len(missing)} parameters: {', '.join(missing)}")
+    return out
+
+
+def as_configurations(configurations, table: ParameterTable = METRIXS, base=None) -> np.ndarray:
+    """Configurations as an ``(n, P)`` array in table order.
+
+    Accepts an ``(n, P)`` array, an ``(n, M)`` array of the ``M`` motorized
+    parameters, or a sequence of ``{name: value}`` mappings (unnamed
+    parameters take their value from ``base``, default the table's reference).
+    Fixed parameters always take their design value: they cannot be moved.
+    """
+    if isinstance(configurations, Mapping):
+        configurations = [configurations]
+    if len(configurations) and isinstance(configurations[0], Mapping):
+        arr = np.array([table.from_mapping(c, base=base) for c in configurations])
+    else:
+        arr = np.atleast_2d(np.asarray(configurations, dtype=float))
+        n_mot = int(table.motorized.sum())
+        if arr.ndim == 2 and arr.shape[1] == n_mot and n_mot != len(table):
+            full = np.tile(table.reference, (len(arr), 1))
+            full[:, table.motorized] = arr
+            arr = full
+        arr = table.validate(arr, "configurations")
+    if arr.ndim != 2 or len(arr) == 0:
+        raise ParameterError(f"configurations: expected a non-empty list of configurations, got shape {arr.shape}")
+    fixed = ~table.motorized
+    moved = np.abs(arr[:, fixed] - table.reference[fixed]) > 1e-12 * np.maximum(1, np.abs(table.reference[fixed]))
+    if moved.any():
+        names = sorted({table.names[i] for i in np.flatnonzero(fixed)[np.argwhere(moved)[:, 1]]})
+        raise ParameterError(f"configurations change fixed (non-motorized) parameters {names}; "
+                             f"leave them at their design values")
+    return arr
+
+
+def read_positions(motors: Mapping) -> MsgGenerator[dict]:
+    """Readbacks of all motors, ``{parameter name: position}``."""
+    out = {}
+    for name, m in motors.items():
+        out[name] = float((yield from bps.rd(m)))
+    return out
+
+
+def _limits(motor) -> MsgGenerator[tuple[float, float] | None]:
+    lo_sig, hi_sig = getattr(motor, "low_limit_travel", None), getattr(motor, "high_limit_travel", None)
+    if lo_sig is not None and hi_sig is not None:
+        lo, hi = float((yield from bps.rd(lo_sig))), float((yield from bps.rd(hi_sig)))
+    else:
+        lim = getattr(motor, "limits", None)
+        if lim is None:
+            return None
+        lo, hi = map(float, lim)
+    if lo == hi == 0:  # motor-record convention: no limits
+        return None
+    return min(lo, hi), max(lo, hi)
+
+
+def _resolution(motor) -> MsgGenerator[float]:
+    for attr in ("motor_resolution", "deadband"):
+        sig = getattr(motor, attr, None)
+        if sig is not None:
+            try:
+                return abs(float((yield from bps.rd(sig))))
+            except Exception:
+                pass
+    prec = getattr(motor, "precision", None)
+    if isinstance(prec, (int, np.integer)):
+        return 10.0 ** -int(prec)
+    return 0.0
+
+
+def check_limits(motors: Mapping, targets: Sequence[Mapping]) -> MsgGenerator[None]:
+    """Raise :class:`MotorLimitError` naming every target outside its motor's limits.
+
+    Runs before any motion, so a refused scan leaves every motor where it was.
+    """
+    problems = []
+    for name, m in motors.items():
+        lim = yield from _limits(m)
+        if lim is None:
+            continue
+        lo, hi = lim
+        tol = 1e-9 * max(hi - lo, 1e-12)
+        for k, t in enumerate(targets):
+            v = t[name]
+            if not lo - tol <= v <= hi + tol:
+                problems.append(f"configuration {k}: {name} ({getattr(m, 'name', m)}) -> {v:.6g} "
+                                f"outside limits [{lo:.6g}, {hi:.6g}]")
+    if problems:
+        more = f" (and {len(problems) - 5} more)" if len(problems) > 5 else ""
+        raise MotorLimitError("requested positions beyond motor limits, nothing was moved: "
+                              + "; ".join(problems[:5]) + more)
+
+
+def move_to(motors: Mapping, target: Mapping, *, verify: bool = True) -> MsgGenerator[None]:
+    """Move all motors to ``target`` together, wait, and check that each arrived."""
+    args = []
+    for name, m in motors.items():
+        args += [m, float(target[name])]
+    yield from bps.mv(*args)
+    if verify:
+        yield from verify_positions(motors, target)
+
+
+def verify_positions(motors: Mapping, target: Mapping) -> MsgGenerator[None]:
+    """Raise :class:`MotionError` for motors further from ``target`` than their resolution."""
+    off = []
+    for name, m in motors.items():
+        pos = float((yield from bps.rd(m)))
+        res = yield from _resolution(m)
+        tol = max(2 * res, 1e-9 * max(1.0, abs(target[name])))
+        if abs(pos - target[name]) > tol:
+            off.append(f"{name}: at {pos:.6g}, sent to {target[name]:.6g}")
+    if off:
+        raise MotionError("motors did not reach their targets (stopped, limit or controller refusal): "
+                          + "; ".join(off))
+
+
+def return_to(motors: Mapping, positions: Mapping) -> MsgGenerator[None]:
+    """Move every motor back to ``positions`` (used as the finalizer of scans)."""
+    yield from move_to(motors, positions, verify=False)

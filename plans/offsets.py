@@ -1,0 +1,215 @@
+"""Offset finding as a plan: measurement in, offsets per parameter and loss out, as a stream.
+
+The finder itself is pluggable.  Two calling conventions are accepted:
+
+* ``finder(measurement)`` with a :class:`bluesky_offsets.store.Measurement`;
+* ``finder(configurations, histograms, n_rays=..., uid=...)`` with
+  configurations ``(n, 34)`` and histograms ``(n, 100)`` (x then y), the
+  convention of :class:`bluesky_offsets.calibration.OffsetFinder` (chosen
+  when the callable takes two positional parameters).
+
+The result may be an :class:`OffsetResult`, any object with ``offsets``
+(normalized, table order) and ``loss`` attributes (e.g. a ``Calibration``),
+a mapping with those keys (offsets may be ``{name: value}``), or a tuple
+``(offsets, loss)``.
+The finder runs in a worker thread, so the RunEngine stays responsive
+(pause/abort) while it works.  For bluesky-queueserver, pass the finder as an
+import path string (``"package.module:function"``) and the measurement as a
+run uid: both are plain JSON.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import importlib
+import time
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+
+import bluesky.plan_stubs as bps
+import bluesky.preprocessors as bpp
+import numpy as np
+from bluesky.utils import MsgGenerator
+
+from bluesky_offsets.parameters import METRIXS, ParameterTable
+from bluesky_offsets.store import Measurement, RunStore, as_measurement
+
+
+@dataclass
+class OffsetResult:
+    """Offsets found for one measurement.
+
+    Attributes
+    ----------
+    offsets : ndarray, shape (P,)
+        Normalized offsets (fractions of each parameter's range), table order.
+    loss : float
+        The finder's final loss (e.g. histogram MSE).
+    info : dict
+        Anything else the finder reports (iterations, timings ...).
+    """
+
+    offsets: np.ndarray
+    loss: float
+    info: dict = field(default_factory=dict)
+    table: ParameterTable = METRIXS
+    raw: object = None  # the finder's own result object
+
+    @property
+    def physical(self) -> np.ndarray:
+        """Offsets in mm/mrad."""
+        return self.offsets * self.table.span
+
+    def as_mapping(self) -> dict[str, float]:
+        return {n: float(v) for n, v in zip(self.table.names, self.offsets)}
+
+
+def _as_result(raw, table: ParameterTable) -> OffsetResult:
+    if isinstance(raw, OffsetResult):
+        return raw
+    if hasattr(raw, "offsets") and hasattr(raw, "loss") and not isinstance(raw, Mapping):
+        off = table.validate(np.asarray(raw.offsets, dtype=float), "finder offsets")
+        return OffsetResult(off, float(raw.loss), {}, table, raw)
+    if isinstance(raw, tuple) and len(raw) == 2:
+        raw = {"offsets": raw[0], "loss": raw[1]}
+    if not isinstance(raw, Mapping) or "offsets" not in raw or "loss" not in raw:
+        raise TypeError("the finder must return an OffsetResult, a mapping with 'offsets' and 'loss', "
+                        f"or a tuple (offsets, loss); got {type(raw).__name__}")
+    off = raw["offsets"]
+    if isinstance(off, Mapping):
+        vec = np.zeros(len(table))
+        for name, v in off.items():
+            vec[table.index(name)] = float(v)
+        off = vec
+    off = table.validate(off, "finder offsets")
+    info = {k: v for k, v in raw.items() if k not in ("offsets", "loss")}
+    return OffsetResult(off, float(raw["loss"]), info, table, raw)
+
+
+def _resolve_finder(finder) -> Callable:
+    if callable(finder):
+        return finder
+    if isinstance(finder, str) and ":" in finder:
+        module, func = finder.split(":", 1)
+        try:
+            return getattr(importlib.import_module(module), func)
+        except (ImportError, AttributeError) as exc:
+            raise ValueError(f"finder {finder!r} cannot be imported: {exc}") from None
+    raise TypeError(f"finder must be a callable or 'module:function', got {finder!r}")
+
+
+def _takes_arrays(func: Callable) -> bool:
+    """True for finders with the ``(configurations, histograms, ...)`` convention."""
+    import inspect
+    try:
+        params = inspect.signature(func).parameters.values()
+    except (TypeError, ValueError):
+        return False
+    positional = [p for p in params if p.kind in (p.POSITIONAL_ONLY, p.POSITIONAL_OR_KEYWORD)
+                  and p.default is p.empty]
+    return len(positional) >= 2
+
+
+def _call_finder(func: Callable, m: Measurement):
+    if _takes_arrays(func):
+        return func(m.configurations, m.histograms, n_rays=m.metadata.get("n_rays"), uid=m.uid)
+    return func(m)
+
+
+def data_key(name: str) -> str:
+    """Event data key of a parameter (dots are not welcome in table column names)."""
+    return name.replace(".", "_")
+
+
+class _Values:
+    """Readable with fixed values: how the plan puts the finder's result into a stream."""
+
+    def __init__(self, name: str, values: Mapping[str, object]):
+        self.name, self.parent = name, None
+        self._values, self._time = dict(values), time.time()
+
+    def read(self):
+        return {k: {"value": v, "timestamp": self._time} for k, v in self._values.items()}
+
+    def describe(self):
+        out = {}
+        for k, v in self._values.items():
+            arr = np.asarray(v)
+            if arr.ndim:
+                out[k] = {"source": "finder", "dtype": "array", "shape": list(arr.shape), "dtype_numpy": "<f8"}
+            else:
+                out[k] = {"source": "finder", "dtype": "number", "shape": []}
+        return out
+
+
+def find_offsets(finder, measurement=None, *, store: RunStore | str | None = None,
+                 table: ParameterTable = METRIXS, stream_name: str = "offsets", open_run: bool = True,
+                 md: Mapping | None = None) -> MsgGenerator[OffsetResult]:
+    """Run an offset finder on a measurement and emit the result as a stream.
+
+    Parameters
+    ----------
+    finder : callable or str
+        ``finder(measurement) -> OffsetResult | {"offsets", "loss"} | (offsets, loss)``,
+        or its import path ``"module:function"``.
+    measurement : Measurement or str
+        The measurement (e.g. returned by :func:`plans.measure_configurations`)
+        or the uid of a measurement run in ``store``.
+    store : RunStore or str, optional
+        Where to load a uid from (default store when omitted).
+    stream_name : str
+        Name of the event stream holding the result (default ``"offsets"``).
+    open_run : bool
+        Open a run of its own (default); ``False`` emits the stream into the run
+        that is already open (inside a larger plan).
+    md : mapping, optional
+        Extra run metadata.
+
+    Returns
+    -------
+    OffsetResult
+
+    Notes
+    -----
+    The stream has one event: ``loss``, the normalized offset of every
+    parameter (key = name with ``.`` -> ``_``), and arrays ``offsets`` /
+    ``offsets_physical`` in table order.
+    """
+    func = _resolve_finder(finder)
+    m: Measurement = as_measurement(measurement, store)
+    m.check_table(table)
+    holder: dict = {}
+
+    def call():
+        holder["result"] = _as_result(_call_finder(func, m), table)
+        return holder["result"]
+
+    def start_finder():
+        return asyncio.get_running_loop().run_in_executor(None, call)
+
+    def body():
+        (task,) = yield from bps.wait_for([start_finder])
+        result: OffsetResult = task.result()  # re-raises the finder's error
+        values = {"loss": result.loss, "offsets": result.offsets, "offsets_physical": result.physical}
+        values.update({data_key(n): float(v) for n, v in zip(table.names, result.offsets)})
+        yield from bps.create(name=stream_name)
+        yield from bps.read(_Values("finder", values))
+        yield from bps.save()
+        return result
+
+    if not open_run:
+        return (yield from body())
+    _md = {"plan_name": "find_offsets", "purpose": "offset finding",
+           "measurement_uid": m.uid, "parameter_table_version": table.version,
+           "parameter_names": list(table.names), "finder": getattr(func, "__qualname__", repr(func)),
+           "n_configurations": len(m)}
+    if m.truth_id:
+        _md["truth_id"] = m.truth_id
+    _md.update(md or {})
+    holder_uid = {}
+
+    def with_uid():
+        holder_uid["result"] = yield from body()
+
+    yield from bpp.run_wrapper(with_uid(), md=_md)
+    return holder_uid["result"]

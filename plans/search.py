@@ -1,0 +1,187 @@
+"""Find configurations whose footprint has enough rays (paper Sec. 2.2).
+
+Most configurations of the 34-parameter box put (almost) no rays on the
+focus-chamber screen, and an empty footprint says little about the offsets.
+The paper therefore uses only configurations whose histogram sum exceeds 0.5
+and asks for more than 15 of them.
+
+Threshold in our units
+----------------------
+The paper's histograms are raw bin counts at 1e5 source rays divided by
+22594, so a sum of 0.5 means 0.5 x 22594 = 11297 rays of 1e5.  Our
+histograms are fractions of the source rays, so the same threshold is
+``0.5 * 22594 / 1e5 = 0.11297`` (:data:`HIGH_RAY_THRESHOLD`): about 11 % of
+the source rays must land inside the histogram window.  Both the x and the
+y histogram must pass (the y window, ±3 mm, is the narrower one).
+
+Two searches: :func:`high_ray_configurations_on_model` on a model (the
+twin or a surrogate, at the model's belief of the offsets), and the plan
+:func:`find_high_ray_configurations` on the beamline.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+
+import numpy as np
+from bluesky.utils import MsgGenerator
+
+from bluesky_offsets.parameters import METRIXS, ParameterTable
+
+from .measure import scan_configurations
+
+PAPER_THRESHOLD = 0.5
+"""Histogram-sum threshold of the paper, in its units (raw counts / 22594 at 1e5 rays)."""
+PAPER_SCALE = 22594 / 1e5
+HIGH_RAY_THRESHOLD = PAPER_THRESHOLD * PAPER_SCALE
+"""The paper's threshold in fraction-of-source-rays units: 0.11297."""
+MIN_CONFIGURATIONS = 16
+"""The paper asks for n > 15 configurations."""
+
+
+def enough_rays(hist_x, hist_y, threshold: float = HIGH_RAY_THRESHOLD) -> np.ndarray:
+    """True where both histogram sums exceed ``threshold`` (rows = configurations)."""
+    sx = np.nansum(np.atleast_2d(hist_x), axis=1)
+    sy = np.nansum(np.atleast_2d(hist_y), axis=1)
+    return (sx > threshold) & (sy > threshold)
+
+
+def sample_candidates(n: int, *, rng: np.random.Generator | int | None = None, around=None,
+                      spread: float | np.ndarray | None = None, table: ParameterTable = METRIXS) -> np.ndarray:
+    """Candidate configurations: uniform in the sampling box (the paper), or uniform within
+    ``±spread`` (normalized units, scalar or per parameter) around ``around``, clipped to the box.
+    Fixed parameters stay at their design values."""
+    rng = np.random.default_rng(rng)
+    if around is None:
+        cand = table.sample_uniform(n, rng)
+    else:
+        centre = table.normalize(around)
+        s = np.broadcast_to(np.asarray(0.1 if spread is None else spread, float), centre.shape)
+        cand = table.denormalize(np.clip(centre + rng.uniform(-1, 1, (n, len(table))) * s, 0, 1))
+    cand[:, ~table.motorized] = table.reference[~table.motorized]
+    return cand
+
+
+def _evaluate(model, values: np.ndarray, n_rays: int | None) -> tuple[np.ndarray, np.ndarray]:
+    if hasattr(model, "trace_batch"):  # the twin
+        kw = {"n_rays": n_rays} if n_rays else {}
+        b = model.trace_batch(values, progress=False, **kw)
+        return b.hist_x, b.hist_y
+    out = model(values)
+    if isinstance(out, tuple) and len(out) == 2:
+        return np.asarray(out[0]), np.asarray(out[1])
+    out = np.asarray(out)  # (N, bins_x + bins_y), the surrogate's layout
+    half = out.shape[1] // 2
+    return out[:, :half], out[:, half:]
+
+
+def high_ray_configurations_on_model(model, n: int = MIN_CONFIGURATIONS, *, candidates: int | np.ndarray = 1000,
+                                     offsets=None, threshold: float = HIGH_RAY_THRESHOLD,
+                                     rng: np.random.Generator | int | None = None, around=None,
+                                     spread: float | np.ndarray | None = None, n_rays: int | None = None,
+                                     chunk: int = 64, table: ParameterTable = METRIXS,
+                                     progress: bool = True) -> np.ndarray:
+    """Configurations whose modelled footprint has enough rays.
+
+    Parameters
+    ----------
+    model : Twin or callable
+        The twin (``trace_batch``), or ``f(values (N, P)) -> (hist_x, hist_y)``
+        or ``-> (N, bins_x + bins_y)`` (a surrogate).
+    n : int
+        How many configurations to return (paper: n > 15).
+    candidates : int or ndarray
+        Number of candidates to draw (:func:`sample_candidates`) or the candidates.
+    offsets : array_like, optional
+        Normalized offsets (fractions of range) added before evaluating: the
+        model's current belief of the beamline's offsets (default none).
+    threshold : float
+        Histogram-sum threshold, fraction of source rays (default 0.113).
+    around, spread : optional
+        Draw candidates near a configuration instead of from the whole box.
+
+    Returns
+    -------
+    ndarray, shape (n, P)
+        The first ``n`` candidates that pass, in twin coordinates (without offsets).
+
+    Raises
+    ------
+    ValueError
+        When fewer than ``n`` candidates pass; the message gives the count.
+    """
+    from tqdm.auto import tqdm
+
+    cand = (sample_candidates(int(candidates), rng=rng, around=around, spread=spread, table=table)
+            if np.isscalar(candidates) else table.validate(np.atleast_2d(candidates), "candidates"))
+    shift = 0.0 if offsets is None else table.offsets_to_physical(offsets)
+    found: list[np.ndarray] = []
+    with tqdm(total=n, desc="high-ray configurations", unit="cfg", disable=not progress) as bar:
+        for i in range(0, len(cand), chunk):
+            block = cand[i:i + chunk]
+            hx, hy = _evaluate(model, block + shift, n_rays)
+            good = block[enough_rays(hx, hy, threshold)]
+            take = good[: n - len(found)]
+            found.extend(take)
+            bar.update(len(take))
+            if len(found) >= n:
+                break
+    if len(found) < n:
+        raise ValueError(f"only {len(found)} of {len(cand)} candidates put more than {threshold:.4g} of the "
+                         f"source rays on the screen; {n} needed (draw more candidates or search nearer a "
+                         f"known good configuration)")
+    return np.array(found)
+
+
+def find_high_ray_configurations(candidates, beamline, chamber, *, n: int = MIN_CONFIGURATIONS,
+                                 threshold: float = HIGH_RAY_THRESHOLD, reference=None,
+                                 table: ParameterTable = METRIXS, md: Mapping | None = None,
+                                 require_all: bool = False) -> MsgGenerator[np.ndarray]:
+    """Measure candidates on the beamline until ``n`` have enough rays; return those.
+
+    Each candidate is one event of the run (histograms and readbacks), so
+    the search itself is recorded.  Candidates are reached by differences
+    from ``reference`` as in :func:`plans.measure_configurations`; the motors
+    return to their start positions at the end.
+
+    Parameters
+    ----------
+    candidates : array_like or sequence of mapping
+        Configurations to try, in order (e.g. from :func:`sample_candidates`
+        around the current configuration).
+    n : int
+        Stop after this many pass (paper: n > 15).
+    threshold : float
+        Histogram-sum threshold in fraction of source rays (default 0.113, see module notes).
+    require_all : bool
+        Raise ``ValueError`` when fewer than ``n`` pass (default: return what passed).
+
+    Returns
+    -------
+    ndarray, shape (k, P)
+        Passing configurations (twin coordinates), ``k <= n``.
+    """
+    accepted: list[int] = []
+
+    def keep_going(k: int, reading: dict) -> bool:
+        hx = next(v["value"] for key, v in reading.items() if key.endswith("hist_x"))
+        hy = next(v["value"] for key, v in reading.items() if key.endswith("hist_y"))
+        if enough_rays(hx, hy, threshold)[0]:
+            accepted.append(k)
+        return len(accepted) < n
+
+    _md = {"plan_name": "find_high_ray_configurations", "purpose": "search for high-ray configurations",
+           "threshold": threshold, "threshold_units": "fraction of source rays (paper: 0.5 x 22594/1e5)",
+           "n_wanted": n}
+    _md.update(md or {})
+    m = yield from scan_configurations(candidates, beamline, chamber, reference=reference, table=table,
+                                       md=_md, keep_going=keep_going)
+    good = m.configurations[enough_rays(m.hist_x, m.hist_y, threshold)] if len(m) else m.configurations
+    if require_all and len(good) < n:
+        raise ValueError(f"only {len(good)} of {len(m)} measured candidates passed the threshold "
+                         f"{threshold:.4g}; {n} needed")
+    return good
+
+
+__all__ = ["HIGH_RAY_THRESHOLD", "MIN_CONFIGURATIONS", "PAPER_SCALE", "PAPER_THRESHOLD", "enough_rays",
+           "find_high_ray_configurations", "high_ray_configurations_on_model", "sample_candidates"]

@@ -1,0 +1,1 @@
+"""Simulated EPICS IOCs standing in for the real METRIXS beamline (caproto)."""

@@ -1,0 +1,423 @@
+"""The simulated METRIXS beamline as a caproto IOC.
+
+``python -m sim_iocs.metrixs --prefix BL: [--list-pvs]`` (or
+``bluesky-offsets ioc ...``) serves
+
+* one motor record per motorized parameter of the table (28):
+  ``BL:<component>:<axis>`` after the parameter's ``device`` path
+  (``E1.rotationXerror`` -> ``BL:e1:rx``), limits from the table's box;
+* the focus-chamber detector ``BL:chamber:*``: ``Acquire`` (put-completion
+  when the frame is ready), ``NumRays`` (ray budget), ``AcquireTime``,
+  ``HistX``/``HistY`` (50 bins each, fraction of source rays per bin),
+  ``Image`` (50 x 50, row-major y then x), ``TotalCounts``, ``AxisX``/``AxisY``
+  (bin centres, mm), ``Status``/``Message``, ``ArrayCounter``, ``TruthId``.
+
+Every frame is computed for the *true* state: motor positions plus hidden
+offsets, the hidden true values of the six fixed parameters, and hidden
+physical effects (:mod:`sim_iocs.truth`), by a backend (:mod:`sim_iocs.backends`,
+the RAYX twin by default) in a worker process, with a fresh random seed per
+frame.  Ports and interfaces follow the usual EPICS environment variables
+(``EPICS_CAS_SERVER_PORT``, ``EPICS_CA_SERVER_PORT``, ``EPICS_CAS_INTF_ADDR_LIST``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import json
+import logging
+import math
+import signal
+import socket
+import sys
+import time
+from collections.abc import Callable
+
+import numpy as np
+from caproto import ChannelType
+from caproto.server import PVGroup, pvproperty
+from caproto._data import SkipWrite
+
+from bluesky_offsets.parameters import METRIXS, ParameterError, ParameterTable
+from bluesky_offsets.twin import HistogramSpec
+
+from .backends import FootprintBackend, Frame, make_backend
+from .motor_record import AxisSettings, MotorRecord
+from .truth import Truth
+
+log = logging.getLogger("sim_iocs.metrixs")
+
+HIST = HistogramSpec()
+DEFAULT_PREFIX = "SIM:METRIXS:"
+CHAMBER = "chamber:"
+STATUS = ("Idle", "Acquiring", "Error", "Aborted")
+
+
+def motor_pv(param, prefix: str = "") -> str:
+    """Record name of a motorized parameter: its ``device`` path with ``:`` separators."""
+    return prefix + param.device.replace(".", ":")
+
+
+def axis_settings(param, start: float, *, move_time: float = 4.0, accel_time: float = 0.2) -> AxisSettings:
+    """Motor-record settings for one parameter: soft limits = the table's box, a full-range move
+    takes ``move_time`` seconds, resolution 1e-5 of the range's order of magnitude."""
+    span = param.high - param.low
+    resolution = 10.0 ** (math.floor(math.log10(span)) - 5)
+    return AxisSettings(description=f"{param.name}"[:40], egu=param.unit, low=param.low, high=param.high,
+                        start=float(start), velocity=span / move_time, accel_time=accel_time,
+                        resolution=resolution)
+
+
+def _zeros(n):
+    return [0.0] * n
+
+
+class FocusChamber(PVGroup):
+    """Focus-chamber screen: histograms and image of the footprint, one frame per ``Acquire``.
+
+    Parameters
+    ----------
+    state : callable
+        Returns the true parameter vector (table order) at the moment a frame starts.
+    backend : FootprintBackend
+        Computes frames (the twin, or a surrogate).
+    truth_id : str
+        Published hash of the hidden truth.
+    """
+
+    acquire = pvproperty(value="Done", name="Acquire", dtype=ChannelType.ENUM, enum_strings=("Done", "Acquire"),
+                         doc="Acquire one frame (put-completion when ready); write 0 to abort")
+    acquire_time = pvproperty(value=0.0, name="AcquireTime", units="s", precision=3,
+                              doc="Minimum duration of a frame (s)")
+    num_rays = pvproperty(value=10000, name="NumRays", dtype=ChannelType.LONG,
+                          doc="Ray budget: source rays per frame")
+    hist_x = pvproperty(value=_zeros(HIST.bins_x), name="HistX", read_only=True, max_length=HIST.bins_x,
+                        doc="x histogram, fraction of source rays per bin")
+    hist_y = pvproperty(value=_zeros(HIST.bins_y), name="HistY", read_only=True, max_length=HIST.bins_y,
+                        doc="y histogram, fraction of source rays per bin")
+    image = pvproperty(value=_zeros(HIST.bins_x * HIST.bins_y), name="Image", read_only=True,
+                       max_length=HIST.bins_x * HIST.bins_y, doc="2-D histogram, rows y, columns x")
+    size_x = pvproperty(value=HIST.bins_x, name="ImageSizeX", dtype=ChannelType.LONG, read_only=True)
+    size_y = pvproperty(value=HIST.bins_y, name="ImageSizeY", dtype=ChannelType.LONG, read_only=True)
+    axis_x = pvproperty(value=HIST.centers_x.tolist(), name="AxisX", read_only=True, max_length=HIST.bins_x,
+                        units="mm", precision=3, doc="x bin centres (mm)")
+    axis_y = pvproperty(value=HIST.centers_y.tolist(), name="AxisY", read_only=True, max_length=HIST.bins_y,
+                        units="mm", precision=3, doc="y bin centres (mm)")
+    total_counts = pvproperty(value=0, name="TotalCounts", dtype=ChannelType.LONG, read_only=True,
+                              doc="Rays on the screen in the last frame")
+    transmission = pvproperty(value=0.0, name="Transmission", read_only=True, precision=4,
+                              doc="TotalCounts / NumRays")
+    array_counter = pvproperty(value=0, name="ArrayCounter", dtype=ChannelType.LONG, read_only=True,
+                               doc="Frames completed")
+    frame_time = pvproperty(value=0.0, name="FrameTime", read_only=True, units="s", precision=3,
+                            doc="Computing time of the last frame")
+    status = pvproperty(value="Idle", name="Status", dtype=ChannelType.ENUM, enum_strings=STATUS, read_only=True)
+    message = pvproperty(value="", name="Message", dtype=str, max_length=256, report_as_string=True,
+                         read_only=True)
+    truth_id = pvproperty(value="", name="TruthId", dtype=ChannelType.STRING, read_only=True,
+                          doc="Hash of the hidden truth (the truth itself is never published)")
+    table_version = pvproperty(value=METRIXS.version, name="TableVersion", dtype=ChannelType.STRING,
+                               read_only=True, doc="Parameter-table version")
+    backend_name = pvproperty(value="", name="Backend", dtype=str, max_length=128, report_as_string=True,
+                              read_only=True)
+
+    def __init__(self, *args, state: Callable[[], np.ndarray], backend: FootprintBackend, truth_id: str,
+                 table: ParameterTable = METRIXS, n_rays: int = 10000, **kwargs):
+        super().__init__(*args, **kwargs)
+        self._state = state
+        self.backend = backend
+        self._truth_id = truth_id
+        self._table = table
+        self._n_rays = int(n_rays)
+        self._frame: asyncio.Task | None = None
+        self._abort = asyncio.Event()
+
+    @acquire.startup
+    async def acquire(self, instance, async_lib):
+        await self.truth_id.write(self._truth_id)
+        await self.table_version.write(self._table.version)
+        await self.backend_name.write(self.backend.name)
+        await self.num_rays.write(self._n_rays)
+        await self.message.write("warming up the backend")
+        try:  # warm the worker (imports, first trace) so the first real frame is quick
+            await asyncio.wrap_future(self.backend.submit(self._state(), 100))
+            await self.message.write("ready")
+        except Exception as exc:  # reported, the IOC keeps serving
+            await self.status.write("Error")
+            await self.message.write(f"backend failed to start: {exc}"[:255])
+
+    @num_rays.putter
+    async def num_rays(self, instance, value):
+        if value < 0:
+            raise ValueError("NumRays must be >= 0")
+        return value
+
+    @acquire_time.putter
+    async def acquire_time(self, instance, value):
+        if not value >= 0:
+            raise ValueError("AcquireTime must be >= 0")
+        return value
+
+    @acquire.putter
+    async def acquire(self, instance, value):
+        if value == "Done":
+            if self._frame is not None and not self._frame.done():
+                self._abort.set()
+            return SkipWrite
+        if self._frame is None or self._frame.done():
+            self._abort.clear()
+            await instance.write("Acquire", verify_value=False)
+            self._frame = asyncio.get_running_loop().create_task(self._acquire())
+        # A second Acquire during a frame completes with that frame.  The frame task
+        # owns the outcome, so a client that goes away does not cancel it.
+        ok, msg = await asyncio.shield(self._frame)
+        if not ok and msg != "aborted":
+            raise RuntimeError(msg)
+        return SkipWrite
+
+    async def _acquire(self) -> tuple[bool, str]:
+        t0 = time.monotonic()
+        n_rays = int(self.num_rays.value)
+        await self.status.write("Acquiring")
+        try:
+            values = self._state()
+            if n_rays == 0:
+                frame = Frame.dark(HIST, 0)
+            else:
+                fut = asyncio.wrap_future(self.backend.submit(values, n_rays))
+                abort = asyncio.ensure_future(self._abort.wait())
+                done, _ = await asyncio.wait({fut, abort}, return_when=asyncio.FIRST_COMPLETED)
+                abort.cancel()
+                if fut not in done:
+                    fut.cancel()  # the worker finishes its trace; the result is dropped
+                    raise _Aborted()
+                frame = fut.result()
+            rest = self.acquire_time.value - (time.monotonic() - t0)
+            if rest > 0:
+                try:
+                    await asyncio.wait_for(self._abort.wait(), rest)
+                    raise _Aborted()
+                except asyncio.TimeoutError:
+                    pass
+            await self._publish(frame, time.monotonic() - t0)
+            return True, "ok"
+        except _Aborted:
+            await self.status.write("Aborted")
+            await self.message.write("acquisition aborted")
+            await self.acquire.write("Done", verify_value=False)
+            return False, "aborted"
+        except Exception as exc:
+            reset = getattr(self.backend, "reset", None)
+            if reset is not None and "BrokenProcessPool" in type(exc).__name__:
+                reset()
+            msg = f"acquisition failed: {type(exc).__name__}: {exc}"
+            log.error(msg)
+            await self.status.write("Error")
+            await self.message.write(msg[:255])
+            await self.acquire.write("Done", verify_value=False)
+            return False, msg
+
+    async def _publish(self, frame: Frame, seconds: float):
+        ts = time.time()  # one timestamp for the whole frame
+        hx = np.nan_to_num(np.asarray(frame.hist_x, float))
+        hy = np.nan_to_num(np.asarray(frame.hist_y, float))
+        img = (np.zeros((HIST.bins_y, HIST.bins_x)) if frame.image is None
+               else np.nan_to_num(np.asarray(frame.image, float)))
+        await self.image.write(img.ravel().tolist(), timestamp=ts)
+        await self.hist_x.write(hx.tolist(), timestamp=ts)
+        await self.hist_y.write(hy.tolist(), timestamp=ts)
+        await self.total_counts.write(int(frame.n_hits), timestamp=ts)
+        await self.transmission.write(frame.n_hits / frame.n_rays if frame.n_rays else 0.0, timestamp=ts)
+        await self.frame_time.write(seconds, timestamp=ts)
+        await self.array_counter.write(self.array_counter.value + 1, timestamp=ts)
+        note = "" if frame.image is not None else " (backend gives no image)"
+        await self.message.write(f"frame {self.array_counter.value}: {frame.n_hits} of {frame.n_rays} rays"
+                                 f"{note}", timestamp=ts)
+        await self.status.write("Idle", timestamp=ts)
+        await self.acquire.write("Done", verify_value=False, timestamp=ts)
+
+
+class _Aborted(Exception):
+    pass
+
+
+class MetrixsIOC:
+    """The 28 motor records and the focus chamber, with one hidden truth.
+
+    Parameters
+    ----------
+    prefix : str
+        PV prefix (``"BL:"`` gives ``BL:e1:rx``, ``BL:chamber:Acquire``).
+    truth : Truth
+        Hidden offsets, effects and start positions.
+    backend : FootprintBackend or str
+        Footprint model (default: the twin).
+    n_rays : int
+        Initial ray budget per frame.
+    move_time, accel_time, tick : float
+        A full-range move takes ``move_time`` s; ``ACCL``; readback update period.
+    """
+
+    def __init__(self, prefix: str = DEFAULT_PREFIX, truth: Truth | None = None,
+                 backend: FootprintBackend | str = "twin", *, table: ParameterTable = METRIXS,
+                 n_rays: int = 10000, move_time: float = 4.0, accel_time: float = 0.2, tick: float = 0.05):
+        self.prefix = prefix
+        self.table = table
+        self.truth = truth or Truth.from_seed(None, table)
+        if isinstance(backend, str):
+            backend = make_backend(backend, overrides=self.truth.overrides, hist=HIST)
+        self.backend = backend
+        self.motors: dict[str, MotorRecord] = {}
+        for i, p in enumerate(table):
+            if p.motorized:
+                settings = axis_settings(p, self.truth.start[i], move_time=move_time, accel_time=accel_time)
+                self.motors[p.name] = MotorRecord(prefix=motor_pv(p, prefix), settings=settings, tick=tick,
+                                                  name=p.name)
+        self.chamber = FocusChamber(prefix=prefix + CHAMBER, state=self.true_state, backend=backend,
+                                    truth_id=self.truth.truth_id, table=table, n_rays=n_rays, name="chamber")
+        self.pvdb = {}
+        for group in (*self.motors.values(), self.chamber):
+            self.pvdb.update(group.pvdb)
+
+    def positions(self) -> np.ndarray:
+        """Physical axis positions, table order (fixed parameters at design value)."""
+        pos = self.table.reference.copy()
+        for name, m in self.motors.items():
+            pos[self.table.index(name)] = m.axis_position
+        return pos
+
+    def true_state(self) -> np.ndarray:
+        return self.truth.true_values(self.positions())
+
+    def describe(self) -> str:
+        """Human-readable list of the records and detector PVs."""
+        lines = [f"{len(self.motors)} motor records (fields: .VAL .RBV .DVAL .DRBV .OFF .DIR .DMOV .MOVN .STOP "
+                 ".SPMG .HLM .LLM .DHLM .DLLM .LVIO .VELO .ACCL .TWV .TWF .TWR .RLV .EGU .DESC .PREC .MRES "
+                 ".RDBD .MSTA ...):"]
+        for name, m in self.motors.items():
+            s = m.settings
+            lines.append(f"  {m.prefix:28s} {name:32s} [{s.low:g}, {s.high:g}] {s.egu}")
+        lines.append("focus-chamber detector:")
+        for pv, inst in self.chamber.pvdb.items():
+            n = getattr(inst, "max_length", 1) or 1
+            kind = type(inst).__name__.replace("Pvproperty", "").replace("RO", " (read-only)")
+            lines.append(f"  {pv:34s} {kind}{f'[{n}]' if n > 1 else ''}")
+        return "\n".join(lines)
+
+    def close(self) -> None:
+        self.backend.close()
+
+
+# --------------------------------------------------------------------------- #
+# command line
+# --------------------------------------------------------------------------- #
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--prefix", default=DEFAULT_PREFIX, help=f"PV prefix (default {DEFAULT_PREFIX})")
+    parser.add_argument("--list-pvs", action="store_true", help="print the records and detector PVs at start-up")
+    src = parser.add_mutually_exclusive_group()
+    src.add_argument("--truth", metavar="FILE.json", help="hidden offsets/effects/start positions (JSON)")
+    src.add_argument("--seed", type=int, help="draw hidden offsets of all 34 parameters (±20%% of range)")
+    parser.add_argument("--dump-truth", metavar="FILE.json",
+                        help="write the hidden truth to FILE (for evaluating a finder later) and go on")
+    parser.add_argument("--backend", default="twin", help="footprint model: 'twin' (default) or module:factory")
+    parser.add_argument("--rays", type=int, default=10000, help="initial ray budget per frame (NumRays)")
+    parser.add_argument("--move-time", type=float, default=4.0, help="seconds for a full-range move (VELO)")
+    parser.add_argument("--accel-time", type=float, default=0.2, help="motor acceleration time ACCL (s)")
+    parser.add_argument("--tick", type=float, default=0.05, help="readback update period while moving (s)")
+    parser.add_argument("--interfaces", nargs="+", default=["127.0.0.1"],
+                        help="interfaces to serve on (default: loopback only)")
+    parser.add_argument("-v", "--verbose", action="store_true", help="log more")
+
+
+def _build(args) -> MetrixsIOC:
+    truth = Truth.from_file(args.truth) if args.truth else Truth.from_seed(args.seed)
+    if args.rays < 0 or args.move_time <= 0 or args.accel_time <= 0 or args.tick <= 0:
+        raise ParameterError("--rays must be >= 0; --move-time, --accel-time, --tick must be positive")
+    if args.dump_truth:
+        with open(args.dump_truth, "w") as f:
+            json.dump(truth.to_dict(), f, indent=2)
+    try:
+        return MetrixsIOC(args.prefix, truth, args.backend, n_rays=args.rays, move_time=args.move_time,
+                          accel_time=args.accel_time, tick=args.tick)
+    except ValueError as exc:
+        raise ParameterError(str(exc)) from None
+
+
+def serve(args) -> int:
+    """Run the IOC until interrupted (SIGINT or SIGTERM)."""
+    ioc = _build(args)
+    print(f"METRIXS simulation IOC, prefix {args.prefix!r}, backend {ioc.backend.name}, "
+          f"truth id {ioc.truth.truth_id} ({ioc.truth.source or 'file'})", flush=True)
+    if args.list_pvs:
+        print(ioc.describe(), flush=True)
+
+    def _terminate(signum, frame):
+        raise KeyboardInterrupt
+
+    signal.signal(signal.SIGTERM, _terminate)
+    try:
+        asyncio.run(_serve(ioc.pvdb, args.interfaces))
+    except KeyboardInterrupt:
+        pass
+    finally:
+        ioc.close()
+    return 0
+
+
+def _nodelay_context():
+    from caproto.asyncio.server import Context
+
+    class NoDelayContext(Context):
+        """caproto's asyncio server with TCP_NODELAY on client circuits, as EPICS IOCs have.
+
+        Without it, two requests in flight on one circuit (ophyd-async reads
+        several fields of a motor at once) wait for the client's delayed ACK:
+        ~45 ms instead of ~1 ms per round trip.
+        """
+
+        async def tcp_handler(self, client, addr):
+            sock = client.writer.get_extra_info("socket")
+            if sock is not None:
+                sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+            return await super().tcp_handler(client, addr)
+
+    return NoDelayContext
+
+
+async def _serve(pvdb, interfaces):
+    ctx = _nodelay_context()(pvdb, interfaces)
+    await ctx.run(log_pv_names=False)
+
+
+def _cmd_ioc(args) -> int:
+    from bluesky_offsets.cli import CliError
+    try:
+        return serve(args)
+    except ParameterError as exc:
+        raise CliError(str(exc)) from None
+
+
+def add_cli(subparsers) -> None:
+    """``bluesky-offsets ioc ...``: the simulated beamline."""
+    p = subparsers.add_parser("ioc", help="serve the simulated METRIXS beamline (caproto IOC)",
+                              description=__doc__.split("\n\n")[0])
+    add_arguments(p)
+    p.set_defaults(func=_cmd_ioc)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m sim_iocs.metrixs",
+                                     description="Simulated METRIXS beamline (caproto IOC).")
+    add_arguments(parser)
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING,
+                        format="%(levelname)s %(name)s: %(message)s")
+    try:
+        return serve(args)
+    except ParameterError as exc:
+        print(f"sim_iocs.metrixs: error: {exc}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

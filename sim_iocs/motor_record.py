@@ -1,0 +1,606 @@
+"""A simulated EPICS motor record as a caproto PVGroup.
+
+One :class:`MotorRecord` serves the record PV (``P:e1:rx``, which is also
+``P:e1:rx.VAL``) and the fields that ophyd's ``EpicsMotor``, ophyd-async's
+``Motor``, MEDM-style screens and the caproto command-line tools use.  It
+behaves like the record where clients can tell the difference:
+
+* motion takes time: a trapezoidal profile with velocity ``VELO`` and
+  acceleration time ``ACCL``; the readback is quantized to ``MRES`` steps;
+* ``DMOV`` goes 1 -> 0 -> 1 on every processed move, also a zero-length one,
+  and a put-with-completion on ``VAL``, ``DVAL``, ``RLV``, ``TWF``/``TWR`` or
+  ``HOMF``/``HOMR`` completes only when ``DMOV`` is back to 1;
+* a target outside ``LLM``/``HLM`` is refused: ``LVIO`` = 1, ``VAL`` keeps its
+  old value, nothing moves;
+* ``STOP`` and ``SPMG`` stop a move (``VAL`` becomes the readback);
+* user and dial coordinates: ``user = dial * (+1 | -1 for DIR) + OFF``;
+  ``SET`` mode redefines positions without motion (``FOFF`` chooses whether
+  ``OFF`` or the dial position changes).
+
+The motion runs in a task owned by the record, not by the client's write:
+a client that disconnects mid-move leaves the move running to its end.
+
+The physical position of the axis (what the beamline model sees) is
+:attr:`MotorRecord.axis_position`; it differs from the dial position only
+after the dial has been redefined in ``SET``/``Frozen`` mode.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import math
+import time
+from dataclasses import dataclass
+
+from caproto import ChannelType
+from caproto.server import PVGroup, PvpropertyDouble, pvproperty
+from caproto._data import SkipWrite
+
+# MSTA bits of the motor record (motor record documentation, "MSTA").
+MSTA_DIRECTION, MSTA_DONE, MSTA_PLUS_LS, MSTA_HOME_LS = 1 << 0, 1 << 1, 1 << 2, 1 << 3
+MSTA_POSITION, MSTA_HOME, MSTA_PRESENT, MSTA_PROBLEM = 1 << 5, 1 << 7, 1 << 8, 1 << 9
+MSTA_MOVING, MSTA_GAIN_SUPPORT, MSTA_MINUS_LS, MSTA_HOMED = 1 << 10, 1 << 11, 1 << 13, 1 << 14
+
+
+def trapezoid(distance: float, velocity: float, accel_time: float) -> tuple[float, callable]:
+    """Duration and displacement-vs-time of a trapezoidal move.
+
+    The axis accelerates uniformly for ``accel_time`` to ``velocity``, cruises,
+    and decelerates symmetrically; a move too short to reach ``velocity`` is a
+    triangle.  Returns ``(duration, s)`` where ``s(t)`` is the signed
+    displacement at time ``t`` (clipped to ``[0, duration]``).
+    """
+    d = abs(float(distance))
+    v = abs(float(velocity))
+    if d == 0.0 or v == 0.0:
+        return 0.0, lambda t: 0.0
+    ta = max(float(accel_time), 1e-6)
+    a = v / ta
+    sign = math.copysign(1.0, distance)
+    if d <= v * ta:  # triangle: never reaches cruise velocity
+        t1 = math.sqrt(d / a)
+        vp = a * t1
+
+        def s(t):
+            t = min(max(t, 0.0), 2 * t1)
+            if t <= t1:
+                return sign * 0.5 * a * t * t
+            u = 2 * t1 - t
+            return sign * (d - 0.5 * a * u * u)
+        return 2 * t1, s
+    t_cruise = (d - v * ta) / v
+    duration = 2 * ta + t_cruise
+
+    def s(t):
+        t = min(max(t, 0.0), duration)
+        if t <= ta:
+            return sign * 0.5 * a * t * t
+        if t <= ta + t_cruise:
+            return sign * (0.5 * v * ta + v * (t - ta))
+        u = duration - t
+        return sign * (d - 0.5 * a * u * u)
+    return duration, s
+
+
+@dataclass(frozen=True)
+class AxisSettings:
+    """Static description of one simulated axis (all in user = dial units at start)."""
+
+    description: str
+    egu: str
+    low: float            # soft limits (LLM/HLM)
+    high: float
+    start: float          # position at IOC start; also the home position
+    velocity: float       # VELO, EGU/s
+    accel_time: float = 0.2   # ACCL, s
+    resolution: float = 1e-6  # MRES, EGU per step
+    travel_margin: float = 0.25  # hardware limit switches this fraction of the range beyond the soft limits
+
+    @property
+    def precision(self) -> int:
+        return int(min(max(-math.floor(math.log10(self.resolution)), 0), 12))
+
+
+class _UnclampedDouble(PvpropertyDouble):
+    """A double whose control limits are published but not enforced by caproto.
+
+    The motor record enforces its limits itself (``LVIO``) instead of failing
+    the put, and clients such as ophyd's ``EpicsMotor`` read the limits from the
+    ``VAL`` channel's control metadata.
+    """
+
+    async def verify_value(self, value):
+        if self.putter is not None:
+            return await self.putter(self, value)
+        return value
+
+
+_ENUM = ChannelType.ENUM
+_STR = ChannelType.STRING
+_SHORT = ChannelType.INT
+_LONG = ChannelType.LONG
+
+
+def _ro(value, name, doc, dtype=None, **kw):
+    return pvproperty(value=value, name=name, doc=doc, read_only=True, dtype=dtype, **kw)
+
+
+class MotorRecord(PVGroup):
+    """EPICS motor record with simulated, finite-speed motion.
+
+    Parameters
+    ----------
+    prefix : str
+        Record name, e.g. ``"BL:e1:rx"``; fields are ``prefix + ".FIELD"``.
+    settings : AxisSettings
+        Limits, start position, velocity, resolution, units and description.
+    tick : float
+        Readback update period during motion (s).
+    """
+
+    # --- positions ---------------------------------------------------------
+    val = pvproperty(value=0.0, name="", dtype=_UnclampedDouble, doc="User desired value (VAL)")
+    rbv = _ro(0.0, ".RBV", "User readback value")
+    dval = pvproperty(value=0.0, name=".DVAL", dtype=_UnclampedDouble, doc="Dial desired value")
+    drbv = _ro(0.0, ".DRBV", "Dial readback value")
+    rval = _ro(0, ".RVAL", "Raw desired value (steps)", _LONG)
+    rrbv = _ro(0, ".RRBV", "Raw readback value (steps)", _LONG)
+    diff = _ro(0.0, ".DIFF", "Difference DVAL - DRBV")
+    rlv = pvproperty(value=0.0, name=".RLV", doc="Relative value (EGU)")
+    off = pvproperty(value=0.0, name=".OFF", doc="User offset (EGU)")
+    dir = pvproperty(value="Pos", name=".DIR", dtype=_ENUM, enum_strings=("Pos", "Neg"),
+                     doc="User direction")
+    foff = pvproperty(value="Variable", name=".FOFF", dtype=_ENUM, enum_strings=("Variable", "Frozen"),
+                      doc="Offset-freeze switch")
+    set_ = pvproperty(value="Use", name=".SET", dtype=_ENUM, enum_strings=("Use", "Set"),
+                      doc="Set/Use switch")
+    # --- motion status -----------------------------------------------------
+    dmov = _ro(1, ".DMOV", "Done moving to value", _SHORT)
+    movn = _ro(0, ".MOVN", "Motor is moving", _SHORT)
+    mip = _ro(0, ".MIP", "Motion in progress", _SHORT)
+    tdir = _ro(1, ".TDIR", "Direction of travel", _SHORT)
+    msta = _ro(0, ".MSTA", "Motor status bits", _LONG)
+    athm = _ro(0, ".ATHM", "At home", _SHORT)
+    lvio = _ro(0, ".LVIO", "Limit violation", _SHORT)
+    hls = _ro(0, ".HLS", "At high limit switch", _SHORT)
+    lls = _ro(0, ".LLS", "At low limit switch", _SHORT)
+    # --- commands -----------------------------------------------------------
+    stop = pvproperty(value=0, name=".STOP", dtype=_SHORT, doc="Stop")
+    spmg = pvproperty(value="Go", name=".SPMG", dtype=_ENUM, enum_strings=("Stop", "Pause", "Move", "Go"),
+                      doc="Stop/Pause/Move/Go")
+    cnen = pvproperty(value="Enable", name=".CNEN", dtype=_ENUM, enum_strings=("Disable", "Enable"),
+                      doc="Enable control (torque)")
+    twv = pvproperty(value=0.0, name=".TWV", doc="Tweak step size (EGU)")
+    twf = pvproperty(value=0, name=".TWF", dtype=_SHORT, doc="Tweak motor forward")
+    twr = pvproperty(value=0, name=".TWR", dtype=_SHORT, doc="Tweak motor reverse")
+    homf = pvproperty(value=0, name=".HOMF", dtype=_SHORT, doc="Home forward")
+    homr = pvproperty(value=0, name=".HOMR", dtype=_SHORT, doc="Home reverse")
+    # --- limits ---------------------------------------------------------------
+    hlm = pvproperty(value=0.0, name=".HLM", doc="User high limit")
+    llm = pvproperty(value=0.0, name=".LLM", doc="User low limit")
+    dhlm = pvproperty(value=0.0, name=".DHLM", doc="Dial high limit")
+    dllm = pvproperty(value=0.0, name=".DLLM", doc="Dial low limit")
+    # --- dynamics and resolution ----------------------------------------------
+    velo = pvproperty(value=1.0, name=".VELO", doc="Velocity (EGU/s)")
+    vmax = pvproperty(value=10.0, name=".VMAX", doc="Max. velocity (EGU/s)")
+    vbas = pvproperty(value=0.0, name=".VBAS", doc="Base velocity (EGU/s)")
+    hvel = pvproperty(value=1.0, name=".HVEL", doc="Home velocity (EGU/s)")
+    accl = pvproperty(value=0.2, name=".ACCL", doc="Seconds to velocity")
+    mres = pvproperty(value=1e-6, name=".MRES", doc="Motor step size (EGU)")
+    eres = pvproperty(value=1e-6, name=".ERES", doc="Encoder step size (EGU)")
+    rres = pvproperty(value=1e-6, name=".RRES", doc="Readback step size (EGU)")
+    rdbd = pvproperty(value=1e-6, name=".RDBD", doc="Retry deadband (EGU)")
+    srev = pvproperty(value=200, name=".SREV", dtype=_LONG, doc="Steps per revolution")
+    urev = pvproperty(value=2e-4, name=".UREV", doc="EGUs per revolution")
+    # --- description --------------------------------------------------------
+    egu = pvproperty(value="", name=".EGU", dtype=_STR, doc="Engineering units")
+    desc = pvproperty(value="", name=".DESC", dtype=_STR, doc="Descriptor")
+    prec = pvproperty(value=6, name=".PREC", dtype=_SHORT, doc="Display precision")
+    rtyp = _ro("motor", ".RTYP", "Record type", _STR)
+    out = _ro("asyn(SIM_METRIXS)", ".OUT", "Output specification", _STR)
+
+    def __init__(self, *args, settings: AxisSettings, tick: float = 0.05, **kwargs):
+        super().__init__(*args, **kwargs)
+        self.settings = settings
+        self.tick = float(tick)
+        s = settings
+        # Internal state (plain floats; the PVs mirror them).
+        self._sign = 1.0
+        self._offset = 0.0
+        self._dial_shift = 0.0          # dial = axis + dial_shift
+        self._axis = self._quantize(s.start, s.resolution)
+        self._axis_low = s.low - s.travel_margin * (s.high - s.low)   # hardware travel (axis units)
+        self._axis_high = s.high + s.travel_margin * (s.high - s.low)
+        self._target_dial = self._axis
+        self._motion: asyncio.Task | None = None
+        self._waiters: list[asyncio.Future] = []
+        self._paused = False
+        self._homed = False
+        self._generation = 0
+        self._lock = asyncio.Lock()
+
+    # ------------------------------------------------------------------ model
+    @staticmethod
+    def _quantize(x: float, step: float) -> float:
+        return round(x / step) * step if step > 0 else x
+
+    @property
+    def axis_position(self) -> float:
+        """Physical position of the axis (the value the beamline sees, before hidden offsets)."""
+        return self._axis
+
+    @property
+    def moving(self) -> bool:
+        return self._motion is not None and not self._motion.done()
+
+    def _dial(self) -> float:
+        return self._axis + self._dial_shift
+
+    def _user_from_dial(self, dial: float) -> float:
+        return self._sign * dial + self._offset
+
+    def _dial_from_user(self, user: float) -> float:
+        return (user - self._offset) * self._sign
+
+    def _msta(self) -> int:
+        bits = MSTA_PRESENT | MSTA_GAIN_SUPPORT | MSTA_POSITION
+        if self.tdir.value:
+            bits |= MSTA_DIRECTION
+        if not self.moving:
+            bits |= MSTA_DONE
+        else:
+            bits |= MSTA_MOVING
+        if self.hls.value:
+            bits |= MSTA_PLUS_LS
+        if self.lls.value:
+            bits |= MSTA_MINUS_LS
+        if self._homed:
+            bits |= MSTA_HOMED
+        if self.athm.value:
+            bits |= MSTA_HOME
+        return bits
+
+    # -------------------------------------------------------------- startup
+    @val.startup
+    async def val(self, instance, async_lib):
+        s = self.settings
+        prec = s.precision
+        units = dict(units=s.egu, precision=prec)
+        for pv in (self.val, self.rbv, self.dval, self.drbv, self.rlv, self.off, self.diff, self.twv,
+                   self.hlm, self.llm, self.dhlm, self.dllm):
+            await pv.write_metadata(**units)
+        await self.egu.write(s.egu)
+        await self.desc.write(s.description[:40])
+        await self.prec.write(prec)
+        for pv in (self.mres, self.eres, self.rres, self.rdbd):
+            await pv.write(s.resolution)
+        await self.urev.write(s.resolution * self.srev.value)
+        await self.velo.write(s.velocity)
+        await self.hvel.write(s.velocity)
+        await self.vmax.write(10 * s.velocity)
+        await self.accl.write(s.accel_time)
+        await self.twv.write(abs(s.high - s.low) / 100)
+        await self.dhlm.write(s.high, verify_value=False)
+        await self.dllm.write(s.low, verify_value=False)
+        await self._publish_limits()
+        await self._publish_position(setpoint=True)
+        await self.msta.write(self._msta())
+
+    # ------------------------------------------------------------ publishing
+    async def _publish_limits(self):
+        lo, hi = sorted((self._user_from_dial(self.dllm.value), self._user_from_dial(self.dhlm.value)))
+        await self.hlm.write(hi, verify_value=False)
+        await self.llm.write(lo, verify_value=False)
+        # ophyd's EpicsMotor reads the soft limits from VAL's control limits.
+        await self.val.write_metadata(lower_ctrl_limit=lo, upper_ctrl_limit=hi,
+                                      lower_disp_limit=lo, upper_disp_limit=hi)
+
+    async def _publish_position(self, *, setpoint: bool = False, timestamp: float | None = None):
+        ts = timestamp or time.time()
+        dial = self._dial()
+        res = self.mres.value or 1.0
+        if setpoint:
+            await self.dval.write(self._target_dial, verify_value=False, timestamp=ts)
+            await self.val.write(self._user_from_dial(self._target_dial), verify_value=False, timestamp=ts)
+            await self.rval.write(int(round(self._target_dial / res)), timestamp=ts)
+        await self.drbv.write(dial, timestamp=ts)
+        await self.rrbv.write(int(round(dial / res)), timestamp=ts)
+        await self.diff.write(self._target_dial - dial, timestamp=ts)
+        await self.rbv.write(self._user_from_dial(dial), timestamp=ts)
+
+    # --------------------------------------------------------------- motion
+    def _in_soft_limits(self, dial: float) -> bool:
+        lo, hi = self.dllm.value, self.dhlm.value
+        if lo == 0 and hi == 0:  # motor-record convention: no limits
+            return True
+        tol = 1e-9 * max(abs(hi - lo), 1e-12)
+        return lo - tol <= dial <= hi + tol
+
+    async def _request_move(self, dial_target: float) -> bool:
+        """Validate and start a move to a dial position.  Returns False (LVIO set) when refused."""
+        dial_target = self._quantize(dial_target, self.mres.value)
+        if not self._in_soft_limits(dial_target):
+            await self.lvio.write(1)
+            return False
+        if self.lvio.value:
+            await self.lvio.write(0)
+        if self.spmg.value == "Stop":
+            return False
+        self._target_dial = dial_target
+        await self._publish_position(setpoint=True)
+        if self.spmg.value == "Pause":
+            self._paused = True
+            return True
+        self._start_motion()
+        return True
+
+    def _start_motion(self):
+        if self.moving:
+            self._motion.cancel()  # retarget from where the axis is now
+        self._generation += 1
+        self._motion = asyncio.get_running_loop().create_task(self._move(self._target_dial, self._generation))
+
+    async def _move(self, dial_target: float, generation: int):
+        s_start = self._dial()
+        distance = dial_target - s_start
+        velo = max(abs(self.velo.value), 1e-12)
+        duration, profile = trapezoid(distance, velo, self.accl.value)
+        res = self.mres.value
+        limit_hit = None
+        try:
+            async with self._lock:
+                await self.dmov.write(0)
+                await self.movn.write(1)
+                await self.mip.write(1)
+                await self.tdir.write(1 if distance >= 0 else 0)
+                await self.athm.write(0)
+                await self.hls.write(0)
+                await self.lls.write(0)
+                await self.msta.write(self._msta())
+            t0 = time.monotonic()
+            while True:
+                # Sleep at least one tick: DMOV=0 is visible even for a zero-length move.
+                remaining = duration - (time.monotonic() - t0)
+                await asyncio.sleep(min(self.tick, remaining) if remaining > 0 else self.tick)
+                t = time.monotonic() - t0
+                dial = self._quantize(s_start + profile(t), res)
+                axis = dial - self._dial_shift
+                if axis >= self._axis_high or axis <= self._axis_low:
+                    limit_hit = "high" if axis >= self._axis_high else "low"
+                    axis = min(max(axis, self._axis_low), self._axis_high)
+                self._axis = axis
+                if limit_hit or t >= duration:
+                    break
+                await self._publish_position()
+        except asyncio.CancelledError:
+            # Stopped, paused or retargeted: the axis stays where it is.
+            await self._publish_position()
+            raise
+        await self._finish_motion(generation, limit_hit)
+
+    async def _finish_motion(self, generation: int, limit_hit: str | None = None, *, stopped: bool = False):
+        async with self._lock:
+            if generation != self._generation:
+                return  # a newer move has taken over; it finishes (and completes the puts)
+            self._motion = None
+            waiters, self._waiters = self._waiters, []
+            if limit_hit:
+                await (self.hls if limit_hit == "high" else self.lls).write(1)
+            if stopped or limit_hit:
+                self._target_dial = self._dial()  # like the record: VAL follows the readback
+                await self._publish_position(setpoint=True)
+            else:
+                await self._publish_position()
+            home_dial = self.settings.start + self._dial_shift
+            await self.athm.write(int(abs(self._dial() - home_dial) <= (self.mres.value or 0)))
+            await self.movn.write(0)
+            await self.mip.write(0)
+            await self.msta.write(self._msta())
+            await self.dmov.write(1)
+        for w in waiters:
+            if not w.done():
+                w.set_result(True)
+
+    async def _cancel_motion(self) -> bool:
+        task = self._motion
+        if task is None or task.done():
+            return False
+        task.cancel()
+        try:
+            await task
+        except asyncio.CancelledError:
+            pass
+        return True
+
+    async def _halt(self):
+        """Stop now; VAL takes the readback; pending put-completions finish."""
+        was_paused, self._paused = self._paused, False
+        if await self._cancel_motion() or was_paused:
+            await self._finish_motion(self._generation, stopped=True)
+
+    async def _wait_done(self):
+        """Wait until the current move (if any) ends: the put-completion of motion fields."""
+        if not self.moving and not self._paused:
+            return
+        fut = asyncio.get_running_loop().create_future()
+        self._waiters.append(fut)
+        await fut
+
+    async def _move_and_wait(self, dial_target: float) -> bool:
+        ok = await self._request_move(dial_target)
+        if ok:
+            await self._wait_done()
+        return ok
+
+    # --------------------------------------------------------------- putters
+    @val.putter
+    async def val(self, instance, value):
+        if self.set_.value == "Set":
+            await self._redefine_user(float(value))
+            return SkipWrite
+        await self._move_and_wait(self._dial_from_user(float(value)))
+        # VAL was published by the move (or kept, when refused): nothing left to write.
+        return SkipWrite
+
+    @dval.putter
+    async def dval(self, instance, value):
+        if self.set_.value == "Set":
+            await self._redefine_user(self._user_from_dial(float(value)))
+            return SkipWrite
+        await self._move_and_wait(float(value))
+        return SkipWrite
+
+    @rlv.putter
+    async def rlv(self, instance, value):
+        target_user = self._user_from_dial(self._target_dial) + float(value)
+        await self._move_and_wait(self._dial_from_user(target_user))
+        return 0.0
+
+    async def _tweak(self, sign: float):
+        step = sign * abs(self.twv.value)
+        target_user = self._user_from_dial(self._target_dial) + step
+        await self._move_and_wait(self._dial_from_user(target_user))
+
+    @twf.putter
+    async def twf(self, instance, value):
+        if value:
+            await self._tweak(+1.0)
+        return 0
+
+    @twr.putter
+    async def twr(self, instance, value):
+        if value:
+            await self._tweak(-1.0)
+        return 0
+
+    async def _home(self):
+        home_dial = self.settings.start + self._dial_shift
+        ok = await self._request_move(home_dial)
+        if ok:
+            await self._wait_done()
+            self._homed = True
+            await self.msta.write(self._msta())
+
+    @homf.putter
+    async def homf(self, instance, value):
+        if value:
+            await self._home()
+        return 0
+
+    @homr.putter
+    async def homr(self, instance, value):
+        if value:
+            await self._home()
+        return 0
+
+    @stop.putter
+    async def stop(self, instance, value):
+        if value:
+            await self._halt()
+        return 0
+
+    @spmg.putter
+    async def spmg(self, instance, value):
+        if value == "Stop":
+            await self._halt()
+        elif value == "Pause":
+            if await self._cancel_motion():
+                self._motion = None
+                self._paused = True
+        elif self._paused:  # Move or Go resume a paused move
+            self._paused = False
+            self._start_motion()
+        return value
+
+    async def _redefine_user(self, user: float):
+        """SET mode: make the readback read ``user`` without moving."""
+        if self.foff.value == "Variable":
+            self._offset = user - self._sign * self._dial()
+            await self.off.write(self._offset, verify_value=False)
+        else:
+            new_dial = self._dial_from_user(user)
+            shift = new_dial - self._dial()
+            self._dial_shift += shift
+            # Dial limits follow the physical travel, which has not changed.
+            await self.dhlm.write(self.dhlm.value + shift, verify_value=False)
+            await self.dllm.write(self.dllm.value + shift, verify_value=False)
+        self._target_dial = self._dial()
+        await self._publish_limits()
+        await self._publish_position(setpoint=True)
+
+    @off.putter
+    async def off(self, instance, value):
+        self._offset = float(value)
+        await self._publish_limits()
+        await self._publish_position(setpoint=True)
+        return float(value)
+
+    @dir.putter
+    async def dir(self, instance, value):
+        # As in the record, OFF is kept: the user coordinates change sign.
+        self._sign = -1.0 if value == "Neg" else 1.0
+        await self._publish_limits()
+        await self._publish_position(setpoint=True)
+        return value
+
+    @hlm.putter
+    async def hlm(self, instance, value):
+        await self._set_user_limit(float(value), high=True)
+        return SkipWrite
+
+    @llm.putter
+    async def llm(self, instance, value):
+        await self._set_user_limit(float(value), high=False)
+        return SkipWrite
+
+    async def _set_user_limit(self, user_value: float, *, high: bool):
+        dial = self._dial_from_user(user_value)
+        # With DIR=Neg the user high limit is the dial low limit.
+        dial_high = high if self._sign > 0 else not high
+        await (self.dhlm if dial_high else self.dllm).write(dial, verify_value=False)
+        await self._publish_limits()
+
+    @dhlm.putter
+    async def dhlm(self, instance, value):
+        await self.dhlm.write(float(value), verify_value=False)
+        await self._publish_limits()
+        return SkipWrite
+
+    @dllm.putter
+    async def dllm(self, instance, value):
+        await self.dllm.write(float(value), verify_value=False)
+        await self._publish_limits()
+        return SkipWrite
+
+    @velo.putter
+    async def velo(self, instance, value):
+        v = abs(float(value))
+        vmax = self.vmax.value
+        if vmax > 0:
+            v = min(v, vmax)
+        v = max(v, self.vbas.value)
+        if v <= 0:
+            raise ValueError("velocity must be positive")
+        return v
+
+    @accl.putter
+    async def accl(self, instance, value):
+        return max(float(value), 1e-3)
+
+    @mres.putter
+    async def mres(self, instance, value):
+        if float(value) <= 0:
+            raise ValueError("MRES must be positive")
+        return float(value)
+
+    @prec.putter
+    async def prec(self, instance, value):
+        for pv in (self.val, self.rbv, self.dval, self.drbv, self.hlm, self.llm, self.dhlm, self.dllm):
+            await pv.write_metadata(precision=int(value))
+        return value
+
+    @egu.putter
+    async def egu(self, instance, value):
+        for pv in (self.val, self.rbv, self.dval, self.drbv, self.hlm, self.llm, self.dhlm, self.dllm):
+            await pv.write_metadata(units=str(value))
+        return value

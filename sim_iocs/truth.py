@@ -1,0 +1,132 @@
+"""The hidden truth of the simulated beamline.
+
+The operator sees motor positions; the beamline "really" sits at those
+positions plus fixed, unknown offsets, and its six fixed parameters (mirror
+radius, grating radius, ellipse half-axes) differ from their design values.
+Hidden physical effects (RML-level overrides such as a focus-chamber
+translation along the beam) can be added on top.  None of this is published
+on any PV; only :attr:`Truth.truth_id`, a hash, is, so that stored runs say
+which truth produced them.
+
+Truth file (JSON), every key optional::
+
+    {
+      "offsets": {"E1.rotationXerror": 0.08, "M1_Cylinder.radius": -0.05},
+      "offsets_physical": {"E2.rotationXerror": -0.05},
+      "overrides": {"ImagePlane": {"translationZerror": 5.0}},
+      "start": {"E1.rotationZerror": 10.0}
+    }
+
+``offsets`` are normalized (fractions of each parameter's range, at most
+±0.2, as in the paper), ``offsets_physical`` in mm/mrad; unnamed parameters
+have no offset.  ``start`` sets motor positions at IOC start (default: the
+centre of each motor's range).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from bluesky_offsets.parameters import METRIXS, ParameterError, ParameterTable
+
+
+def default_start(table: ParameterTable = METRIXS) -> np.ndarray:
+    """Motor positions at IOC start: the centre of each motor's range; fixed parameters at design value."""
+    start = 0.5 * (table.low + table.high)
+    return np.where(table.motorized, start, table.reference)
+
+
+@dataclass
+class Truth:
+    """Hidden offsets (normalized, table order), hidden effects and start positions."""
+
+    offsets: np.ndarray
+    overrides: dict = field(default_factory=dict)
+    start: np.ndarray | None = None
+    table: ParameterTable = METRIXS
+    source: str = ""
+
+    def __post_init__(self):
+        self.offsets = self.table.validate(self.offsets, "hidden offsets").astype(float)
+        self.table.check_offsets(self.offsets)
+        self.start = default_start(self.table) if self.start is None else self.table.validate(self.start, "start")
+        bad = [n for n, v, lo, hi, m in zip(self.table.names, self.start, self.table.low, self.table.high,
+                                            self.table.motorized) if m and not lo <= v <= hi]
+        if bad:
+            raise ParameterError(f"start position outside the motor limits for {', '.join(bad)}")
+        if not isinstance(self.overrides, Mapping) or not all(isinstance(v, Mapping) for v in self.overrides.values()):
+            raise ParameterError("overrides must be {object name: {RML field: value}}")
+        self.overrides = {str(k): {str(f): float(x) for f, x in v.items()} for k, v in self.overrides.items()}
+
+    # -- construction -------------------------------------------------------
+    @classmethod
+    def from_seed(cls, seed: int | None, table: ParameterTable = METRIXS) -> Truth:
+        """Offsets of all 34 parameters drawn uniformly in ±0.2 (the paper's protocol)."""
+        rng = np.random.default_rng(seed)
+        return cls(table.sample_offsets(rng), table=table,
+                   source=f"seed {seed}" if seed is not None else "random seed")
+
+    @classmethod
+    def from_mapping(cls, spec: Mapping, table: ParameterTable = METRIXS, source: str = "") -> Truth:
+        known = {"offsets", "offsets_physical", "overrides", "start", "comment"}
+        unknown = set(spec) - known
+        if unknown:
+            raise ParameterError(f"truth: unknown keys {sorted(unknown)}; expected some of {sorted(known)}")
+        off = np.zeros(len(table))
+        for name, v in dict(spec.get("offsets", {})).items():
+            off[table.index(name)] = float(v)
+        for name, v in dict(spec.get("offsets_physical", {})).items():
+            i = table.index(name)
+            off[i] = float(v) / table.span[i]
+        start = default_start(table)
+        for name, v in dict(spec.get("start", {})).items():
+            i = table.index(name)
+            if not table.motorized[i]:
+                raise ParameterError(f"truth: start position given for {name!r}, which is not a motor")
+            start[i] = float(v)
+        return cls(off, dict(spec.get("overrides", {})), start, table=table, source=source)
+
+    @classmethod
+    def from_file(cls, path: str | Path, table: ParameterTable = METRIXS) -> Truth:
+        p = Path(path)
+        try:
+            spec = json.loads(p.read_text())
+        except FileNotFoundError:
+            raise ParameterError(f"truth file {p} does not exist") from None
+        except json.JSONDecodeError as exc:
+            raise ParameterError(f"truth file {p} is not valid JSON: {exc}") from None
+        if not isinstance(spec, Mapping):
+            raise ParameterError(f"truth file {p} must hold a JSON object")
+        return cls.from_mapping(spec, table, source=str(p))
+
+    def to_dict(self) -> dict:
+        """Everything, normalized offsets for all parameters (for writing a truth file)."""
+        return {"offsets": {n: float(v) for n, v in zip(self.table.names, self.offsets)},
+                "overrides": self.overrides,
+                "start": {n: float(v) for n, v, m in zip(self.table.names, self.start, self.table.motorized) if m}}
+
+    # -- use ------------------------------------------------------------------
+    @property
+    def physical_offsets(self) -> np.ndarray:
+        return self.offsets * self.table.span
+
+    def true_values(self, positions) -> np.ndarray:
+        """True beamline state for motor positions ``positions`` (table order; fixed entries
+        are taken at their design value whatever is passed)."""
+        pos = self.table.validate(positions, "positions")
+        pos = np.where(self.table.motorized, pos, self.table.reference)
+        return pos + self.physical_offsets
+
+    @property
+    def truth_id(self) -> str:
+        """Short hash of offsets, effects and parameter-table version (safe to publish)."""
+        blob = json.dumps({"table": self.table.version,
+                           "offsets": [float(f"{v:.12g}") for v in self.offsets],
+                           "overrides": self.overrides}, sort_keys=True).encode()
+        return hashlib.sha256(blob).hexdigest()[:12]

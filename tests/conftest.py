@@ -1,0 +1,204 @@
+"""Shared test fixtures.
+
+EPICS: IOCs run in subprocesses on 127.0.0.1 only, each on its own port.
+A pool of free ports is reserved when this file is imported and put into
+``EPICS_CA_ADDR_LIST`` (``127.0.0.1:PORT ...``, ``EPICS_CA_AUTO_ADDR_LIST=NO``)
+*before* any Channel Access client library reads the environment, so the
+in-process clients (ophyd's caproto layer, ophyd-async's aioca) find every IOC
+a test starts; each IOC gets a unique PV prefix so that a stopped IOC's
+channels never alias a new one.  Subprocess clients (``caproto-get`` ...)
+get ``IocProcess.env`` with the IOC's own port.
+
+Fixtures
+--------
+ioc_factory
+    ``start(module="sim_iocs.metrixs", args=(), ready=...) -> IocProcess``;
+    everything it started is stopped at the end of the test.
+metrixs_ioc
+    One METRIXS simulation IOC for the whole session (mild hidden offsets,
+    beam on the screen at the start position, fast motors, 3000 rays).
+"""
+
+from __future__ import annotations
+
+import itertools
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+_POOL_SIZE = 8
+
+
+def _free_port() -> int:
+    """A port free for both TCP and UDP on loopback (EPICS uses the same number for both)."""
+    for _ in range(200):
+        with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as t:
+            t.bind(("127.0.0.1", 0))
+            port = t.getsockname()[1]
+            with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as u:
+                try:
+                    u.bind(("127.0.0.1", port))
+                except OSError:
+                    continue
+        return port
+    raise RuntimeError("no free port pair on 127.0.0.1")
+
+
+CA_PORTS: list[int] = []
+while len(CA_PORTS) < _POOL_SIZE:
+    p = _free_port()
+    if p not in CA_PORTS:
+        CA_PORTS.append(p)
+_free_ports = list(CA_PORTS)
+os.environ["EPICS_CA_ADDR_LIST"] = " ".join(f"127.0.0.1:{p}" for p in CA_PORTS)
+os.environ["EPICS_CA_AUTO_ADDR_LIST"] = "NO"
+os.environ.setdefault("EPICS_CA_REPEATER_PORT", str(_free_port()))
+# IOCs send beacons to a repeater; none runs here, so a UDP sink takes them (else: ICMP errors in the IOC log).
+_beacon_sink = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+_beacon_sink.bind(("127.0.0.1", 0))
+BEACON_PORT = _beacon_sink.getsockname()[1]
+os.environ.setdefault("EPICS_CA_CONN_TMO", "5")
+os.environ.setdefault("MPLBACKEND", "Agg")
+
+_prefix_counter = itertools.count(1)
+
+
+def _plain(data):
+    """A caproto sync-client reading as a Python scalar or string."""
+    if not hasattr(data, "dtype"):  # DBR_STRING: a list of bytes
+        data = [d.decode() if isinstance(d, bytes) else d for d in data]
+        return data[0] if len(data) == 1 else data
+    if data.dtype.kind == "S":
+        return data[0].decode() if len(data) == 1 else [d.decode() for d in data]
+    if data.dtype.kind == "u" and data.dtype.itemsize == 1:
+        return data.tobytes().split(b"\0", 1)[0].decode()
+    return data[0].item() if len(data) == 1 else data
+
+
+class IocProcess:
+    """An IOC subprocess on loopback with its own port; stop() always kills it (and its children)."""
+
+    def __init__(self, module: str, args, prefix: str, port: int, log_path: Path):
+        self.module, self.prefix, self.port, self.log_path = module, prefix, port, log_path
+        self.env = dict(os.environ,
+                        EPICS_CA_ADDR_LIST=f"127.0.0.1:{port}", EPICS_CA_AUTO_ADDR_LIST="NO",
+                        EPICS_CA_SERVER_PORT=str(port), EPICS_CAS_SERVER_PORT=str(port),
+                        EPICS_CAS_INTF_ADDR_LIST="127.0.0.1", EPICS_CAS_BEACON_ADDR_LIST="127.0.0.1",
+                        EPICS_CAS_AUTO_BEACON_ADDR_LIST="NO", EPICS_CAS_BEACON_PORT=str(BEACON_PORT),
+                        PYTHONUNBUFFERED="1")
+        self._log = open(log_path, "w")
+        self.proc = subprocess.Popen([sys.executable, "-m", module, "--prefix", prefix, *map(str, args)],
+                                     env=self.env, stdout=self._log, stderr=subprocess.STDOUT,
+                                     start_new_session=True)
+
+    def log(self) -> str:
+        try:
+            return self.log_path.read_text()
+        except OSError:
+            return ""
+
+    def wait_ready(self, pv: str, value=None, timeout: float = 60.0) -> None:
+        """Wait until ``pv`` answers (and equals ``value`` when given)."""
+        from caproto.sync.client import read
+        deadline = time.monotonic() + timeout
+        last = None
+        while time.monotonic() < deadline:
+            if self.proc.poll() is not None:
+                raise RuntimeError(f"IOC {self.module} exited with {self.proc.returncode}:\n{self.log()[-3000:]}")
+            try:
+                resp = read(pv, timeout=1.0, repeater=False)
+                last = _plain(resp.data)
+                if value is None or last == value:
+                    return
+            except Exception as exc:  # not up yet
+                self._last_error = exc
+            time.sleep(0.2)
+        self.stop()
+        raise TimeoutError(f"IOC {self.module} not ready ({pv} = {last!r}, {getattr(self, '_last_error', '')!r}):\n{self.log()[-3000:]}")
+
+    def stop(self, timeout: float = 10.0) -> None:
+        if self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGINT)
+            try:
+                self.proc.wait(timeout)
+            except subprocess.TimeoutExpired:
+                pass
+        try:  # the IOC's worker processes share its session: none may survive it
+            os.killpg(self.proc.pid, signal.SIGKILL)
+        except (ProcessLookupError, PermissionError):
+            pass
+        self.proc.wait(5)
+        self._log.close()
+        if self.port not in _free_ports:
+            _free_ports.append(self.port)
+
+
+def start_ioc(module: str, args=(), *, log_dir: Path, prefix: str | None = None,
+              ready: str | None = None, ready_value=None, timeout: float = 60.0) -> IocProcess:
+    """Start an IOC module (``python -m module --prefix P ...``) on a port of the pool.
+
+    ``ready`` is a PV suffix (after the prefix) polled until it answers
+    (and equals ``ready_value`` when given).
+    """
+    if not _free_ports:
+        raise RuntimeError(f"all {_POOL_SIZE} CA ports of the test pool are in use")
+    port = _free_ports.pop(0)
+    prefix = prefix or f"TST{next(_prefix_counter)}x{port}:"
+    ioc = IocProcess(module, args, prefix, port, log_dir / f"ioc-{prefix.rstrip(':')}.log")
+    try:
+        if ready:
+            ioc.wait_ready(prefix + ready, ready_value, timeout)
+    except BaseException:
+        ioc.stop()
+        raise
+    return ioc
+
+
+@pytest.fixture
+def ioc_factory(tmp_path):
+    """Start IOCs for one test; all are stopped afterwards."""
+    started: list[IocProcess] = []
+
+    def start(module: str = "sim_iocs.metrixs", args=(), **kw) -> IocProcess:
+        kw.setdefault("log_dir", tmp_path)
+        ioc = start_ioc(module, args, **kw)
+        started.append(ioc)
+        return ioc
+
+    yield start
+    for ioc in started:
+        ioc.stop()
+
+
+# A hidden truth with the beam on the screen at the start position (box centre):
+# small offsets in the sensitive axes, non-zero everywhere it is harmless.
+MILD_TRUTH = {
+    "offsets": {"E1.rotationXerror": 0.05, "E2.rotationXerror": -0.05, "M1_Cylinder.rotationXerror": 0.03,
+                "E2.translationYerror": 0.04, "ExitSlit.translationZerror": 0.1, "E1.rotationYerror": -0.1,
+                "M1_Cylinder.radius": 0.05, "E2.longHalfAxisA": -0.05},
+}
+
+METRIXS_IOC_ARGS = ("--rays", 3000, "--move-time", 0.5, "--accel-time", 0.02, "--tick", 0.02)
+
+
+def start_metrixs_ioc(log_dir: Path, truth: dict | None = None, extra=()) -> IocProcess:
+    """The METRIXS simulation IOC with a truth dict (written next to its log) and fast test settings."""
+    path = Path(log_dir) / f"truth-{next(_prefix_counter)}.json"
+    path.write_text(json.dumps(MILD_TRUTH if truth is None else truth))
+    return start_ioc("sim_iocs.metrixs", ["--truth", path, *METRIXS_IOC_ARGS, *extra], log_dir=Path(log_dir),
+                     ready="chamber:Message", ready_value="ready", timeout=90)
+
+
+@pytest.fixture(scope="session")
+def metrixs_ioc(tmp_path_factory):
+    ioc = start_metrixs_ioc(tmp_path_factory.mktemp("metrixs_ioc"))
+    ioc.truth = MILD_TRUTH
+    yield ioc
+    ioc.stop()
