@@ -18,7 +18,7 @@ import numpy as np
 
 from .cli import CliError
 
-DEFAULT_METHODS = "smart-walker,monte-carlo,gradient,cmaes"
+DEFAULT_METHODS = "smart-walker,monte-carlo,gradient,levenberg-marquardt,cmaes"
 
 
 def _fmt(x) -> str:

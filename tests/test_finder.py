@@ -22,6 +22,7 @@ LIMIT = 0.01
 SETTINGS = {"smart-walker": dict(candidates=128, step=LIMIT / 100 * 4),
             "monte-carlo": dict(candidates=128),
             "gradient": dict(starts=8, screen=128, lr=LIMIT / 10),
+            "levenberg-marquardt": dict(starts=4, screen=128),
             "cmaes": dict(sigma0=LIMIT / 4, screen=128)}
 
 
@@ -87,12 +88,15 @@ def test_seeded_runs_repeat(model, problem):
     assert a.history["loss"] == b.history["loss"]
 
 
-def test_smart_walker_beats_monte_carlo_and_gradient_beats_both(model, problem):
+def test_smart_walker_beats_monte_carlo_and_gradient_methods_beat_both(model, problem):
     budget = F.Budget(evaluations=4000)
     res = {m: F.find_offsets(problem, model, m, budget, seed=2, progress=False, threads=1, **SETTINGS[m])
-           for m in ("smart-walker", "monte-carlo", "gradient")}
+           for m in ("smart-walker", "monte-carlo", "gradient", "levenberg-marquardt")}
     assert res["smart-walker"].loss < res["monte-carlo"].loss
     assert res["gradient"].loss < res["smart-walker"].loss
+    # the least-squares structure pays: Levenberg-Marquardt recovers the offsets of a noise-free problem
+    assert res["levenberg-marquardt"].loss < 1e-3 * res["smart-walker"].loss
+    assert res["levenberg-marquardt"].parameter_rmse(problem.true_offsets) < 0.1 * LIMIT
     # the multi-start method reports its independent end points for the identifiability spread
     g = res["gradient"]
     assert g.solutions.shape == (8, 34) and g.solution_losses.shape == (8,)
