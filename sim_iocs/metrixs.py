@@ -390,11 +390,7 @@ async def _serve(pvdb, interfaces):
 
 
 def _cmd_ioc(args) -> int:
-    from bluesky_offsets.cli import CliError
-    try:
-        return serve(args)
-    except ParameterError as exc:
-        raise CliError(str(exc)) from None
+    return serve(args)  # the CLI reports ParameterError cleanly (exit 2)
 
 
 def add_cli(subparsers) -> None:

@@ -198,7 +198,63 @@ def start_metrixs_ioc(log_dir: Path, truth: dict | None = None, extra=()) -> Ioc
 
 @pytest.fixture(scope="session")
 def metrixs_ioc(tmp_path_factory):
-    ioc = start_metrixs_ioc(tmp_path_factory.mktemp("metrixs_ioc"))
+    ioc = start_metrixs_ioc(tmp_path_factory.mktemp("metrixs_ioc"), extra=("--list-pvs",))
     ioc.truth = MILD_TRUTH
     yield ioc
     ioc.stop()
+
+
+class CaClient:
+    """Small Channel Access client for tests (caproto's threading client; channels cached).
+
+    ``get(pv)`` returns a scalar, string or numpy array; ``put(pv, value, wait=True)``
+    waits for put-completion; ``caget``/``caput`` CLI tools are reachable through
+    ``IocProcess.env``.
+    """
+
+    def __init__(self):
+        from caproto.threading.client import Context
+        self.ctx = Context()
+        self._pvs = {}
+
+    def pv(self, name: str):
+        if name not in self._pvs:
+            (self._pvs[name],) = self.ctx.get_pvs(name, timeout=5)
+            self._pvs[name].wait_for_connection(timeout=10)
+        return self._pvs[name]
+
+    def get(self, name: str, *, as_string: bool = False):
+        from caproto import ChannelType
+        kw = {"data_type": ChannelType.STRING} if as_string else {}
+        return _plain(self.pv(name).read(timeout=10, **kw).data)
+
+    def put(self, name: str, value, *, wait: bool = True, timeout: float = 30):
+        from caproto import ChannelType
+        kw = {}
+        if isinstance(value, str):  # enum strings and strings
+            value, kw = [value], {"data_type": ChannelType.STRING}
+        return self.pv(name).write(value, wait=wait, notify=wait, timeout=timeout, **kw)
+
+    def close(self):
+        self.ctx.disconnect()
+
+
+@pytest.fixture(scope="session")
+def ca():
+    client = CaClient()
+    yield client
+    client.close()
+
+
+@pytest.fixture(scope="session")
+def ca_tools():
+    """Paths of the caproto command-line tools of this interpreter's environment."""
+    import shutil
+    bindir = Path(sys.executable).parent
+    tools = {}
+    for name in ("caproto-get", "caproto-put", "caproto-monitor"):
+        path = bindir / name
+        tools[name] = str(path) if path.exists() else shutil.which(name)
+        if tools[name] is None:
+            raise RuntimeError(f"{name} not found next to {sys.executable} or on PATH (caproto installed?)")
+    return tools
