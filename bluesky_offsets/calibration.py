@@ -292,6 +292,18 @@ def find_offsets_run(configurations, histograms, finder: Callable, *, n_rays: in
     return cal
 
 
+def find_offsets_live(finder: Callable, measurement, *, store=None, md: Mapping | None = None, poll: float = 0.2):
+    """Plan: :func:`find_offsets_run` on a :class:`bluesky_offsets.store.Measurement` or the uid
+    of a measurement run in ``store`` (issue 3's run store), with live progress."""
+    from .store import as_measurement
+    m = as_measurement(measurement, store)
+    m.check_table(METRIXS)
+    _md = {"truth_id": m.truth_id} if m.truth_id else {}
+    _md.update(md or {})
+    return (yield from find_offsets_run(m.configurations, m.histograms, finder, n_rays=m.metadata.get("n_rays"),
+                                        uid=m.uid, md=_md, poll=poll))
+
+
 class CalibratedModel:
     """The digital twin and/or surrogate seen through the found offsets.
 
