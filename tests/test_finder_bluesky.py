@@ -96,3 +96,24 @@ def test_twin_polish_lowers_the_twins_misfit(model):
     o, mses = C.twin_polish(p, model, twin, r.offsets, iterations=2, n_rays=3000)
     assert len(mses) >= 1 and all(b < a for a, b in zip(mses, mses[1:]))
     assert np.all(np.abs(o) <= LIMIT)
+
+
+def test_the_plans_find_offsets_stub_takes_the_offset_finder(model, problem):
+    """Issue 3's ``plans.find_offsets`` with this finder on a measurement; and the live variant."""
+    from bluesky import RunEngine
+
+    from bluesky_offsets.store import Measurement
+    from plans import find_offsets
+    RE = RunEngine({}, call_returns_result=True)
+    docs = []
+    RE.subscribe(lambda name, doc: docs.append((name, doc)))
+    h = problem.observations
+    m = Measurement(METRIXS.denormalize(problem.configurations), h[:, :50], h[:, 50:], uid="meas-1",
+                    metadata={"n_rays": 100_000})
+    res = RE(find_offsets(_finder(model), m)).plan_result
+    assert res.offsets.shape == (34,) and isinstance(res.raw, C.Calibration)
+    assert res.loss < 0.2 * F.final_mse(problem, model, np.zeros(34))
+    docs.clear()
+    cal = RE(C.find_offsets_live(_finder(model), m, poll=0.05)).plan_result
+    start = next(d for n, d in docs if n == "start")
+    assert start["measurement_uid"] == "meas-1" and isinstance(cal, C.Calibration)
