@@ -65,6 +65,8 @@ def main(argv=None) -> int:
     ap.add_argument("--evaluations", type=int, default=20_000)
     ap.add_argument("--polish", type=int, default=4)
     ap.add_argument("--model", default=None)
+    ap.add_argument("--jacobian", choices=("surrogate", "twin"), default="surrogate",
+                    help="Jacobian of the twin polish (default: the surrogate's)")
     ap.add_argument("--out", default="data/bench_calibration_session.json")
     args = ap.parse_args(argv)
 
@@ -137,7 +139,7 @@ def main(argv=None) -> int:
                          dict(m.metadata))
         with Twin(n_rays=args.rays) as twin:
             finder = C.OffsetFinder(model=model, budget=F.Budget(evaluations=args.evaluations), twin=twin,
-                                    polish_iterations=args.polish)
+                                    polish_iterations=args.polish, polish_jacobian=args.jacobian)
             res = RE(find_offsets(finder, mb)).plan_result
             t_find = time.perf_counter() - t0
             cal = res.raw

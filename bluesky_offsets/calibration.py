@@ -107,8 +107,33 @@ class Calibration:
 # --------------------------------------------------------------------------- #
 # twin polish
 # --------------------------------------------------------------------------- #
+def twin_jacobian(problem: F.OffsetProblem, twin, offsets, *, step: float = 0.01, n_rays: int = 10_000,
+                  seed: int = 0, parameters=None, progress: bool = False) -> np.ndarray:
+    """Forward-difference Jacobian of the *twin's* histograms in the offsets, ``(n, 100, P)``.
+
+    Common random numbers: every shifted batch re-uses the seeds of the
+    unshifted one, so the difference is the footprint's response, not the
+    sampling noise.  Histograms of narrow spots are step-like in the spot
+    position, so ``step`` is a secant (default 1 % of each range), not an
+    infinitesimal.  ``parameters`` (indices) limits the columns computed; the
+    others are zero.  Costs ``(len(parameters) + 1) x n`` traces.
+    """
+    P, n = problem.n_parameters, problem.n
+    cols = np.arange(P) if parameters is None else np.asarray(parameters)
+    o = np.asarray(offsets, dtype=float)
+    shifts = [np.zeros(P)] + [np.eye(P)[j] * step for j in cols]
+    vals = np.concatenate([problem.physical_configurations(o + d) for d in shifts])
+    seeds = [int(seed) + i for _ in shifts for i in range(n)]
+    res = twin.trace_batch(vals, n_rays=n_rays, seed=seeds, progress=progress)
+    h = np.concatenate([res.hist_x, res.hist_y], axis=1).reshape(len(shifts), n, -1)
+    J = np.zeros((n, h.shape[-1], P))
+    J[:, :, cols] = np.moveaxis((h[1:] - h[0]) / step, 0, -1)
+    return J
+
+
 def twin_polish(problem: F.OffsetProblem, model, twin, offsets, *, iterations: int = 4, n_rays: int | None = None,
-                damping: float = 1e-3, seed: int = 0, progress: bool = False,
+                damping: float = 1e-3, seed: int = 0, progress: bool = False, jacobian: str = "surrogate",
+                fd_step: float = 0.01, fd_rays: int = 10_000,
                 callback: Callable[[dict], None] | None = None) -> tuple[np.ndarray, list[float]]:
     """Gauss-Newton steps on the *twin's* residuals with the surrogate's Jacobian.
 
@@ -117,10 +142,16 @@ def twin_polish(problem: F.OffsetProblem, model, twin, offsets, *, iterations: i
     twin at the surrogate's optimum is off by the surrogate's error.  Each
     step traces the configurations at the current offsets with the twin,
     takes the residual to the observations, and solves the noise-weighted,
-    Levenberg-damped normal equations with the surrogate's Jacobian there.  A
-    step is kept only if the twin's MSE falls.  Returns the offsets and the
-    twin MSE after each accepted step (first entry: at the start).
+    Levenberg-damped normal equations with the surrogate's Jacobian there
+    (``jacobian="surrogate"``) or the twin's own, by common-random-number
+    finite differences (``jacobian="twin"``, :func:`twin_jacobian`: exact
+    where the surrogate is wrong, ``(P + 1) n`` traces at ``fd_rays`` per
+    iteration).  A step is kept only if the twin's MSE falls.  Returns the
+    offsets and the twin MSE after each accepted step (first entry: at the
+    start).
     """
+    if jacobian not in ("surrogate", "twin"):
+        raise F.FinderError(f"jacobian must be 'surrogate' or 'twin', got {jacobian!r}")
     N = int(n_rays or problem.n_rays or 100_000)
     lim = problem.limit
     obs = problem.observations
@@ -135,7 +166,11 @@ def twin_polish(problem: F.OffsetProblem, model, twin, offsets, *, iterations: i
     mse = [float(np.mean((h - obs) ** 2))]
     lam = damping
     for it in range(iterations):
-        J = I.jacobian(model, problem.configurations, o).reshape(-1, problem.n_parameters)
+        if jacobian == "twin":
+            J = twin_jacobian(problem, twin, o, step=fd_step, n_rays=fd_rays, seed=seed + 7919 * (it + 1),
+                              progress=progress).reshape(-1, problem.n_parameters)
+        else:
+            J = I.jacobian(model, problem.configurations, o).reshape(-1, problem.n_parameters)
         r = (h - obs).reshape(-1)
         w = 1.0 / var.reshape(-1)
         A = J.T @ (J * w[:, None])
@@ -181,6 +216,7 @@ class OffsetFinder:
     settings: dict = field(default_factory=dict)
     twin: object = None
     polish_iterations: int = 4
+    polish_jacobian: str = "surrogate"
     seed: int = 0
     limit: float = MAX_OFFSET
     threads: int | None = 1
@@ -205,7 +241,7 @@ class OffsetFinder:
                     callback({"evaluations": res.evaluations, "seconds": res.seconds, "loss": d["twin_mse"],
                               "stage": "twin polish"})
             offsets, mses = twin_polish(problem, self.model, self.twin, offsets, iterations=self.polish_iterations,
-                                        n_rays=n_rays, seed=self.seed, callback=cb)
+                                        n_rays=n_rays, seed=self.seed, jacobian=self.polish_jacobian, callback=cb)
             twin_mse = mses[-1]
             from .noise import expected_repeat_mse
             repeat = float(expected_repeat_mse(problem.observations, int(n_rays or 100_000)).mean())
