@@ -196,11 +196,13 @@ class RunStore:
             (path / "data").mkdir(parents=True, exist_ok=True)
         except OSError as exc:
             raise OSError(f"run store: cannot create {path}: {exc}") from None
+        db = path / "catalog.db"
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")  # tiled's in-process client warns about httpx/starlette
-            adapter = catalog_from_uri(f"sqlite:///{path / 'catalog.db'}",
+            # tiled initializes a catalog in a subprocess (seconds): only when there is none yet
+            adapter = catalog_from_uri(f"sqlite:///{db}",
                                        writable_storage=[str(path / "data"), f"duckdb:///{path / 'tables.duckdb'}"],
-                                       init_if_not_exists=True)
+                                       init_if_not_exists=not db.exists())
             self._context = Context.from_app(build_app(adapter))
         return from_context(self._context)
 

@@ -258,3 +258,13 @@ def ca_tools():
         if tools[name] is None:
             raise RuntimeError(f"{name} not found next to {sys.executable} or on PATH (caproto installed?)")
     return tools
+
+
+@pytest.fixture(scope="session")
+def run_store(tmp_path_factory):
+    """One embedded run store (tiled catalog in a temporary directory) for the session:
+    creating a catalog costs seconds, so tests share it."""
+    from bluesky_offsets.store import open_store
+    store = open_store(tmp_path_factory.mktemp("run_store"))
+    yield store
+    store.close()

@@ -12,7 +12,6 @@ from bluesky.utils import RunEngineInterrupted
 
 from bluesky_offsets.devices import FocusChamber, MetrixsBeamline
 from bluesky_offsets.parameters import METRIXS
-from bluesky_offsets.store import open_store
 from bluesky_offsets.twin import Twin
 from conftest import start_metrixs_ioc
 from plans import (
@@ -69,10 +68,8 @@ def devices(RE, metrixs_ioc):
 
 
 @pytest.fixture(scope="module")
-def store(tmp_path_factory):
-    s = open_store(tmp_path_factory.mktemp("runs"))
-    yield s
-    s.close()
+def store(run_store):
+    return run_store
 
 
 def _spread(value: float) -> np.ndarray:

@@ -1,0 +1,154 @@
+"""The run store: embedded persistent tiled catalog, tiled server URL, measurements as arrays.
+
+Runs here come from a RunEngine reading ophyd-async soft signals shaped like the
+focus chamber, so the store is tested on its own; the scans against the IOC
+(tests/test_plans.py) load their runs from the store too.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import bluesky.plan_stubs as bps
+import numpy as np
+import pytest
+from bluesky import RunEngine
+
+from bluesky_offsets.parameters import METRIXS
+from bluesky_offsets.store import ENV_STORE, Measurement, default_store_location, open_store
+
+
+@pytest.fixture(scope="module")
+def RE():
+    return RunEngine({}, call_returns_result=True)
+
+
+@pytest.fixture(scope="module")
+def chamber(RE):
+    from ophyd_async.core import Array1D, StandardReadable, init_devices, soft_signal_rw
+
+    class SoftChamber(StandardReadable):
+        def __init__(self, name=""):
+            with self.add_children_as_readables():
+                self.hist_x = soft_signal_rw(Array1D[np.float64], np.zeros(50))
+                self.hist_y = soft_signal_rw(Array1D[np.float64], np.zeros(50))
+                self.total_counts = soft_signal_rw(int, 0)
+            super().__init__(name=name)
+
+    with init_devices():
+        ch = SoftChamber()
+    return ch
+
+
+def measurement_run(chamber, configs, hists, md=None):
+    """A run shaped like ``measure_configurations``: configurations in the start document,
+    one event per configuration."""
+    start = {"plan_name": "measure_configurations", "configurations": np.asarray(configs).tolist(),
+             "parameter_names": list(METRIXS.names), "parameter_table_version": METRIXS.version,
+             "truth_id": "abc123", **(md or {})}
+    yield from bps.open_run(start)
+    for hx, hy in hists:
+        yield from bps.mv(chamber.hist_x, hx, chamber.hist_y, hy, chamber.total_counts, int(hx.sum() * 1000))
+        yield from bps.trigger_and_read([chamber])
+    yield from bps.close_run()
+
+
+def _data(n, seed=0):
+    rng = np.random.default_rng(seed)
+    configs = METRIXS.sample_uniform(n, rng)
+    hists = [(rng.random(50) / 100, rng.random(50) / 100) for _ in range(n)]
+    return configs, hists
+
+
+def test_default_location_is_a_user_data_dir_or_the_environment(monkeypatch, tmp_path):
+    monkeypatch.delenv(ENV_STORE, raising=False)
+    loc = default_store_location()
+    assert loc.endswith(os.path.join("bluesky-offsets", "runs")) and os.path.isabs(loc)
+    monkeypatch.setenv(ENV_STORE, str(tmp_path / "elsewhere"))
+    assert default_store_location() == str(tmp_path / "elsewhere")
+
+
+def test_embedded_store_persists_and_loads_measurement(RE, chamber, run_store, monkeypatch):
+    configs, hists = _data(4)
+    token = run_store.subscribe(RE)
+    (uid,) = RE(measurement_run(chamber, configs, hists)).run_start_uids
+    RE.unsubscribe(token)
+    m = run_store.load_measurement(uid)
+    assert isinstance(m, Measurement) and len(m) == 4 and m.uid == uid
+    np.testing.assert_allclose(m.configurations, configs)
+    np.testing.assert_allclose(m.hist_x, [h[0] for h in hists])
+    np.testing.assert_allclose(m.hist_y, [h[1] for h in hists])
+    assert m.histograms.shape == (4, 100) and m.truth_id == "abc123"
+    assert m.metadata["exit_status"] == "success"
+    # a second catalog opened on the same directory (the default location, from the
+    # environment here) reads the run from disk
+    monkeypatch.setenv(ENV_STORE, run_store.location)
+    with open_store() as again:
+        assert again.location == run_store.location and uid in again
+        m2 = again.load_measurement(uid)
+    np.testing.assert_allclose(m2.hist_x, m.hist_x)
+    np.testing.assert_allclose(m2.configurations, m.configurations)
+
+
+def test_load_errors_are_clear(RE, chamber, run_store):
+    configs, hists = _data(1)
+
+    def not_a_measurement():
+        yield from bps.open_run({"plan_name": "count"})
+        yield from bps.trigger_and_read([chamber])
+        yield from bps.close_run()
+
+    token = run_store.subscribe(RE)
+    try:
+        (other,) = RE(not_a_measurement()).run_start_uids
+        (old,) = RE(measurement_run(chamber, configs, hists, md={"parameter_table_version": "000000000000"})
+                    ).run_start_uids
+    finally:
+        RE.unsubscribe(token)
+    with pytest.raises(KeyError, match="no run 'nope'"):
+        run_store.load_measurement("nope")
+    with pytest.raises(ValueError, match="not a measure_configurations run"):
+        run_store.load_measurement(other)
+    with pytest.raises(ValueError, match="parameter-table version 000000000000"):
+        run_store.load_measurement(old)
+    assert len(run_store.load_measurement(old, table=None)) == 1
+    with pytest.raises(ValueError, match="1 configurations but 2 x"):
+        Measurement(configs, np.zeros((2, 50)), np.zeros((2, 50)))
+
+
+def test_tiled_server_url(RE, chamber, tmp_path):
+    from conftest import _free_port
+    port = _free_port()
+    log = open(tmp_path / "tiled.log", "w")
+    server = subprocess.Popen([os.path.join(os.path.dirname(sys.executable), "tiled"), "serve", "catalog", "--temp",
+                               "--api-key", "secret", "--host", "127.0.0.1", "--port", str(port)],
+                              stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
+    try:
+        import httpx
+        deadline = time.monotonic() + 90
+        while True:
+            try:
+                httpx.get(f"http://127.0.0.1:{port}/api/v1/", timeout=1)
+                break
+            except httpx.HTTPError:
+                assert server.poll() is None and time.monotonic() < deadline, (tmp_path / "tiled.log").read_text()
+                time.sleep(0.3)
+        configs, hists = _data(2, seed=1)
+        store = open_store(f"http://127.0.0.1:{port}", api_key="secret")
+        token = store.subscribe(RE)
+        (uid,) = RE(measurement_run(chamber, configs, hists)).run_start_uids
+        RE.unsubscribe(token)
+        m = store.load_measurement(uid)
+        np.testing.assert_allclose(m.hist_y, [h[1] for h in hists])
+        assert uid in store.uids()
+    finally:
+        try:
+            os.killpg(server.pid, signal.SIGTERM)
+            server.wait(10)
+        except (ProcessLookupError, subprocess.TimeoutExpired):
+            os.killpg(server.pid, signal.SIGKILL)
+        log.close()
