@@ -75,7 +75,10 @@ def _find(args) -> int:
 
     def make(seed):
         return F.make_problem(model, seed=seed, observe=args.observe, twin=twin, n_rays=args.rays,
-                              n_configurations=args.configurations, min_hist_sum=args.min_hist_sum)
+                              n_configurations=args.configurations, min_hist_sum=args.min_hist_sum,
+                              candidate_configurations=args.candidate_configurations,
+                              offset_trials=args.offset_trials, max_rounds=args.max_rounds,
+                              progress=not args.no_progress)
 
     log_lines = []
 
@@ -187,6 +190,11 @@ def add_cli(sub) -> None:
     p.add_argument("--min-hist-sum", type=float, default=None,
                    help="a configuration is bright if its x+y histogram sum exceeds this (fraction of source "
                         "rays; default the paper's 0.5 in its units = 0.113)")
+    p.add_argument("--candidate-configurations", type=int, default=1000,
+                   help="random configurations per problem-search round (paper 1000; the authors' later code "
+                        "10000)")
+    p.add_argument("--offset-trials", type=int, default=100, help="random offsets per round (paper 100)")
+    p.add_argument("--max-rounds", type=int, default=50, help="give up after this many rounds (default 50)")
     p.add_argument("--observe", choices=("surrogate", "twin"), default="surrogate",
                    help="observations from the surrogate (paper) or the RAYX twin with noise")
     p.add_argument("--rays", type=int, default=100_000, help="rays of twin observations (default 1e5)")
