@@ -96,7 +96,7 @@ def _cmd_train(args) -> int:
                              good_min_rays=args.good_min_rays,
                              good_fraction=None if args.good_fraction <= 0 else args.good_fraction,
                              split=tuple(args.split), width=args.width, n_layers=args.layers,
-                             output_norm=args.output_norm, patience=args.patience,
+                             output_norm=args.output_norm, patience=args.patience, min_delta=args.min_delta,
                              epoch_samples=args.epoch_samples, device=args.device, seed=args.seed,
                              threads=args.threads, max_minutes=args.max_minutes)
     except ValueError as exc:
@@ -186,6 +186,8 @@ def _cmd_surrogate_evaluate(args) -> int:
             print(f"  surrogate MSE    overall {s['mse']:.3e}   non-empty {s['mse_nonempty']:.3e}")
             print(f"  twin repeat MSE  overall {s['noise_mse']:.3e}   non-empty {s['noise_mse_nonempty']:.3e}")
             print(f"  ratio            overall {s['ratio']:.2f}        non-empty {s['ratio_nonempty']:.2f}")
+            print(f"  (empty-histogram baseline: overall {s['baseline_zero_mse']:.3e}   "
+                  f"non-empty {s['baseline_zero_mse_nonempty']:.3e})")
     if args.plot:
         print(f"plot written to {args.plot}")
     return 0
@@ -231,6 +233,7 @@ def add_cli(sub) -> None:
     t.add_argument("--layers", type=int, default=c.n_layers, help=f"linear layers (default {c.n_layers})")
     t.add_argument("--output-norm", choices=["global", "per-bin"], default=c.output_norm)
     t.add_argument("--patience", type=int, default=c.patience, help="early-stop patience in epochs (0: off)")
+    t.add_argument("--min-delta", type=float, default=0.0, help="relative val-MSE gain that counts (default 0)")
     t.add_argument("--epoch-samples", type=int, default=None, help="samples per epoch (default: good/0.75)")
     t.add_argument("--device", choices=["auto", "cpu", "cuda"], default="auto")
     t.add_argument("--seed", type=int, default=c.seed)

@@ -13,19 +13,21 @@ mean over the 100 bins):
   configurations: the twin's repeat noise, the physical limit.  A model that
   knew the mean histogram exactly would score half of it;
 * ``ratio_nonempty`` = ``mse_nonempty / noise_mse_nonempty``;
+* ``baseline_zero_mse*``: the MSE of predicting empty histograms, the trivial baseline;
 * the same numbers re-weighted to the uniform box (weights ``1 / keep_fraction``
   for lottery-kept samples), and optionally on a plain uniform set.
 """
 
 from __future__ import annotations
 
+import contextlib
 import os
 import time
 from dataclasses import replace
 
 import numpy as np
 
-from .dataset import GOOD_MIN_RAYS, DrawScheme, GenerationSettings, draw_in_memory
+from .dataset import GOOD_MIN_RAYS, DrawScheme, GenerationSettings, _openmp_threads, draw_in_memory
 from .surrogate import Surrogate
 from .twin import Twin
 
@@ -38,7 +40,7 @@ def _mse_rows(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return ((np.asarray(a, float) - np.asarray(b, float)) ** 2).mean(axis=1)
 
 
-def _summary(se_model, se_noise, n_hits, weight=None) -> dict:
+def _summary(se_model, se_noise, n_hits, weight=None, se_zero=None) -> dict:
     ne = n_hits > 0
     good = n_hits >= GOOD_MIN_RAYS
     w = np.ones(len(se_model)) if weight is None else np.asarray(weight, float)
@@ -51,6 +53,9 @@ def _summary(se_model, se_noise, n_hits, weight=None) -> dict:
            "mse": avg(se_model, allm), "mse_nonempty": avg(se_model, ne), "mse_good": avg(se_model, good),
            "noise_mse": avg(se_noise, allm), "noise_mse_nonempty": avg(se_noise, ne),
            "noise_mse_good": avg(se_noise, good)}
+    if se_zero is not None:  # the trivial baseline: predict empty histograms everywhere
+        out["baseline_zero_mse"] = avg(se_zero, allm)
+        out["baseline_zero_mse_nonempty"] = avg(se_zero, ne)
     out["ratio"] = out["mse"] / out["noise_mse"] if out["noise_mse"] > 0 else float("nan")
     out["ratio_nonempty"] = (out["mse_nonempty"] / out["noise_mse_nonempty"]
                              if out["noise_mse_nonempty"] > 0 else float("nan"))
@@ -63,7 +68,9 @@ def _trace_set(twin: Twin, settings: GenerationSettings, min_samples: int, min_n
     data = draw_in_memory(twin, s, min_samples=min_samples, min_nonempty=min_nonempty, progress=progress)
     # repeat traces with seeds no draw uses (the draws' seeds come from their own streams)
     rs = np.random.default_rng([seed, 2**40 + 17]).integers(0, 2**32, size=len(data["index"]))
-    rep = twin.trace_batch(data["params"], n_rays=settings.n_rays, seed=[int(x) for x in rs], progress=progress)
+    with _openmp_threads(1) if twin.scheduler == "inline" else contextlib.nullcontext():
+        rep = twin.trace_batch(data["params"], n_rays=settings.n_rays, seed=[int(x) for x in rs],
+                               progress=progress)
     ok = rep.ok
     data["hist2"] = np.concatenate([rep.hist_x, rep.hist_y], axis=1)
     data["n_hits2"] = rep.n_hits
@@ -124,12 +131,13 @@ def evaluate(model: Surrogate, *, n_samples: int = 500, min_nonempty: int = 100,
         pred = model.predict(d["params"][ok])
         se_m = _mse_rows(pred, hist1)
         se_n = _mse_rows(d["hist2"][ok], hist1)
+        se_0 = (hist1.astype(float) ** 2).mean(axis=1)
         res = {"drawing": (GenerationSettings(scheme=scheme).scheme.describe() if name == "screened"
                            else DrawScheme(screen_rays=0).describe()),
                "n_draws": int(d["n_draws"]), "n_failed": int(d["n_failed"] + (~ok).sum()),
-               "as_drawn": _summary(se_m, se_n, d["n_hits"][ok])}
+               "as_drawn": _summary(se_m, se_n, d["n_hits"][ok], se_zero=se_0)}
         if name == "screened":
-            res["uniform_weighted"] = _summary(se_m, se_n, d["n_hits"][ok], d["weight"][ok])
+            res["uniform_weighted"] = _summary(se_m, se_n, d["n_hits"][ok], d["weight"][ok], se_zero=se_0)
             res["n_stratum1"] = int((d["stratum"][ok] == 1).sum())
         out[name] = res
         if keep_data:
@@ -139,6 +147,7 @@ def evaluate(model: Surrogate, *, n_samples: int = 500, min_nonempty: int = 100,
     out["mse"], out["mse_nonempty"] = main["mse"], main["mse_nonempty"]
     out["noise_mse"], out["noise_mse_nonempty"] = main["noise_mse"], main["noise_mse_nonempty"]
     out["ratio_nonempty"] = main["ratio_nonempty"]
+    out["baseline_zero_mse_nonempty"] = main.get("baseline_zero_mse_nonempty")
     out["n_samples"], out["n_nonempty"] = main["n"], main["n_nonempty"]
     out["seconds"] = round(time.perf_counter() - t0, 1)
     return out

@@ -66,6 +66,8 @@ class TrainConfig:
         histogram MSE) or "per-bin".
     patience : int
         Early stop after this many epochs without a better validation MSE (0: never).
+    min_delta : float
+        Relative improvement of the validation MSE that counts as better.
     epoch_samples : int, optional
         Samples per epoch; default ``n_good_train / good_fraction``.
     device : str
@@ -89,6 +91,7 @@ class TrainConfig:
     n_layers: int = 7
     output_norm: str = "global"
     patience: int = 30
+    min_delta: float = 0.0
     epoch_samples: int | None = None
     device: str = "auto"
     seed: int = 0
@@ -283,7 +286,7 @@ def train(data: Dataset, run_dir: str | os.PathLike, config: TrainConfig | None 
                "val_mse_nonempty": val.get("mse_nonempty"), "lr": opt.param_groups[0]["lr"],
                "seconds": train_s, "samples": len(order)}
         history.append(rec)
-        improved = val.get("mse", math.inf) < best_val
+        improved = val.get("mse", math.inf) < best_val * (1.0 - config.min_delta)
         if improved:
             best_val, stale = val["mse"], 0
             model.metrics = {"val": val, "epoch": epoch + 1}

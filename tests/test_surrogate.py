@@ -1,0 +1,127 @@
+"""The surrogate artifact: architecture, batched differentiable inference, safe checkpoints."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from bluesky_offsets import surrogate
+from bluesky_offsets.parameters import METRIXS, METRIXS_PARAMETERS, ParameterTable
+from bluesky_offsets.surrogate import Architecture, Normalization, Surrogate, SurrogateError
+from bluesky_offsets.twin import HistogramSpec
+
+
+def _model(width=32, seed=0) -> Surrogate:
+    torch.manual_seed(seed)
+    rng = np.random.default_rng(seed)
+    hist = rng.random((20, 100)) * 0.05
+    norm = Normalization.fit(METRIXS, hist)
+    return Surrogate.new(Architecture(width=width), norm, provenance={"n_rays": 1000}, metrics={"test": {"mse": 1.0}})
+
+
+def test_architecture_is_the_papers():
+    m = _model()
+    linear = [l for l in m.net.modules() if isinstance(l, torch.nn.Linear)]
+    mish = [l for l in m.net.modules() if isinstance(l, torch.nn.Mish)]
+    assert len(linear) == 7 and len(mish) == 6
+    assert linear[0].in_features == 34 and linear[-1].out_features == 100
+    assert isinstance(list(m.net.layers)[-1], torch.nn.Linear)  # no activation after the last layer
+
+
+def test_predict_batched_chunked_differentiable():
+    m = _model()
+    rng = np.random.default_rng(1)
+    phys = METRIXS.denormalize(rng.random((5, 7, 34)))
+    out = m.predict(phys)
+    assert isinstance(out, np.ndarray) and out.shape == (5, 7, 100) and (out >= 0).all()
+    # chunking does not change the result; normalized input gives the same
+    assert np.allclose(m.predict(phys, chunk_size=3), out, atol=1e-6)
+    assert np.allclose(m.predict(METRIXS.normalize(phys), normalized=True), out, atol=1e-6)
+    # gradients flow to the (normalized) inputs through all chunks
+    x = torch.as_tensor(METRIXS.normalize(phys), dtype=torch.float32).requires_grad_(True)
+    y = m.predict(x, normalized=True, chunk_size=4, clamp=False)
+    assert isinstance(y, torch.Tensor) and y.requires_grad
+    y.sum().backward()
+    assert x.grad is not None and x.grad.shape == x.shape and torch.isfinite(x.grad).all()
+    assert (x.grad.abs().sum(-1) > 0).all()
+    with pytest.raises(ValueError, match="length 34"):
+        m.predict(np.zeros((3, 33)))
+
+
+def test_save_load_roundtrip(tmp_path):
+    m = _model()
+    p = m.save(tmp_path / "m.pt")
+    meta = json.loads((tmp_path / "m.json").read_text())
+    assert meta["table"]["names"] == list(METRIXS.names) and meta["histogram"] == HistogramSpec().fingerprint()
+    assert meta["provenance"]["n_rays"] == 1000 and meta["metrics"]["test"]["mse"] == 1.0
+    m2 = surrogate.load(p)
+    x = METRIXS.denormalize(np.random.default_rng(2).random((4, 34)))
+    assert np.array_equal(m.predict(x), m2.predict(x))
+    assert np.allclose(m2.norm.out_span, m.norm.out_span)
+
+
+def _table_with_changed_range(name: str, high: float) -> ParameterTable:
+    params = [p if p.name != name else type(p)(**{**p.__dict__, "high": high}) for p in METRIXS_PARAMETERS]
+    return ParameterTable(params)
+
+
+def test_checkpoint_for_other_table_is_refused_naming_the_mismatch(tmp_path):
+    m = _model()
+    p = m.save(tmp_path / "m.pt")
+    other = _table_with_changed_range("E2.rotationXerror", 0.6)
+    with pytest.raises(SurrogateError, match=r"range of 'E2.rotationXerror' differs.*stored \[-0.5, 0.5\]"):
+        surrogate.load(p, table=other)
+    # and the other way round: a model trained on the changed table, loaded with the current one
+    m_other = Surrogate.new(Architecture(width=8), Normalization.fit(other, np.ones((2, 100))), table=other)
+    p2 = m_other.save(tmp_path / "other.pt")
+    with pytest.raises(SurrogateError, match="E2.rotationXerror"):
+        surrogate.load(p2)
+
+
+def test_checkpoint_for_other_histogram_spec_is_refused(tmp_path):
+    p = _model().save(tmp_path / "m.pt")
+    with pytest.raises(SurrogateError, match="range_y"):
+        surrogate.load(p, hist=HistogramSpec(range_y=(-2.0, 2.0)))
+
+
+def test_truncated_and_corrupt_files_give_clear_errors(tmp_path):
+    m = _model()
+    p = m.save(tmp_path / "m.pt")
+    blob = p.read_bytes()
+    trunc = tmp_path / "trunc.pt"
+    trunc.write_bytes(blob[: len(blob) // 2])
+    with pytest.raises(SurrogateError, match="truncated or corrupt"):
+        surrogate.load(trunc)
+    junk = tmp_path / "junk.pt"
+    junk.write_bytes(b"not a checkpoint at all")
+    with pytest.raises(SurrogateError, match="truncated or corrupt"):
+        surrogate.load(junk)
+    # a flipped weight byte: either the archive check or our checksum catches it
+    flipped = bytearray(blob)
+    raw = m.net.layers[2].weight.detach().numpy().tobytes()
+    i = blob.find(raw[:64])
+    assert i > 0
+    flipped[i + 100] ^= 0x01
+    bad = tmp_path / "flip.pt"
+    bad.write_bytes(bytes(flipped))
+    with pytest.raises(SurrogateError, match="corrupt"):
+        surrogate.load(bad)
+    with pytest.raises(SurrogateError, match="does not exist"):
+        surrogate.load(tmp_path / "missing.pt")
+
+
+def test_shipped_checkpoint_loads_with_provenance():
+    path = surrogate.default_checkpoint()
+    assert path.exists(), "the package ships bluesky_offsets/data/surrogate.pt"
+    assert path.stat().st_size < 12 * 2**20
+    m = surrogate.load()
+    prov, metrics = m.provenance, m.metrics
+    assert prov["n_samples"] > 1000 and prov["n_rays"] > 0 and prov["twin"].startswith("rayx")
+    assert metrics["test"]["mse_nonempty"] > 0
+    out = m.predict(METRIXS.denormalize(np.full((2, 34), 0.5)))
+    assert out.shape == (2, 100) and np.isfinite(out).all()
+    meta = json.loads(path.with_suffix(".json").read_text())
+    assert meta["weights_sha256"] and meta["table_version"] == METRIXS.version

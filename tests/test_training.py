@@ -1,0 +1,96 @@
+"""The paper's training recipe end to end on a small budget: dataset -> train -> evaluate."""
+
+from __future__ import annotations
+
+import json
+import os
+
+import numpy as np
+import pytest
+
+from bluesky_offsets import dataset, surrogate, training
+from bluesky_offsets.cli import main
+from bluesky_offsets.training import TrainConfig, TrainingError
+
+os.environ.setdefault("OMP_NUM_THREADS", "1")
+
+GEN = ["--rays", "500", "--screen-rays", "60", "--keep-fraction", "0.05", "--block-size", "32", "--seed", "2",
+       "--scheduler", "inline", "--no-progress"]
+
+
+@pytest.fixture(scope="module")
+def store(tmp_path_factory):
+    path = tmp_path_factory.mktemp("train") / "ds.zarr"
+    assert main(["dataset", "generate", str(path), "--samples", "200", *GEN]) == 0
+    return path
+
+
+def _small(**kw) -> TrainConfig:
+    base = dict(epochs=4, width=48, threads=1, epoch_samples=320, patience=0)
+    base.update(kw)
+    return TrainConfig(**base)
+
+
+def test_epoch_order_shows_good_and_bad_3_to_1():
+    rng = np.random.default_rng(0)
+    good, bad = np.arange(0, 90), np.arange(90, 100)
+    order = training.epoch_order(good, bad, 0.75, None, rng)
+    n_good = np.isin(order, good).sum()
+    assert len(order) == 120 and n_good == 90 and len(np.unique(order[np.isin(order, good)])) == 90
+    assert (len(order) - n_good) == 30  # bad ones repeat to keep 3:1
+    tr, va, te = training.split_indices(1000, (0.8, 0.1, 0.1), 0)
+    assert (len(tr), len(va), len(te)) == (800, 100, 100)
+    assert len(np.unique(np.concatenate([tr, va, te]))) == 1000
+
+
+def test_recipe_end_to_end_cli_loss_goes_down(store, tmp_path, capsys):
+    run = tmp_path / "run"
+    out = tmp_path / "model.pt"
+    rc = main(["train", str(store), str(run), "--epochs", "8", "--width", "64", "--threads", "1",
+               "--epoch-samples", "640", "--no-progress", "--json", "--out", str(out)])
+    assert rc == 0
+    metrics = json.loads(capsys.readouterr().out)
+    hist = json.loads((run / "history.json").read_text())
+    assert len(hist) == 8
+    assert hist[-1]["train_loss"] < 0.7 * hist[0]["train_loss"]
+    assert min(h["val_mse"] for h in hist[1:]) < hist[0]["val_mse"]
+    assert metrics["test"]["n"] == 20 and np.isfinite(metrics["test"]["mse"])
+    m = surrogate.load(out)
+    assert m.provenance["n_samples"] == 200 and m.provenance["n_rays"] == 500
+    assert m.training["lr"] == 1e-4 and m.training["batch_size"] == 32 and m.training["gamma"] == 0.999
+    assert m.training["good_fraction"] == 0.75 and m.training["split"] == [0.8, 0.1, 0.1]
+    assert json.loads(out.with_suffix(".json").read_text())["metrics"]["test"]["mse"] == metrics["test"]["mse"]
+
+    # evaluate it on a fresh twin set, next to the twin's repeat noise
+    plot = tmp_path / "fig4.png"
+    rc = main(["surrogate", "evaluate", "--checkpoint", str(out), "--samples", "12", "--min-nonempty", "4",
+               "--uniform", "4", "--scheduler", "inline", "--no-progress", "--json", "--plot", str(plot)])
+    assert rc == 0
+    res = json.loads(capsys.readouterr().out)
+    assert res["n_rays"] == 500 and res["n_samples"] >= 12 and res["n_nonempty"] >= 4
+    for k in ("mse", "mse_nonempty", "noise_mse", "noise_mse_nonempty", "ratio_nonempty"):
+        assert np.isfinite(res[k]) and res[k] > 0, k
+    assert res["screened"]["uniform_weighted"]["n"] == res["n_samples"]
+    assert res["uniform"]["as_drawn"]["n"] >= 4
+    assert plot.exists() and plot.stat().st_size > 10_000
+
+
+def test_resume_continues_exactly(store, tmp_path):
+    data = dataset.load(store)
+    a, b = tmp_path / "a", tmp_path / "b"
+    training.train(data, a, _small(epochs=2), progress=False)
+    training.train(data, a, _small(epochs=4), progress=False)  # resumes at epoch 2
+    training.train(data, b, _small(epochs=4), progress=False)
+    ha = json.loads((a / "history.json").read_text())
+    hb = json.loads((b / "history.json").read_text())
+    assert [h["epoch"] for h in ha] == [1, 2, 3, 4]
+    assert np.allclose([h["val_mse"] for h in ha], [h["val_mse"] for h in hb], rtol=1e-5)
+    with pytest.raises(TrainingError, match="different lr"):
+        training.train(data, a, _small(epochs=6, lr=1e-3), progress=False)
+
+
+def test_early_stopping(store, tmp_path):
+    data = dataset.load(store)
+    m = training.train(data, tmp_path / "r", _small(epochs=50, patience=2, min_delta=0.5, lr=1e-7),
+                       progress=False)
+    assert m.metrics["epochs_run"] == 3 and m.metrics["best_epoch"] == 1
