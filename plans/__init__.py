@@ -10,7 +10,7 @@
 """
 
 from .measure import measure_configurations, scan_configurations
-from .motion import MotionError, MotorLimitError, as_configurations, resolve_motors
+from .motion import MotionError, MotorLimitError, as_configurations, current_configuration, resolve_motors
 from .offsets import OffsetResult, find_offsets
 from .search import (
     HIGH_RAY_THRESHOLD,
@@ -23,7 +23,7 @@ from .search import (
 
 __all__ = [
     "HIGH_RAY_THRESHOLD", "MIN_CONFIGURATIONS", "MotionError", "MotorLimitError", "OffsetResult",
-    "as_configurations", "enough_rays", "find_high_ray_configurations", "find_offsets",
+    "as_configurations", "current_configuration", "enough_rays", "find_high_ray_configurations", "find_offsets",
     "high_ray_configurations_on_model", "measure_configurations", "resolve_motors", "sample_candidates",
     "scan_configurations",
 ]

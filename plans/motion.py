@@ -100,6 +100,13 @@ def read_positions(motors: Mapping) -> MsgGenerator[dict]:
     return out
 
 
+def current_configuration(beamline, table: ParameterTable = METRIXS) -> MsgGenerator[np.ndarray]:
+    """The motors' readbacks as a configuration vector (table order; fixed parameters at design value)."""
+    motors = resolve_motors(beamline, table)
+    positions = yield from read_positions(motors)
+    return table.from_mapping(positions)
+
+
 def _limits(motor) -> MsgGenerator[tuple[float, float] | None]:
     lo_sig, hi_sig = getattr(motor, "low_limit_travel", None), getattr(motor, "high_limit_travel", None)
     if lo_sig is not None and hi_sig is not None:

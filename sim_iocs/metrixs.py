@@ -316,7 +316,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--list-pvs", action="store_true", help="print the records and detector PVs at start-up")
     src = parser.add_mutually_exclusive_group()
     src.add_argument("--truth", metavar="FILE.json", help="hidden offsets/effects/start positions (JSON)")
-    src.add_argument("--seed", type=int, help="draw hidden offsets of all 34 parameters (±20%% of range)")
+    src.add_argument("--seed", type=int, help="draw hidden offsets of all 34 parameters (default: a random seed)")
+    parser.add_argument("--max-offset", type=float, default=0.2,
+                        help="largest drawn offset, fraction of each range (default 0.2, the paper's)")
     parser.add_argument("--dump-truth", metavar="FILE.json",
                         help="write the hidden truth to FILE (for evaluating a finder later) and go on")
     parser.add_argument("--backend", default="twin", help="footprint model: 'twin' (default) or module:factory")
@@ -330,7 +332,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def _build(args) -> MetrixsIOC:
-    truth = Truth.from_file(args.truth) if args.truth else Truth.from_seed(args.seed)
+    truth = Truth.from_file(args.truth) if args.truth else Truth.from_seed(args.seed, limit=args.max_offset)
     if args.rays < 0 or args.move_time <= 0 or args.accel_time <= 0 or args.tick <= 0:
         raise ParameterError("--rays must be >= 0; --move-time, --accel-time, --tick must be positive")
     if args.dump_truth:

@@ -66,11 +66,13 @@ class Truth:
 
     # -- construction -------------------------------------------------------
     @classmethod
-    def from_seed(cls, seed: int | None, table: ParameterTable = METRIXS) -> Truth:
-        """Offsets of all 34 parameters drawn uniformly in ±0.2 (the paper's protocol)."""
+    def from_seed(cls, seed: int | None, table: ParameterTable = METRIXS, limit: float = 0.2) -> Truth:
+        """Offsets of all parameters drawn uniformly in ±``limit`` (the paper's protocol: 0.2)."""
+        if not 0 <= limit <= 0.2:
+            raise ParameterError(f"offset limit must lie in [0, 0.2], got {limit}")
         rng = np.random.default_rng(seed)
-        return cls(table.sample_offsets(rng), table=table,
-                   source=f"seed {seed}" if seed is not None else "random seed")
+        return cls(table.sample_offsets(rng, limit=limit), table=table,
+                   source=f"seed {seed}, ±{limit:g}" if seed is not None else f"random seed, ±{limit:g}")
 
     @classmethod
     def from_mapping(cls, spec: Mapping, table: ParameterTable = METRIXS, source: str = "") -> Truth:
