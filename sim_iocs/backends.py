@@ -9,10 +9,13 @@ frame.  It must not block the IOC's event loop: :meth:`submit` returns a
   the GIL for the whole trace, so a thread would freeze the IOC), with a
   fresh random seed per frame: the finite ray budget is the measurement
   noise.
-* Any other backend (e.g. the trained surrogate) plugs in through
-  ``--backend module:factory``; the factory is called as
-  ``factory(overrides=..., hist=...)`` and returns an object with the
-  members of :class:`FootprintBackend`.
+* :class:`SurrogateBackend` evaluates a trained surrogate checkpoint
+  (:mod:`bluesky_offsets.surrogate`) and draws the finite-ray noise itself
+  (multinomial counts for the ray budget); it has no image and cannot apply
+  hidden physical effects.
+* Any other backend plugs in through ``--backend module:factory``; the
+  factory is called as ``factory(overrides=..., hist=...)`` and returns an
+  object with the members of :class:`FootprintBackend`.
 """
 
 from __future__ import annotations
@@ -133,11 +136,69 @@ class TwinBackend:
             self._pool = None
 
 
+# --------------------------------------------------------------------------- #
+# a trained surrogate
+# --------------------------------------------------------------------------- #
+def finite_ray_sample(p: np.ndarray, n_rays: int, rng: np.random.Generator) -> np.ndarray:
+    """Counts of ``n_rays`` source rays over bins with expected fractions ``p`` (the rest
+    misses the window): the noise a frame of that ray budget has."""
+    p = np.clip(np.nan_to_num(np.asarray(p, float)), 0.0, None)
+    total = p.sum()
+    if total > 1.0:
+        p = p / total
+    return rng.multinomial(int(n_rays), np.append(p, max(0.0, 1.0 - p.sum())))[:-1]
+
+
+class SurrogateBackend:
+    """A trained surrogate checkpoint with finite-ray noise, in a worker thread.
+
+    Parameters
+    ----------
+    path : str, optional
+        Checkpoint (default: the one shipped with the package).
+    overrides : mapping, optional
+        Must be empty: the surrogate knows only the table's parameters.
+    """
+
+    def __init__(self, path: str | None = None, overrides: Mapping | None = None,
+                 hist: HistogramSpec | None = None):
+        if overrides:
+            raise ValueError("the surrogate backend cannot apply hidden physical effects "
+                             f"({sorted(overrides)}); use the twin backend")
+        from pathlib import Path
+
+        from bluesky_offsets.surrogate import SurrogateError, load
+        self.hist = hist or HistogramSpec()
+        try:
+            self.model = load(path, hist=self.hist)
+        except SurrogateError as exc:
+            raise ValueError(str(exc)) from None
+        self.name = f"surrogate ({Path(path).name if path else 'shipped'})"
+        self._pool = cf.ThreadPoolExecutor(max_workers=1, thread_name_prefix="surrogate")
+
+    def _frame(self, values: np.ndarray, n_rays: int) -> Frame:
+        t0 = time.perf_counter()
+        pred = np.asarray(self.model.predict(np.asarray(values, float)[None, :]))[0]
+        px, py = pred[:self.hist.bins_x], pred[self.hist.bins_x:]
+        rng = np.random.default_rng()  # fresh noise for every frame
+        cx, cy = finite_ray_sample(px, n_rays, rng), finite_ray_sample(py, n_rays, rng)
+        n = max(int(n_rays), 1)
+        return Frame(cx / n, cy / n, None, int(max(cx.sum(), cy.sum())), int(n_rays), time.perf_counter() - t0)
+
+    def submit(self, values: np.ndarray, n_rays: int) -> cf.Future:
+        return self._pool.submit(self._frame, values, n_rays)
+
+    def close(self) -> None:
+        self._pool.shutdown(wait=True, cancel_futures=True)
+
+
 def make_backend(spec: str, *, overrides: Mapping | None = None,
                  hist: HistogramSpec | None = None) -> FootprintBackend:
-    """Backend from its command-line name: ``twin`` or ``module:factory``."""
+    """Backend from its command-line name: ``twin``, ``surrogate[:checkpoint]`` or ``module:factory``."""
     if spec == "twin":
         return TwinBackend(overrides=overrides, hist=hist)
+    if spec == "surrogate" or spec.startswith("surrogate:"):
+        return SurrogateBackend(spec.partition(":")[2] or None, overrides=overrides, hist=hist)
     if ":" not in spec:
         raise ValueError(f"unknown backend {spec!r}: use 'twin' or 'module:factory'")
     module, func = spec.split(":", 1)

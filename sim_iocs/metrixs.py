@@ -321,7 +321,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="largest drawn offset, fraction of each range (default 0.2, the paper's)")
     parser.add_argument("--dump-truth", metavar="FILE.json",
                         help="write the hidden truth to FILE (for evaluating a finder later) and go on")
-    parser.add_argument("--backend", default="twin", help="footprint model: 'twin' (default) or module:factory")
+    parser.add_argument("--backend", default="twin",
+                        help="footprint model: 'twin' (default), 'surrogate[:CHECKPOINT]' or module:factory")
     parser.add_argument("--rays", type=int, default=10000, help="initial ray budget per frame (NumRays)")
     parser.add_argument("--move-time", type=float, default=4.0, help="seconds for a full-range move (VELO)")
     parser.add_argument("--accel-time", type=float, default=0.2, help="motor acceleration time ACCL (s)")

@@ -393,3 +393,64 @@ def test_second_client_reads_consistent_values_during_moves_and_frames(metrixs_i
             assert np.all(steps >= -mres) or np.all(steps <= mres)
             segment, n_done = [rbv], n_done + 1
     assert n_done >= 4
+
+
+# --------------------------------------------------------------------------- #
+# the surrogate backend (the twin is the default; issue 4 trains the real surrogate)
+# --------------------------------------------------------------------------- #
+def _small_surrogate(path):
+    """A small surrogate checkpoint, trained with the surrogate module's own classes on a few
+    twin traces near the centre of the box (where footprints are bright)."""
+    import torch
+
+    from bluesky_offsets.surrogate import Architecture, Normalization, Surrogate
+    from bluesky_offsets.twin import Twin
+    rng = np.random.default_rng(0)
+    x = 0.5 + rng.uniform(-0.01, 0.01, (24, len(METRIXS)))
+    b = Twin(scheduler="inline").trace_batch(METRIXS.denormalize(x), n_rays=400, seed=0, progress=False)
+    y = np.concatenate([b.hist_x, b.hist_y], axis=1)
+    norm = Normalization.fit(METRIXS, y)
+    model = Surrogate.new(Architecture(width=64, n_layers=3), norm)
+    X = torch.as_tensor(x, dtype=torch.float32)
+    Y = torch.as_tensor((y - norm.out_low) / norm.out_span, dtype=torch.float32)
+    torch.manual_seed(0)
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)  # tiny batches: more threads only fight the other jobs
+    try:
+        opt = torch.optim.Adam(model.net.parameters(), lr=3e-3)
+        for _ in range(150):
+            opt.zero_grad()
+            loss = ((model.net(X) - Y) ** 2).mean()
+            loss.backward()
+            opt.step()
+    finally:
+        torch.set_num_threads(threads)
+    model.net.eval()
+    return model.save(path)
+
+
+def test_surrogate_backend_draws_finite_ray_noise(tmp_path):
+    from sim_iocs.backends import make_backend
+    path = _small_surrogate(tmp_path / "small.pt")
+    backend = make_backend(f"surrogate:{path}")
+    try:
+        values = METRIXS.denormalize(np.full(len(METRIXS), 0.5))
+        expected = np.asarray(backend.model.predict(values[None]))[0]
+        n = 2000
+        frames = [backend.submit(values, n).result(timeout=30) for _ in range(40)]
+        hx = np.array([f.hist_x for f in frames])
+        assert frames[0].image is None and all(np.isfinite(f.hist_y).all() for f in frames)
+        np.testing.assert_allclose(hx * n, np.round(hx * n), atol=1e-9)  # whole rays
+        b = int(np.argmax(expected[:50]))
+        p = expected[b]
+        assert abs(hx[:, b].mean() - p) < 5 * np.sqrt(p * (1 - p) / n / 40)
+        assert 0.4 < hx[:, b].var() / (p * (1 - p) / n) < 2.5  # the ray budget's noise
+        assert all(f.n_hits >= round(f.hist_x.sum() * n) for f in frames)
+        dark = backend.submit(values, 0).result(timeout=30)
+        assert dark.n_hits == 0 and not dark.hist_x.any()
+    finally:
+        backend.close()
+    with pytest.raises(ValueError, match="cannot apply hidden physical effects"):
+        make_backend(f"surrogate:{path}", overrides={"ImagePlane": {"translationZerror": 1.0}})
+    with pytest.raises(ValueError, match="does not exist"):
+        make_backend(f"surrogate:{tmp_path / 'none.pt'}")
