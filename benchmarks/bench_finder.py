@@ -78,10 +78,15 @@ def markdown(res: dict, command: str) -> str:
     if idf:
         su = idf["summary"]
         lines += ["", f"Identifiability at the {idf['method']} solution of seed {idf['seed']} "
-                      f"({su['n_configurations']} configurations, counting noise of {su['n_rays']} rays plus the "
-                      f"surrogate's test MSE per bin): {su['n_determined']} determined, {su['n_weak']} weak, "
+                      f"({su['n_configurations']} configurations, counting noise of {su['n_rays']} rays, a perfect "
+                      f"model): {su['n_determined']} determined, {su['n_weak']} weak, "
                       f"{su['n_undetermined']} undetermined. Strongest compensating pairs: "
                       + "; ".join(f"{a} ~ {b} ({c:+.2f})" for a, b, c in idf["pairs"][:3]) + "."]
+        wm = res.get("identifiability_with_model_error")
+        if wm:
+            lines += [f"With the surrogate's own test MSE ({wm['model_mse']:.2e} per bin) added to every bin's "
+                      f"variance: {wm['n_determined']} determined, {wm['n_weak']} weak, {wm['n_undetermined']} "
+                      f"undetermined."]
         cc = idf.get("configuration_curve")
         if cc:
             lines += ["", "Adding configurations (first k of the problem's): "
@@ -116,7 +121,8 @@ def merge(dirs: list[Path]) -> dict:
         if "twin_check" in part:
             res.setdefault("twin_check", {}).update(part["twin_check"])
         if "smart-walker" in part["summary"]:
-            res["identifiability"] = part.get("identifiability", res.get("identifiability"))
+            for k in ("identifiability", "identifiability_with_model_error"):
+                res[k] = part.get(k, res.get(k))
     res["wall_seconds"] = max(p["wall_seconds"] for p in parts)
     if "smart-walker" in res["summary"]:
         target = res["summary"]["smart-walker"]["mse_mean"]
