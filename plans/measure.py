@@ -23,7 +23,15 @@ from bluesky_offsets.parameters import METRIXS, ParameterTable
 from bluesky_offsets.store import Measurement
 from bluesky_offsets.twin import HistogramSpec
 
-from .motion import as_configurations, check_limits, move_to, read_positions, resolve_motors, return_to
+from .motion import (
+    as_configurations,
+    check_limits,
+    move_to,
+    read_positions,
+    resolutions,
+    resolve_motors,
+    return_to,
+)
 
 
 class CommandedConfiguration:
@@ -90,6 +98,7 @@ def scan_configurations(configurations, beamline, chamber, *, reference=None, ta
     col = {n: table.index(n) for n in motors}
     targets = [{n: start[n] + (cfg[col[n]] - ref[col[n]]) for n in motors} for cfg in configs]
     yield from check_limits(motors, targets)  # all of them, before anything moves
+    steps = yield from resolutions(motors)
 
     truth_id = yield from _optional_read(chamber, "truth_id")
     n_rays = yield from _optional_read(chamber, "num_rays")
@@ -127,7 +136,8 @@ def scan_configurations(configurations, beamline, chamber, *, reference=None, ta
 
     def body():
         for k, (cfg, target) in enumerate(zip(configs, targets)):
-            yield from move_to(motors, target)
+            yield from bps.checkpoint()  # a paused scan resumes at this configuration
+            yield from move_to(motors, target, resolution=steps)
             commanded.update(k, cfg)
             reading = yield from bps.trigger_and_read(devices)
             readings.append(reading)

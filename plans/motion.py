@@ -158,22 +158,33 @@ def check_limits(motors: Mapping, targets: Sequence[Mapping]) -> MsgGenerator[No
                               + "; ".join(problems[:5]) + more)
 
 
-def move_to(motors: Mapping, target: Mapping, *, verify: bool = True) -> MsgGenerator[None]:
+def resolutions(motors: Mapping) -> MsgGenerator[dict]:
+    """Each motor's step size (``MRES``, else ``10**-precision``), ``{name: resolution}``."""
+    out = {}
+    for name, m in motors.items():
+        out[name] = yield from _resolution(m)
+    return out
+
+
+def move_to(motors: Mapping, target: Mapping, *, verify: bool = True,
+            resolution: Mapping | None = None) -> MsgGenerator[None]:
     """Move all motors to ``target`` together, wait, and check that each arrived."""
     args = []
     for name, m in motors.items():
         args += [m, float(target[name])]
     yield from bps.mv(*args)
     if verify:
-        yield from verify_positions(motors, target)
+        yield from verify_positions(motors, target, resolution)
 
 
-def verify_positions(motors: Mapping, target: Mapping) -> MsgGenerator[None]:
-    """Raise :class:`MotionError` for motors further from ``target`` than their resolution."""
+def verify_positions(motors: Mapping, target: Mapping, resolution: Mapping | None = None) -> MsgGenerator[None]:
+    """Raise :class:`MotionError` for motors further from ``target`` than twice their resolution."""
+    if resolution is None:
+        resolution = yield from resolutions(motors)
     off = []
     for name, m in motors.items():
         pos = float((yield from bps.rd(m)))
-        res = yield from _resolution(m)
+        res = resolution.get(name, 0.0)
         tol = max(2 * res, 1e-9 * max(1.0, abs(target[name])))
         if abs(pos - target[name]) > tol:
             off.append(f"{name}: at {pos:.6g}, sent to {target[name]:.6g}")

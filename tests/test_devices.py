@@ -155,9 +155,11 @@ def test_chamber_reports_an_aborted_frame(async_devices, RE, metrixs_ioc, ca):
     timer = threading.Timer(0.7, lambda: ca.put(P + "Acquire", 0))
     try:
         timer.start()
-        with pytest.raises(Exception) as info:
+        from bluesky.utils import FailedStatus
+        with pytest.raises(FailedStatus) as info:
             RE(bps.trigger(ch, wait=True))
-        assert "acquisition aborted" in repr(info.value) or "acquisition aborted" in str(info.value.__cause__)
+        assert isinstance(info.value.__cause__, ChamberError)
+        assert "acquisition aborted" in str(info.value.__cause__)
     finally:
         timer.cancel()
         ca.put(P + "AcquireTime", 0.0)
