@@ -319,3 +319,25 @@ def test_find_offsets_emits_offsets_stream_standalone_and_inside_a_plan(RE, devi
         RE(find_offsets(lambda m: 3.0, meas))
     with pytest.raises(ValueError, match="cannot be imported"):
         RE(find_offsets("nowhere.module:finder", meas))
+
+
+def test_measure_with_classic_ophyd_devices_and_a_motor_mapping(RE, metrixs_ioc, ca):
+    from bluesky_offsets.devices import FocusChamberV1, make_beamline_v1
+    P = metrixs_ioc.prefix
+    beamline = make_beamline_v1(P, name="v1")
+    chamber = FocusChamberV1(P + "chamber:", name="cam")
+    beamline.wait_for_connection(timeout=60)
+    chamber.wait_for_connection(timeout=30)
+    before = _positions(ca, P)
+    configs = sample_candidates(2, rng=4, around=default_start(), spread=_spread(0.02))
+    docs = []
+    # the plan takes any mapping {parameter name: movable}: here classic EpicsMotors
+    m = RE(measure_configurations(configs, beamline.motors, chamber), lambda n, d: docs.append((n, d))).plan_result
+    assert m.hist_x.shape == (2, 50) and m.total_counts.min() > 0
+    events = [d for n, d in docs if n == "event"]
+    assert len(events) == 2 and "cam_hist_y" in events[0]["data"] and "v1_e1_rx" in events[0]["data"]
+    assert events[1]["data"]["v1_e2_rx"] == pytest.approx(configs[1, METRIXS.index("E2.rotationXerror")], abs=1e-5)
+    start = next(d for n, d in docs if n == "start")
+    assert start["truth_id"] == ca.get(P + "chamber:TruthId", as_string=True)
+    assert start["parameter_table_version"] == METRIXS.version and len(start["configurations"]) == 2
+    assert _positions(ca, P) == pytest.approx(before, abs=1e-5)
