@@ -275,9 +275,9 @@ class MotorRecord(PVGroup):
         for pv in (self.mres, self.eres, self.rres, self.rdbd):
             await pv.write(s.resolution)
         await self.urev.write(s.resolution * self.srev.value)
+        await self.vmax.write(10 * s.velocity)  # before VELO, which is clamped to VMAX
         await self.velo.write(s.velocity)
         await self.hvel.write(s.velocity)
-        await self.vmax.write(10 * s.velocity)
         await self.accl.write(s.accel_time)
         await self.twv.write(abs(s.high - s.low) / 100)
         await self.dhlm.write(s.high, verify_value=False)

@@ -454,3 +454,13 @@ def test_surrogate_backend_draws_finite_ray_noise(tmp_path):
         make_backend(f"surrogate:{path}", overrides={"ImagePlane": {"translationZerror": 1.0}})
     with pytest.raises(ValueError, match="does not exist"):
         make_backend(f"surrogate:{tmp_path / 'none.pt'}")
+
+
+def test_motor_dynamics_follow_the_range(metrixs_ioc, ca):
+    """Every axis crosses its whole range in the configured move time (0.5 s in the tests)."""
+    for p in METRIXS:
+        if p.motorized:
+            rec = metrixs_ioc.prefix + p.device.replace(".", ":")
+            assert ca.get(rec + ".VELO") == pytest.approx(p.span / 0.5), p.name
+            assert ca.get(rec + ".VMAX") >= ca.get(rec + ".VELO")
+            assert ca.get(rec + ".EGU", as_string=True) == p.unit
