@@ -159,6 +159,17 @@ def test_limit_violation_refused_with_lvio_and_no_motion(metrixs_ioc, ca):
     ca.put(rec, before + 0.01, wait=True)
     assert ca.get(rec + ".LVIO") == 0 and ca.get(rec + ".RBV") == pytest.approx(before + 0.01, abs=1e-6)
     ca.put(rec, before, wait=True)
+    # soft limits opened beyond the travel: the axis stops at its limit switch (0.1 mm past the box)
+    try:
+        ca.put(rec + ".HLM", 10.0)
+        assert ca.get(rec + ".DHLM") == 10.0
+        ca.put(rec, 0.5, wait=True)
+        assert ca.get(rec + ".HLS") == 1 and ca.get(rec + ".RBV") == pytest.approx(0.3, abs=1e-5)
+        assert ca.get(rec + ".VAL") == pytest.approx(ca.get(rec + ".RBV")) and ca.get(rec + ".MSTA") & (1 << 2)
+    finally:
+        ca.put(rec + ".HLM", 0.2)
+        ca.put(rec, before, wait=True)
+    assert ca.get(rec + ".HLS") == 0
 
 
 def test_stop_halts_motion_and_completes_pending_put(metrixs_ioc, ca):
@@ -177,7 +188,23 @@ def test_stop_halts_motion_and_completes_pending_put(metrixs_ioc, ca):
         assert ca.get(rec + ".VAL") == pytest.approx(rbv)  # the record sets VAL to where it stopped
         time.sleep(0.3)
         assert ca.get(rec + ".RBV") == rbv
+        # SPMG Pause holds the move (DMOV stays 0), Go finishes it
+        done.clear()
+        threading.Thread(target=lambda: (ca.put(rec, 0.0, wait=True, timeout=30), done.set()), daemon=True).start()
+        time.sleep(0.3)
+        ca.put(rec + ".SPMG", "Pause")
+        held = ca.get(rec + ".RBV")
+        time.sleep(0.3)
+        assert ca.get(rec + ".RBV") == held and ca.get(rec + ".DMOV") == 0 and not done.is_set()
+        ca.put(rec + ".SPMG", "Go")
+        assert done.wait(10) and ca.get(rec + ".RBV") == pytest.approx(0.0, abs=1e-6)
+        # home: back to the start position, at-home and homed flags
+        ca.put(rec, 0.05, wait=True)
+        ca.put(rec + ".HOMR", 1)
+        assert ca.get(rec + ".RBV") == pytest.approx(0.0, abs=1e-6) and ca.get(rec + ".ATHM") == 1
+        assert ca.get(rec + ".MSTA") & (1 << 14)
     finally:
+        ca.put(rec + ".SPMG", "Go")
         ca.put(rec + ".VELO", velo)
         ca.put(rec, 0.0)
 
