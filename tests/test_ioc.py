@@ -491,3 +491,15 @@ def test_motor_dynamics_follow_the_range(metrixs_ioc, ca):
             assert ca.get(rec + ".VELO") == pytest.approx(p.span / 0.5), p.name
             assert ca.get(rec + ".VMAX") >= ca.get(rec + ".VELO")
             assert ca.get(rec + ".EGU", as_string=True) == p.unit
+
+
+def test_seeded_truth_is_dumped_not_published(ioc_factory, tmp_path, ca):
+    from conftest import METRIXS_IOC_ARGS
+    dump = tmp_path / "truth-11.json"
+    ioc = ioc_factory(args=["--seed", 11, "--max-offset", 0.05, "--dump-truth", dump, *METRIXS_IOC_ARGS],
+                      ready="chamber:Message", ready_value="ready", timeout=90)
+    truth = Truth.from_file(dump)
+    assert np.abs(truth.offsets).max() <= 0.05 and np.count_nonzero(truth.offsets) == 34
+    assert ca.get(ioc.prefix + "chamber:TruthId", as_string=True) == truth.truth_id
+    assert truth.truth_id == Truth.from_seed(11, limit=0.05).truth_id
+    assert ca.get(ioc.prefix + "e2:rz.RBV") == pytest.approx(27.0)  # the start position, no offset added
