@@ -146,3 +146,18 @@ def test_bad_input_is_refused_clearly(model, problem):
         F.find_offsets(problem, model, "smart-walker", F.Budget(evaluations=10), nonsense=1)
     with pytest.raises(F.FinderError, match="needs a Twin"):
         F.make_problem(model, observe="twin")
+
+
+def test_the_shipped_surrogate_is_a_forward_model():
+    """The shipped checkpoint through the finder's adapter equals the surrogate's own predict()."""
+    from bluesky_offsets.surrogate import load
+    fm = F.load_forward_model()
+    assert isinstance(fm, F.ForwardModel) and fm.test_mse > 0
+    rng = np.random.default_rng(0)
+    x = rng.random((5, 3, 34))
+    ours = fm(torch.as_tensor(x, dtype=torch.float32)).numpy()
+    theirs = load().predict(METRIXS.denormalize(x))
+    np.testing.assert_allclose(ours, theirs, rtol=1e-4, atol=1e-7)
+    assert ours.shape == (5, 3, 100) and (ours >= 0).all()
+    with pytest.raises(F.FinderError, match="does not exist"):
+        F.load_forward_model("/nonexistent/surrogate.pt")
