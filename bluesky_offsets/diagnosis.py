@@ -1,0 +1,269 @@
+"""Which physical effect is missing?  Rank candidates, add the winner, watch the error fall.
+
+For every candidate effect the offsets and the effect's parameters are fitted
+together on a twin-anchored local model (:mod:`bluesky_offsets.model`), in
+K folds over the configurations.  A candidate is scored by its improvement of
+the *held-out* chi-square, minus a BIC-like price ``p ln N`` for its ``p``
+parameters; it is significant only if that score and the same criterion on all
+data are positive and the base model is not already within noise.  Each
+candidate also predicts a residual signature (centroid shift, width change,
+asymmetry, tails, lost intensity per axis) to set beside the observed one.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from . import effects as E
+from .diagnostics import Misfit, misfit, moments
+from .model import Measurement, ModelState, build_local_model, fit_local, refine, simulate
+from .parameters import METRIXS, ParameterTable
+
+
+@dataclass
+class Candidate:
+    name: str
+    n_params: int
+    values: dict[str, float]
+    sigma: dict[str, float]
+    delta_chi2_heldout: float
+    delta_chi2_all: float
+    penalty: float
+    significant: bool
+    predicted_signature: dict[str, float]
+
+    @property
+    def score(self) -> float:
+        return self.delta_chi2_heldout - self.penalty
+
+    def as_dict(self) -> dict:
+        return {"name": self.name, "n_params": self.n_params, "values": self.values, "sigma": self.sigma,
+                "delta_chi2_heldout": self.delta_chi2_heldout, "delta_chi2_all": self.delta_chi2_all,
+                "penalty": self.penalty, "score": self.score, "significant": self.significant,
+                "predicted_signature": self.predicted_signature}
+
+
+@dataclass
+class Diagnosis:
+    base_misfit: Misfit
+    within_noise: bool
+    candidates: list[Candidate]
+    observed_signature: dict[str, float]
+    folds: int
+    n_traces: int = 0
+    notes: list[str] = field(default_factory=list)
+
+    @property
+    def best(self) -> Candidate | None:
+        sig = [c for c in self.candidates if c.significant]
+        return sig[0] if sig else None
+
+    @property
+    def verdict(self) -> str:
+        if self.best is None:
+            return "no significant missing effect"
+        b = self.best
+        vals = ", ".join(f"{k} = {v:.4g} ± {b.sigma.get(k, float('nan')):.2g}" for k, v in b.values.items())
+        return f"missing effect: {b.name} ({vals})"
+
+    def as_dict(self) -> dict:
+        return {"verdict": self.verdict, "within_noise": self.within_noise,
+                "base_misfit": self.base_misfit.as_dict(), "observed_signature": self.observed_signature,
+                "candidates": [c.as_dict() for c in self.candidates], "folds": self.folds,
+                "n_traces": self.n_traces, "notes": self.notes}
+
+
+def _signature(h: np.ndarray, ref: np.ndarray, spec) -> dict[str, float]:
+    """Mean over configurations of moments(h) - moments(ref), per axis."""
+    out = {}
+    # local-model predictions can dip below zero in empty bins: moments need counts >= 0
+    h, ref = np.clip(h, 0, None), np.clip(ref, 0, None)
+    for axis, sl, c in (("x", slice(0, 50), spec.centers_x), ("y", slice(50, 100), spec.centers_y)):
+        a, b = moments(h[:, sl], c), moments(ref[:, sl], c)
+        for k in a:
+            out[f"{axis}.{k}"] = float(np.mean(a[k] - b[k]))
+    return out
+
+
+def _folds(n: int, k: int, seed: int) -> list[np.ndarray]:
+    order = np.random.default_rng(seed).permutation(n)
+    return [np.sort(order[i::k]) for i in range(k)]
+
+
+def diagnose(meas: Measurement, state: ModelState, twin, forward_model, *,
+             candidates: Sequence[str] | None = None, folds: int = 4, anchor_rays: int | None = None,
+             seed: int = 0, n_sigma: float = 3.0, reuse=None, table: ParameterTable = METRIXS) -> Diagnosis:
+    """Rank candidate effects for the misfit of ``state`` against ``meas``.
+
+    ``state`` should already carry fitted offsets (the finder's, refined by
+    :func:`bluesky_offsets.model.refine`).  Candidates default to every registered
+    effect the state does not include yet.  ``reuse`` takes the refinement's final
+    local model (same state) so that its anchor and offset Jacobian are not traced again.
+    """
+    names = [n for n in (candidates or list(E.EFFECTS)) if n not in state.effects]
+    anchor_rays = anchor_rays or (reuse.anchor_rays if reuse is not None else int(meas.n_rays))
+    # one anchor for all candidates: every candidate effect at 0, probes one parameter at a time
+    probe_state = state
+    for n_ in names:
+        probe_state = probe_state.with_effect(n_)
+    lm_all = build_local_model(meas, probe_state, twin, forward_model, anchor_rays=anchor_rays, seed=seed,
+                               reuse=reuse, table=table)
+    n_twin_params = sum(len(E.get(n_).parameters) for n_ in names if E.get(n_).level == "twin")
+    n_traces = meas.n * (2 * n_twin_params + (0 if reuse is not None else 1 + len(table)))
+    m = np.concatenate([meas.hist_x, meas.hist_y], axis=1)
+    base_mf = misfit(meas.hist_x, meas.hist_y, lm_all.t0[:, :50], lm_all.t0[:, 50:], meas.n_rays,
+                     model_rays=anchor_rays)
+    within = not base_mf.total_beyond_noise(n_sigma)
+
+    # column bookkeeping: the state's own effects first, then each candidate's block
+    own = len(state.effect_vector())
+    blocks, col = {}, own
+    for n_ in names:
+        k = len(E.get(n_).parameters)
+        blocks[n_] = np.arange(col, col + k)
+        col += k
+
+    def sub_model(cols: np.ndarray):
+        keep = np.concatenate([np.arange(own), cols]).astype(int)
+        st = ModelState(state.offsets, {**state.effects}, state.label)
+        lm = type(lm_all)(st, lm_all.t0, lm_all.jac, lm_all.a[:, :, keep], lm_all.b[:, :, keep], anchor_rays)
+        return lm
+
+    fold_idx = _folds(meas.n, folds, seed)
+
+    def cv_chi2(lm, extra_names) -> tuple[float, float, object]:
+        lm.anchor = _with(state, extra_names)
+        ho = 0.0
+        for f in fold_idx:
+            train = np.setdiff1d(np.arange(meas.n), f)
+            ho += fit_local(meas, lm, train=train, heldout=f, table=table).chi2_heldout
+        full = fit_local(meas, lm, table=table)
+        return ho, full.chi2_train, full
+
+    base_lm = sub_model(np.array([], dtype=int))
+    base_ho, base_all, base_fit = cv_chi2(base_lm, [])
+    base_pred = base_lm.predict(base_fit.offsets - state.offsets, base_fit.effects - state.effect_vector())
+    observed = _signature(m, base_pred, twin.hist)
+    n_data = int(base_mf.dof_total)
+    out = []
+    for n_ in names:
+        eff = E.get(n_)
+        lm = sub_model(blocks[n_])
+        ho, chi_all, fit = cv_chi2(lm, [n_])
+        p = len(eff.parameters)
+        penalty = p * math.log(max(n_data, 2))
+        d_ho, d_all = base_ho - ho, base_all - chi_all
+        phi0 = lm.anchor.effect_vector()
+        pred = lm.predict(fit.offsets - state.offsets, fit.effects - phi0)
+        vals = fit.effects[own:]
+        sig = np.sqrt(np.clip(np.diag(fit.covariance)[-p:], 0, None))
+        out.append(Candidate(
+            n_, p, {q.name: float(v) for q, v in zip(eff.parameters, vals)},
+            {q.name: float(s) for q, s in zip(eff.parameters, sig)}, float(d_ho), float(d_all), float(penalty),
+            bool(not within and d_ho - penalty > 0 and d_all - penalty > 0),
+            _signature(pred, base_pred, twin.hist)))
+    out.sort(key=lambda c: -c.score)
+    notes = []
+    if within:
+        notes.append(f"the base model is within noise (chi2/dof = {base_mf.chi2_reduced_total:.2f})")
+    return Diagnosis(base_mf, within, out, observed, folds, n_traces, notes)
+
+
+def _with(state: ModelState, names: Sequence[str]) -> ModelState:
+    st = state
+    for n_ in names:
+        st = st.with_effect(n_)
+    return st
+
+
+# --------------------------------------------------------------------------- #
+# model versions and the error history
+# --------------------------------------------------------------------------- #
+@dataclass
+class Version:
+    label: str
+    state: ModelState
+    misfit: Misfit
+    effect_sigma: dict[str, dict[str, float]] = field(default_factory=dict)
+
+    def row(self) -> dict:
+        return {"model": self.label, "chi2_reduced": self.misfit.chi2_reduced_total,
+                "mse": self.misfit.mse_total, "expected_mse": self.misfit.expected_mse_total,
+                "mse_over_noise": self.misfit.mse_total / max(self.misfit.expected_mse_total, 1e-300),
+                "effects": {k: dict(v) for k, v in self.state.effects.items()},
+                "effect_sigma": self.effect_sigma}
+
+
+def evaluate(meas: Measurement, state: ModelState, twin, *, model_rays: int | None = None, seed: int = 777,
+             table: ParameterTable = METRIXS) -> Misfit:
+    """The twin at the model's compensated configurations vs. the measurement (fresh rays)."""
+    model_rays = model_rays or 4 * int(meas.n_rays)  # a sharper model than the measurement
+    hx, hy = simulate(twin, meas.configurations, state, model_rays, [seed + i for i in range(meas.n)], table)
+    return misfit(meas.hist_x, meas.hist_y, hx, hy, meas.n_rays, model_rays=model_rays)
+
+
+def add_effect(meas: Measurement, state: ModelState, name: str, twin, forward_model, *, iterations: int = 3,
+               anchor_rays: int | None = None, seed: int = 0, progress=None,
+               table: ParameterTable = METRIXS) -> tuple[ModelState, dict[str, dict[str, float]]]:
+    """``model.with_effect(name)`` and refit offsets + effect through the twin."""
+    res = refine(meas, state.with_effect(name), twin, forward_model, iterations=iterations,
+                 anchor_rays=anchor_rays, seed=seed, progress=progress, table=table)
+    return res.state, res.effect_sigma
+
+
+def plot_error_history(versions: Sequence[Version], path, title: str = "model error across versions"):
+    from .plotting import _plt
+    plt = _plt()
+    fig, ax = plt.subplots(figsize=(6.5, 3.8), constrained_layout=True)
+    labels = [v.label for v in versions]
+    chi = [v.misfit.chi2_reduced_total for v in versions]
+    mse_ratio = [v.misfit.mse_total / max(v.misfit.expected_mse_total, 1e-300) for v in versions]
+    x = np.arange(len(versions))
+    ax.bar(x - 0.2, chi, 0.4, label="χ² / dof", color="C0")
+    ax.bar(x + 0.2, mse_ratio, 0.4, label="MSE / noise expectation", color="C1")
+    ax.axhline(1.0, color="k", lw=0.8, ls="--", label="noise level")
+    ax.set_yscale("log")
+    ax.set_xticks(x, labels, rotation=15, ha="right")
+    ax.set_ylabel("misfit relative to noise")
+    ax.legend(fontsize=8)
+    ax.set_title(title)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def plot_ranking(diag: Diagnosis, path, top: int = 5):
+    """Candidate scores, and the top candidates' predicted signatures beside the observed one."""
+    from .plotting import _plt
+    plt = _plt()
+    cands = diag.candidates[:top]
+    keys = [k for k in diag.observed_signature if not k.endswith("skewness")]
+    fig, (ax0, ax1) = plt.subplots(1, 2, figsize=(13, 4.2), constrained_layout=True,
+                                   gridspec_kw={"width_ratios": (1, 2)})
+    scores = [c.score for c in diag.candidates][::-1]
+    names = [c.name for c in diag.candidates][::-1]
+    colors = ["C2" if c.significant else "C7" for c in diag.candidates][::-1]
+    ax0.barh(names, scores, color=colors)
+    ax0.axvline(0, color="k", lw=0.8)
+    ax0.set_xscale("symlog")
+    ax0.set_xlabel("held-out Δχ² − p ln N")
+    ax0.set_title(diag.verdict, fontsize=9)
+    x = np.arange(len(keys))
+    width = 0.8 / (len(cands) + 1)
+    scale = {k: max(abs(diag.observed_signature[k]), 1e-12) for k in keys}
+    ax1.bar(x, [diag.observed_signature[k] / scale[k] for k in keys], width, color="k", label="observed")
+    for i, c in enumerate(cands):
+        ax1.bar(x + (i + 1) * width, [c.predicted_signature[k] / scale[k] for k in keys], width,
+                label=f"{c.name}", color=f"C{i}")
+    ax1.set_xticks(x + 0.4, keys, rotation=30, ha="right")
+    ax1.set_ylabel("signature / |observed|")
+    ax1.axhline(0, color="k", lw=0.5)
+    ax1.legend(fontsize=7, ncol=2)
+    ax1.set_title("what the data lack (observed) vs. what each effect adds (predicted)", fontsize=9)
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return path
