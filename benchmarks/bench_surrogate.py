@@ -122,8 +122,10 @@ def main() -> None:
     width = model.arch.width
     gen = bench_generator(args.rays, draws, args.screen_rays, args.keep_fraction)
     tr = bench_training(width, seconds=secs) + bench_training(width, batches=(256,), seconds=secs, threads=2)
-    torch.set_num_threads(os.cpu_count() or 1)
-    inf = [bench_inference(model, "cpu", n, seconds=secs / 2) for n in (1_000, 100_000)]
+    inf = []
+    for threads in sorted({1, os.cpu_count() or 1}):
+        torch.set_num_threads(threads)
+        inf += [bench_inference(model, "cpu", n, seconds=secs / 2) for n in (1_000, 100_000)]
     if torch.cuda.is_available():
         inf.append(bench_inference(model, "cuda", 1_000_000, seconds=secs / 2))
 
