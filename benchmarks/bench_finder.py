@@ -144,6 +144,13 @@ def main(argv=None) -> int:
         res["torch"] = torch.__version__
         md = markdown(res, "merged: " + ", ".join(str(d) for d in args.merge) + (" " + " ".join(rest) if rest else ""))
         Path(args.out).mkdir(parents=True, exist_ok=True)
+        from bluesky_offsets import finder as F
+        from bluesky_offsets.finder_eval import plot_curves
+        curves = {m: [F.FinderResult(m, np.asarray(r["offsets"]), r["loss"], r["evaluations"], r["seconds"],
+                                     r["history"], r["settings"]) for r in runs] for m, runs in res["results"].items()}
+        target = res["summary"].get("smart-walker", {}).get("mse_mean")
+        plot_curves(curves, Path(args.out) / "curves.png", target=target,
+                    title=f"offset finder, {len(res['seeds'])} runs per method, surrogate observations")
         (Path(args.out) / "section.md").write_text(md)
         print(md)
         return 0

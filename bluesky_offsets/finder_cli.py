@@ -140,8 +140,14 @@ def _find(args) -> int:
         report["twin_check"] = checks
         for m in ("smart-walker", best_m):
             if m in results:
+                # show the configurations the twin finds bright first (a surrogate may call dark ones bright)
+                run = checks[m]["per_run"][0] if checks[m]["per_run"] else {}
+                bright = run.get("bright_true", [])
+                cols = (bright + [i for i in range(problems[0].n) if i not in bright])[:4]
                 E.plot_footprints(twin, problems[0], results[m][0].offsets, out / f"footprints_{m}.png",
-                                  n_rays=args.check_rays, title=f"{m}, seed {seeds[0]}: twin re-simulation")
+                                  columns=cols, n_rays=args.check_rays,
+                                  title=f"{m}, seed {seeds[0]}: twin re-simulation "
+                                        f"({len(bright)}/{problems[0].n} configurations bright in the twin)")
     if twin is not None:
         twin.close()
     report["wall_seconds"] = time.perf_counter() - t0
