@@ -161,3 +161,47 @@ def test_the_shipped_surrogate_is_a_forward_model():
     assert ours.shape == (5, 3, 100) and (ours >= 0).all()
     with pytest.raises(F.FinderError, match="does not exist"):
         F.load_forward_model("/nonexistent/surrogate.pt")
+
+
+def test_find_command_end_to_end(tmp_path, capsys):
+    """``bluesky-offsets find`` on the shipped surrogate, tiny budgets: summary, JSON, plots."""
+    import json
+
+    from bluesky_offsets.cli import main
+    out = tmp_path / "find"
+    rc = main(["find", "--runs", "2", "--candidates", "32", "--iterations", "4", "--threads", "1",
+               "--methods", "smart-walker,monte-carlo,levenberg-marquardt", "--no-progress", "--quiet",
+               "--out", str(out)])
+    assert rc == 0
+    text = capsys.readouterr().out
+    assert "Monte Carlo / smart walker final MSE" in text and "identifiability" in text
+    res = json.loads((out / "results.json").read_text())
+    assert set(res["summary"]) == {"smart-walker", "monte-carlo", "levenberg-marquardt"}
+    assert res["budgets"]["smart-walker"]["evaluations"] == 32 * 5
+    assert res["budgets"]["levenberg-marquardt"]["evaluations"] == 16  # a tenth
+    assert len(res["results"]["monte-carlo"]) == 2 and res["seeds"] == [0, 1]
+    for f in ("curves.png", "identifiability.png", "identifiability.txt"):
+        assert (out / f).stat().st_size > 0
+    assert main(["find", "--methods", "annealing", "--out", str(out)]) == 2
+    assert "unknown method" in capsys.readouterr().err
+
+
+def test_sinkhorn_and_twin_check(problem, tmp_path):
+    """POT's debiased Sinkhorn on ray clouds; the twin re-simulation at true vs. found offsets; Fig. 6."""
+    from bluesky_offsets import finder_eval as E
+    from bluesky_offsets.twin import Twin
+    rng = np.random.default_rng(0)
+    a = rng.normal(0, [0.07, 0.016], (400, 2))
+    b = rng.normal(0, [0.07, 0.016], (400, 2))
+    assert E.sinkhorn(a, b) < E.sinkhorn(a, b + [0.3, 0.0])
+    assert math.isnan(E.sinkhorn(a, np.empty((0, 2))))
+    sub = F.OffsetProblem(problem.configurations[:3], problem.observations[:3], problem.true_offsets,
+                          "surrogate", LIMIT)
+    twin = Twin(scheduler="inline")
+    exact = E.twin_check(twin, sub, sub.true_offsets, n_rays=1000, sinkhorn_points=300)
+    off = E.twin_check(twin, sub, np.clip(sub.true_offsets + 0.008, -LIMIT, LIMIT), n_rays=1000,
+                       sinkhorn_points=300)
+    assert exact["mse_repeat"] > 0 and len(exact["per_configuration"]["sinkhorn_compensated"]) == 3
+    assert off["mse_compensated"] > exact["mse_compensated"]
+    path = E.plot_footprints(twin, sub, sub.true_offsets, tmp_path / "fp.png", n_rays=1000)
+    assert path.stat().st_size > 10_000
