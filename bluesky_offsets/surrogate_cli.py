@@ -14,7 +14,8 @@ from .cli import CliError
 # dataset
 # --------------------------------------------------------------------------- #
 def _prepare_tracing(args) -> None:
-    if not logging.getLogger().isEnabledFor(logging.INFO):
+    if not logging.getLogger().isEnabledFor(logging.INFO) and args.scheduler != "inline":
+        import distributed  # noqa: F401  (configures its loggers on import; quiet them after)
         logging.getLogger("distributed").setLevel(logging.WARNING)
     import signal
 
