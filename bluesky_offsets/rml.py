@@ -10,7 +10,6 @@ misalignments real for RAYX, which reads the world vectors only.
 
 from __future__ import annotations
 
-import copy
 import math
 import xml.etree.ElementTree as ET
 from collections.abc import Iterable, Mapping
@@ -149,7 +148,10 @@ class RmlBeamline:
         raise RmlError(f"no object named {name!r}; objects: {[o.name for o in self.objects]}")
 
     def copy(self) -> RmlBeamline:
-        return copy.deepcopy(self)
+        # explicit copy: ~5x faster than deepcopy, which matters for low-ray pre-screens
+        return RmlBeamline([RmlObject(o.name, o.type, {k: RmlParam(p.id, p.value, dict(p.attrs))
+                                                         for k, p in o.params.items()})
+                            for o in self.objects], self.version)
 
     @property
     def sources(self) -> list[RmlObject]:

@@ -415,10 +415,14 @@ class Twin:
             if self.scheduler:
                 self._client = Client(self.scheduler)
             else:
+                import dask
                 n = self.n_workers or os.cpu_count() or 1
-                self._cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
-                                             dashboard_address="127.0.0.1:0", env={"OMP_NUM_THREADS": "1"},
-                                             host="127.0.0.1")
+                # One thread per worker, so a task that kills its worker (RAYX aborting on bad
+                # input) is the only suspect: fail it at once instead of killing 3 more workers.
+                with dask.config.set({"distributed.scheduler.allowed-failures": 0}):
+                    self._cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
+                                                 dashboard_address="127.0.0.1:0", env={"OMP_NUM_THREADS": "1"},
+                                                 host="127.0.0.1")
                 self._client = Client(self._cluster)
         return self._client
 
