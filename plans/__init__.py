@@ -4,7 +4,7 @@
   differences from the current reference; one event per configuration.
 * :func:`find_high_ray_configurations` (beamline) and
   :func:`high_ray_configurations_on_model` (twin/surrogate) — configurations whose
-  footprint has enough rays (threshold :data:`HIGH_RAY_THRESHOLD` = 0.113 of the source rays).
+  footprint has enough rays (x + y histogram sum > :data:`HIGH_RAY_THRESHOLD` = 0.113 of the source rays).
 * :func:`find_offsets` — run a pluggable offset finder on a measurement and emit
   offsets per parameter and the loss as a stream.
 """
