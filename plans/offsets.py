@@ -116,6 +116,29 @@ def _call_finder(func: Callable, m: Measurement):
     return func(m)
 
 
+_STATUS_CODE = {"determined": 2.0, "weak": 1.0, "undetermined": 0.0}
+
+
+def _extras(raw, n: int) -> dict[str, object]:
+    """Uncertainties, identifiability and the loss curve, when the finder reports them."""
+    get = (lambda k: raw.get(k)) if isinstance(raw, Mapping) else (lambda k: getattr(raw, k, None))
+    out: dict[str, object] = {}
+    sigma = get("sigma")
+    if sigma is not None and np.asarray(sigma).shape == (n,):
+        out["offsets_sigma"] = np.asarray(sigma, dtype=float)
+    status = get("status")
+    if status is not None and len(status) == n:
+        # 2 determined, 1 weak, 0 undetermined (numbers: event data wants numeric arrays)
+        out["offsets_determined"] = np.array([_STATUS_CODE.get(str(s), 0.0) for s in status])
+    history = get("history")
+    if isinstance(history, Mapping):
+        for key, val in history.items():
+            arr = np.asarray(val)
+            if arr.ndim == 1 and arr.size and arr.dtype.kind in "fiu":
+                out[f"loss_curve_{key}"] = arr.astype(float)
+    return out
+
+
 def data_key(name: str) -> str:
     """Event data key of a parameter (dots are not welcome in table column names)."""
     return name.replace(".", "_")
@@ -173,7 +196,10 @@ def find_offsets(finder, measurement=None, *, store: RunStore | str | None = Non
     -----
     The stream has one event: ``loss``, the normalized offset of every
     parameter (key = name with ``.`` -> ``_``), and arrays ``offsets`` /
-    ``offsets_physical`` in table order.
+    ``offsets_physical`` in table order; when the finder reports them (e.g. a
+    :class:`bluesky_offsets.calibration.Calibration`), also ``offsets_sigma``,
+    ``offsets_determined`` (2 determined, 1 weak, 0 undetermined) and the loss
+    curve ``loss_curve_<key>`` arrays.
     """
     func = _resolve_finder(finder)
     m: Measurement = as_measurement(measurement, store)
@@ -192,6 +218,7 @@ def find_offsets(finder, measurement=None, *, store: RunStore | str | None = Non
         result: OffsetResult = task.result()  # re-raises the finder's error
         values = {"loss": result.loss, "offsets": result.offsets, "offsets_physical": result.physical}
         values.update({data_key(n): float(v) for n, v in zip(table.names, result.offsets)})
+        values.update(_extras(result.raw, len(table)))
         yield from bps.create(name=stream_name)
         yield from bps.read(_Values("finder", values))
         yield from bps.save()

@@ -113,6 +113,10 @@ def test_the_plans_find_offsets_stub_takes_the_offset_finder(model, problem):
     res = RE(find_offsets(_finder(model), m)).plan_result
     assert res.offsets.shape == (34,) and isinstance(res.raw, C.Calibration)
     assert res.loss < 0.2 * F.final_mse(problem, model, np.zeros(34))
+    event = next(d for n, d in docs if n == "event")["data"]  # uncertainties and loss curve in the run
+    np.testing.assert_allclose(event["offsets_sigma"], res.raw.sigma)
+    assert set(np.unique(event["offsets_determined"])) <= {0.0, 1.0, 2.0}
+    assert any(k.startswith("loss_curve_") for k in event)
     docs.clear()
     cal = RE(C.find_offsets_live(_finder(model), m, poll=0.05)).plan_result
     start = next(d for n, d in docs if n == "start")
