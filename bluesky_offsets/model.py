@@ -69,6 +69,19 @@ class Measurement:
             raise MeasurementError("n_rays must be positive")
         self.configurations, self.hist_x, self.hist_y = cfg, hx, hy
 
+    @classmethod
+    def from_store(cls, m, n_rays: int | None = None, table: ParameterTable = METRIXS) -> Measurement:
+        """From a run-store :class:`bluesky_offsets.store.Measurement` (ray budget from its
+        metadata unless given)."""
+        try:
+            m.check_table(table)
+        except ValueError as exc:
+            raise MeasurementError(str(exc)) from None
+        rays = n_rays or m.metadata.get("n_rays") or m.metadata.get("num_rays")
+        if not rays:
+            raise MeasurementError(f"measurement {m.uid or ''} does not say its ray budget; pass n_rays")
+        return cls(m.configurations, m.hist_x, m.hist_y, int(rays), table.version, m.uid)
+
     @property
     def n(self) -> int:
         return len(self.configurations)

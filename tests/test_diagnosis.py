@@ -86,3 +86,17 @@ def test_model_versions_and_bad_data():
     bad[1, 3] = np.nan
     with pytest.raises(MeasurementError, match="U41_318eV.rotationYerror"):
         Measurement(bad, np.zeros((2, 50)), np.zeros((2, 50)), 1000)
+
+
+def test_measurement_from_the_run_store():
+    from bluesky_offsets.store import Measurement as Stored
+    cfg = np.tile(METRIXS.reference, (2, 1))
+    stored = Stored(cfg, np.zeros((2, 50)), np.zeros((2, 50)), uid="u1",
+                    metadata={"n_rays": 5000, "parameter_table_version": METRIXS.version})
+    m = Measurement.from_store(stored)
+    assert m.n == 2 and m.n_rays == 5000 and m.uid == "u1"
+    with pytest.raises(MeasurementError, match="ray budget"):
+        Measurement.from_store(Stored(cfg, np.zeros((2, 50)), np.zeros((2, 50))))
+    with pytest.raises(MeasurementError, match="version"):
+        Measurement.from_store(Stored(cfg, np.zeros((2, 50)), np.zeros((2, 50)),
+                                      metadata={"n_rays": 1, "parameter_table_version": "xyz"}))
