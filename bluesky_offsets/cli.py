@@ -152,7 +152,10 @@ def main(argv: list[str] | None = None) -> int:
         parser.error("--rays must be positive")
     try:
         return int(args.func(args) or 0)
-    except (CliError, ParameterError) as exc:
+    except (CliError, ParameterError, ValueError) as exc:
+        # user input the library refused (bad parameter, impossible geometry, bad file ...)
+        if args.verbose:
+            raise
         print(f"bluesky-offsets {args.command}: error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:

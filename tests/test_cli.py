@@ -60,6 +60,7 @@ def test_simulate_plot_and_text(capsys, tmp_path):
     (["simulate", "--set", "E2.rotationXerror=abc"], "not a number"),
     (["simulate", "--set", "E2.rotationXerror"], "NAME=VALUE"),
     (["simulate", "--set", "E2.rotationXerror=nan"], "not finite"),
+    (["simulate", "--set", "E1.shortHalfAxisB=30000"], "must exceed short half-axis"),
 ])
 def test_simulate_bad_input(capsys, argv, message):
     assert main(argv) == 2
