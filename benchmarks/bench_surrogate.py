@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import platform
 import time
 from pathlib import Path
 
@@ -32,15 +31,8 @@ import torch  # noqa: E402
 
 
 def _machine() -> str:
-    cpu = platform.processor() or "unknown CPU"
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    return f"{cpu}, {os.cpu_count()} cores, Python {platform.python_version()}, torch {torch.__version__}"
+    from _machine import machine  # benchmarks/ is on sys.path when run as a script
+    return machine() + f", torch {torch.__version__}"
 
 
 def bench_generator(n_rays: int, n_draws: int, screen_rays: int, keep_fraction: float) -> list[dict]:
