@@ -20,7 +20,7 @@ import numpy as np
 
 from . import effects as E
 from .diagnostics import Misfit, misfit, moments
-from .model import Measurement, ModelState, build_local_model, fit_local, refine, simulate
+from .model import LocalModel, Measurement, ModelState, build_local_model, fit_local, refine, simulate
 from .parameters import METRIXS, ParameterTable
 
 
@@ -127,16 +127,16 @@ def diagnose(meas: Measurement, state: ModelState, twin, forward_model, *,
         blocks[n_] = np.arange(col, col + k)
         col += k
 
-    def sub_model(cols: np.ndarray):
-        keep = np.concatenate([np.arange(own), cols]).astype(int)
-        st = ModelState(state.offsets, {**state.effects}, state.label)
-        lm = type(lm_all)(st, lm_all.t0, lm_all.jac, lm_all.a[:, :, keep], lm_all.b[:, :, keep], anchor_rays)
-        return lm
+    def sub_model(extra_names: Sequence[str]) -> LocalModel:
+        """The shared anchor seen by the state plus ``extra_names`` (their columns only)."""
+        cols = [blocks[n_] for n_ in extra_names]
+        keep = np.concatenate([np.arange(own), *cols]).astype(int)
+        return LocalModel(_with(state, extra_names), lm_all.t0, lm_all.jac, lm_all.a[:, :, keep],
+                          lm_all.b[:, :, keep], anchor_rays)
 
     fold_idx = _folds(meas.n, folds, seed)
 
-    def cv_chi2(lm, extra_names) -> tuple[float, float, object]:
-        lm.anchor = _with(state, extra_names)
+    def cv_chi2(lm: LocalModel) -> tuple[float, float, object]:
         ho = 0.0
         for f in fold_idx:
             train = np.setdiff1d(np.arange(meas.n), f)
@@ -144,16 +144,16 @@ def diagnose(meas: Measurement, state: ModelState, twin, forward_model, *,
         full = fit_local(meas, lm, table=table)
         return ho, full.chi2_train, full
 
-    base_lm = sub_model(np.array([], dtype=int))
-    base_ho, base_all, base_fit = cv_chi2(base_lm, [])
+    base_lm = sub_model([])
+    base_ho, base_all, base_fit = cv_chi2(base_lm)
     base_pred = base_lm.predict(base_fit.offsets - state.offsets, base_fit.effects - state.effect_vector())
     observed = _signature(m, base_pred, twin.hist)
     n_data = int(base_mf.dof_total)
     out = []
     for n_ in names:
         eff = E.get(n_)
-        lm = sub_model(blocks[n_])
-        ho, chi_all, fit = cv_chi2(lm, [n_])
+        lm = sub_model([n_])
+        ho, chi_all, fit = cv_chi2(lm)
         p = len(eff.parameters)
         penalty = p * math.log(max(n_data, 2))
         d_ho, d_all = base_ho - ho, base_all - chi_all

@@ -214,7 +214,6 @@ def analyze(problem: OffsetProblem, model, offsets, *, n_rays: int | None = None
     var = bin_variance(pred.double().cpu().numpy(), N, model_mse)
     F = fisher_matrix(J, var)
     prior = problem.limit / math.sqrt(3.0)
-    P = F.shape[0]
     # eigen-decomposition of the prior-whitened Fisher matrix: eigenvalue 0 = the data add nothing
     lam, V = np.linalg.eigh(F * prior ** 2)
     lam = np.clip(lam, 0.0, None)

@@ -59,7 +59,6 @@ def trapezoid(distance: float, velocity: float, accel_time: float) -> tuple[floa
     sign = math.copysign(1.0, distance)
     if d <= v * ta:  # triangle: never reaches cruise velocity
         t1 = math.sqrt(d / a)
-        vp = a * t1
 
         def s(t):
             t = min(max(t, 0.0), 2 * t1)
