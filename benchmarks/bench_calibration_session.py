@@ -24,7 +24,6 @@ import argparse
 import json
 import os
 import signal
-import socket
 import subprocess
 import sys
 import tempfile
@@ -33,6 +32,8 @@ from pathlib import Path
 
 import numpy as np
 
+from sim_iocs.ports import free_port
+
 DEFAULT_TRUTH = {  # offsets in the sensitive axes large enough to move the footprint by several bins
     "offsets": {"E1.rotationXerror": 0.1, "E2.rotationXerror": -0.12, "M1_Cylinder.rotationXerror": 0.06,
                 "E1.translationYerror": -0.05, "E2.translationYerror": 0.05,
@@ -40,19 +41,6 @@ DEFAULT_TRUTH = {  # offsets in the sensitive axes large enough to move the foot
                 "U41_318eV.translationXerror": 0.1, "ASBL.totalWidth": 0.05, "E1.rotationYerror": 0.15,
                 "M1_Cylinder.radius": 0.1, "SphericalGrating.radius": -0.1, "E1.longHalfAxisA": -0.1,
                 "E1.shortHalfAxisB": 0.05, "E2.longHalfAxisA": 0.1, "E2.shortHalfAxisB": 0.08}}
-
-
-def _free_port() -> int:
-    while True:
-        with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as t:
-            t.bind(("127.0.0.1", 0))
-            port = t.getsockname()[1]
-            with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as u:
-                try:
-                    u.bind(("127.0.0.1", port))
-                except OSError:
-                    continue
-            return port
 
 
 def main(argv=None) -> int:
@@ -70,7 +58,7 @@ def main(argv=None) -> int:
     ap.add_argument("--out", default="data/bench_calibration_session.json")
     args = ap.parse_args(argv)
 
-    port = _free_port()
+    port = free_port()
     os.environ.update(EPICS_CA_ADDR_LIST=f"127.0.0.1:{port}", EPICS_CA_AUTO_ADDR_LIST="NO")
     work = Path(tempfile.mkdtemp(prefix="calib-session-"))
     truth_path = Path(args.truth) if args.truth else work / "truth.json"

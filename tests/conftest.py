@@ -33,22 +33,14 @@ from pathlib import Path
 
 import pytest
 
+from sim_iocs.ports import free_port
+
 _POOL_SIZE = 8
 
 
 def _free_port() -> int:
     """A port free for both TCP and UDP on loopback (EPICS uses the same number for both)."""
-    for _ in range(200):
-        with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as t:
-            t.bind(("127.0.0.1", 0))
-            port = t.getsockname()[1]
-            with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as u:
-                try:
-                    u.bind(("127.0.0.1", port))
-                except OSError:
-                    continue
-        return port
-    raise RuntimeError("no free port pair on 127.0.0.1")
+    return free_port()
 
 
 CA_PORTS: list[int] = []
