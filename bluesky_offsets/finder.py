@@ -597,6 +597,16 @@ def _screen_size(screen: int, starts: int, tr: _Tracker) -> int:
     return max(min(screen, int(tr.remaining_evaluations() // 4)), min(starts, tr.cap(starts)), 1)
 
 
+def _best_starts(obj: Objective, tr: _Tracker, gen: torch.Generator, screen: int,
+                 starts: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Screen uniform candidates and return the ``starts`` best, best first, with their losses."""
+    x0 = _uniform(_screen_size(screen, starts, tr), obj.problem.n_parameters, obj.limit, gen, obj)
+    l0 = obj(x0)
+    tr.update(x0, l0)
+    order = torch.argsort(l0)[:min(starts, len(x0))]
+    return x0[order].clone(), l0[order].clone()
+
+
 @dataclass
 class GradientMultiStart:
     """Multi-start projected Adam through the differentiable model.
@@ -618,12 +628,10 @@ class GradientMultiStart:
     name = "gradient"
 
     def run(self, obj: Objective, tr: _Tracker, gen: torch.Generator) -> None:
-        P, lim = obj.problem.n_parameters, obj.limit
-        x0 = _uniform(_screen_size(self.screen, self.starts, tr), P, lim, gen, obj)
-        l0 = obj(x0)
-        tr.update(x0, l0)
-        k = min(self.starts, len(x0))
-        x = x0[torch.argsort(l0)[:k]].clone().requires_grad_(True)
+        lim = obj.limit
+        x, start_losses = _best_starts(obj, tr, gen, self.screen, self.starts)
+        k = len(x)
+        x.requires_grad_(True)
         opt = torch.optim.Adam([x], lr=self.lr)
         total = tr.remaining_evaluations() // max(k, 1)
         step = 0
@@ -647,7 +655,7 @@ class GradientMultiStart:
             step += 1
         with torch.no_grad():
             self.final = x.detach().clone()
-            self.final_losses = losses.detach().clone() if step else l0[:k]
+            self.final_losses = losses.detach().clone() if step else start_losses
 
 
 @dataclass
@@ -670,12 +678,8 @@ class LevenbergMarquardt:
 
     def run(self, obj: Objective, tr: _Tracker, gen: torch.Generator) -> None:
         P, lim = obj.problem.n_parameters, obj.limit
-        x0 = _uniform(_screen_size(self.screen, self.starts, tr), P, lim, gen, obj)
-        l0 = obj(x0)
-        tr.update(x0, l0)
-        k = min(self.starts, len(x0))
-        order = torch.argsort(l0)[:k]
-        x, loss = x0[order].clone(), l0[order].clone()
+        x, loss = _best_starts(obj, tr, gen, self.screen, self.starts)
+        k = len(x)
         lam = torch.full((k,), self.damping, device=obj.device, dtype=obj.dtype)
         obs = obj.observed.reshape(-1)
 
@@ -721,10 +725,8 @@ class CMAES:
     def run(self, obj: Objective, tr: _Tracker, gen: torch.Generator) -> None:
         import cma
         P, lim = obj.problem.n_parameters, obj.limit
-        x0 = _uniform(_screen_size(self.screen, 1, tr), P, lim, gen, obj)
-        l0 = obj(x0)
-        tr.update(x0, l0)
-        start = x0[int(torch.argmin(l0))].double().cpu().numpy()
+        best, _ = _best_starts(obj, tr, gen, self.screen, 1)
+        start = best[0].double().cpu().numpy()
         popsize = self.popsize or (4 + int(3 * math.log(P)))
         seed = int(torch.randint(1, 2**31 - 1, (1,), generator=gen))
         self.final, self.final_losses = [], []
