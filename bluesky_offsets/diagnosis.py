@@ -216,7 +216,7 @@ def add_effect(meas: Measurement, state: ModelState, name: str, twin, forward_mo
 
 
 def plot_error_history(versions: Sequence[Version], path, title: str = "model error across versions"):
-    from .plotting import _plt
+    from .plotting import _plt, save_figure
     plt = _plt()
     fig, ax = plt.subplots(figsize=(6.5, 3.8), constrained_layout=True)
     labels = [v.label for v in versions]
@@ -231,14 +231,12 @@ def plot_error_history(versions: Sequence[Version], path, title: str = "model er
     ax.set_ylabel("misfit relative to noise")
     ax.legend(fontsize=8)
     ax.set_title(title)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path, dpi=110)
 
 
 def plot_ranking(diag: Diagnosis, path, top: int = 5):
     """Candidate scores, and the top candidates' predicted signatures beside the observed one."""
-    from .plotting import _plt
+    from .plotting import _plt, save_figure
     plt = _plt()
     cands = diag.candidates[:top]
     keys = [k for k in diag.observed_signature if not k.endswith("skewness")]
@@ -264,6 +262,4 @@ def plot_ranking(diag: Diagnosis, path, top: int = 5):
     ax1.axhline(0, color="k", lw=0.5)
     ax1.legend(fontsize=7, ncol=2)
     ax1.set_title("what the data lack (observed) vs. what each effect adds (predicted)", fontsize=9)
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path, dpi=100)

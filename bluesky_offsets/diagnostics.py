@@ -232,7 +232,7 @@ def failing_regions(misfit_: Misfit, spec, n_sigma: float = 3.0) -> list[dict]:
 def plot_overlays(meas_x, meas_y, model_x, model_y, spec, path, misfit_: Misfit | None = None,
                   max_configurations: int = 8, title: str = "measured vs model"):
     """Per configuration: measured and modelled x/y histograms, residuals below."""
-    from .plotting import _plt
+    from .plotting import _plt, save_figure
     plt = _plt()
     n = min(len(meas_x), max_configurations)
     fig, axes = plt.subplots(4, n, figsize=(2.6 * n, 7.5), squeeze=False, sharex="row",
@@ -259,15 +259,12 @@ def plot_overlays(meas_x, meas_y, model_x, model_y, spec, path, misfit_: Misfit 
             t += f"\nχ²/dof {misfit_.chi2_reduced[i]:.2f}"
         axes[0, i].set_title(t, fontsize=9)
     axes[0, 0].legend(fontsize=7)
-    fig.suptitle(title)
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path, dpi=100, title=title)
 
 
 def plot_residual_maps(misfit_: Misfit, spec, path, title: str = "normalized residuals (measured − model) / σ"):
     """Per-bin pulls across configurations, for x and y."""
-    from .plotting import _plt
+    from .plotting import _plt, save_figure
     plt = _plt()
     fig, axes = plt.subplots(1, 2, figsize=(11, 0.35 * len(misfit_.chi2) + 2), constrained_layout=True)
     lim = max(3.0, float(np.percentile(np.abs(np.concatenate([misfit_.pulls_x, misfit_.pulls_y])), 99)))
@@ -278,7 +275,4 @@ def plot_residual_maps(misfit_: Misfit, spec, path, title: str = "normalized res
         ax.set_xlabel(f"{lab} [mm]")
         ax.set_ylabel("configuration")
     fig.colorbar(im, ax=axes, label="pull")
-    fig.suptitle(title)
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path, dpi=100, title=title)

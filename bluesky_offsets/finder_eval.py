@@ -97,7 +97,7 @@ def _band(rs: Sequence[F.FinderResult], key: str, grid: np.ndarray):
 def plot_curves(results: Mapping[str, Sequence[F.FinderResult]], path, *, title: str = "",
                 target: float | None = None) -> Path:
     """Best MSE vs. evaluations and vs. seconds: geometric mean over runs, shaded x/÷ one std (Fig. 5)."""
-    from .plotting import _plt
+    from .plotting import _plt, save_figure
     plt = _plt()
     fig, axes = plt.subplots(1, 2, figsize=(13, 4.8), constrained_layout=True)
     for ax, key, label in ((axes[0], "evaluations", "evaluations (candidate offsets scored)"),
@@ -118,12 +118,7 @@ def plot_curves(results: Mapping[str, Sequence[F.FinderResult]], path, *, title:
         ax.set_ylabel("best MSE so far")
         ax.grid(alpha=0.3, which="both")
     axes[0].legend(fontsize=8)
-    if title:
-        fig.suptitle(title)
-    path = Path(path)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path, dpi=110, title=title)
 
 
 # --------------------------------------------------------------------------- #
@@ -191,7 +186,7 @@ def plot_footprints(twin, problem: F.OffsetProblem, offsets, path, *, columns: S
                     n_rays: int = 20_000, seed: int = 0, title: str = "") -> Path:
     """Footprints re-simulated by the twin: uncompensated (the configuration as set), observed (with
     the true offsets, or the measured histograms), compensated (with the found offsets) - Fig. 6."""
-    from .plotting import _plt
+    from .plotting import _plt, save_figure
     plt = _plt()
     cols = list(columns if columns is not None else range(min(4, problem.n)))
     rows = [("uncompensated", problem.physical_configurations(None), "C0")]
@@ -229,9 +224,4 @@ def plot_footprints(twin, problem: F.OffsetProblem, offsets, path, *, columns: S
             ax2 = axes[-1][ci].twinx()
             ax2.stairs(problem.observations[c, :h.bins_x], h.edges_x, color="C1", ls="--", label="measured")
             ax2.set_yticks([])
-    if title:
-        fig.suptitle(title)
-    path = Path(path)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path, dpi=110, title=title)

@@ -14,6 +14,17 @@ def _plt():
     return plt
 
 
+def save_figure(fig, path: str | Path, *, dpi: int = 110, title: str = "") -> Path:
+    """Title (optional), write and close a figure; returns the path."""
+    import matplotlib.pyplot as plt
+    if title:
+        fig.suptitle(title)
+    path = Path(path)
+    fig.savefig(path, dpi=dpi)
+    plt.close(fig)
+    return path
+
+
 def plot_footprint(result, hist, path: str | Path, title: str = "") -> Path:
     """Footprint scatter on the focus-chamber screen with its x and y histograms.
 
@@ -56,9 +67,4 @@ def plot_footprint(result, hist, path: str | Path, title: str = "") -> Path:
                  f"\nstd ({s['width_x']:.4f}, {s['width_y']:.4f}) mm")
     ax.text(0.02, 0.98, text, transform=ax.transAxes, va="top", fontsize=9,
             bbox=dict(boxstyle="round", fc="white", alpha=0.8))
-    if title:
-        fig.suptitle(title)
-    path = Path(path)
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path, dpi=120, title=title)
