@@ -9,6 +9,8 @@ import time
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
+import numpy as np
+
 
 def _img(path: Path, alt: str) -> str:
     data = base64.b64encode(Path(path).read_bytes()).decode()
@@ -67,3 +69,215 @@ def table(rows, columns=None, fmt: str = "{:.4g}") -> str:
 
 def verdict(text: str, warn: bool = False) -> str:
     return f"<p class='verdict{' warn' if warn else ''}'>{html.escape(text)}</p>"
+
+
+def pre(text: str) -> str:
+    return f"<pre>{html.escape(text)}</pre>"
+
+
+def paragraph(text: str) -> str:
+    return f"<p>{html.escape(text)}</p>"
+
+
+# --------------------------------------------------------------------------- #
+# the model-vs-measurement analysis
+# --------------------------------------------------------------------------- #
+def _fmt_values(values: Mapping, sigma: Mapping | None = None, units: Mapping | None = None) -> str:
+    parts = []
+    for k, v in values.items():
+        s = f"{k} = {v:.4g}"
+        if sigma and k in sigma:
+            s += f" ± {sigma[k]:.2g}"
+        if units and units.get(k):
+            s += f" {units[k]}"
+        parts.append(s)
+    return ", ".join(parts)
+
+
+def _plot_progress(runs: Sequence[tuple[str, Sequence[Mapping]]], path: Path) -> Path:
+    """chi2/dof of the twin at each refinement iteration (accepted steps filled)."""
+    from .plotting import _plt, save_figure
+    plt = _plt()
+    fig, ax = plt.subplots(figsize=(6.5, 3.5), constrained_layout=True)
+    offset = 0
+    for k, (label, hist) in enumerate(runs):
+        it = np.arange(len(hist)) + offset
+        chi = np.array([h["chi2_reduced"] for h in hist], float)
+        acc = np.array([bool(h.get("accepted", True)) for h in hist])
+        ax.plot(it, chi, "-", color=f"C{k}", lw=0.8)
+        ax.plot(it[acc], chi[acc], "o", color=f"C{k}", label=f"{label} (accepted)")
+        ax.plot(it[~acc], chi[~acc], "x", color=f"C{k}", label=f"{label} (rejected)" if (~acc).any() else None)
+        offset += len(hist)
+    ax.axhline(1.0, color="k", ls="--", lw=0.8, label="noise level")
+    ax.set_yscale("log")
+    ax.set_xlabel("twin evaluation (iteration)")
+    ax.set_ylabel("χ² / dof of the twin")
+    ax.legend(fontsize=7)
+    return save_figure(fig, path, dpi=100, title="fits through the twin")
+
+
+def analysis_sections(analysis, spec, work: Path, *, truth: Mapping | None = None,
+                      table=None) -> list[tuple[str, str]]:
+    """Report sections of a model-vs-measurement analysis (:class:`plans.diagnose.Analysis`).
+
+    ``truth`` (simulations only) adds the hidden effect beside the fitted one.
+    """
+    from .diagnosis import plot_error_history, plot_ranking
+    from .effects import get as get_effect
+    from .diagnostics import plot_overlays, plot_residual_maps
+    from .parameters import METRIXS
+    table = table or METRIXS
+    work = Path(work)
+    work.mkdir(parents=True, exist_ok=True)
+    meas = analysis.measurement
+    comps = analysis.comparisons
+    secs: list[tuple[str, str]] = []
+
+    # verdict and the error history first: what people come for
+    ranking = analysis.ranking
+    diag = ranking.diagnosis if ranking is not None else None
+    head = []
+    if diag is not None:
+        head.append(verdict(diag.verdict, warn=diag.best is None and not diag.within_noise))
+    rows = []
+    for i, c in enumerate(comps):
+        r = c.total_row()
+        rows.append({"version": i, "model": r["model"], "χ²/dof": r["chi2_reduced"], "χ²": r["chi2"],
+                     "dof (expected χ²)": r["dof"], "MSE": r["mse"], "MSE expected (noise)": r["expected_mse"],
+                     "MSE / noise": r["mse_over_noise"], "configs beyond noise": f"{r['beyond_noise']} / {meas.n}",
+                     "within noise": "yes" if r["within_noise"] else "no",
+                     "effects": _fmt_values({f"{e}.{k}": v for e, vals in c.state.effects.items()
+                                             for k, v in vals.items()},
+                                            {f"{e}.{k}": v for e, vals in c.effect_sigma.items()
+                                             for k, v in vals.items()}) or "—"})
+    fig = plot_error_history([c.version() for c in comps], work / "error_history.png")
+    head.append(table_(rows))
+    head.append(image(fig, "error history: χ²/dof and MSE relative to the noise expectation, per model version"))
+    secs.append(("Error history across model versions", "".join(head)))
+
+    # the added effect
+    if analysis.refit is not None:
+        rf = analysis.refit
+        mag = rf.magnitude()
+        units = {p.name: p.unit for p in get_effect(rf.effect).parameters}
+        rows = []
+        for k, (v, s) in mag.items():
+            row = {"effect": rf.effect, "parameter": k, "fitted": v, "± (1σ)": s, "unit": units.get(k, "")}
+            if truth is not None and rf.effect in truth:
+                hv = truth[rf.effect].get(k)
+                if hv is not None:
+                    row["hidden (simulation)"] = float(hv)
+                    row["error"] = f"{(v - hv) / hv * 100:+.1f} %" if hv else "—"
+            rows.append(row)
+        body = table_(rows)
+        if truth is not None:
+            body += paragraph("Hidden effects of the simulation (revealed for the demo only): "
+                              + (", ".join(f"{e}: {_fmt_values(v)}" for e, v in truth.items()) or "none"))
+        secs.append(("Fitted effect magnitude", body))
+
+    # ranking
+    if diag is not None:
+        fig = plot_ranking(diag, work / "ranking.png")
+        rows = []
+        for i, c in enumerate(diag.candidates, 1):
+            rows.append({"rank": i, "effect": c.name, "score": c.score, "Δχ² held-out": c.delta_chi2_heldout,
+                         "Δχ² all": c.delta_chi2_all, "price p ln N": c.penalty,
+                         "significant": "yes" if c.significant else "no",
+                         "fitted (diagnosis)": _fmt_values(c.values, c.sigma)})
+        keys = [k for k in diag.observed_signature if not k.endswith("skewness")]
+        sig_rows = [{"signature": k, "observed": diag.observed_signature[k],
+                     **{c.name: c.predicted_signature.get(k, float("nan")) for c in diag.candidates[:4]}}
+                    for k in keys]
+        mf = diag.base_misfit
+        body = (paragraph(f"Each candidate is fitted with the offsets in {diag.folds} folds; score = held-out χ² "
+                          f"improvement over the offsets-only model − p ln N. Base model: χ²/dof "
+                          f"{mf.chi2_reduced_total:.3g} (noise: 1 ± {np.sqrt(2 / max(mf.dof_total, 1)):.2g}); "
+                          f"{diag.n_traces} twin traces.")
+                + table_(rows) + image(fig, "candidate scores; predicted residual signature of the top candidates "
+                                            "beside the observed one (what the data lack)")
+                + paragraph("Residual signature (model − measurement, mean over configurations) observed after the "
+                            "offsets, and what each of the top candidates predicts:")
+                + table_(sig_rows))
+        if diag.notes:
+            body += paragraph("; ".join(diag.notes))
+        secs.append(("Which effect is missing: ranking", body))
+
+    # where the model fails
+    body = []
+    for c in ([comps[1]] if len(comps) > 2 else []) + [comps[-1]]:
+        tag = c.label.replace(" ", "_").replace("+", "plus")
+        ov = plot_overlays(meas.hist_x, meas.hist_y, c.model_x, c.model_y, spec, work / f"overlay_{tag}.png",
+                           c.misfit, title=f"measured vs. model '{c.label}'")
+        rm = plot_residual_maps(c.misfit, spec, work / f"residuals_{tag}.png",
+                                title=f"pulls (measured − model) / σ, model '{c.label}'")
+        body.append(f"<h3>{html.escape(c.label)}</h3>")
+        body.append(image(ov, f"per configuration: measured and modelled histograms, residuals ('{c.label}')"))
+        body.append(image(rm, f"per-bin residual maps across configurations ('{c.label}')"))
+        if c.failing:
+            body.append(paragraph(f"{len(c.failing)} (configuration, axis) regions beyond 3σ; the largest:"))
+            top = sorted(c.failing, key=lambda f: -abs(f["max_pull"]))[:8]
+            body.append(table_([{"config": f["configuration"], "axis": f["axis"],
+                                 "range [mm]": f"{f['range_mm'][0]:+.2f} … {f['range_mm'][1]:+.2f}",
+                                 "max pull": f["max_pull"], "χ² share": f["chi2_share"]} for f in top]))
+        if c.correlations:
+            body.append(paragraph("Strongest correlations of the residual signature with the beamline parameters "
+                                  "across configurations:"))
+            body.append(table_([{"signature": s, "parameter": p, "r": r} for s, p, r in c.correlations]))
+    per = []
+    for i in range(meas.n):
+        row = {"config": i}
+        for c in comps:
+            row[f"χ²/dof {c.label}"] = float(c.misfit.chi2_reduced[i])
+        row["MSE expected"] = float(comps[-1].misfit.expected_mse[i])
+        row[f"MSE {comps[-1].label}"] = float(comps[-1].misfit.mse[i])
+        per.append(row)
+    body.append(paragraph("Misfit per configuration and model version (a correct model: χ²/dof ≈ 1):"))
+    body.append(table_(per))
+    secs.append(("Where the model fails", "".join(body)))
+
+    # the fits
+    runs = []
+    if analysis.refinement is not None:
+        runs.append(("offsets", analysis.refinement.result.history))
+    if analysis.refit is not None and analysis.refit.history:
+        runs.append((f"+ {analysis.refit.effect}", analysis.refit.history))
+    if runs:
+        fig = _plot_progress(runs, work / "fit_progress.png")
+        secs.append(("Fits through the twin", image(fig, "χ²/dof of the twin at each iteration")))
+
+    # offsets of the final model
+    st = comps[-1].state
+    off_rows = [{"parameter": p.name, "offset (normalized)": float(o), "offset": float(o * p.span), "unit": p.unit}
+                for p, o in zip(table, st.offsets) if abs(o) > 1e-4]
+    secs.append(("Offsets of the final model", table_(off_rows) if off_rows else paragraph("none")))
+    return secs
+
+
+def table_(rows, columns=None, fmt: str = "{:.4g}") -> str:
+    return _table(rows, columns, fmt)
+
+
+def uid_section(uids: Mapping[str, str], store_location: str | None = None) -> str:
+    rows = [{"step": k, "run uid": v} for k, v in uids.items() if v]
+    body = table_(rows)
+    loc = f'"{store_location}"' if store_location else ""
+    first = next((v for v in uids.values() if v), "UID")
+    body += pre("from bluesky_offsets.store import open_store\n"
+                "from plans.diagnose import load_results\n"
+                f"store = open_store({loc})\n"
+                f'run = store["{first}"]          # the tiled node: run.metadata["start"], run["primary"].read()\n'
+                f'res = load_results(store, "{first}")   # every stream as rows of plain values')
+    return body
+
+
+def write_analysis_report(path: str | Path, analysis, spec, *, title: str = "model vs. measurement",
+                          intro: Sequence[tuple[str, str]] = (), truth: Mapping | None = None,
+                          uids: Mapping[str, str] | None = None, store_location: str | None = None,
+                          extra: Sequence[tuple[str, str]] = ()) -> Path:
+    """One self-contained HTML report of an analysis: figures inlined (base64 PNG), tables,
+    ranking, error history, run uids; opens offline."""
+    import tempfile
+    with tempfile.TemporaryDirectory(prefix="bluesky-offsets-report-") as tmp:
+        secs = [*intro, *analysis_sections(analysis, spec, Path(tmp), truth=truth), *extra]
+        secs.append(("Runs in the store", uid_section(uids if uids is not None else analysis.uids, store_location)))
+        return write_report(path, title=title, sections=secs)

@@ -1,0 +1,702 @@
+"""Model vs. measurement as Bluesky plans: compare, diagnose the missing effect, add it, refit.
+
+Thin plans over :mod:`bluesky_offsets.model` and :mod:`bluesky_offsets.diagnosis`.  Each
+opens one run (``open_run=False`` emits into a run that is already open) whose start
+document names the measurement run (``measurement_uid``, and its ``truth_id`` in a
+simulation); the heavy work runs in a worker thread, so the RunEngine stays responsive, and
+its progress comes out live as a ``progress`` stream.
+
+* :func:`compare_model` -> :class:`Comparison`: the twin at the model's compensated
+  configurations vs. the measurement; streams ``misfit`` (one event per configuration:
+  chi2, MSE, their noise expectation, model histograms, pulls, residual signature) and
+  ``misfit_total``.
+* :func:`refine_offsets` -> :class:`Refinement`: twin-anchored fit of the offsets (and the
+  model's effects); streams ``progress``, ``offsets``, then a comparison.
+* :func:`diagnose_effects` -> :class:`Ranking`: every candidate effect fitted with the
+  offsets and ranked on held-out configurations; streams ``ranking`` (one event per
+  candidate, best first, predicted beside observed signature) and ``diagnosis``.
+* :func:`add_effect_and_refit` -> :class:`Refit`: ``state.with_effect(name)`` refitted;
+  streams ``progress``, ``effect`` (magnitude ± uncertainty), a comparison and
+  ``error_history`` (all model versions so far).
+* :func:`record_error_history`: the ``error_history`` stream alone.
+* :func:`analyse_measurement` -> :class:`Analysis`: the whole analysis, one run per step.
+
+:func:`load_results` reads any of these runs back by uid.  Names, dicts and lists go into
+events as strings (``*_json`` keys, decoded by :func:`load_results`): the run store keeps
+arrays of at most 16 numbers in its tables as text.
+"""
+
+from __future__ import annotations
+
+import json
+import queue
+import threading
+import time
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import bluesky.plan_stubs as bps
+import bluesky.preprocessors as bpp
+import numpy as np
+from bluesky.utils import MsgGenerator
+
+from bluesky_offsets import effects as E
+from bluesky_offsets.diagnosis import Diagnosis, Version, add_effect, diagnose
+from bluesky_offsets.diagnostics import (
+    Misfit,
+    correlate_with_parameters,
+    failing_regions,
+    misfit,
+    residual_signature,
+)
+from bluesky_offsets.model import Measurement, ModelState, RefineResult, refine, simulate
+from bluesky_offsets.parameters import METRIXS, ParameterTable
+
+MODEL_SEED = 777
+"""Seed base of the fresh-ray model traces of :func:`compare_model` (as ``diagnosis.evaluate``)."""
+
+
+# --------------------------------------------------------------------------- #
+# results
+# --------------------------------------------------------------------------- #
+@dataclass
+class Comparison:
+    """One model version against the measurement (twin traced with fresh rays)."""
+
+    label: str
+    state: ModelState
+    misfit: Misfit
+    model_x: np.ndarray
+    model_y: np.ndarray
+    signature: dict[str, np.ndarray]       # model − measured moments per configuration ("x.centroid" ...)
+    correlations: list[tuple[str, str, float]]
+    failing: list[dict]
+    model_rays: int
+    effect_sigma: dict[str, dict[str, float]] = field(default_factory=dict)
+    uid: str | None = None
+
+    @property
+    def within_noise(self) -> bool:
+        return not self.misfit.total_beyond_noise()
+
+    def version(self) -> Version:
+        return Version(self.label, self.state, self.misfit, self.effect_sigma)
+
+    def total_row(self) -> dict:
+        mf = self.misfit
+        return {"model": self.label, "chi2_reduced": mf.chi2_reduced_total, "chi2": mf.chi2_total,
+                "dof": mf.dof_total, "mse": mf.mse_total, "expected_mse": mf.expected_mse_total,
+                "mse_over_noise": mf.mse_total / max(mf.expected_mse_total, 1e-300),
+                "beyond_noise": int(mf.beyond_noise().sum()), "within_noise": self.within_noise}
+
+
+@dataclass
+class Refinement:
+    result: RefineResult
+    comparison: Comparison
+    uid: str | None = None
+
+    @property
+    def state(self) -> ModelState:
+        return self.result.state
+
+
+@dataclass
+class Ranking:
+    diagnosis: Diagnosis
+    uid: str | None = None
+
+
+@dataclass
+class Refit:
+    effect: str
+    state: ModelState
+    sigma: dict[str, dict[str, float]]
+    comparison: Comparison
+    history: list[dict]
+    versions: list[Version]
+    uid: str | None = None
+
+    def magnitude(self) -> dict[str, tuple[float, float]]:
+        """``{parameter: (value, sigma)}`` of the added effect."""
+        vals, sig = self.state.effects[self.effect], self.sigma.get(self.effect, {})
+        return {k: (float(v), float(sig.get(k, float("nan")))) for k, v in vals.items()}
+
+
+@dataclass
+class Analysis:
+    """Everything one analysis produced, with the uids of its runs."""
+
+    measurement: Measurement
+    comparisons: list[Comparison]
+    ranking: Ranking | None = None
+    refinement: Refinement | None = None
+    refit: Refit | None = None
+    uids: dict[str, str] = field(default_factory=dict)
+
+    @property
+    def versions(self) -> list[Version]:
+        return [c.version() for c in self.comparisons]
+
+    @property
+    def final(self) -> Comparison:
+        return self.comparisons[-1]
+
+
+# --------------------------------------------------------------------------- #
+# stubs: measurements, events, work in a thread
+# --------------------------------------------------------------------------- #
+def resolve_measurement(measurement, store=None, *, n_rays: int | None = None,
+                        table: ParameterTable = METRIXS) -> tuple[Measurement, dict]:
+    """A :class:`bluesky_offsets.model.Measurement` and the run metadata worth linking.
+
+    ``measurement`` is a model measurement, a run-store measurement
+    (:class:`bluesky_offsets.store.Measurement`) or a measurement run's uid in ``store``.
+    """
+    from bluesky_offsets import store as S
+    if isinstance(measurement, Measurement):
+        return measurement, {"measurement_uid": measurement.uid}
+    if isinstance(measurement, str):
+        measurement = S.as_measurement(measurement, store)
+    if not isinstance(measurement, S.Measurement):
+        raise TypeError(f"expected a measurement or a run uid, got {type(measurement).__name__}")
+    m = Measurement.from_store(measurement, n_rays, table)
+    md = {"measurement_uid": m.uid}
+    if measurement.truth_id:
+        md["truth_id"] = measurement.truth_id
+    return m, md
+
+
+class _Record:
+    """A readable whose values the plan sets: how computed results enter an event stream.
+
+    One instance per stream (the RunEngine requires the same objects in every event of a
+    stream); numbers, strings and arrays longer than 16 values."""
+
+    def __init__(self, name: str):
+        self.name, self.parent = name, None
+        self._values: dict[str, Any] = {}
+        self._time = time.time()
+
+    def set(self, values: Mapping[str, Any]) -> None:
+        self._values, self._time = dict(values), time.time()
+
+    def read(self) -> dict:
+        return {k: {"value": v, "timestamp": self._time} for k, v in self._values.items()}
+
+    def describe(self) -> dict:
+        out = {}
+        for k, v in self._values.items():
+            if isinstance(v, str):
+                out[k] = {"source": "analysis", "dtype": "string", "shape": []}
+            elif isinstance(v, (bool, np.bool_)):
+                out[k] = {"source": "analysis", "dtype": "boolean", "shape": []}
+            elif np.ndim(v):
+                arr = np.asarray(v)
+                out[k] = {"source": "analysis", "dtype": "array", "shape": list(arr.shape),
+                          "dtype_numpy": arr.dtype.str}
+            else:
+                out[k] = {"source": "analysis", "dtype": "integer" if isinstance(v, (int, np.integer))
+                          else "number", "shape": []}
+        return out
+
+
+def _jsonable(obj):
+    if isinstance(obj, Mapping):
+        return {str(k): _jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_jsonable(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return obj.tolist()
+    if isinstance(obj, (np.floating, np.integer, np.bool_)):
+        return obj.item()
+    return obj
+
+
+def _json(obj) -> str:
+    return json.dumps(_jsonable(obj))
+
+
+def emit_rows(stream: str, rows: Sequence[Mapping[str, Any]]) -> MsgGenerator[None]:
+    """One event per row in ``stream`` (rows share their keys)."""
+    rec = _Record(stream)
+    for row in rows:
+        rec.set(row)
+        yield from bps.create(name=stream)
+        yield from bps.read(rec)
+        yield from bps.save()
+
+
+def run_in_thread(func: Callable[[Callable[[dict], None]], Any], *, stream: str | None = "progress",
+                  desc: str = "working", poll: float = 0.25, show: bool = True) -> MsgGenerator[Any]:
+    """Call ``func(progress)`` in a worker thread; return its result (or raise its error).
+
+    Every ``progress(dict)`` call from the worker becomes an event in ``stream`` (its
+    numeric entries; the first call fixes the keys) and a line on a tqdm bar, so long fits
+    show what they do while the RunEngine keeps serving pause and abort.
+    """
+    from tqdm.auto import tqdm
+
+    q: queue.Queue = queue.Queue()
+    box: dict = {}
+
+    def work():
+        try:
+            box["result"] = func(q.put)
+        except BaseException as exc:  # re-raised in the plan, where the RunEngine reports it
+            box["error"] = exc
+
+    rec, keys = _Record(stream or "progress"), None
+    t0 = time.monotonic()
+    bar = tqdm(desc=desc, unit="step", disable=not show, bar_format="{desc}: {n_fmt} steps, {elapsed} {postfix}")
+
+    def drain():
+        nonlocal keys
+        while True:
+            try:
+                d = q.get_nowait()
+            except queue.Empty:
+                return
+            num = {k: (int(v) if isinstance(v, (bool, np.bool_)) else v) for k, v in d.items()
+                   if isinstance(v, (int, float, bool, np.number, np.bool_))}
+            bar.update(1)
+            bar.set_postfix({k: (f"{v:.4g}" if isinstance(v, float) else v) for k, v in num.items()}, refresh=True)
+            if stream is None:
+                continue
+            keys = keys or sorted(num)
+            rec.set({"seconds": time.monotonic() - t0, **{k: num.get(k, float("nan")) for k in keys}})
+            yield from bps.create(name=stream)
+            yield from bps.read(rec)
+            yield from bps.save()
+
+    thread = threading.Thread(target=work, name=f"analysis: {desc}", daemon=True)
+    thread.start()
+    # the elapsed time ticks on a terminal; in a log a line every 10 s is plenty
+    every = 1.0 if getattr(bar.fp, "isatty", lambda: False)() else 10.0
+    last = time.monotonic()
+    try:
+        while thread.is_alive():
+            yield from bps.sleep(poll)
+            if time.monotonic() - last > every:
+                bar.refresh()
+                last = time.monotonic()
+            yield from drain()
+        thread.join()
+        yield from drain()
+    finally:
+        bar.close()
+    if "error" in box:
+        raise box["error"]
+    return box["result"]
+
+
+def _in_run(body: Callable[[], MsgGenerator[Any]], md: Mapping, open_run: bool) -> MsgGenerator[tuple[Any, str | None]]:
+    """Run ``body()`` in a run of its own (closed as failed on error), or in the open one."""
+    if not open_run:
+        return (yield from body()), None
+    box = {}
+
+    def inner():
+        box["result"] = yield from body()
+
+    uid = yield from bpp.run_wrapper(inner(), md=dict(md))
+    return box["result"], uid
+
+
+def _state_md(state: ModelState, table: ParameterTable) -> dict:
+    return {"model_label": state.label, "model_offsets": [float(v) for v in state.offsets],
+            "model_effects": _jsonable(state.effects), "parameter_table_version": table.version}
+
+
+def _sig_key(prefix: str, key: str) -> str:
+    return f"{prefix}_{key.replace('.', '_')}"
+
+
+# --------------------------------------------------------------------------- #
+# compare
+# --------------------------------------------------------------------------- #
+def _compare(meas: Measurement, state: ModelState, twin, label: str, model_rays: int, seed: int,
+             effect_sigma: Mapping | None, table: ParameterTable) -> Comparison:
+    hx, hy = simulate(twin, meas.configurations, state, model_rays, [seed + i for i in range(meas.n)], table)
+    mf = misfit(meas.hist_x, meas.hist_y, hx, hy, meas.n_rays, model_rays=model_rays)
+    sig = residual_signature(meas.hist_x, meas.hist_y, hx, hy, twin.hist)
+    corr = correlate_with_parameters(sig, meas.configurations, table.names)
+    return Comparison(label, state, mf, hx, hy, sig.delta, corr, failing_regions(mf, twin.hist), model_rays,
+                      {k: dict(v) for k, v in (effect_sigma or {}).items()})
+
+
+def emit_comparison(c: Comparison) -> MsgGenerator[None]:
+    """Streams ``misfit`` (per configuration) and ``misfit_total`` of a comparison."""
+    mf = c.misfit
+    beyond = mf.beyond_noise()
+    rows = []
+    for i in range(len(mf.chi2)):
+        row = {"config_index": i, "chi2": float(mf.chi2[i]), "dof": int(mf.dof[i]),
+               "chi2_reduced": float(mf.chi2_reduced[i]), "mse": float(mf.mse[i]),
+               "expected_mse": float(mf.expected_mse[i]), "beyond_noise": bool(beyond[i]),
+               "model_hist_x": c.model_x[i], "model_hist_y": c.model_y[i],
+               "pulls_x": mf.pulls_x[i], "pulls_y": mf.pulls_y[i]}
+        row.update({_sig_key("signature", k): float(v[i]) for k, v in c.signature.items()})
+        rows.append(row)
+    yield from emit_rows("misfit", rows)
+    total = {"label": c.label, "chi2_total": mf.chi2_total, "dof_total": mf.dof_total,
+             "chi2_reduced_total": mf.chi2_reduced_total, "chi2_expected": float(mf.dof_total),
+             "chi2_expected_sigma": float(np.sqrt(2 * max(mf.dof_total, 1))), "mse_total": mf.mse_total,
+             "expected_mse_total": mf.expected_mse_total,
+             "mse_over_noise": mf.mse_total / max(mf.expected_mse_total, 1e-300),
+             "within_noise": c.within_noise, "n_beyond_noise": int(beyond.sum()), "model_rays": c.model_rays,
+             "model_offsets": np.asarray(c.state.offsets, float), "effects_json": _json(c.state.effects),
+             "effect_sigma_json": _json(c.effect_sigma), "correlations_json": _json(c.correlations),
+             "failing_json": _json(c.failing[:50])}
+    total.update({_sig_key("signature", k): float(np.mean(v)) for k, v in c.signature.items()})
+    yield from emit_rows("misfit_total", [total])
+
+
+def compare_model(measurement, state: ModelState, twin, *, label: str | None = None, store=None,
+                  model_rays: int | None = None, seed: int = MODEL_SEED, effect_sigma: Mapping | None = None,
+                  open_run: bool = True, md: Mapping | None = None, show: bool = True,
+                  table: ParameterTable = METRIXS) -> MsgGenerator[Comparison]:
+    """Compare a model version with a measurement run.
+
+    Parameters
+    ----------
+    measurement : Measurement, store.Measurement or str
+        The measurement, or its run uid in ``store``.
+    state : ModelState
+        The model version (offsets and effects).
+    twin : Twin
+        Traces the model at commanded configurations + offsets, with its effects.
+    label : str, optional
+        Version name in the error history (default ``state.label``).
+    model_rays : int, optional
+        Rays per model trace (default 4x the measurement's, a sharper model than the data).
+    open_run : bool
+        A run of its own (default) or events in the run already open.
+
+    Returns
+    -------
+    Comparison
+        Misfit per configuration and in total, with its noise expectation (chi2 = dof,
+        MSE = ``expected_mse``), model histograms, residual signatures, their strongest
+        correlations with the parameters and the failing regions; ``uid`` of the run.
+    """
+    meas, link = resolve_measurement(measurement, store, table=table)
+    label = label or state.label
+    rays = int(model_rays or 4 * meas.n_rays)
+    _md = {"plan_name": "compare_model", "purpose": "model vs. measurement", **link, **_state_md(state, table),
+           "version_label": label, "n_configurations": meas.n, "n_rays": int(meas.n_rays), "model_rays": rays,
+           **dict(md or {})}
+
+    def body():
+        c = yield from run_in_thread(lambda progress: _compare(meas, state, twin, label, rays, seed, effect_sigma,
+                                                               table), stream=None,
+                                     desc=f"compare '{label}' ({meas.n} traces)", show=show)
+        yield from emit_comparison(c)
+        return c
+
+    c, uid = yield from _in_run(body, _md, open_run)
+    c.uid = uid
+    return c
+
+
+# --------------------------------------------------------------------------- #
+# refine the offsets
+# --------------------------------------------------------------------------- #
+def _offsets_row(state: ModelState, table: ParameterTable) -> dict:
+    row = {"offsets": np.asarray(state.offsets, float), "offsets_physical": table.offsets_to_physical(state.offsets)}
+    row.update({n.replace(".", "_"): float(v) for n, v in zip(table.names, state.offsets)})
+    return row
+
+
+def refine_offsets(measurement, state: ModelState, twin, forward_model, *, store=None, iterations: int = 4,
+                   anchor_rays: int | None = None, twin_columns: Sequence[int] | None = None, seed: int = 0,
+                   label: str = "+ offsets", open_run: bool = True, md: Mapping | None = None, show: bool = True,
+                   table: ParameterTable = METRIXS, **refine_kw) -> MsgGenerator[Refinement]:
+    """Fit the offsets (and the state's effects) through the twin, starting from ``state``.
+
+    :func:`bluesky_offsets.model.refine`: Gauss-Newton on a twin-anchored local model,
+    re-anchored each iteration and kept only where the twin's chi-square falls.  Offset
+    Jacobian from ``forward_model`` (a surrogate; ``None``: the twin's own finite
+    differences), twin columns ``twin_columns`` (indices) from the twin in any case.
+
+    Returns
+    -------
+    Refinement
+        The refined state and its comparison with the measurement (same run).
+    """
+    meas, link = resolve_measurement(measurement, store, table=table)
+    _md = {"plan_name": "refine_offsets", "purpose": "offsets through the twin", **link,
+           **_state_md(state, table), "iterations": iterations, "n_configurations": meas.n,
+           "jacobian": "twin" if forward_model is None else "surrogate", **dict(md or {})}
+
+    def body():
+        res: RefineResult = yield from run_in_thread(
+            lambda progress: refine(meas, state, twin, forward_model, iterations=iterations,
+                                    anchor_rays=anchor_rays, seed=seed, twin_columns=twin_columns,
+                                    progress=progress, table=table, **refine_kw),
+            desc=f"refine offsets through the twin ({iterations} iterations)", show=show)
+        st = ModelState(res.state.offsets, res.state.effects, label)
+        row = _offsets_row(st, table)
+        row.update(chi2_reduced_start=float(res.history[0]["chi2_reduced"]),
+                   chi2_reduced_end=float(min(h["chi2_reduced"] for h in res.history if h["accepted"])),
+                   accepted=int(sum(h["accepted"] for h in res.history[1:])), effects_json=_json(st.effects),
+                   effect_sigma_json=_json(res.effect_sigma), history_json=_json(res.history))
+        yield from emit_rows("offsets", [row])
+        c = yield from compare_model(meas, st, twin, label=label, effect_sigma=res.effect_sigma, open_run=False,
+                                     show=show, table=table)
+        res.state = st
+        return Refinement(res, c)
+
+    r, uid = yield from _in_run(body, _md, open_run)
+    r.uid = r.comparison.uid = uid
+    return r
+
+
+# --------------------------------------------------------------------------- #
+# diagnose
+# --------------------------------------------------------------------------- #
+def ranking_rows(d: Diagnosis) -> list[dict]:
+    """One row per candidate, best first: score, its parts, fitted values and the predicted
+    residual signature beside the observed one."""
+    rows = []
+    for rank, c in enumerate(d.candidates, 1):
+        eff = E.get(c.name)
+        row = {"rank": rank, "effect": c.name, "description": eff.description, "level": eff.level,
+               "n_params": c.n_params, "score": float(c.score), "delta_chi2_heldout": float(c.delta_chi2_heldout),
+               "delta_chi2_all": float(c.delta_chi2_all), "penalty": float(c.penalty),
+               "significant": bool(c.significant), "values_json": _json(c.values), "sigma_json": _json(c.sigma),
+               "units_json": _json({p.name: p.unit for p in eff.parameters})}
+        for k, v in d.observed_signature.items():
+            row[_sig_key("observed", k)] = float(v)
+            row[_sig_key("predicted", k)] = float(c.predicted_signature.get(k, float("nan")))
+        rows.append(row)
+    return rows
+
+
+def diagnose_effects(measurement, state: ModelState, twin, forward_model, *, store=None,
+                     candidates: Sequence[str] | None = None, reuse=None, folds: int = 4, seed: int = 0,
+                     open_run: bool = True, md: Mapping | None = None, show: bool = True,
+                     table: ParameterTable = METRIXS, **diagnose_kw) -> MsgGenerator[Ranking]:
+    """Which effect is missing: :func:`bluesky_offsets.diagnosis.diagnose` as a run.
+
+    ``reuse`` takes the refinement's final local model (same state) so its anchor and
+    offset Jacobian are not traced again.  Streams ``ranking`` (one event per candidate,
+    best first) and ``diagnosis`` (verdict, base misfit and its noise expectation,
+    observed signature).
+    """
+    meas, link = resolve_measurement(measurement, store, table=table)
+    names = list(candidates) if candidates else [n for n in E.EFFECTS if n not in state.effects]
+    for n in names:
+        E.get(n)  # unknown names fail before the run opens
+    _md = {"plan_name": "diagnose_effects", "purpose": "which physical effect is missing", **link,
+           **_state_md(state, table), "candidates": names, "folds": folds, "n_configurations": meas.n,
+           **dict(md or {})}
+
+    def body():
+        d: Diagnosis = yield from run_in_thread(
+            lambda progress: diagnose(meas, state, twin, forward_model, candidates=names, folds=folds, seed=seed,
+                                      reuse=reuse, table=table, **diagnose_kw),
+            stream=None, desc=f"rank {len(names)} candidate effects", show=show)
+        yield from emit_rows("ranking", ranking_rows(d))
+        mf = d.base_misfit
+        row = {"verdict": d.verdict, "best": d.best.name if d.best else "", "within_noise": bool(d.within_noise),
+               "chi2_total": mf.chi2_total, "dof_total": mf.dof_total, "chi2_reduced_total": mf.chi2_reduced_total,
+               "mse_total": mf.mse_total, "expected_mse_total": mf.expected_mse_total, "folds": d.folds,
+               "n_traces": int(d.n_traces), "notes_json": _json(d.notes)}
+        row.update({_sig_key("observed", k): float(v) for k, v in d.observed_signature.items()})
+        yield from emit_rows("diagnosis", [row])
+        return Ranking(d)
+
+    r, uid = yield from _in_run(body, _md, open_run)
+    r.uid = uid
+    return r
+
+
+# --------------------------------------------------------------------------- #
+# add an effect, refit, error history
+# --------------------------------------------------------------------------- #
+def history_rows(versions: Sequence[Version]) -> list[dict]:
+    rows = []
+    for i, v in enumerate(versions):
+        mf = v.misfit
+        rows.append({"version": i, "label": v.label, "chi2_reduced": mf.chi2_reduced_total, "chi2": mf.chi2_total,
+                     "dof": mf.dof_total, "mse": mf.mse_total, "expected_mse": mf.expected_mse_total,
+                     "mse_over_noise": mf.mse_total / max(mf.expected_mse_total, 1e-300),
+                     "within_noise": bool(not mf.total_beyond_noise()), "effects_json": _json(v.state.effects),
+                     "effect_sigma_json": _json(v.effect_sigma)})
+    return rows
+
+
+def record_error_history(versions: Sequence[Version], *, measurement_uid: str | None = None, open_run: bool = False,
+                         md: Mapping | None = None) -> MsgGenerator[None]:
+    """The ``error_history`` stream: misfit of every model version (base, + offsets, + effect ...)."""
+    def body():
+        yield from emit_rows("error_history", history_rows(versions))
+
+    yield from _in_run(body, {"plan_name": "error_history", "measurement_uid": measurement_uid,
+                              "versions": [v.label for v in versions], **dict(md or {})}, open_run)
+
+
+def add_effect_and_refit(measurement, state: ModelState, effect: str, twin, forward_model, *, store=None,
+                         history: Sequence[Version] = (), iterations: int = 3, anchor_rays: int | None = None,
+                         seed: int = 0, label: str | None = None, open_run: bool = True, md: Mapping | None = None,
+                         show: bool = True, table: ParameterTable = METRIXS, **refine_kw) -> MsgGenerator[Refit]:
+    """``state.with_effect(effect)``, offsets and effect refitted through the twin.
+
+    Streams ``progress`` (refit iterations), ``effect`` (fitted magnitude ± uncertainty per
+    parameter), the new version's comparison (``misfit``, ``misfit_total``) and
+    ``error_history`` (``history`` + the new version).
+    """
+    meas, link = resolve_measurement(measurement, store, table=table)
+    eff = E.get(effect)
+    label = label or f"+ {effect}"
+    _md = {"plan_name": "add_effect_and_refit", "purpose": "add the missing effect and refit", **link,
+           **_state_md(state, table), "effect": effect, "effect_parameters": [p.name for p in eff.parameters],
+           "iterations": iterations, "versions": [v.label for v in history] + [label], **dict(md or {})}
+
+    def body():
+        steps: list[dict] = []
+
+        def work(progress):
+            def record(d):
+                steps.append(dict(d))
+                progress(d)
+            kw = dict(iterations=iterations, anchor_rays=anchor_rays, seed=seed, progress=record, table=table)
+            if _accepts(add_effect, refine_kw):
+                return add_effect(meas, state, effect, twin, forward_model, **kw, **refine_kw)
+            # options add_effect does not pass on (e.g. twin_columns): the same refit, spelled out
+            res = refine(meas, state.with_effect(effect), twin, forward_model, **kw, **refine_kw)
+            return res.state, res.effect_sigma
+
+        st, sig = yield from run_in_thread(work, desc=f"add {effect} and refit ({iterations} iterations)", show=show)
+        st = ModelState(st.offsets, st.effects, label)
+        row = {"effect": effect, "values_json": _json(st.effects[effect]), "sigma_json": _json(sig.get(effect, {})),
+               "units_json": _json({p.name: p.unit for p in eff.parameters})}
+        for p in eff.parameters:
+            row[p.name] = float(st.effects[effect][p.name])
+            row[f"{p.name}_sigma"] = float(sig.get(effect, {}).get(p.name, float("nan")))
+        row.update(_offsets_row(st, table))
+        yield from emit_rows("effect", [row])
+        c = yield from compare_model(meas, st, twin, label=label, effect_sigma=sig, open_run=False, show=show,
+                                     table=table)
+        versions = [*history, c.version()]
+        yield from record_error_history(versions)
+        return Refit(effect, st, sig, c, steps, versions)
+
+    r, uid = yield from _in_run(body, _md, open_run)
+    r.uid = r.comparison.uid = uid
+    return r
+
+
+def _accepts(func: Callable, kwargs: Mapping) -> bool:
+    import inspect
+    params = inspect.signature(func).parameters
+    return any(p.kind is p.VAR_KEYWORD for p in params.values()) or all(k in params for k in kwargs)
+
+
+# --------------------------------------------------------------------------- #
+# the whole analysis
+# --------------------------------------------------------------------------- #
+def analyse_measurement(measurement, twin, forward_model, *, store=None, state: ModelState | None = None,
+                        refine_iterations: int = 4, candidates: Sequence[str] | None = None, add_best: bool = True,
+                        refit_iterations: int = 3, anchor_rays: int | None = None,
+                        twin_columns: Sequence[int] | None = None, folds: int = 4, seed: int = 0,
+                        md: Mapping | None = None, show: bool = True,
+                        table: ParameterTable = METRIXS) -> MsgGenerator[Analysis]:
+    """Compare, refine the offsets, diagnose, add the winning effect and refit — one run each.
+
+    Parameters
+    ----------
+    measurement : Measurement, store.Measurement or str
+        The measurement or its run uid in ``store``.
+    state : ModelState, optional
+        Starting model (e.g. the finder's offsets); default: the bare twin.
+    refine_iterations : int
+        Twin-anchored refinement of the offsets before the diagnosis (0: take ``state``
+        as the fitted model).
+    candidates : sequence of str, optional
+        Effects to rank (default: all registered).
+    add_best : bool
+        Add the best significant candidate and refit (nothing is added when the
+        verdict is "no significant missing effect").
+
+    Returns
+    -------
+    Analysis
+        The comparisons of every model version (the error history), the ranking, the
+        refit and the uids of all runs (``analysis.uids``).
+    """
+    meas, link = resolve_measurement(measurement, store, table=table)
+    base = state if state is not None else ModelState()
+    md = dict(md or {})
+    out = Analysis(meas, [])
+    base_label = "twin" if not np.any(base.offsets) and not base.effects else base.label
+    c0 = yield from compare_model(meas, base, twin, label=base_label, md={**link, **md}, show=show, table=table)
+    out.comparisons.append(c0)
+    out.uids["compare"] = c0.uid
+    current, reuse = base, None
+    if refine_iterations:
+        r = yield from refine_offsets(meas, base, twin, forward_model, iterations=refine_iterations,
+                                      anchor_rays=anchor_rays, twin_columns=twin_columns, seed=seed,
+                                      md={**link, **md}, show=show, table=table)
+        out.refinement = r
+        out.comparisons.append(r.comparison)
+        out.uids["refine_offsets"] = r.uid
+        current, reuse = r.state, r.result.local_model
+    rk = yield from diagnose_effects(meas, current, twin, forward_model, candidates=candidates, reuse=reuse,
+                                     folds=folds, seed=seed, md={**link, **md}, show=show, table=table)
+    out.ranking = rk
+    out.uids["diagnose"] = rk.uid
+    best = rk.diagnosis.best
+    if add_best and best is not None:
+        rf = yield from add_effect_and_refit(meas, current, best.name, twin, forward_model,
+                                             history=out.versions, iterations=refit_iterations,
+                                             anchor_rays=anchor_rays, seed=seed + 1, md={**link, **md},
+                                             show=show, table=table,
+                                             **({"twin_columns": twin_columns} if twin_columns is not None else {}))
+        out.refit = rf
+        out.comparisons.append(rf.comparison)
+        out.uids["add_effect"] = rf.uid
+    else:
+        uid = yield from _history_run(out.versions, link, md)
+        out.uids["error_history"] = uid
+    return out
+
+
+def _history_run(versions, link, md) -> MsgGenerator[str]:
+    def body():
+        yield from record_error_history(versions)
+    _, uid = yield from _in_run(body, {"plan_name": "error_history", **link, "versions": [v.label for v in versions],
+                                       **md}, True)
+    return uid
+
+
+# --------------------------------------------------------------------------- #
+# reading results back
+# --------------------------------------------------------------------------- #
+def load_results(store, uid: str) -> dict:
+    """A stored analysis run as plain Python: ``{"start": ..., "stop": ..., stream: [row, ...]}``.
+
+    ``*_json`` fields are decoded (``values_json`` -> ``values``); arrays come back as numpy.
+    """
+    run = store[uid]
+    out: dict[str, Any] = {"uid": uid, "start": dict(run.metadata["start"]),
+                           "stop": dict(run.metadata.get("stop") or {})}
+    for stream in run:
+        ds = run[stream].read()
+        keys = list(ds.data_vars) if hasattr(ds, "data_vars") else list(ds)
+        n = len(ds["time"]) if "time" in ds else (len(ds[keys[0]]) if keys else 0)
+        rows = []
+        for i in range(n):
+            row = {}
+            for k in keys:
+                v = np.asarray(ds[k][i])
+                v = v.item() if v.ndim == 0 else v
+                if k.endswith("_json") and isinstance(v, str):
+                    row[k[:-5]] = json.loads(v)
+                else:
+                    row[k] = v
+            rows.append(row)
+        out[stream] = rows
+    return out
