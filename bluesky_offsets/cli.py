@@ -22,6 +22,7 @@ EXTENSIONS: list[str] = [
     "bluesky_offsets.demo:add_cli",
     "bluesky_offsets.surrogate_cli:add_cli",
     "bluesky_offsets.finder_cli:add_cli",
+    "bluesky_offsets.diagnosis_cli:add_cli",
     "sim_iocs.metrixs:add_cli",
 ]
 

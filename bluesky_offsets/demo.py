@@ -1,71 +1,436 @@
 """``bluesky-offsets demo``: the main job, on embedded defaults.
 
-It runs the part of the workflow that exists so far and grows with the
-project: today the RAYX twin of METRIXS — the nominal focus, a beamline with
-hidden offsets (what the real one looks like to the twin), and how far apart
-their histograms are compared with the twin's own noise.
+A whole calibration and diagnosis session against the simulated beamline:
+
+1. start the simulated METRIXS IOC (RAYX twin backend, 127.0.0.1, a free port) with hidden
+   offsets *and* a hidden physical effect (default: the focus chamber 15 mm downstream);
+2. in a RunEngine, with every run written to the embedded run store: find bright
+   configurations on the beamline, measure them (>= 16), find the offsets (surrogate finder,
+   then a fit through the twin), compare model and measurement, diagnose the missing effect,
+   add the winner, refit;
+3. write one self-contained HTML report and print a summary: run uids, the error history
+   (twin -> + offsets -> + effect), the fitted effect next to the hidden one, and how to load
+   the runs back.
+
+The IOC is always stopped, also after an error or Ctrl-C.
 """
 
 from __future__ import annotations
 
 import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
 import time
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-from .noise import expected_repeat_mse, histogram_mse
+from . import effects as E
 from .parameters import METRIXS
-from .plotting import plot_footprint
-from .twin import Twin
+
+# Hidden truth: offsets of a few per cent of each range in the motors that steer the focus and
+# in one focal length (a fixed-but-unknown parameter), and one physical effect.
+DEMO_OFFSETS = {"E1.rotationXerror": 0.03, "E2.rotationXerror": -0.03, "M1_Cylinder.rotationXerror": 0.02,
+                "E1.translationYerror": 0.02, "E2.translationYerror": -0.02, "ExitSlit.translationZerror": 0.04,
+                "E2.longHalfAxisA": 0.02}
+DEMO_EFFECT = ("chamber_z", {"z": 20.0})
+# Candidate configurations (when the diagnosis module does not design them): E1/E2 pitch and
+# yaw spread wide (they change the lever arm to the screen, which separates a chamber shift
+# along the beam from a focal-length change), the other motors stay where they are.
+WIDE = ("E1.rotationXerror", "E1.rotationYerror", "E2.rotationXerror", "E2.rotationYerror")
 
 
-def run_demo(out: Path, n_rays: int = 20_000, seed: int = 0) -> dict:
+@dataclass
+class DemoSettings:
+    n_rays: int = 5000                # per measured frame
+    anchor_rays: int = 10_000         # per model trace in the fits
+    configurations: int = 16
+    candidates: int = 40
+    wide_spread: float = 0.3
+    effect: tuple[str, dict] = DEMO_EFFECT
+    offsets: dict = field(default_factory=lambda: dict(DEMO_OFFSETS))
+    background_offsets: float = 0.0   # ± this (normalized) on every other parameter
+    finder_evaluations: int = 3000
+    finder_seconds: float = 30.0
+    refine_iterations: int = 6
+    refit_iterations: int = 4
+    jacobian: str = "twin"            # offset Jacobian of the fits: "twin" (finite differences) or "surrogate"
+    refine_kw: dict = field(default_factory=lambda: {"reuse_jacobian": True})
+    refit_kw: dict = field(default_factory=lambda: {"effect_step": 0.1})
+    candidates_effects: Sequence[str] | None = None
+    seed: int = 0
+    workers: int | None = None
+
+
+def demo_truth(s: DemoSettings) -> dict:
+    """The IOC's truth file: normalized offsets and the effect's RML overrides."""
+    rng = np.random.default_rng(s.seed + 1)
+    off = {n: float(rng.uniform(-s.background_offsets, s.background_offsets))
+           for n in METRIXS.names} if s.background_offsets else {}
+    off.update(s.offsets)
+    name, values = s.effect
+    overrides = E.twin_overrides({name: values}) if name else {}
+    return {"offsets": off, "overrides": {k: {f: float(v) for f, v in fv.items()} for k, fv in overrides.items()},
+            "comment": f"bluesky-offsets demo: hidden effect {name or 'none'} {values}"}
+
+
+def candidate_configurations(s: DemoSettings, start: np.ndarray) -> np.ndarray:
+    """The start (an operator begins where the beam is), then a diagnostic design around it."""
+    from . import diagnosis as D
+    design = getattr(D, "diagnostic_configurations", None)
+    if design is not None:
+        cand = design(start, s.candidates, seed=s.seed)
+    else:
+        from plans import sample_candidates
+        spread = np.zeros(len(METRIXS))
+        for n in WIDE:
+            spread[METRIXS.index(n)] = s.wide_spread
+        cand = sample_candidates(s.candidates, rng=s.seed, around=start, spread=spread)
+    return np.vstack([start, cand])
+
+
+# --------------------------------------------------------------------------- #
+# the simulated beamline
+# --------------------------------------------------------------------------- #
+class SimulatedBeamline:
+    """The METRIXS IOC in a subprocess on loopback, a free port; :meth:`stop` always kills it."""
+
+    def __init__(self, truth: Mapping, n_rays: int, work: Path, move_time: float = 0.5):
+        from sim_iocs.ports import free_port
+        self.port = free_port()
+        self.prefix = f"DEMO{self.port}:"
+        self.work = work
+        self.truth_path = work / "truth.json"
+        self.truth_path.write_text(json.dumps(truth, indent=1))
+        # beacons need a listener (none runs here): a UDP sink takes them
+        self._sink = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self._sink.bind(("127.0.0.1", 0))
+        # this process's Channel Access clients look only at this IOC
+        os.environ.update(EPICS_CA_ADDR_LIST=f"127.0.0.1:{self.port}", EPICS_CA_AUTO_ADDR_LIST="NO")
+        env = dict(os.environ, EPICS_CA_SERVER_PORT=str(self.port), EPICS_CAS_SERVER_PORT=str(self.port),
+                   EPICS_CAS_INTF_ADDR_LIST="127.0.0.1", EPICS_CAS_BEACON_ADDR_LIST="127.0.0.1",
+                   EPICS_CAS_AUTO_BEACON_ADDR_LIST="NO", EPICS_CAS_BEACON_PORT=str(self._sink.getsockname()[1]),
+                   PYTHONUNBUFFERED="1")
+        self.log_path = work / "ioc.log"
+        self._log = open(self.log_path, "w")
+        self.proc = subprocess.Popen(
+            [sys.executable, "-m", "sim_iocs.metrixs", "--prefix", self.prefix, "--truth", str(self.truth_path),
+             "--backend", "twin", "--rays", str(n_rays), "--move-time", str(move_time), "--accel-time", "0.02",
+             "--tick", "0.02", "--interfaces", "127.0.0.1"],
+            env=env, stdout=self._log, stderr=subprocess.STDOUT, start_new_session=True)
+
+    def log(self) -> str:
+        try:
+            return self.log_path.read_text()[-3000:]
+        except OSError:
+            return ""
+
+    def wait_ready(self, timeout: float = 120.0) -> None:
+        from caproto.sync.client import read
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            if self.proc.poll() is not None:
+                raise RuntimeError(f"the simulated IOC exited ({self.proc.returncode}):\n{self.log()}")
+            try:
+                resp = read(self.prefix + "chamber:Message", timeout=1.0, repeater=False)
+                data = resp.data
+                text = data.tobytes().split(b"\0", 1)[0].decode() if hasattr(data, "tobytes") else str(data)
+                if "ready" in text:
+                    return
+            except Exception:
+                pass
+            time.sleep(0.3)
+        raise TimeoutError(f"the simulated IOC did not come up in {timeout:.0f} s:\n{self.log()}")
+
+    def stop(self) -> None:
+        if self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGINT)
+            try:
+                self.proc.wait(10)
+            except subprocess.TimeoutExpired:
+                pass
+        try:  # its frame worker shares its session: none may survive it
+            os.killpg(self.proc.pid, signal.SIGKILL)
+        except (ProcessLookupError, PermissionError):
+            pass
+        try:
+            self.proc.wait(5)
+        except subprocess.TimeoutExpired:
+            pass
+        self._log.close()
+        self._sink.close()
+
+
+class ScanProgress:
+    """RunEngine callback: a tqdm bar per measuring run (one tick per configuration)."""
+
+    PLANS = {"find_high_ray_configurations": "search bright configurations",
+             "measure_configurations": "measure configurations"}
+
+    def __init__(self):
+        self.bar = None
+        self.primary = set()
+        self.bright = 0
+
+    def __call__(self, name, doc):
+        from tqdm.auto import tqdm
+
+        from plans import enough_rays
+        if name == "start" and doc.get("plan_name") in self.PLANS:
+            self.bar = tqdm(total=doc.get("n_configurations"), desc=self.PLANS[doc["plan_name"]], unit="cfg")
+            self.bright = 0
+        elif name == "descriptor" and doc.get("name") == "primary":
+            self.primary.add(doc["uid"])
+        elif name == "event" and self.bar is not None and doc["descriptor"] in self.primary:
+            d = doc["data"]
+            hx = next((v for k, v in d.items() if k.endswith("hist_x")), None)
+            hy = next((v for k, v in d.items() if k.endswith("hist_y")), None)
+            if hx is not None and hy is not None:
+                self.bright += int(enough_rays(hx, hy)[0])
+                self.bar.set_postfix(bright=self.bright)
+            self.bar.update(1)
+        elif name == "stop" and self.bar is not None:
+            self.bar.close()
+            self.bar = None
+
+
+# --------------------------------------------------------------------------- #
+# the workflow as one plan
+# --------------------------------------------------------------------------- #
+def demo_plan(s: DemoSettings, beamline, chamber, twin, forward_model, store, log):
+    """Find bright configurations, measure, find offsets, compare, diagnose, add the effect, refit."""
+    from bluesky_offsets.calibration import OffsetFinder
+    from bluesky_offsets.finder import Budget
+    from bluesky_offsets.model import Measurement, ModelState
+    from plans import current_configuration, find_high_ray_configurations, find_offsets, measure_configurations
+    from plans.diagnose import analyse_measurement
+
+    t = {"start": time.perf_counter()}
+    here = yield from current_configuration(beamline)
+    cand = candidate_configurations(s, here)
+    log(f"[2/6] searching {len(cand)} candidate configurations near the start for {s.configurations} bright ones")
+    bright = yield from find_high_ray_configurations(cand, beamline, chamber, n=s.configurations)
+    t["search"] = time.perf_counter()
+    if len(bright) < s.configurations:
+        raise RuntimeError(f"only {len(bright)} of {len(cand)} candidates were bright; {s.configurations} needed")
+    log(f"[3/6] measuring {len(bright)} bright configurations at {s.n_rays} rays")
+    m = yield from measure_configurations(bright, beamline, chamber, md={"purpose": "demo measurement"})
+    t["measure"] = time.perf_counter()
+    meas = Measurement.from_store(m)
+
+    log(f"[4/6] finding the offsets with the surrogate ({s.finder_evaluations} evaluations, "
+        f"≤ {s.finder_seconds:.0f} s), then through the twin")
+    finder = OffsetFinder(model=forward_model, budget=Budget(evaluations=s.finder_evaluations,
+                                                            seconds=s.finder_seconds), seed=s.seed)
+    found = yield from find_offsets(finder, m)
+    t["finder"] = time.perf_counter()
+    starts = [ModelState(label="twin"), ModelState(np.asarray(found.offsets, float), {}, "surrogate offsets")]
+    fm = None if s.jacobian == "twin" else forward_model
+    log("[5/6] compare → refine offsets → diagnose → add the winning effect → refit")
+    analysis = yield from analyse_measurement(meas, twin, fm, starts=starts, refine_iterations=s.refine_iterations,
+                                              candidates=s.candidates_effects, refit_iterations=s.refit_iterations,
+                                              anchor_rays=s.anchor_rays, refine_kw=s.refine_kw, refit_kw=s.refit_kw,
+                                              seed=s.seed, md={"purpose": "bluesky-offsets demo"})
+    t["analysis"] = time.perf_counter()
+    return {"measurement": m, "offsets": found, "analysis": analysis, "times": t}
+
+
+def _quiet_logs() -> None:
+    """Dask's and tiled's INFO lines would drown the progress."""
+    import logging
+    for name in list(logging.root.manager.loggerDict):
+        if name.split(".")[0] in ("distributed", "tiled", "httpx", "bokeh"):
+            logging.getLogger(name).setLevel(logging.WARNING)
+
+
+def _history_lines(analysis) -> list[str]:
+    lines = [f"  {'model':26s} {'chi2/dof':>9s} {'MSE':>10s} {'noise MSE':>10s} {'MSE/noise':>9s}  effects"]
+    for c in analysis.comparisons:
+        r = c.total_row()
+        eff = "; ".join(f"{e}: " + ", ".join(f"{k} = {v:.3g} ± {c.effect_sigma.get(e, {}).get(k, float('nan')):.2g}"
+                                              for k, v in vals.items()) for e, vals in c.state.effects.items())
+        lines.append(f"  {c.label:26s} {r['chi2_reduced']:9.3f} {r['mse']:10.3e} {r['expected_mse']:10.3e} "
+                     f"{r['mse_over_noise']:9.2f}  {eff}")
+    return lines
+
+
+def run_demo(out: Path, settings: DemoSettings | None = None, store_location: str | None = None) -> dict:
+    """The whole demo; returns the summary (also written to ``out/summary.json``)."""
+    s = settings or DemoSettings()
+    out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
-    rng = np.random.default_rng(seed)
-    twin = Twin(scheduler="inline", n_rays=n_rays)
-    print(f"[1/3] twin: {twin.engine.version}, METRIXS table {METRIXS.version} "
-          f"({len(METRIXS)} parameters, {len(METRIXS.fixed_names)} fixed-but-unknown)")
 
-    nominal = twin.trace(METRIXS.reference, keep_rays=True, seed=seed)
-    s = nominal.summary()
-    plot_footprint(nominal, twin.hist, out / "footprint_nominal.png", title="METRIXS twin: nominal (reference RML)")
-    print(f"[2/3] nominal focus: transmission {s['transmission']:.3f}, "
-          f"std x {s['width_x']:.4f} mm, y {s['width_y']:.4f} mm -> {out / 'footprint_nominal.png'}")
+    def log(msg):
+        print(f"{time.perf_counter() - t0:6.0f} s  {msg}", flush=True)
 
-    # Hidden offsets in the beamline's sensitive motors (5 % of their ranges) and the
-    # fixed parameters; the commanded configuration is the nominal one.
-    offsets = np.zeros(len(METRIXS))
-    for name in ("E1.rotationXerror", "E2.rotationXerror", "M1_Cylinder.rotationXerror",
-                 "E2.translationYerror", "E1.longHalfAxisA"):
-        offsets[METRIXS.index(name)] = rng.choice([-1, 1]) * 0.05
-    true_state = METRIXS.reference + METRIXS.offsets_to_physical(offsets)
-    real = twin.trace(true_state, keep_rays=True, seed=seed + 1)
-    repeat = twin.trace(METRIXS.reference, keep_rays=False, seed=seed + 2)
-    plot_footprint(real, twin.hist, out / "footprint_with_offsets.png",
-                   title="the 'real' beamline: nominal settings + hidden offsets")
-    h_nom = np.concatenate([nominal.hist_x, nominal.hist_y])
-    h_real = np.concatenate([real.hist_x, real.hist_y])
-    h_rep = np.concatenate([repeat.hist_x, repeat.hist_y])
-    mse_off = float(histogram_mse(h_nom, h_real))
-    mse_rep = float(histogram_mse(h_nom, h_rep))
-    r = real.summary()
-    print(f"[3/3] with hidden offsets: transmission {r['transmission']:.3f}, centroid "
-          f"({r.get('centroid_x', float('nan')):+.3f}, {r.get('centroid_y', float('nan')):+.3f}) mm; "
-          f"histogram MSE to the twin {mse_off:.2e} vs. the twin's repeat noise {mse_rep:.2e} "
-          f"(expected {float(expected_repeat_mse(h_nom, n_rays)):.2e}) -> {out / 'footprint_with_offsets.png'}")
-    summary = {"n_rays": n_rays, "nominal": s, "with_offsets": r, "hidden_offsets_normalized":
-               {n: float(o) for n, o in zip(METRIXS.names, offsets) if o}, "mse_offsets": mse_off,
-               "mse_repeat": mse_rep, "seconds": time.perf_counter() - t0}
-    (out / "summary.json").write_text(json.dumps(summary, indent=2))
-    print(f"done in {summary['seconds']:.1f} s; summary in {out / 'summary.json'}")
-    return summary
+    truth = demo_truth(s)
+    work = Path(tempfile.mkdtemp(prefix="bluesky-offsets-demo-"))
+    load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
+    log(f"[1/6] starting the simulated METRIXS IOC (RAYX twin backend, hidden offsets and a hidden "
+        f"{s.effect[0]}); load average {load:.1f} on {os.cpu_count()} cores")
+    ioc = SimulatedBeamline(truth, s.n_rays, work)
+    twin = None
+    try:
+        from bluesky import RunEngine
+        from bluesky.utils import RunEngineInterrupted
+        from ophyd_async.core import init_devices
+
+        from .devices import FocusChamber, MetrixsBeamline
+        from .finder import load_forward_model
+        from .report import paragraph, table_, write_analysis_report
+        from .store import open_store
+        from .twin import Twin
+
+        store = open_store(store_location)
+        forward_model = load_forward_model()
+        twin = Twin(n_rays=s.n_rays, n_workers=s.workers)
+        twin.client  # start the Dask workers while the IOC comes up
+        _quiet_logs()
+        RE = RunEngine({}, call_returns_result=True)  # before the devices: they connect in its event loop
+        ioc.wait_ready()
+        with init_devices():
+            beamline = MetrixsBeamline(ioc.prefix, name="metrixs")
+            chamber = FocusChamber(ioc.prefix + "chamber:", name="chamber")
+        store.subscribe(RE)
+        RE.subscribe(ScanProgress())
+        log(f"      IOC {ioc.prefix} on 127.0.0.1:{ioc.port}; run store {store.location}")
+        try:
+            result = RE(demo_plan(s, beamline, chamber, twin, forward_model, store, log))
+        except RunEngineInterrupted:  # Ctrl-C paused it: end the run as aborted, then clean up
+            RE.abort("interrupted")
+            raise KeyboardInterrupt from None
+        res = result.plan_result
+        uids = list(result.run_start_uids)
+        analysis = res["analysis"]
+        m = res["measurement"]
+        # the first three runs: the search, the measurement, the surrogate finder
+        steps = {"search": uids[0], "measurement": m.uid, "find_offsets": uids[2],
+                 **{k: v for k, v in analysis.uids.items() if v}}
+        t = res["times"]
+
+        log("[6/6] writing the report")
+        hidden = {s.effect[0]: dict(s.effect[1])} if s.effect[0] else {}
+        intro = [("What this is", paragraph(
+            f"bluesky-offsets demo: a simulated METRIXS beamline (caproto IOC, RAYX twin at the hidden true state, "
+            f"{s.n_rays} rays per frame) with hidden offsets in all 34 parameters and a hidden "
+            f"{s.effect[0] or 'nothing'}; {len(m)} bright configurations measured through EPICS; offsets found "
+            f"with the shipped surrogate and refined through the twin; the missing effect diagnosed, added and "
+            f"refitted. Every step is a run in the store {store.location}.")),
+            ("Measurement", table_([{"configurations": len(m), "rays per frame": s.n_rays,
+                                     "measurement uid": m.uid, "truth id": m.truth_id or ""}]))]
+        timing = {"IOC up + search": t["search"] - t0, "measure": t["measure"] - t["search"],
+                  "surrogate finder": t["finder"] - t["measure"], "compare/refine/diagnose/refit":
+                  t["analysis"] - t["finder"]}
+        report = write_analysis_report(out / "report.html", analysis, twin.hist, title="bluesky-offsets demo",
+                                       intro=intro, truth=hidden, uids=steps, store_location=store.location,
+                                       extra=[("Timing", table_([{k: f"{v:.0f} s" for k, v in timing.items()}]))])
+        seconds = time.perf_counter() - t0
+        summary = {
+            "seconds": seconds, "load_average_start": load, "timing_s": timing, "store": store.location,
+            "uids": steps, "all_run_uids": uids, "report": str(report), "n_configurations": len(m),
+            "n_rays": s.n_rays, "hidden_effect": hidden, "verdict": analysis.ranking.diagnosis.verdict,
+            "ranking": [c.name for c in analysis.ranking.diagnosis.candidates],
+            "history": [c.total_row() for c in analysis.comparisons],
+            "fitted_effect": ({analysis.refit.effect: analysis.refit.magnitude()} if analysis.refit else {}),
+            "truth_id": m.truth_id}
+        (out / "summary.json").write_text(json.dumps(summary, indent=1, default=float))
+        _print_summary(summary, analysis, store.location)
+        store.close()
+        return summary
+    finally:
+        if twin is not None:
+            twin.close()
+        ioc.stop()
+
+
+def _print_summary(summary: dict, analysis, location: str) -> None:
+    print()
+    print(f"verdict: {summary['verdict']}")
+    print("ranking: " + ", ".join(summary["ranking"][:5]) + (" ..." if len(summary["ranking"]) > 5 else ""))
+    for name, vals in summary["fitted_effect"].items():
+        hidden = summary["hidden_effect"].get(name, {})
+        print(f"fitted {name}: " + ", ".join(
+            f"{k} = {v:.3g} ± {sg:.2g}" + (f" (hidden {hidden[k]:.3g})" if k in hidden else "")
+            for k, (v, sg) in vals.items()))
+    print("error history (a correct model: chi2/dof ≈ 1, MSE ≈ its noise expectation):")
+    for line in _history_lines(analysis):
+        print(line)
+    print("runs in the store:")
+    for k, v in summary["uids"].items():
+        print(f"  {k:16s} {v}")
+    first = summary["uids"].get("measurement")
+    print("load them back:")
+    print(f"  python -c \"from bluesky_offsets.store import open_store; from plans.diagnose import load_results; "
+          f"s = open_store('{location}'); print(s.load_measurement('{first}').hist_x.shape); "
+          f"print(load_results(s, '{summary['uids'].get('diagnose', first)}')['diagnosis'])\"")
+    print(f"report: {summary['report']}")
+    print(f"done in {summary['seconds']:.0f} s")
 
 
 def add_cli(sub) -> None:
-    p = sub.add_parser("demo", help="run the main job (the whole workflow available so far)")
+    p = sub.add_parser("demo", help="the main job: calibrate and diagnose a simulated METRIXS end to end",
+                       description=__doc__.split("\n\n", 1)[1] if __doc__ else None)
     p.add_argument("--out", default="bluesky-offsets-demo", help="output folder (default ./bluesky-offsets-demo)")
-    p.add_argument("--rays", type=int, default=20_000, help="source rays per trace")
+    p.add_argument("--store", default=None, help="run store (default: the embedded store, $BLUESKY_OFFSETS_STORE)")
+    p.add_argument("--rays", type=int, default=5000, help="source rays per measured frame (default %(default)s)")
+    p.add_argument("--anchor-rays", type=int, default=10_000,
+                   help="source rays per model trace in the fits (default %(default)s)")
+    p.add_argument("--configurations", type=int, default=16, help="bright configurations to measure (>= 16)")
+    p.add_argument("--effect", default=f"{DEMO_EFFECT[0]}:" + ",".join(f"{k}={v}" for k, v in DEMO_EFFECT[1].items()),
+                   help="hidden effect NAME:PARAM=VALUE,... or 'none' (default %(default)s)")
+    p.add_argument("--candidates", default=None, help="effects to rank, comma separated (default: all)")
+    p.add_argument("--refine-iterations", type=int, default=6)
+    p.add_argument("--refit-iterations", type=int, default=4)
+    p.add_argument("--jacobian", choices=("twin", "surrogate"), default="twin",
+                   help="offset Jacobian of the fits through the twin (default: the twin's own)")
     p.add_argument("--seed", type=int, default=0)
-    p.set_defaults(func=lambda args: run_demo(Path(args.out), args.rays, args.seed) and 0)
+    p.set_defaults(func=_cmd_demo)
+
+
+def parse_effect(text: str) -> tuple[str, dict]:
+    from .cli import CliError
+    if text.lower() in ("none", ""):
+        return ("", {})
+    name, _, rest = text.partition(":")
+    try:
+        eff = E.get(name)
+    except ValueError as exc:
+        raise CliError(str(exc)) from None
+    values = {}
+    for item in filter(None, rest.split(",")):
+        k, _, v = item.partition("=")
+        try:
+            values[k.strip()] = float(v)
+        except ValueError:
+            raise CliError(f"--effect {name}: {item!r} is not PARAM=NUMBER") from None
+    try:
+        return name, eff.values(values)
+    except ValueError as exc:
+        raise CliError(str(exc)) from None
+
+
+def _cmd_demo(args) -> int:
+    from .cli import CliError
+    if args.configurations < 2:
+        raise CliError("--configurations must be at least 2 (the paper asks for 16)")
+    if args.rays < 100:
+        raise CliError("--rays must be at least 100")
+    s = DemoSettings(n_rays=args.rays, anchor_rays=args.anchor_rays, configurations=args.configurations,
+                     effect=parse_effect(args.effect),
+                     refine_iterations=args.refine_iterations, refit_iterations=args.refit_iterations,
+                     jacobian=args.jacobian, seed=args.seed,
+                     candidates_effects=[c.strip() for c in args.candidates.split(",")] if args.candidates else None)
+    for n in s.candidates_effects or ():
+        try:
+            E.get(n)
+        except ValueError as exc:
+            raise CliError(str(exc)) from None
+    run_demo(Path(args.out), s, args.store)
+    return 0

@@ -41,8 +41,9 @@ import bluesky.preprocessors as bpp
 import numpy as np
 from bluesky.utils import MsgGenerator
 
+from bluesky_offsets import diagnosis as D
 from bluesky_offsets import effects as E
-from bluesky_offsets.diagnosis import Diagnosis, Version, add_effect, diagnose
+from bluesky_offsets.diagnosis import Diagnosis, Version, diagnose
 from bluesky_offsets.diagnostics import (
     Misfit,
     correlate_with_parameters,
@@ -273,7 +274,7 @@ def run_in_thread(func: Callable[[Callable[[dict], None]], Any], *, stream: str 
     thread = threading.Thread(target=work, name=f"analysis: {desc}", daemon=True)
     thread.start()
     # the elapsed time ticks on a terminal; in a log a line every 10 s is plenty
-    every = 1.0 if getattr(bar.fp, "isatty", lambda: False)() else 10.0
+    every = 1.0 if getattr(getattr(bar, "fp", None), "isatty", lambda: False)() else 10.0
     last = time.monotonic()
     try:
         while thread.is_alive():
@@ -404,7 +405,7 @@ def compare_model(measurement, state: ModelState, twin, *, label: str | None = N
 # refine the offsets
 # --------------------------------------------------------------------------- #
 def _offsets_row(state: ModelState, table: ParameterTable) -> dict:
-    row = {"offsets": np.asarray(state.offsets, float), "offsets_physical": table.offsets_to_physical(state.offsets)}
+    row = {"offsets": np.asarray(state.offsets, float), "offsets_physical": np.asarray(state.offsets, float) * table.span}
     row.update({n.replace(".", "_"): float(v) for n, v in zip(table.names, state.offsets)})
     return row
 
@@ -539,21 +540,26 @@ def record_error_history(versions: Sequence[Version], *, measurement_uid: str | 
 
 
 def add_effect_and_refit(measurement, state: ModelState, effect: str, twin, forward_model, *, store=None,
-                         history: Sequence[Version] = (), iterations: int = 3, anchor_rays: int | None = None,
-                         seed: int = 0, label: str | None = None, open_run: bool = True, md: Mapping | None = None,
-                         show: bool = True, table: ParameterTable = METRIXS, **refine_kw) -> MsgGenerator[Refit]:
-    """``state.with_effect(effect)``, offsets and effect refitted through the twin.
+                         values: Mapping[str, float] | None = None, history: Sequence[Version] = (),
+                         iterations: int = 3, anchor_rays: int | None = None, seed: int = 0, label: str | None = None,
+                         open_run: bool = True, md: Mapping | None = None, show: bool = True,
+                         table: ParameterTable = METRIXS, **refine_kw) -> MsgGenerator[Refit]:
+    """``state.with_effect(effect, values)``, offsets and effect refitted through the twin.
 
-    Streams ``progress`` (refit iterations), ``effect`` (fitted magnitude ± uncertainty per
-    parameter), the new version's comparison (``misfit``, ``misfit_total``) and
-    ``error_history`` (``history`` + the new version).
+    ``values`` start the effect (e.g. the diagnosis's fitted values; default 0 = absent);
+    ``refine_kw`` go to :func:`bluesky_offsets.model.refine`.  Streams ``progress`` (refit
+    iterations), ``effect`` (fitted magnitude ± uncertainty per parameter), the new version's
+    comparison (``misfit``, ``misfit_total``) and ``error_history`` (``history`` + the new
+    version).
     """
     meas, link = resolve_measurement(measurement, store, table=table)
     eff = E.get(effect)
+    start_values = eff.values(values)
     label = label or f"+ {effect}"
     _md = {"plan_name": "add_effect_and_refit", "purpose": "add the missing effect and refit", **link,
            **_state_md(state, table), "effect": effect, "effect_parameters": [p.name for p in eff.parameters],
-           "iterations": iterations, "versions": [v.label for v in history] + [label], **dict(md or {})}
+           "effect_start": start_values, "iterations": iterations,
+           "versions": [v.label for v in history] + [label], **dict(md or {})}
 
     def body():
         steps: list[dict] = []
@@ -562,11 +568,13 @@ def add_effect_and_refit(measurement, state: ModelState, effect: str, twin, forw
             def record(d):
                 steps.append(dict(d))
                 progress(d)
-            kw = dict(iterations=iterations, anchor_rays=anchor_rays, seed=seed, progress=record, table=table)
-            if _accepts(add_effect, refine_kw):
-                return add_effect(meas, state, effect, twin, forward_model, **kw, **refine_kw)
-            # options add_effect does not pass on (e.g. twin_columns): the same refit, spelled out
-            res = refine(meas, state.with_effect(effect), twin, forward_model, **kw, **refine_kw)
+            kw = dict(iterations=iterations, anchor_rays=anchor_rays, seed=seed, progress=record, table=table,
+                      **refine_kw)
+            fn = getattr(D, "add_effect_result", None)
+            if fn is not None:
+                res = fn(meas, state, effect, twin, forward_model, values=start_values, **kw)
+            else:  # the same refit, spelled out
+                res = refine(meas, state.with_effect(effect, start_values), twin, forward_model, **kw)
             return res.state, res.effect_sigma
 
         st, sig = yield from run_in_thread(work, desc=f"add {effect} and refit ({iterations} iterations)", show=show)
@@ -589,37 +597,46 @@ def add_effect_and_refit(measurement, state: ModelState, effect: str, twin, forw
     return r
 
 
-def _accepts(func: Callable, kwargs: Mapping) -> bool:
+def supported(func: Callable, kwargs: Mapping | None) -> dict:
+    """The keyword arguments ``func`` takes (the fitting options grow with the physics)."""
     import inspect
     params = inspect.signature(func).parameters
-    return any(p.kind is p.VAR_KEYWORD for p in params.values()) or all(k in params for k in kwargs)
+    if any(p.kind is p.VAR_KEYWORD for p in params.values()):
+        return dict(kwargs or {})
+    return {k: v for k, v in (kwargs or {}).items() if k in params}
 
 
 # --------------------------------------------------------------------------- #
 # the whole analysis
 # --------------------------------------------------------------------------- #
-def analyse_measurement(measurement, twin, forward_model, *, store=None, state: ModelState | None = None,
-                        refine_iterations: int = 4, candidates: Sequence[str] | None = None, add_best: bool = True,
-                        refit_iterations: int = 3, anchor_rays: int | None = None,
-                        twin_columns: Sequence[int] | None = None, folds: int = 4, seed: int = 0,
-                        md: Mapping | None = None, show: bool = True,
-                        table: ParameterTable = METRIXS) -> MsgGenerator[Analysis]:
+def analyse_measurement(measurement, twin, forward_model, *, store=None,
+                        starts: ModelState | Sequence[ModelState] | None = None, refine_iterations: int = 4,
+                        candidates: Sequence[str] | None = None, add_best: bool = True, refit_iterations: int = 3,
+                        anchor_rays: int | None = None, twin_columns: Sequence[int] | None = None, folds: int = 4,
+                        refine_kw: Mapping | None = None, refit_kw: Mapping | None = None,
+                        diagnose_kw: Mapping | None = None, seed: int = 0, md: Mapping | None = None,
+                        show: bool = True, table: ParameterTable = METRIXS) -> MsgGenerator[Analysis]:
     """Compare, refine the offsets, diagnose, add the winning effect and refit — one run each.
 
     Parameters
     ----------
     measurement : Measurement, store.Measurement or str
         The measurement or its run uid in ``store``.
-    state : ModelState, optional
-        Starting model (e.g. the finder's offsets); default: the bare twin.
+    starts : ModelState or sequence of ModelState, optional
+        Model versions to compare first (e.g. the bare twin and the surrogate finder's
+        offsets); the refinement starts from the one the measurement likes best (lowest
+        chi2/dof).  Default: the bare twin.
     refine_iterations : int
-        Twin-anchored refinement of the offsets before the diagnosis (0: take ``state``
-        as the fitted model).
+        Twin-anchored refinement of the offsets before the diagnosis (0: diagnose the best
+        start as it is).
     candidates : sequence of str, optional
         Effects to rank (default: all registered).
     add_best : bool
-        Add the best significant candidate and refit (nothing is added when the
-        verdict is "no significant missing effect").
+        Add the best significant candidate, starting from the values the diagnosis fitted,
+        and refit (nothing is added when the verdict is "no significant missing effect").
+    refine_kw, refit_kw, diagnose_kw : mapping, optional
+        Further options of :func:`bluesky_offsets.model.refine` (offsets; refit) and
+        :func:`bluesky_offsets.diagnosis.diagnose`; options they do not take are dropped.
 
     Returns
     -------
@@ -628,47 +645,56 @@ def analyse_measurement(measurement, twin, forward_model, *, store=None, state: 
         refit and the uids of all runs (``analysis.uids``).
     """
     meas, link = resolve_measurement(measurement, store, table=table)
-    base = state if state is not None else ModelState()
-    md = dict(md or {})
+    if starts is None:
+        starts = [ModelState()]
+    elif isinstance(starts, ModelState):
+        starts = [starts]
+    md = {**link, **dict(md or {})}
+    cols = {"twin_columns": twin_columns} if twin_columns is not None else {}
     out = Analysis(meas, [])
-    base_label = "twin" if not np.any(base.offsets) and not base.effects else base.label
-    c0 = yield from compare_model(meas, base, twin, label=base_label, md={**link, **md}, show=show, table=table)
-    out.comparisons.append(c0)
-    out.uids["compare"] = c0.uid
-    current, reuse = base, None
+    for k, st in enumerate(starts):
+        c = yield from compare_model(meas, st, twin, md=md, show=show, table=table)
+        out.comparisons.append(c)
+        out.uids["compare" if k == 0 else f"compare_{k}"] = c.uid
+    best_start = min(out.comparisons, key=lambda c: c.misfit.chi2_reduced_total)
+    current, local = best_start.state, None
     if refine_iterations:
-        r = yield from refine_offsets(meas, base, twin, forward_model, iterations=refine_iterations,
-                                      anchor_rays=anchor_rays, twin_columns=twin_columns, seed=seed,
-                                      md={**link, **md}, show=show, table=table)
+        r = yield from refine_offsets(meas, current, twin, forward_model, iterations=refine_iterations,
+                                      anchor_rays=anchor_rays, seed=seed, md={**md, "start_label": best_start.label},
+                                      show=show, table=table, **supported(refine, {**cols, **dict(refine_kw or {})}))
         out.refinement = r
         out.comparisons.append(r.comparison)
         out.uids["refine_offsets"] = r.uid
-        current, reuse = r.state, r.result.local_model
-    rk = yield from diagnose_effects(meas, current, twin, forward_model, candidates=candidates, reuse=reuse,
-                                     folds=folds, seed=seed, md={**link, **md}, show=show, table=table)
+        current, local = r.state, r.result.local_model
+    rk = yield from diagnose_effects(meas, current, twin, forward_model, candidates=candidates, reuse=local,
+                                     folds=folds, seed=seed, md=md, show=show, table=table,
+                                     **supported(diagnose, diagnose_kw))
     out.ranking = rk
     out.uids["diagnose"] = rk.uid
     best = rk.diagnosis.best
     if add_best and best is not None:
-        rf = yield from add_effect_and_refit(meas, current, best.name, twin, forward_model,
+        kw = {**cols, **dict(refit_kw or {})}
+        if local is not None and forward_model is None:
+            # the twin's offset Jacobian from the refinement: the effect's probes are all the refit traces anew
+            kw.setdefault("offset_jacobian", local.jac)
+        rf = yield from add_effect_and_refit(meas, current, best.name, twin, forward_model, values=best.values,
                                              history=out.versions, iterations=refit_iterations,
-                                             anchor_rays=anchor_rays, seed=seed + 1, md={**link, **md},
-                                             show=show, table=table,
-                                             **({"twin_columns": twin_columns} if twin_columns is not None else {}))
+                                             anchor_rays=anchor_rays, seed=seed + 1, md=md, show=show, table=table,
+                                             **supported(refine, kw))
         out.refit = rf
         out.comparisons.append(rf.comparison)
         out.uids["add_effect"] = rf.uid
     else:
-        uid = yield from _history_run(out.versions, link, md)
+        uid = yield from _history_run(out.versions, md)
         out.uids["error_history"] = uid
     return out
 
 
-def _history_run(versions, link, md) -> MsgGenerator[str]:
+def _history_run(versions, md) -> MsgGenerator[str]:
     def body():
         yield from record_error_history(versions)
-    _, uid = yield from _in_run(body, {"plan_name": "error_history", **link, "versions": [v.label for v in versions],
-                                       **md}, True)
+    _, uid = yield from _in_run(body, {"plan_name": "error_history", "versions": [v.label for v in versions], **md},
+                                True)
     return uid
 
 

@@ -1,0 +1,162 @@
+"""``bluesky-offsets diagnose``: model vs. a stored measurement run, from the command line.
+
+Loads the measurement by uid from the run store, compares the twin with it, refines the
+offsets through the twin, ranks the candidate effects, adds the best one and refits; every
+step is a run in the same store, linked to the measurement.  Thin layer over
+:func:`plans.diagnose.analyse_measurement` in a RunEngine.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from .cli import CliError
+
+
+def _load(store, uid: str, n_rays: int | None):
+    from .diagnostics import MeasurementError
+    from .model import Measurement
+    try:
+        stored = store.load_measurement(uid)
+    except KeyError as exc:
+        raise CliError(str(exc).strip("\"'")) from None
+    except ValueError as exc:  # not a measurement run, or another parameter table
+        raise CliError(str(exc) if uid in str(exc) else f"run {uid}: {exc}") from None
+    if len(stored) == 0:
+        raise CliError(f"run {uid} holds no measured configurations")
+    try:
+        return stored, Measurement.from_store(stored, n_rays)
+    except MeasurementError as exc:
+        raise CliError(f"run {uid}: {exc}") from None
+
+
+def _offsets_from_run(store, uid: str):
+    """Normalized offsets stored by a find_offsets / refine_offsets / add_effect run."""
+    from .parameters import METRIXS
+    try:
+        run = store[uid]
+    except KeyError as exc:
+        raise CliError(str(exc).strip("\"'")) from None
+    for stream in ("offsets", "effect"):
+        if stream in run:
+            ds = run[stream].read()
+            if "offsets" in ds:
+                off = np.asarray(ds["offsets"][-1], dtype=float)
+                if off.shape == (len(METRIXS),) and np.all(np.isfinite(off)):
+                    return off
+    raise CliError(f"run {uid} holds no offsets (expected a find_offsets, refine_offsets or add_effect run)")
+
+
+def _effects(text: str | None) -> list[str] | None:
+    from . import effects as E
+    if not text:
+        return None
+    names = [n.strip() for n in text.split(",") if n.strip()]
+    for n in names:
+        try:
+            E.get(n)
+        except ValueError as exc:
+            raise CliError(str(exc)) from None
+    return names
+
+
+def summary_dict(analysis) -> dict:
+    d = analysis.ranking.diagnosis if analysis.ranking else None
+    return {
+        "measurement_uid": analysis.measurement.uid,
+        "verdict": d.verdict if d else None,
+        "ranking": [{"effect": c.name, "score": c.score, "significant": c.significant, "values": c.values,
+                     "sigma": c.sigma} for c in d.candidates] if d else [],
+        "history": [c.total_row() for c in analysis.comparisons],
+        "fitted_effect": ({analysis.refit.effect: {k: {"value": v, "sigma": s}
+                                                   for k, (v, s) in analysis.refit.magnitude().items()}}
+                          if analysis.refit else {}),
+        "uids": dict(analysis.uids),
+    }
+
+
+def _cmd_diagnose(args) -> int:
+    from .store import open_store
+    candidates = _effects(args.effects)
+    if args.refine_iterations < 0 or args.refit_iterations < 1:
+        raise CliError("--refine-iterations must be >= 0 and --refit-iterations >= 1")
+    try:
+        store = open_store(args.store)
+    except OSError as exc:
+        raise CliError(str(exc)) from None
+    try:
+        stored, meas = _load(store, args.uid, args.rays)
+        from .model import ModelState
+        starts = [ModelState(label="twin")]
+        if args.offsets_uid:
+            starts.append(ModelState(_offsets_from_run(store, args.offsets_uid), {}, "stored offsets"))
+
+        from bluesky import RunEngine
+
+        from plans.diagnose import analyse_measurement
+
+        from .twin import Twin
+        fm = None
+        if args.jacobian == "surrogate":
+            from .finder import load_forward_model
+            fm = load_forward_model()
+        RE = RunEngine({}, call_returns_result=True)
+        store.subscribe(RE)
+        log = sys.stderr if args.json else sys.stdout
+        print(f"measurement {meas.uid}: {meas.n} configurations at {meas.n_rays} rays; results go to "
+              f"{store.location}", file=log, flush=True)
+        with Twin(n_rays=int(meas.n_rays), scheduler=args.scheduler) as twin:
+            from .demo import _quiet_logs
+            if args.scheduler != "inline":
+                twin.client
+                _quiet_logs()
+            analysis = RE(analyse_measurement(
+                stored, twin, fm, starts=starts, refine_iterations=args.refine_iterations,
+                candidates=candidates, add_best=not args.no_add, refit_iterations=args.refit_iterations,
+                anchor_rays=args.anchor_rays, seed=args.seed, md={"purpose": "bluesky-offsets diagnose"})).plan_result
+            if args.report:
+                from .report import write_analysis_report
+                path = write_analysis_report(args.report, analysis, twin.hist,
+                                             title=f"model vs. measurement {meas.uid}",
+                                             store_location=store.location)
+                print(f"report: {path}", file=log)
+        out = summary_dict(analysis)
+        if args.json:
+            print(json.dumps(out, indent=1, default=float))
+        else:
+            from .demo import _history_lines
+            print(out["verdict"])
+            for line in _history_lines(analysis):
+                print(line)
+            for k, v in out["uids"].items():
+                print(f"  {k:16s} {v}")
+        return 0
+    finally:
+        store.close()
+
+
+def add_cli(sub) -> None:
+    p = sub.add_parser("diagnose", help="compare the model with a stored measurement, find the missing effect, "
+                                        "add it and refit",
+                       description=__doc__.split("\n\n", 1)[1] if __doc__ else None)
+    p.add_argument("--uid", required=True, help="uid of a measurement run (plans.measure_configurations)")
+    p.add_argument("--store", default=None, help="run store directory or tiled URL (default: the embedded store)")
+    p.add_argument("--effects", default=None, help="candidate effects, comma separated (default: all registered)")
+    p.add_argument("--offsets-uid", default=None,
+                   help="also start from the offsets of this run (find_offsets / refine_offsets)")
+    p.add_argument("--refine-iterations", type=int, default=4, help="offset refinement through the twin (0: none)")
+    p.add_argument("--refit-iterations", type=int, default=3, help="refit after adding the effect")
+    p.add_argument("--no-add", action="store_true", help="rank only; do not add the best effect")
+    p.add_argument("--jacobian", choices=("twin", "surrogate"), default="twin",
+                   help="offset Jacobian of the fits (default: the twin's finite differences)")
+    p.add_argument("--rays", type=int, default=None, help="ray budget of the measurement when the run lacks it")
+    p.add_argument("--anchor-rays", type=int, default=None, help="rays per model trace in the fits")
+    p.add_argument("--scheduler", default=None, help="Dask scheduler address, or 'inline' (default: local cluster)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--report", type=Path, default=None, help="write a self-contained HTML report here")
+    p.add_argument("--json", action="store_true", help="print the result as JSON (progress goes to stderr)")
+    p.set_defaults(func=_cmd_diagnose)

@@ -1,0 +1,200 @@
+"""Diagnosis plans and the ``diagnose`` command against a measurement run of the simulated IOC.
+
+Small setup: 4 configurations at the session IOC's 3000 rays, twin in-process, offsets
+refined in three sensitive axes, detector-level candidates (no extra traces).  What is
+checked here is the workflow — runs stored, linked to the measurement, loaded back by uid,
+clear refusals — not the physics (tests/test_diagnosis*.py).
+"""
+
+from __future__ import annotations
+
+import json
+
+import bluesky.plan_stubs as bps
+import numpy as np
+import pytest
+from bluesky import RunEngine
+
+from bluesky_offsets import cli
+from bluesky_offsets.diagnostics import MeasurementError
+from bluesky_offsets.model import ModelState
+from bluesky_offsets.parameters import METRIXS
+from bluesky_offsets.twin import Twin
+from plans import measure_configurations, sample_candidates
+from plans.diagnose import (
+    add_effect_and_refit,
+    analyse_measurement,
+    compare_model,
+    diagnose_effects,
+    emit_rows,
+    load_results,
+)
+from sim_iocs.truth import default_start
+
+COLS = [METRIXS.index(n) for n in ("E1.rotationXerror", "E2.rotationXerror", "M1_Cylinder.rotationXerror")]
+CANDIDATES = ["intensity_scale", "background"]
+
+
+@pytest.fixture(scope="module")
+def RE():
+    return RunEngine({}, call_returns_result=True)
+
+
+@pytest.fixture(scope="module")
+def twin():
+    return Twin(scheduler="inline", n_rays=3000)
+
+
+def _configs(n: int, seed: int = 5) -> np.ndarray:
+    spread = np.full(len(METRIXS), 0.01)
+    spread[METRIXS.index("M1_Cylinder.translationXerror")] = 0.002
+    return sample_candidates(n, rng=seed, around=default_start(), spread=spread)
+
+
+@pytest.fixture(scope="module")
+def measured(RE, metrixs_ioc, run_store):
+    from ophyd_async.core import init_devices
+
+    from bluesky_offsets.devices import FocusChamber, MetrixsBeamline
+    with init_devices():
+        beamline = MetrixsBeamline(metrixs_ioc.prefix, name="metrixs")
+        chamber = FocusChamber(metrixs_ioc.prefix + "chamber:", name="chamber")
+    token = run_store.subscribe(RE)
+    try:
+        m = RE(measure_configurations(_configs(4), beamline, chamber)).plan_result
+    finally:
+        RE.unsubscribe(token)
+    return m, (beamline, chamber)
+
+
+def test_analysis_plans_store_runs_linked_to_the_measurement(RE, twin, measured, run_store):
+    m, _ = measured
+    token = run_store.subscribe(RE)
+    try:
+        out = RE(analyse_measurement(m.uid, twin, None, store=run_store, refine_iterations=1, twin_columns=COLS,
+                                     candidates=CANDIDATES, add_best=False, show=False))
+    finally:
+        RE.unsubscribe(token)
+    a = out.plan_result
+    assert set(a.uids) == {"compare", "refine_offsets", "diagnose", "error_history"}
+    assert list(out.run_start_uids) == list(a.uids.values())
+    for uid in a.uids.values():  # every run names the measurement and the truth it came from
+        start = run_store[uid].metadata["start"]
+        assert start["measurement_uid"] == m.uid and start["truth_id"] == m.truth_id
+        assert run_store[uid].metadata["stop"]["exit_status"] == "success"
+
+    cmp_ = load_results(run_store, a.uids["compare"])
+    assert len(cmp_["misfit"]) == 4 and cmp_["start"]["plan_name"] == "compare_model"
+    row = cmp_["misfit"][0]
+    assert row["model_hist_x"].shape == (50,) and row["pulls_y"].shape == (50,) and row["expected_mse"] > 0
+    (total,) = cmp_["misfit_total"]
+    assert total["chi2_total"] == pytest.approx(a.comparisons[0].misfit.chi2_total)
+    assert total["chi2_expected"] == total["dof_total"] > 0 and total["expected_mse_total"] > 0
+
+    ref = load_results(run_store, a.uids["refine_offsets"])
+    assert len(ref["progress"]) == 2 and "chi2_reduced" in ref["progress"][0]
+    np.testing.assert_allclose(ref["offsets"][0]["offsets"], a.refinement.state.offsets)
+    assert ref["offsets"][0]["E1_rotationXerror"] == pytest.approx(a.refinement.state.offsets[COLS[0]])
+
+    diag = load_results(run_store, a.uids["diagnose"])
+    ranked = [r["effect"] for r in diag["ranking"]]
+    assert ranked == [c.name for c in a.ranking.diagnosis.candidates] and sorted(ranked) == sorted(CANDIDATES)
+    top = diag["ranking"][0]
+    assert top["rank"] == 1 and set(top["values"]) == set(top["sigma"]) and "observed_x_centroid" in top
+    assert "predicted_x_centroid" in top and top["score"] == pytest.approx(a.ranking.diagnosis.candidates[0].score)
+    assert diag["diagnosis"][0]["verdict"] == a.ranking.diagnosis.verdict
+
+    hist = load_results(run_store, a.uids["error_history"])["error_history"]
+    assert [h["label"] for h in hist] == ["twin", "+ offsets"]
+    assert hist[1]["chi2_reduced"] == pytest.approx(a.comparisons[1].misfit.chi2_reduced_total)
+
+
+def test_add_effect_and_refit_stores_magnitude_and_error_history(RE, twin, measured, run_store):
+    m, _ = measured
+    token = run_store.subscribe(RE)
+    try:
+        base = RE(compare_model(m, ModelState(), twin, show=False)).plan_result
+        rf = RE(add_effect_and_refit(m, ModelState(), "intensity_scale", twin, None, history=[base.version()],
+                                     iterations=1, twin_columns=COLS, show=False)).plan_result
+    finally:
+        RE.unsubscribe(token)
+    res = load_results(run_store, rf.uid)
+    assert res["start"]["effect"] == "intensity_scale" and res["start"]["measurement_uid"] == m.uid
+    (eff,) = res["effect"]
+    value, sigma = rf.magnitude()["delta"]
+    assert eff["delta"] == pytest.approx(value) and eff["delta_sigma"] == pytest.approx(sigma) and sigma > 0
+    assert eff["values"] == {"delta": pytest.approx(value)} and eff["units"] == {"delta": "rel"}
+    assert [h["label"] for h in res["error_history"]] == ["twin", "+ intensity_scale"]
+    assert res["error_history"][1]["effects"] == {"intensity_scale": {"delta": pytest.approx(value)}}
+    assert len(res["misfit"]) == 4 and len(res["progress"]) == 2
+
+
+def test_plans_refuse_bad_input_before_opening_a_run(RE, twin, measured, run_store):
+    m, _ = measured
+    n_runs = len(run_store)
+    with pytest.raises(KeyError, match="no run 'nope'"):
+        RE(compare_model("nope", ModelState(), twin, store=run_store))
+    with pytest.raises(ValueError, match="unknown effect 'gravity'"):
+        RE(diagnose_effects(m, ModelState(), twin, None, candidates=["gravity"]))
+    bad = type(m)(m.configurations, m.hist_x.copy(), m.hist_y, m.names, m.uid, metadata=dict(m.metadata))
+    bad.hist_x[1, 7] = np.nan
+    with pytest.raises(MeasurementError, match="configuration 1 has a non-finite bin 7"):
+        RE(compare_model(bad, ModelState(), twin))
+    other = type(m)(m.configurations, m.hist_x, m.hist_y, m.names, m.uid,
+                    metadata={**m.metadata, "parameter_table_version": "0123abcd"})
+    with pytest.raises(MeasurementError, match="parameter-table version 0123abcd"):
+        RE(compare_model(other, ModelState(), twin))
+    assert len(run_store) == n_runs
+
+
+def _fake_measurement_run(configs, hx, hy, n_rays):
+    """A run shaped like measure_configurations' (metadata + one event per configuration)."""
+    yield from bps.open_run(md={"plan_name": "measure_configurations", "configurations": configs.tolist(),
+                                "parameter_names": list(METRIXS.names), "n_rays": n_rays,
+                                "parameter_table_version": METRIXS.version})
+    yield from emit_rows("primary", [{"chamber-hist_x": x, "chamber-hist_y": y, "config_index": i}
+                                     for i, (x, y) in enumerate(zip(hx, hy))])
+    yield from bps.close_run()
+
+
+def test_diagnose_command_end_to_end_and_its_errors(RE, measured, tmp_path, capsys):
+    from bluesky_offsets.store import open_store
+    m, (beamline, chamber) = measured
+    loc = tmp_path / "runs"
+    with open_store(loc) as store:
+        token = store.subscribe(RE)
+        try:
+            m2 = RE(measure_configurations(_configs(4, seed=8), beamline, chamber)).plan_result
+            hx = m2.hist_x.copy()
+            hx[2, 3] = np.nan
+            (nan_uid,) = RE(_fake_measurement_run(m2.configurations, hx, m2.hist_y, 3000)).run_start_uids
+        finally:
+            RE.unsubscribe(token)
+
+    def run(*argv):
+        rc = cli.main(["diagnose", "--store", str(loc), *argv])
+        return rc, capsys.readouterr()
+
+    rc, io = run("--uid", "no-such-uid")
+    assert rc == 2 and f"no run 'no-such-uid' in the store at {loc}" in io.err
+    rc, io = run("--uid", m2.uid, "--effects", "chamber_z,gravity")
+    assert rc == 2 and "unknown effect 'gravity'" in io.err
+    rc, io = run("--uid", nan_uid)
+    assert rc == 2 and "x histogram of configuration 2 has a non-finite bin 3" in io.err
+    rc, io = run("--uid", m2.uid, "--offsets-uid", m2.uid)
+    assert rc == 2 and "holds no offsets" in io.err
+
+    report = tmp_path / "report.html"
+    rc, io = run("--uid", m2.uid, "--effects", ",".join(CANDIDATES), "--refine-iterations", "1", "--refit-iterations",
+                 "1", "--jacobian", "surrogate", "--scheduler", "inline", "--report", str(report), "--json")
+    assert rc == 0, io.err
+    out = json.loads(io.out)
+    assert out["measurement_uid"] == m2.uid and out["verdict"]
+    assert [h["model"] for h in out["history"]][:2] == ["twin", "+ offsets"]
+    assert {r["effect"] for r in out["ranking"]} == set(CANDIDATES)
+    html = report.read_text()
+    assert html.count("data:image/png;base64,") >= 4 and "Error history" in html and "ranking" in html
+    assert "http://" not in html and "https://" not in html  # self-contained, opens offline
+    with open_store(loc) as store:
+        for uid in out["uids"].values():
+            assert store[uid].metadata["start"]["measurement_uid"] == m2.uid
