@@ -42,37 +42,100 @@ class SurrogateError(RuntimeError):
 # --------------------------------------------------------------------------- #
 # network
 # --------------------------------------------------------------------------- #
+DECODERS = ("bins", "factored")
+
+
 @dataclass(frozen=True)
 class Architecture:
-    """Fully connected net: ``n_layers`` linear layers of ``width``, Mish in between."""
+    """Fully connected nets: ``n_layers`` linear layers of ``width``, Mish in between.
+
+    ``decoder`` chooses what the nets predict:
+
+    * ``"bins"`` (the paper): one net whose last layer gives the 100 min-max
+      normalized bin values directly; trained on their MSE.
+    * ``"factored"``: per axis, a histogram is ``transmission x shape``.  One
+      net gives the fraction of source rays inside each axis' histogram range
+      (a sigmoid), a second one the footprint's shape (a softmax over the
+      axis' bins).  Trained on the likelihood of the ray counts (binomial for
+      the transmission, multinomial for the shape), whose gradients do not
+      vanish on the mostly dark box (docs/surrogate.md says why this matters).
+    """
 
     n_inputs: int = 34
     n_outputs: int = 100
     width: int = 512
     n_layers: int = 7
+    decoder: str = "bins"
+    bins_x: int | None = None
 
     def __post_init__(self):
         if self.n_layers < 2:
             raise ValueError("n_layers must be >= 2")
         if self.width < 1:
             raise ValueError("width must be positive")
+        if self.decoder not in DECODERS:
+            raise ValueError(f"decoder must be one of {DECODERS}, got {self.decoder!r}")
+        if self.bins_x is None:
+            object.__setattr__(self, "bins_x", self.n_outputs // 2)
+        if not 0 < self.bins_x < self.n_outputs:
+            raise ValueError(f"bins_x must be in (0, {self.n_outputs}), got {self.bins_x}")
+
+
+def _mlp(n_in: int, n_out: int, width: int, n_layers: int) -> nn.Sequential:
+    sizes = [n_in] + [width] * (n_layers - 1) + [n_out]
+    layers: list[nn.Module] = []
+    for i, (a, b) in enumerate(zip(sizes[:-1], sizes[1:])):
+        layers.append(nn.Linear(a, b))
+        if i < n_layers - 1:
+            layers.append(nn.Mish())
+    return nn.Sequential(*layers)
 
 
 class SurrogateNet(nn.Module):
-    """The bare network, normalized inputs -> normalized outputs."""
+    """The bare network(s): normalized inputs -> normalized outputs.
+
+    The factored decoder's outputs are the histograms themselves (its
+    :class:`Normalization` is the identity).
+    """
 
     def __init__(self, arch: Architecture):
         super().__init__()
-        sizes = [arch.n_inputs] + [arch.width] * (arch.n_layers - 1) + [arch.n_outputs]
-        layers: list[nn.Module] = []
-        for i, (a, b) in enumerate(zip(sizes[:-1], sizes[1:])):
-            layers.append(nn.Linear(a, b))
-            if i < arch.n_layers - 1:
-                layers.append(nn.Mish())
-        self.layers = nn.Sequential(*layers)
+        self.decoder = arch.decoder
+        self.bins_x = arch.bins_x
+        if arch.decoder == "bins":
+            self.layers = _mlp(arch.n_inputs, arch.n_outputs, arch.width, arch.n_layers)
+        else:
+            self.transmission = _mlp(arch.n_inputs, 2, arch.width, arch.n_layers)
+            self.shape = _mlp(arch.n_inputs, arch.n_outputs, arch.width, arch.n_layers)
+
+    def _factors(self, x: torch.Tensor):
+        z = self.shape(x)
+        bx = self.bins_x
+        return self.transmission(x), torch.log_softmax(z[:, :bx], -1), torch.log_softmax(z[:, bx:], -1)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return self.layers(x)
+        if self.decoder == "bins":
+            return self.layers(x)
+        logit_t, log_sx, log_sy = self._factors(x)
+        t = torch.sigmoid(logit_t)
+        return torch.cat([t[:, :1] * log_sx.exp(), t[:, 1:] * log_sy.exp()], -1)
+
+    def loss(self, x: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+        """Training loss of a batch (``target`` in the net's output units).
+
+        "bins": the MSE.  "factored": per axis, the binomial cross-entropy of
+        the in-range fraction plus the multinomial cross-entropy of the shape
+        weighted by that fraction: together the negative log-likelihood of the
+        ray counts per source ray (up to a constant).
+        """
+        if self.decoder == "bins":
+            return nn.functional.mse_loss(self(x), target)
+        logit_t, log_sx, log_sy = self._factors(x)
+        bx = self.bins_x
+        hx, hy = target[:, :bx], target[:, bx:]
+        frac = torch.stack([hx.sum(-1), hy.sum(-1)], -1).clamp(0.0, 1.0)
+        loss = 2 * nn.functional.binary_cross_entropy_with_logits(logit_t, frac)
+        return loss - ((hx * log_sx).sum(-1) + (hy * log_sy).sum(-1)).mean()
 
 
 @dataclass
@@ -81,7 +144,8 @@ class Normalization:
 
     ``out_low``/``out_span`` have one entry per output bin; a "global" output
     normalization simply repeats one value (keeps the loss proportional to the
-    histogram MSE, which is what the finder compares).
+    histogram MSE, which is what the finder compares); "none" is the identity
+    (the factored decoder's outputs are histograms already).
     """
 
     in_low: np.ndarray
@@ -98,8 +162,10 @@ class Normalization:
             hi = np.full(hist.shape[1], hist.max())
         elif mode == "per-bin":
             lo, hi = hist.min(axis=0), hist.max(axis=0)
+        elif mode == "none":  # the factored decoder predicts histograms directly
+            lo, hi = np.zeros(hist.shape[1]), np.ones(hist.shape[1])
         else:
-            raise ValueError(f"output normalization must be 'global' or 'per-bin', got {mode!r}")
+            raise ValueError(f"output normalization must be 'global', 'per-bin' or 'none', got {mode!r}")
         span = np.where(hi - lo > 0, hi - lo, 1.0)
         return cls(table.low.copy(), table.span.copy(), lo, span, mode)
 

@@ -97,7 +97,7 @@ def _cmd_train(args) -> int:
                              good_min_rays=args.good_min_rays,
                              good_fraction=None if args.good_fraction <= 0 else args.good_fraction,
                              split=tuple(args.split), width=args.width, n_layers=args.layers,
-                             output_norm=args.output_norm, patience=args.patience, min_delta=args.min_delta,
+                             output_norm=args.output_norm, decoder=args.decoder, patience=args.patience, min_delta=args.min_delta,
                              epoch_samples=args.epoch_samples, device=args.device, seed=args.seed,
                              threads=args.threads, max_minutes=args.max_minutes)
     except ValueError as exc:
@@ -233,6 +233,9 @@ def add_cli(sub) -> None:
     t.add_argument("--width", type=int, default=c.width, help=f"hidden width (default {c.width})")
     t.add_argument("--layers", type=int, default=c.n_layers, help=f"linear layers (default {c.n_layers})")
     t.add_argument("--output-norm", choices=["global", "per-bin"], default=c.output_norm)
+    t.add_argument("--decoder", choices=["bins", "factored"], default=c.decoder,
+                   help="bins: the paper's net (MSE on the bins); factored: transmission x shape per axis "
+                        "trained on the ray-count likelihood (default %(default)s)")
     t.add_argument("--patience", type=int, default=c.patience, help="early-stop patience in epochs (0: off)")
     t.add_argument("--min-delta", type=float, default=0.0, help="relative val-MSE gain that counts (default 0)")
     t.add_argument("--epoch-samples", type=int, default=None, help="samples per epoch (default: good/0.75)")

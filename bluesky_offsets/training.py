@@ -27,7 +27,7 @@ import torch
 
 from .dataset import GOOD_MIN_RAYS, Dataset
 from .parameters import METRIXS, ParameterTable
-from .surrogate import Architecture, Normalization, Surrogate
+from .surrogate import DECODERS, Architecture, Normalization, Surrogate
 from .twin import HistogramSpec
 
 log = logging.getLogger(__name__)
@@ -63,7 +63,11 @@ class TrainConfig:
         given there, 512 here).
     output_norm : str
         "global" (one min/max for all bins: the loss stays proportional to the
-        histogram MSE) or "per-bin".
+        histogram MSE) or "per-bin".  The factored decoder needs none ("none").
+    decoder : str
+        "bins" (the paper: the net outputs the bins, MSE loss) or "factored"
+        (transmission x shape per axis, ray-count likelihood loss; see
+        :class:`~bluesky_offsets.surrogate.Architecture`).
     patience : int
         Early stop after this many epochs without a better validation MSE (0: never).
     min_delta : float
@@ -90,6 +94,7 @@ class TrainConfig:
     width: int = 512
     n_layers: int = 7
     output_norm: str = "global"
+    decoder: str = "bins"
     patience: int = 30
     min_delta: float = 0.0
     epoch_samples: int | None = None
@@ -109,6 +114,12 @@ class TrainConfig:
                 raise ValueError(f"{name} must be positive")
         if self.lr <= 0 or not 0 < self.gamma <= 1:
             raise ValueError("lr must be > 0 and gamma in (0, 1]")
+        if self.decoder not in DECODERS:
+            raise ValueError(f"decoder must be one of {DECODERS}, got {self.decoder!r}")
+        if self.decoder == "factored":
+            self.output_norm = "none"
+        elif self.output_norm == "none":
+            raise ValueError("output_norm 'none' is only for the factored decoder")
         if self.device not in ("auto", "cpu", "cuda"):
             raise ValueError(f"device must be auto, cpu or cuda, got {self.device!r}")
 
@@ -127,7 +138,7 @@ class TrainConfig:
 
 # the keys that must agree to resume a run
 _RESUME_KEYS = ("batch_size", "lr", "gamma", "good_min_rays", "good_fraction", "split", "width", "n_layers",
-                "output_norm", "epoch_samples", "seed")
+                "output_norm", "decoder", "epoch_samples", "seed")
 
 
 def split_indices(n: int, fractions, seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -212,7 +223,7 @@ def train(data: Dataset, run_dir: str | os.PathLike, config: TrainConfig | None 
     good_tr = tr[data.n_hits[tr] >= config.good_min_rays]
     bad_tr = tr[data.n_hits[tr] < config.good_min_rays]
 
-    arch = Architecture(len(table), hist.bins_x + hist.bins_y, config.width, config.n_layers)
+    arch = Architecture(len(table), hist.bins_x + hist.bins_y, config.width, config.n_layers, config.decoder, hist.bins_x)
     provenance = {"dataset": data.meta.get("path"), "n_samples": len(data),
                   "n_train": len(tr), "n_val": len(va), "n_test": len(te),
                   "n_good": int((data.n_hits >= config.good_min_rays).sum()),
@@ -239,7 +250,8 @@ def train(data: Dataset, run_dir: str | os.PathLike, config: TrainConfig | None 
             raise TrainingError(f"cannot resume from {state_path} ({type(exc).__name__}: {exc}); "
                                 "remove it to start over") from None
         old = st["config"]
-        diff = [k for k in _RESUME_KEYS if json.dumps(old.get(k)) != json.dumps(config.to_dict().get(k))]
+        diff = [k for k in _RESUME_KEYS
+                if json.dumps(old.get(k, getattr(TrainConfig, k, None))) != json.dumps(config.to_dict().get(k))]
         if st["dataset"] != {"path": provenance["dataset"], "n_samples": len(data)}:
             diff.append(f"dataset ({st['dataset']} vs {provenance['dataset']}, {len(data)} samples)")
         if diff:
@@ -254,7 +266,6 @@ def train(data: Dataset, run_dir: str | os.PathLike, config: TrainConfig | None 
         start_epoch, elapsed = st["epoch"], st.get("elapsed", 0.0)
         log.info("resuming %s at epoch %d", run_dir, start_epoch)
 
-    loss_fn = torch.nn.MSELoss()
     t_start = time.perf_counter() - elapsed
     epochs = tqdm(range(start_epoch, config.epochs), desc="epochs", unit="epoch", disable=not progress,
                   initial=start_epoch, total=config.epochs)
@@ -269,8 +280,7 @@ def train(data: Dataset, run_dir: str | os.PathLike, config: TrainConfig | None 
                    disable=not progress, mininterval=1.0)
         for b in bar:
             idx = order_t[b * config.batch_size:(b + 1) * config.batch_size]
-            pred = model.net(X[idx])
-            loss = loss_fn(pred, Yn[idx])
+            loss = model.net.loss(X[idx], Yn[idx])
             opt.zero_grad(set_to_none=True)
             loss.backward()
             opt.step()

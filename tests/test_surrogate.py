@@ -125,3 +125,26 @@ def test_shipped_checkpoint_loads_with_provenance():
     assert out.shape == (2, 100) and np.isfinite(out).all()
     meta = json.loads(path.with_suffix(".json").read_text())
     assert meta["weights_sha256"] and meta["table_version"] == METRIXS.version
+
+
+def test_factored_decoder_is_transmission_times_shape(tmp_path):
+    torch.manual_seed(0)
+    norm = Normalization.fit(METRIXS, np.zeros((3, 100)), "none")
+    m = Surrogate.new(Architecture(width=32, decoder="factored"), norm)
+    assert sum(isinstance(l, torch.nn.Linear) for l in m.net.transmission) == 7
+    assert m.net.transmission[-1].out_features == 2 and m.net.shape[-1].out_features == 100
+    x = METRIXS.denormalize(np.random.default_rng(3).random((6, 34)))
+    h = m.predict(x)
+    hx, hy = m.split(h)
+    # each axis: a fraction of the source rays in [0, 1], spread over the bins
+    assert (h >= 0).all() and (hx.sum(-1) <= 1 + 1e-6).all() and (hy.sum(-1) <= 1 + 1e-6).all()
+    # the likelihood loss is finite for dark and bright targets and has gradients
+    target = torch.zeros(2, 100)
+    target[1, 20], target[1, 70] = 0.4, 0.4
+    loss = m.net.loss(torch.rand(2, 34), target)
+    loss.backward()
+    assert torch.isfinite(loss) and all(p.grad is not None for p in m.net.parameters())
+    m2 = surrogate.load(m.save(tmp_path / "f.pt"))
+    assert m2.arch.decoder == "factored" and np.array_equal(m2.predict(x), h)
+    with pytest.raises(ValueError, match="decoder"):
+        Architecture(decoder="spline")

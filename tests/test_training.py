@@ -75,6 +75,15 @@ def test_recipe_end_to_end_cli_loss_goes_down(store, tmp_path, capsys):
     assert plot.exists() and plot.stat().st_size > 10_000
 
 
+def test_factored_decoder_trains(store, tmp_path):
+    data = dataset.load(store)
+    m = training.train(data, tmp_path / "f", _small(epochs=6, decoder="factored", lr=1e-3), progress=False)
+    hist = json.loads((tmp_path / "f" / "history.json").read_text())
+    assert m.arch.decoder == "factored" and m.norm.mode == "none" and m.training["decoder"] == "factored"
+    assert hist[-1]["train_loss"] < hist[0]["train_loss"]
+    assert min(h["val_mse"] for h in hist[1:]) < hist[0]["val_mse"]
+
+
 def test_resume_continues_exactly(store, tmp_path):
     data = dataset.load(store)
     a, b = tmp_path / "a", tmp_path / "b"
