@@ -36,9 +36,9 @@ from .parameters import METRIXS
 
 # Hidden truth: offsets of a few per cent of each range in the motors that steer the focus and
 # in one focal length (a fixed-but-unknown parameter), and one physical effect.
-DEMO_OFFSETS = {"E1.rotationXerror": 0.03, "E2.rotationXerror": -0.03, "M1_Cylinder.rotationXerror": 0.02,
-                "E1.translationYerror": 0.02, "E2.translationYerror": -0.02, "ExitSlit.translationZerror": 0.04,
-                "E2.longHalfAxisA": 0.02}
+DEMO_OFFSETS = {"E1.rotationXerror": 0.015, "E2.rotationXerror": -0.015, "M1_Cylinder.rotationXerror": 0.01,
+                "E1.translationYerror": 0.01, "E2.translationYerror": -0.01, "ExitSlit.translationZerror": 0.02,
+                "E2.longHalfAxisA": 0.01}
 DEMO_EFFECT = ("chamber_z", {"z": 20.0})
 # Candidate configurations (when the diagnosis module does not design them): E1/E2 pitch and
 # yaw spread wide (they change the lever arm to the screen, which separates a chamber shift
@@ -339,7 +339,7 @@ def run_demo(out: Path, settings: DemoSettings | None = None, store_location: st
             "ranking": [c.name for c in analysis.ranking.diagnosis.candidates],
             "history": [c.total_row() for c in analysis.comparisons],
             "fitted_effect": ({analysis.refit.effect: analysis.refit.magnitude()} if analysis.refit else {}),
-            "truth_id": m.truth_id}
+            "truth_id": m.truth_id, "ioc": {"prefix": ioc.prefix, "port": ioc.port, "pid": ioc.proc.pid}}
         (out / "summary.json").write_text(json.dumps(summary, indent=1, default=float))
         _print_summary(summary, analysis, store.location)
         store.close()
@@ -411,9 +411,14 @@ def parse_effect(text: str) -> tuple[str, dict]:
         except ValueError:
             raise CliError(f"--effect {name}: {item!r} is not PARAM=NUMBER") from None
     try:
-        return name, eff.values(values)
+        full = eff.values(values)
     except ValueError as exc:
         raise CliError(str(exc)) from None
+    for p in eff.parameters:
+        if not p.low <= full[p.name] <= p.high:
+            raise CliError(f"--effect {name}: {p.name} = {full[p.name]:g} {p.unit} lies outside its prior range "
+                           f"[{p.low:g}, {p.high:g}]")
+    return name, full
 
 
 def _cmd_demo(args) -> int:
