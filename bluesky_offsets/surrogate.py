@@ -59,6 +59,10 @@ class Architecture:
       axis' bins).  Trained on the likelihood of the ray counts (binomial for
       the transmission, multinomial for the shape), whose gradients do not
       vanish on the mostly dark box (docs/surrogate.md says why this matters).
+
+    ``members`` > 1 (factored only) averages the histograms of that many such
+    pairs of nets, trained together from different initializations: the
+    members' errors partly cancel.
     """
 
     n_inputs: int = 34
@@ -67,6 +71,7 @@ class Architecture:
     n_layers: int = 7
     decoder: str = "bins"
     bins_x: int | None = None
+    members: int = 1
 
     def __post_init__(self):
         if self.n_layers < 2:
@@ -75,6 +80,8 @@ class Architecture:
             raise ValueError("width must be positive")
         if self.decoder not in DECODERS:
             raise ValueError(f"decoder must be one of {DECODERS}, got {self.decoder!r}")
+        if self.members < 1 or (self.members > 1 and self.decoder != "factored"):
+            raise ValueError("members > 1 (an ensemble) needs the factored decoder")
         if self.bins_x is None:
             object.__setattr__(self, "bins_x", self.n_outputs // 2)
         if not 0 < self.bins_x < self.n_outputs:
@@ -104,21 +111,35 @@ class SurrogateNet(nn.Module):
         self.bins_x = arch.bins_x
         if arch.decoder == "bins":
             self.layers = _mlp(arch.n_inputs, arch.n_outputs, arch.width, arch.n_layers)
-        else:
+        elif arch.members == 1:  # (flat attribute names keep single-model checkpoints simple)
             self.transmission = _mlp(arch.n_inputs, 2, arch.width, arch.n_layers)
             self.shape = _mlp(arch.n_inputs, arch.n_outputs, arch.width, arch.n_layers)
+        else:
+            self.transmission_members = nn.ModuleList(_mlp(arch.n_inputs, 2, arch.width, arch.n_layers)
+                                                      for _ in range(arch.members))
+            self.shape_members = nn.ModuleList(_mlp(arch.n_inputs, arch.n_outputs, arch.width, arch.n_layers)
+                                               for _ in range(arch.members))
 
-    def _factors(self, x: torch.Tensor):
-        z = self.shape(x)
+    def _pairs(self):
+        if hasattr(self, "transmission"):
+            return [(self.transmission, self.shape)]
+        return list(zip(self.transmission_members, self.shape_members))
+
+    def _factors(self, x: torch.Tensor, pair):
+        z = pair[1](x)
         bx = self.bins_x
-        return self.transmission(x), torch.log_softmax(z[:, :bx], -1), torch.log_softmax(z[:, bx:], -1)
+        return pair[0](x), torch.log_softmax(z[:, :bx], -1), torch.log_softmax(z[:, bx:], -1)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         if self.decoder == "bins":
             return self.layers(x)
-        logit_t, log_sx, log_sy = self._factors(x)
-        t = torch.sigmoid(logit_t)
-        return torch.cat([t[:, :1] * log_sx.exp(), t[:, 1:] * log_sy.exp()], -1)
+        pairs = self._pairs()
+        out = 0.0
+        for pair in pairs:
+            logit_t, log_sx, log_sy = self._factors(x, pair)
+            t = torch.sigmoid(logit_t)
+            out = out + torch.cat([t[:, :1] * log_sx.exp(), t[:, 1:] * log_sy.exp()], -1)
+        return out / len(pairs)
 
     def loss(self, x: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
         """Training loss of a batch (``target`` in the net's output units).
@@ -126,16 +147,20 @@ class SurrogateNet(nn.Module):
         "bins": the MSE.  "factored": per axis, the binomial cross-entropy of
         the in-range fraction plus the multinomial cross-entropy of the shape
         weighted by that fraction: together the negative log-likelihood of the
-        ray counts per source ray (up to a constant).
+        ray counts per source ray (up to a constant); summed over the members
+        of an ensemble, each of which learns the whole histogram.
         """
         if self.decoder == "bins":
             return nn.functional.mse_loss(self(x), target)
-        logit_t, log_sx, log_sy = self._factors(x)
         bx = self.bins_x
         hx, hy = target[:, :bx], target[:, bx:]
         frac = torch.stack([hx.sum(-1), hy.sum(-1)], -1).clamp(0.0, 1.0)
-        loss = 2 * nn.functional.binary_cross_entropy_with_logits(logit_t, frac)
-        return loss - ((hx * log_sx).sum(-1) + (hy * log_sy).sum(-1)).mean()
+        loss = 0.0
+        for pair in self._pairs():
+            logit_t, log_sx, log_sy = self._factors(x, pair)
+            loss = loss + 2 * nn.functional.binary_cross_entropy_with_logits(logit_t, frac)
+            loss = loss - ((hx * log_sx).sum(-1) + (hy * log_sy).sum(-1)).mean()
+        return loss
 
 
 @dataclass

@@ -97,7 +97,7 @@ def _cmd_train(args) -> int:
                              good_min_rays=args.good_min_rays,
                              good_fraction=None if args.good_fraction <= 0 else args.good_fraction,
                              split=tuple(args.split), width=args.width, n_layers=args.layers,
-                             output_norm=args.output_norm, decoder=args.decoder, patience=args.patience, min_delta=args.min_delta,
+                             output_norm=args.output_norm, decoder=args.decoder, members=args.members, patience=args.patience, min_delta=args.min_delta,
                              epoch_samples=args.epoch_samples, device=args.device, seed=args.seed,
                              threads=args.threads, max_minutes=args.max_minutes)
     except ValueError as exc:
@@ -236,6 +236,8 @@ def add_cli(sub) -> None:
     t.add_argument("--decoder", choices=["bins", "factored"], default=c.decoder,
                    help="bins: the paper's net (MSE on the bins); factored: transmission x shape per axis "
                         "trained on the ray-count likelihood (default %(default)s)")
+    t.add_argument("--members", type=int, default=c.members,
+                   help="ensemble size, factored decoder only (default %(default)s)")
     t.add_argument("--patience", type=int, default=c.patience, help="early-stop patience in epochs (0: off)")
     t.add_argument("--min-delta", type=float, default=0.0, help="relative val-MSE gain that counts (default 0)")
     t.add_argument("--epoch-samples", type=int, default=None, help="samples per epoch (default: good/0.75)")

@@ -68,6 +68,8 @@ class TrainConfig:
         "bins" (the paper: the net outputs the bins, MSE loss) or "factored"
         (transmission x shape per axis, ray-count likelihood loss; see
         :class:`~bluesky_offsets.surrogate.Architecture`).
+    members : int
+        Ensemble size (factored decoder only; 1: a single model).
     patience : int
         Early stop after this many epochs without a better validation MSE (0: never).
     min_delta : float
@@ -95,6 +97,7 @@ class TrainConfig:
     n_layers: int = 7
     output_norm: str = "global"
     decoder: str = "bins"
+    members: int = 1
     patience: int = 30
     min_delta: float = 0.0
     epoch_samples: int | None = None
@@ -116,6 +119,8 @@ class TrainConfig:
             raise ValueError("lr must be > 0 and gamma in (0, 1]")
         if self.decoder not in DECODERS:
             raise ValueError(f"decoder must be one of {DECODERS}, got {self.decoder!r}")
+        if self.members < 1 or (self.members > 1 and self.decoder != "factored"):
+            raise ValueError("members > 1 (an ensemble) needs decoder 'factored'")
         if self.decoder == "factored":
             self.output_norm = "none"
         elif self.output_norm == "none":
@@ -138,7 +143,7 @@ class TrainConfig:
 
 # the keys that must agree to resume a run
 _RESUME_KEYS = ("batch_size", "lr", "gamma", "good_min_rays", "good_fraction", "split", "width", "n_layers",
-                "output_norm", "decoder", "epoch_samples", "seed")
+                "output_norm", "decoder", "members", "epoch_samples", "seed")
 
 
 def split_indices(n: int, fractions, seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -223,7 +228,8 @@ def train(data: Dataset, run_dir: str | os.PathLike, config: TrainConfig | None 
     good_tr = tr[data.n_hits[tr] >= config.good_min_rays]
     bad_tr = tr[data.n_hits[tr] < config.good_min_rays]
 
-    arch = Architecture(len(table), hist.bins_x + hist.bins_y, config.width, config.n_layers, config.decoder, hist.bins_x)
+    arch = Architecture(len(table), hist.bins_x + hist.bins_y, config.width, config.n_layers, config.decoder, hist.bins_x,
+                        config.members)
     provenance = {"dataset": data.meta.get("path"), "n_samples": len(data),
                   "n_train": len(tr), "n_val": len(va), "n_test": len(te),
                   "n_good": int((data.n_hits >= config.good_min_rays).sum()),

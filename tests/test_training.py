@@ -82,6 +82,10 @@ def test_factored_decoder_trains(store, tmp_path):
     assert m.arch.decoder == "factored" and m.norm.mode == "none" and m.training["decoder"] == "factored"
     assert hist[-1]["train_loss"] < hist[0]["train_loss"]
     assert min(h["val_mse"] for h in hist[1:]) < hist[0]["val_mse"]
+    ens = training.train(data, tmp_path / "e", _small(epochs=2, decoder="factored", members=2), progress=False)
+    assert ens.arch.members == 2 and len(ens.net.shape_members) == 2
+    with pytest.raises(ValueError, match="ensemble"):
+        _small(members=2)
 
 
 def test_resume_continues_exactly(store, tmp_path):
