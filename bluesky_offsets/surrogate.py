@@ -128,7 +128,7 @@ class SurrogateNet(nn.Module):
     def _factors(self, x: torch.Tensor, pair):
         z = pair[1](x)
         bx = self.bins_x
-        return pair[0](x), torch.log_softmax(z[:, :bx], -1), torch.log_softmax(z[:, bx:], -1)
+        return pair[0](x), torch.log_softmax(z[..., :bx], -1), torch.log_softmax(z[..., bx:], -1)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         if self.decoder == "bins":
@@ -138,7 +138,7 @@ class SurrogateNet(nn.Module):
         for pair in pairs:
             logit_t, log_sx, log_sy = self._factors(x, pair)
             t = torch.sigmoid(logit_t)
-            out = out + torch.cat([t[:, :1] * log_sx.exp(), t[:, 1:] * log_sy.exp()], -1)
+            out = out + torch.cat([t[..., :1] * log_sx.exp(), t[..., 1:] * log_sy.exp()], -1)
         return out / len(pairs)
 
     def loss(self, x: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
@@ -153,7 +153,7 @@ class SurrogateNet(nn.Module):
         if self.decoder == "bins":
             return nn.functional.mse_loss(self(x), target)
         bx = self.bins_x
-        hx, hy = target[:, :bx], target[:, bx:]
+        hx, hy = target[..., :bx], target[..., bx:]
         frac = torch.stack([hx.sum(-1), hy.sum(-1)], -1).clamp(0.0, 1.0)
         loss = 0.0
         for pair in self._pairs():
