@@ -35,16 +35,25 @@ class Candidate:
     penalty: float
     significant: bool
     predicted_signature: dict[str, float]
+    # set when the candidate was refitted through the twin (re-anchored), see diagnose(refine_top=...)
+    delta_chi2_twin: float | None = None
+    refined_state: ModelState | None = field(default=None, repr=False)
+
+    @property
+    def refined(self) -> bool:
+        return self.delta_chi2_twin is not None
 
     @property
     def score(self) -> float:
+        if self.delta_chi2_twin is not None:
+            return self.delta_chi2_twin - self.penalty
         return self.delta_chi2_heldout - self.penalty
 
     def as_dict(self) -> dict:
         return {"name": self.name, "n_params": self.n_params, "values": self.values, "sigma": self.sigma,
                 "delta_chi2_heldout": self.delta_chi2_heldout, "delta_chi2_all": self.delta_chi2_all,
                 "penalty": self.penalty, "score": self.score, "significant": self.significant,
-                "predicted_signature": self.predicted_signature}
+                "predicted_signature": self.predicted_signature, "delta_chi2_twin": self.delta_chi2_twin}
 
 
 @dataclass
@@ -96,13 +105,30 @@ def _folds(n: int, k: int, seed: int) -> list[np.ndarray]:
 
 def diagnose(meas: Measurement, state: ModelState, twin, forward_model, *,
              candidates: Sequence[str] | None = None, folds: int = 4, anchor_rays: int | None = None,
-             seed: int = 0, n_sigma: float = 3.0, reuse=None, table: ParameterTable = METRIXS) -> Diagnosis:
+             seed: int = 0, n_sigma: float = 3.0, reuse=None, refine_top: int = 0, refine_iterations: int = 3,
+             origin: ModelState | None = None, refresh_columns: Sequence[int] | None = None,
+             table: ParameterTable = METRIXS) -> Diagnosis:
     """Rank candidate effects for the misfit of ``state`` against ``meas``.
 
     ``state`` should already carry fitted offsets (the finder's, refined by
     :func:`bluesky_offsets.model.refine`).  Candidates default to every registered
     effect the state does not include yet.  ``reuse`` takes the refinement's final
     local model (same state) so that its anchor and offset Jacobian are not traced again.
+
+    ``refine_top`` > 0: when the base model is beyond noise, the best ``refine_top``
+    candidates of the local ranking are refitted *through the twin* with the offsets
+    (``refine_iterations`` re-anchored iterations, the offset Jacobian reused) and re-ranked
+    by the twin's own chi-square improvement minus the parameter price (the ``refine_top``
+    with the largest all-data gain of the local fit are chosen).  The local model is
+    quadratic in each effect around zero; effects far from zero (a defocus of 20 mm) or
+    strongly non-linear ones (an energy offset at the slit edge) are judged by the twin
+    itself this way.  Their held-out test stays the local K-fold one.  The refits start
+    from ``origin`` (default ``state``) with the effect absent: offsets fitted without the
+    effect have absorbed part of it and can sit in a basin the effect cannot reach, so the
+    state the offsets-only refinement started from (the finder's) is the better origin.
+    ``refresh_columns`` are the offset columns differentiated afresh at every anchor
+    (see :func:`bluesky_offsets.model.sensitive_columns`).  Cost:
+    ``refine_top * refine_iterations * n (1 + len(refresh_columns) + 2 p)`` traces.
     """
     names = [n for n in (candidates or list(E.EFFECTS)) if n not in state.effects]
     anchor_rays = anchor_rays or (reuse.anchor_rays if reuse is not None else int(meas.n_rays))
@@ -136,16 +162,19 @@ def diagnose(meas: Measurement, state: ModelState, twin, forward_model, *,
 
     fold_idx = _folds(meas.n, folds, seed)
 
-    def cv_chi2(lm: LocalModel) -> tuple[float, float, object]:
-        ho = 0.0
-        for f in fold_idx:
+    def cv_chi2(lm: LocalModel, starts=None) -> tuple[float, float, object, list]:
+        # candidates start where the offsets-only fits ended (nested models: never worse)
+        ho, fits = 0.0, []
+        for i, f in enumerate(fold_idx):
             train = np.setdiff1d(np.arange(meas.n), f)
-            ho += fit_local(meas, lm, train=train, heldout=f, table=table).chi2_heldout
-        full = fit_local(meas, lm, table=table)
-        return ho, full.chi2_train, full
+            fits.append(fit_local(meas, lm, train=train, heldout=f, table=table,
+                                  start=None if starts is None else starts[i]))
+            ho += fits[-1].chi2_heldout
+        full = fit_local(meas, lm, table=table, start=None if starts is None else starts[-1])
+        return ho, full.chi2_train, full, fits + [full]
 
     base_lm = sub_model([])
-    base_ho, base_all, base_fit = cv_chi2(base_lm)
+    base_ho, base_all, base_fit, base_fits = cv_chi2(base_lm)
     base_pred = base_lm.predict(base_fit.offsets - state.offsets, base_fit.effects - state.effect_vector())
     observed = _signature(m, base_pred, twin.hist)
     n_data = int(base_mf.dof_total)
@@ -153,7 +182,7 @@ def diagnose(meas: Measurement, state: ModelState, twin, forward_model, *,
     for n_ in names:
         eff = E.get(n_)
         lm = sub_model([n_])
-        ho, chi_all, fit = cv_chi2(lm)
+        ho, chi_all, fit, _ = cv_chi2(lm, base_fits)
         p = len(eff.parameters)
         penalty = p * math.log(max(n_data, 2))
         d_ho, d_all = base_ho - ho, base_all - chi_all
@@ -167,10 +196,57 @@ def diagnose(meas: Measurement, state: ModelState, twin, forward_model, *,
             bool(not within and d_ho - penalty > 0 and d_all - penalty > 0),
             _signature(pred, base_pred, twin.hist)))
     out.sort(key=lambda c: -c.score)
+    if refine_top and not within:
+        base_chi2 = base_mf.chi2_total
+        # the nested all-data gain picks whom to refit (held-out gains of few configurations are noisy)
+        chosen = sorted(out, key=lambda c: -(c.delta_chi2_all - c.penalty))[:refine_top]
+        for i, cand in enumerate(chosen):
+            if cand.delta_chi2_all - cand.penalty <= 0:
+                continue  # no gain even on the data it is fitted to: not worth the traces
+            start = (origin if origin is not None else state).with_effect(cand.name)
+            res = refine(meas, start, twin, forward_model, iterations=refine_iterations, anchor_rays=anchor_rays,
+                         seed=seed + 7919 * (i + 1), offset_jacobian=lm_all.jac, refresh_columns=refresh_columns,
+                         effect_step=0.1, table=table)
+            accepted = [h for h in res.history if h["accepted"]]
+            cand.delta_chi2_twin = float(base_chi2 - accepted[-1]["chi2"])
+            cand.values = {k: float(v) for k, v in res.state.effects[cand.name].items()}
+            cand.sigma = dict(res.effect_sigma[cand.name])
+            cand.refined_state = res.state
+            cand.significant = bool(cand.significant and cand.delta_chi2_twin - cand.penalty > 0)
+            n_traces += (refine_iterations + 1) * meas.n * (1 + len(refresh_columns or ())
+                                                            + 2 * len(E.get(cand.name).parameters))
+        out.sort(key=lambda c: (not c.refined, -c.score))
     notes = []
     if within:
         notes.append(f"the base model is within noise (chi2/dof = {base_mf.chi2_reduced_total:.2f})")
     return Diagnosis(base_mf, within, out, observed, folds, n_traces, notes)
+
+
+# Lever arms that separate a screen translation from focal-length (half-axis) offsets: tilting
+# E1/E2 changes where the beam meets the screen and how the focus is aberrated, which a focal
+# length change does not (docs/diagnosis.md).  Normalized half-widths of the spread.
+DIAGNOSTIC_SPREAD = {"E1.rotationXerror": 0.3, "E1.rotationYerror": 0.3, "E2.rotationXerror": 0.3,
+                     "E2.rotationYerror": 0.3}
+
+
+def diagnostic_configurations(around, n: int = 12, *, seed: int = 0, spread: dict[str, float] | None = None,
+                              table: ParameterTable = METRIXS) -> np.ndarray:
+    """``n`` configurations (n, P) around ``around`` (physical, table order) for a diagnosis.
+
+    Motorized parameters named in ``spread`` (default :data:`DIAGNOSTIC_SPREAD`) are drawn
+    uniformly within ± their normalized half-width and clipped to the box; the others stay at
+    ``around``; fixed parameters at their design value.
+    """
+    spread = DIAGNOSTIC_SPREAD if spread is None else spread
+    base = table.normalize(table.validate(np.asarray(around, dtype=float), "around"))
+    rng = np.random.default_rng(seed)
+    z = np.tile(base, (n, 1))
+    for name, half in spread.items():
+        i = table.index(name)
+        if not table.motorized[i]:
+            raise ValueError(f"{name} is not motorized: it cannot be varied between configurations")
+        z[:, i] = np.clip(base[i] + rng.uniform(-half, half, n), 0.0, 1.0)
+    return np.where(table.motorized, table.denormalize(z), table.reference)
 
 
 def _with(state: ModelState, names: Sequence[str]) -> ModelState:
@@ -207,12 +283,30 @@ def evaluate(meas: Measurement, state: ModelState, twin, *, model_rays: int | No
 
 
 def add_effect(meas: Measurement, state: ModelState, name: str, twin, forward_model, *, iterations: int = 3,
-               anchor_rays: int | None = None, seed: int = 0, progress=None,
-               table: ParameterTable = METRIXS) -> tuple[ModelState, dict[str, dict[str, float]]]:
-    """``model.with_effect(name)`` and refit offsets + effect through the twin."""
-    res = refine(meas, state.with_effect(name), twin, forward_model, iterations=iterations,
-                 anchor_rays=anchor_rays, seed=seed, progress=progress, table=table)
+               anchor_rays: int | None = None, seed: int = 0, progress=None, values=None,
+               table: ParameterTable = METRIXS, **refine_kw) -> tuple[ModelState, dict[str, dict[str, float]]]:
+    """``model.with_effect(name, values)`` and refit offsets + effect through the twin.
+
+    ``values`` starts the effect where the diagnosis found it (a :class:`Candidate`'s
+    ``values``), which saves iterations and keeps the fit in the right basin of effects whose
+    response is symmetric about zero (a defocus).  Further keywords go to
+    :func:`bluesky_offsets.model.refine` (``twin_columns``, ``reuse_jacobian``, ``effect_step``,
+    ``offset_prior`` ...).  See :func:`add_effect_result` for the whole refinement.
+    """
+    res = add_effect_result(meas, state, name, twin, forward_model, iterations=iterations, anchor_rays=anchor_rays,
+                            seed=seed, progress=progress, values=values, table=table, **refine_kw)
     return res.state, res.effect_sigma
+
+
+def add_effect_result(meas: Measurement, state: ModelState, name: str, twin, forward_model, *,
+                      iterations: int = 3, anchor_rays: int | None = None, seed: int = 0, progress=None,
+                      values=None, table: ParameterTable = METRIXS, **refine_kw):
+    """As :func:`add_effect`, returning the :class:`~bluesky_offsets.model.RefineResult`
+    (state, effect uncertainties, iteration history, last local model)."""
+    if values is not None and not isinstance(values, dict):
+        values = getattr(values, "values", values)  # a Candidate
+    return refine(meas, state.with_effect(name, values), twin, forward_model, iterations=iterations,
+                  anchor_rays=anchor_rays, seed=seed, progress=progress, table=table, **refine_kw)
 
 
 def plot_error_history(versions: Sequence[Version], path, title: str = "model error across versions"):

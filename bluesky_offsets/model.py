@@ -220,12 +220,16 @@ def twin_jacobian(twin, configurations: np.ndarray, state: ModelState, raw0, n_r
 
 def build_local_model(meas: Measurement, state: ModelState, twin, forward_model, *, anchor_rays: int,
                       seed: int = 0, twin_columns: Sequence[int] | None = None, reuse: LocalModel | None = None,
+                      offset_jacobian: np.ndarray | None = None, effect_step: float = 0.25,
                       table: ParameterTable = METRIXS) -> LocalModel:
     """Trace the anchor and the effect responses; the offset Jacobian comes from the surrogate.
 
     Twin-level effect parameters cost two traces per configuration each (same seeds as
-    the anchor: common random numbers make the differences smooth); detector-level ones
-    are applied to the anchor's histograms and cost nothing.
+    the anchor: common random numbers make the differences smooth), probed at
+    ``±effect_step`` of each parameter's prior range; detector-level ones are applied to the
+    anchor's histograms and cost nothing.  ``offset_jacobian`` (n, 100, 34) is used as is
+    instead of differentiating again (a Jacobian traced at a nearby state: it changes slowly,
+    while the anchor carries the exact twin).
     """
     n = meas.n
     if reuse is not None:
@@ -245,6 +249,12 @@ def build_local_model(meas: Measurement, state: ModelState, twin, forward_model,
     if reuse is not None:
         jac = reuse.jac
         twin_columns = ()
+    elif offset_jacobian is not None:
+        # a Jacobian from before; only the ``twin_columns`` named are differentiated afresh
+        jac = np.array(offset_jacobian, dtype=float)
+        if jac.shape != (n, t0.shape[1], len(table)):
+            raise ValueError(f"offset_jacobian must be {(n, t0.shape[1], len(table))}, got {jac.shape}")
+        twin_columns = () if twin_columns is None else twin_columns
     elif forward_model is not None:
         jac = surrogate_jacobian(forward_model, meas.configurations, state.offsets, table)
     else:
@@ -261,8 +271,13 @@ def build_local_model(meas: Measurement, state: ModelState, twin, forward_model,
     a = np.zeros((n, t0.shape[1], len(params)))
     b = np.zeros_like(a)
     for j, (name, p) in enumerate(params):
-        step = 0.25 * p.span
-        pts = (-step, step) if phi0[j] - step >= p.low - 1e-12 else (step, 2 * step)
+        step = effect_step * p.span
+        if phi0[j] - step < p.low - 1e-12:
+            pts = (step, 2 * step)       # one-sided parameter at its lower bound
+        elif phi0[j] + step > p.high + 1e-12:
+            pts = (-2 * step, -step)
+        else:
+            pts = (-step, step)
         hs = []
         for d in pts:
             vec = phi0.copy()
@@ -298,7 +313,8 @@ def _weights(meas_h: np.ndarray, model_h: np.ndarray, n_rays: int, anchor_rays: 
 
 
 def fit_local(meas: Measurement, lm: LocalModel, *, train=None, heldout=None, offset_prior: float = 0.03,
-              free_offsets: bool = True, iterations: int = 30, table: ParameterTable = METRIXS) -> LocalFit:
+              free_offsets: bool = True, iterations: int = 30, start: LocalFit | None = None,
+              table: ParameterTable = METRIXS) -> LocalFit:
     """Weighted least squares on the local model: Levenberg-Marquardt with box constraints.
 
     ``offset_prior`` (normalized units) keeps offset changes near the anchor where the
@@ -336,6 +352,12 @@ def fit_local(meas: Measurement, lm: LocalModel, *, train=None, heldout=None, of
         return D if k else D[:, :, nt:]
 
     z = np.zeros(k + p)
+    if start is not None:
+        if k:
+            z[:k] = start.offsets - lm.anchor.offsets
+        q = min(p, len(start.effects))
+        z[k:k + q] = start.effects[:q] - phi0[:q]
+        z = np.clip(z, lo, hi)
     c = cost(z)
     mu = 1e-3
     for _ in range(iterations):
@@ -374,6 +396,15 @@ def fit_local(meas: Measurement, lm: LocalModel, *, train=None, heldout=None, of
     return LocalFit(lm.anchor.offsets + th, phi0 + ph, chi2_tr, chi2_ho, int(sig.sum()), dof_ho, cov)
 
 
+def sensitive_columns(meas: Measurement, lm: LocalModel, top: int = 12) -> list[int]:
+    """The ``top`` offset columns with the largest Fisher information (noise-weighted norm of
+    their Jacobian column) at ``lm``'s anchor, most informative first."""
+    m = np.concatenate([meas.hist_x, meas.hist_y], axis=1)
+    w, _ = _weights(m, lm.t0, meas.n_rays, lm.anchor_rays)
+    info = np.einsum("nbk,nb->k", lm.jac ** 2, w)
+    return [int(i) for i in np.argsort(-info)[:top] if info[i] > 0]
+
+
 @dataclass
 class RefineResult:
     state: ModelState
@@ -388,7 +419,9 @@ def _twin_chi2(meas: Measurement, lm: LocalModel):
 
 def refine(meas: Measurement, state: ModelState, twin, forward_model, *, iterations: int = 4,
            anchor_rays: int | None = None, seed: int = 0, free_offsets: bool = True, offset_prior: float = 0.01,
-           twin_columns: Sequence[int] | None = None, progress=None,
+           twin_columns: Sequence[int] | None = None, progress=None, reuse_jacobian: bool = False,
+           effect_step: float = 0.25, start: LocalModel | None = None, sigma_offset_prior: float | None = None,
+           offset_jacobian: np.ndarray | None = None, refresh_columns: Sequence[int] | None = None,
            table: ParameterTable = METRIXS) -> RefineResult:
     """Fit offsets and the state's effects to ``meas`` by re-anchored Gauss-Newton through the twin.
 
@@ -398,12 +431,37 @@ def refine(meas: Measurement, state: ModelState, twin, forward_model, *, iterati
     and shrinks after a failure (Levenberg-Marquardt).  ``twin_columns``
     names offset parameters whose Jacobian the twin itself provides by finite
     differences (all of them when ``forward_model`` is None).
+
+    ``reuse_jacobian`` keeps the first offset Jacobian for all iterations: each
+    iteration then costs only the anchor and the effect probes (``n (1 + 2 p)``
+    traces instead of ``n (35 + 2 p)``); the anchor is the exact twin, so the
+    fixed point is the same, only the convergence is linear.  ``start`` is a local
+    model already built for ``state`` (e.g. a refinement's last one) to begin from;
+    ``offset_jacobian`` (n, 100, 34) one traced before at a nearby state, used throughout.
+    ``refresh_columns`` (with a reused Jacobian) are differentiated afresh at every anchor:
+    the few offsets that move the footprint across bins (see :func:`sensitive_columns`),
+    whose derivative changes as the footprint moves, at ``n`` traces per column.
+    The reported effect uncertainties come from the Gauss-Newton covariance at the
+    solution with the offsets free within the final trust region (default), or within
+    ``sigma_offset_prior`` (normalized; e.g. ``MAX_OFFSET``, the physical prior), which lets
+    correlations with poorly determined offsets widen them: the honest, larger number.
     """
     anchor_rays = anchor_rays or int(meas.n_rays)
-    lm = build_local_model(meas, state, twin, forward_model, anchor_rays=anchor_rays, seed=seed,
-                           twin_columns=twin_columns, table=table)
+    if start is not None:
+        if not (np.array_equal(start.anchor.offsets, state.offsets) and start.anchor_rays == anchor_rays
+                and start.anchor.effect_vector().size == state.effect_vector().size
+                and np.allclose(start.anchor.effect_vector(), state.effect_vector())):
+            raise ValueError("start: the local model was built for another state")
+        lm = start
+    else:
+        lm = build_local_model(meas, state, twin, forward_model, anchor_rays=anchor_rays, seed=seed,
+                               twin_columns=(refresh_columns or ()) if offset_jacobian is not None else twin_columns,
+                               offset_jacobian=offset_jacobian, effect_step=effect_step, table=table)
+    jac = lm.jac if (reuse_jacobian or offset_jacobian is not None) else None
+
     mf = _twin_chi2(meas, lm)
     history = [{"iteration": 0, "accepted": True, "chi2_reduced": mf.chi2_reduced_total, "mse": mf.mse_total,
+                "chi2": mf.chi2_total, "dof": mf.dof_total,
                 "effects": {k: dict(v) for k, v in state.effects.items()}}]
     if progress:
         progress(history[-1])
@@ -413,7 +471,9 @@ def refine(meas: Measurement, state: ModelState, twin, forward_model, *, iterati
         proposal = ModelState(np.clip(fit.offsets, -MAX_OFFSET, MAX_OFFSET), current.set_effect_vector(fit.effects),
                               current.label)
         lm_p = build_local_model(meas, proposal, twin, forward_model, anchor_rays=anchor_rays,
-                                 seed=seed + 1000 * it, twin_columns=twin_columns, table=table)
+                                 seed=seed + 1000 * it,
+                                 twin_columns=(refresh_columns or ()) if jac is not None else twin_columns,
+                                 offset_jacobian=jac, effect_step=effect_step, table=table)
         mf_p = _twin_chi2(meas, lm_p)
         accepted = mf_p.chi2_total < mf.chi2_total
         if accepted:
@@ -422,11 +482,13 @@ def refine(meas: Measurement, state: ModelState, twin, forward_model, *, iterati
         else:
             prior /= 4.0
         history.append({"iteration": it, "accepted": bool(accepted), "chi2_reduced": mf_p.chi2_reduced_total,
-                        "mse": mf_p.mse_total, "effects": {k: dict(v) for k, v in proposal.effects.items()}})
+                        "mse": mf_p.mse_total, "chi2": mf_p.chi2_total, "dof": mf_p.dof_total,
+                        "effects": {k: dict(v) for k, v in proposal.effects.items()}})
         if progress:
             progress(history[-1])
     # uncertainty of the effect parameters at the solution (local Gauss-Newton covariance)
-    final = fit_local(meas, lm, offset_prior=prior, free_offsets=free_offsets, table=table, iterations=1)
+    final = fit_local(meas, lm, offset_prior=sigma_offset_prior or prior, free_offsets=free_offsets, table=table,
+                      iterations=0 if sigma_offset_prior else 1)
     p = len(current.effect_vector())
     sig = np.sqrt(np.clip(np.diag(final.covariance)[-p:], 0, None)) if p else np.array([])
     effect_sigma, i = {}, 0

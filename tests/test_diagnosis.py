@@ -100,3 +100,29 @@ def test_measurement_from_the_run_store():
     with pytest.raises(MeasurementError, match="version"):
         Measurement.from_store(Stored(cfg, np.zeros((2, 50)), np.zeros((2, 50)),
                                       metadata={"n_rays": 1, "parameter_table_version": "xyz"}))
+
+
+@pytest.mark.parametrize("change, message", [
+    (lambda c, hx, hy: (c, hx[:, :40], hy), r"x histograms must be \(configurations, 50\), got \(2, 40\)"),
+    (lambda c, hx, hy: (c, hx, hy[:, :49]), r"y histograms must be \(2, 50\), got \(2, 49\)"),
+    (lambda c, hx, hy: (c, hx[..., None], hy), r"x histograms must be .* got \(2, 50, 1\)"),
+    (lambda c, hx, hy: (c, np.where(np.arange(50) == 7, np.nan, hx), hy), "non-finite bin 7"),
+    (lambda c, hx, hy: (c, hx, -hy), "negative bins"),
+    (lambda c, hx, hy: (c[:, :33], hx, hy), r"34 parameters in table order, got shape \(2, 33\)"),
+])
+def test_measurement_refuses_wrong_shapes_and_nan(change, message):
+    cfg = np.tile(METRIXS.reference, (2, 1))
+    hist = np.full((2, 50), 0.01)
+    c, hx, hy = change(cfg, hist, hist)
+    with pytest.raises(MeasurementError, match=message):
+        Measurement(c, hx, hy, 1000)
+
+
+def test_stored_measurement_with_another_parameter_table_is_refused():
+    from bluesky_offsets.store import Measurement as Stored
+    names = list(METRIXS.names)
+    names[0] = "U41.tx"
+    stored = Stored(np.tile(METRIXS.reference, (2, 1)), np.zeros((2, 50)), np.zeros((2, 50)), names=names,
+                    metadata={"n_rays": 1000})
+    with pytest.raises(MeasurementError, match=r"missing \['U41_318eV.translationXerror'\], unexpected \['U41.tx'\]"):
+        Measurement.from_store(stored)
