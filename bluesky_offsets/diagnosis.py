@@ -20,7 +20,7 @@ import numpy as np
 
 from . import effects as E
 from .diagnostics import Misfit, misfit, moments
-from .model import LocalModel, Measurement, ModelState, build_local_model, fit_local, refine, simulate
+from .model import LocalModel, Measurement, ModelState, _twin_chi2, build_local_model, fit_local, refine, simulate
 from .parameters import METRIXS, ParameterTable
 
 
@@ -123,9 +123,11 @@ def diagnose(meas: Measurement, state: ModelState, twin, forward_model, *,
     quadratic in each effect around zero; effects far from zero (a defocus of 20 mm) or
     strongly non-linear ones (an energy offset at the slit edge) are judged by the twin
     itself this way.  Their held-out test stays the local K-fold one.  The refits start
-    from ``origin`` (default ``state``) with the effect absent: offsets fitted without the
-    effect have absorbed part of it and can sit in a basin the effect cannot reach, so the
-    state the offsets-only refinement started from (the finder's) is the better origin.
+    from ``origin`` (default ``state``) with the effect absent, and an offsets-only refit
+    with the same start and iterations is their reference, so a candidate is credited only
+    with what it adds; it is significant when its gain beyond the parameter price exceeds
+    ``n_sigma`` times the chi-square noise ``sqrt(2 dof)``.  If the reference itself reaches
+    the noise, the verdict is "no significant missing effect".
     ``refresh_columns`` are the offset columns differentiated afresh at every anchor
     (see :func:`bluesky_offsets.model.sensitive_columns`).  Cost:
     ``refine_top * refine_iterations * n (1 + len(refresh_columns) + 2 p)`` traces.
@@ -196,27 +198,41 @@ def diagnose(meas: Measurement, state: ModelState, twin, forward_model, *,
             bool(not within and d_ho - penalty > 0 and d_all - penalty > 0),
             _signature(pred, base_pred, twin.hist)))
     out.sort(key=lambda c: -c.score)
+    refit_note = None
     if refine_top and not within:
-        base_chi2 = base_mf.chi2_total
-        # the nested all-data gain picks whom to refit (held-out gains of few configurations are noisy)
+        # the twin refits start from the same origin and get the same iterations as an
+        # offsets-only refit beside them: a candidate is credited only with what it adds
+        origin = origin if origin is not None else state
+        common = dict(iterations=refine_iterations, anchor_rays=anchor_rays, offset_jacobian=lm_all.jac,
+                      refresh_columns=refresh_columns, effect_step=0.1, table=table)
+        ref = refine(meas, origin, twin, forward_model, seed=seed + 7919, **common)
+        ref_chi2 = [h for h in ref.history if h["accepted"]][-1]["chi2"]
+        ref_mf = _twin_chi2(meas, ref.local_model)
+        n_traces += (refine_iterations + 1) * meas.n * (1 + len(refresh_columns or ()))
+        if not ref_mf.total_beyond_noise(n_sigma):
+            within = True  # the offsets alone reach the noise once refined further
+        # a refit's chi-square carries the noise of its anchor: demand more than that
+        threshold = n_sigma * math.sqrt(2 * max(ref_mf.dof_total, 1))
         chosen = sorted(out, key=lambda c: -(c.delta_chi2_all - c.penalty))[:refine_top]
         for i, cand in enumerate(chosen):
-            if cand.delta_chi2_all - cand.penalty <= 0:
+            if within or cand.delta_chi2_all - cand.penalty <= 0:
                 continue  # no gain even on the data it is fitted to: not worth the traces
-            start = (origin if origin is not None else state).with_effect(cand.name)
-            res = refine(meas, start, twin, forward_model, iterations=refine_iterations, anchor_rays=anchor_rays,
-                         seed=seed + 7919 * (i + 1), offset_jacobian=lm_all.jac, refresh_columns=refresh_columns,
-                         effect_step=0.1, table=table)
+            res = refine(meas, origin.with_effect(cand.name), twin, forward_model, seed=seed + 7919 * (i + 2),
+                         **common)
             accepted = [h for h in res.history if h["accepted"]]
-            cand.delta_chi2_twin = float(base_chi2 - accepted[-1]["chi2"])
+            cand.delta_chi2_twin = float(ref_chi2 - accepted[-1]["chi2"])
             cand.values = {k: float(v) for k, v in res.state.effects[cand.name].items()}
             cand.sigma = dict(res.effect_sigma[cand.name])
             cand.refined_state = res.state
-            cand.significant = bool(cand.significant and cand.delta_chi2_twin - cand.penalty > 0)
+            cand.significant = bool(cand.significant and cand.delta_chi2_twin - cand.penalty > threshold)
             n_traces += (refine_iterations + 1) * meas.n * (1 + len(refresh_columns or ())
                                                             + 2 * len(E.get(cand.name).parameters))
+        for cand in out:
+            # only what the twin confirmed counts once refits are asked for
+            cand.significant = bool(cand.significant and cand.refined and not within)
+        refit_note = f"offsets-only twin refit: chi2/dof = {ref_mf.chi2_reduced_total:.2f}"
         out.sort(key=lambda c: (not c.refined, -c.score))
-    notes = []
+    notes = [refit_note] if refit_note else []
     if within:
         notes.append(f"the base model is within noise (chi2/dof = {base_mf.chi2_reduced_total:.2f})")
     return Diagnosis(base_mf, within, out, observed, folds, n_traces, notes)
