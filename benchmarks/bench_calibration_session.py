@@ -15,7 +15,7 @@ Steps (timed together):
 4. the twin at commanded + found offsets vs. the measured histograms, next to the repeat-noise
    MSE (the expected multinomial value, and the twin's actual repeat at the hidden truth).
 
-    python benchmarks/bench_calibration_session.py [--rays 100000] [--truth FILE.json]
+    python benchmarks/bench_calibration_session.py [--rays 10000] [--polish 12] [--jacobian surrogate|twin|auto]
 """
 
 from __future__ import annotations
@@ -45,7 +45,7 @@ DEFAULT_TRUTH = {  # offsets in the sensitive axes large enough to move the foot
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--rays", type=int, default=100_000, help="rays per measured frame")
+    ap.add_argument("--rays", type=int, default=10_000, help="rays per measured frame")
     ap.add_argument("--truth", default=None, help="hidden truth JSON (default: offsets in 16 parameters)")
     ap.add_argument("--configurations", type=int, default=16)
     ap.add_argument("--candidates", type=int, default=40, help="candidates measured at most")
@@ -53,8 +53,8 @@ def main(argv=None) -> int:
     ap.add_argument("--evaluations", type=int, default=20_000)
     ap.add_argument("--polish", type=int, default=4)
     ap.add_argument("--model", default=None)
-    ap.add_argument("--jacobian", choices=("surrogate", "twin"), default="surrogate",
-                    help="Jacobian of the twin polish (default: the surrogate's)")
+    ap.add_argument("--jacobian", choices=("surrogate", "twin", "auto"), default="surrogate",
+                    help="Jacobian of the twin polish (default: the surrogate's; auto: then the twin's)")
     ap.add_argument("--out", default="data/bench_calibration_session.json")
     args = ap.parse_args(argv)
 

@@ -132,9 +132,9 @@ def twin_jacobian(problem: F.OffsetProblem, twin, offsets, *, step: float = 0.01
 
 def twin_polish(problem: F.OffsetProblem, model, twin, offsets, *, iterations: int = 4, n_rays: int | None = None,
                 damping: float = 1e-3, seed: int = 0, progress: bool = False, jacobian: str = "surrogate",
-                fd_step: float = 0.01, fd_rays: int = 10_000,
+                fd_step: float = 0.01, fd_rays: int = 10_000, oversample: float = 2.0,
                 callback: Callable[[dict], None] | None = None) -> tuple[np.ndarray, list[float]]:
-    """Gauss-Newton steps on the *twin's* residuals with the surrogate's Jacobian.
+    """Levenberg-Marquardt steps on the *twin's* residuals, from the surrogate's solution.
 
     The surrogate finds the right valley but its own error (~1e-6 per bin)
     is far above the counting noise of a 1e5-ray measurement (~4e-8): the
@@ -145,27 +145,37 @@ def twin_polish(problem: F.OffsetProblem, model, twin, offsets, *, iterations: i
     (``jacobian="surrogate"``) or the twin's own, by common-random-number
     finite differences (``jacobian="twin"``, :func:`twin_jacobian`: exact
     where the surrogate is wrong, ``(P + 1) n`` traces at ``fd_rays`` per
-    iteration).  A step is kept only if the twin's MSE falls.  Returns the
-    offsets and the twin MSE after each accepted step (first entry: at the
-    start).
+    iteration), or the surrogate's until its steps stop paying (rejected, or
+    < 2 % gain) and then the twin's (``jacobian="auto"``: the cheap steps
+    where they work, the exact ones where they are needed).  A step is kept
+    only if the twin's MSE falls.
+
+    The twin is traced with ``oversample`` x the measurement's rays and the
+    same seed at every step (common random numbers): near the optimum the
+    steps change the MSE by less than a fresh trace's noise would, so fresh
+    seeds at the measurement's ray count would make the accept test a coin
+    toss.  Returns the offsets and the twin MSE after each accepted step
+    (first entry: at the start).
     """
-    if jacobian not in ("surrogate", "twin"):
-        raise F.FinderError(f"jacobian must be 'surrogate' or 'twin', got {jacobian!r}")
+    if jacobian not in ("surrogate", "twin", "auto"):
+        raise F.FinderError(f"jacobian must be 'surrogate', 'twin' or 'auto', got {jacobian!r}")
     N = int(n_rays or problem.n_rays or 100_000)
+    n_twin = max(int(round(N * oversample)), 1)
     lim = problem.limit
     obs = problem.observations
-    var = I.bin_variance(obs, N) * 2.0  # observation and twin trace are both noisy
+    var = I.bin_variance(obs, N) * (1.0 + N / n_twin)  # observation and twin trace are both noisy
 
     def trace(o, s):
-        res = twin.trace_batch(problem.physical_configurations(o), n_rays=N, seed=s, progress=progress)
+        res = twin.trace_batch(problem.physical_configurations(o), n_rays=n_twin, seed=s, progress=progress)
         return np.concatenate([res.hist_x, res.hist_y], axis=1)
 
     o = np.asarray(offsets, dtype=float).copy()
     h = trace(o, seed)
     mse = [float(np.mean((h - obs) ** 2))]
     lam = damping
+    use_twin = jacobian == "twin"
     for it in range(iterations):
-        if jacobian == "twin":
+        if use_twin:
             J = twin_jacobian(problem, twin, o, step=fd_step, n_rays=fd_rays, seed=seed + 7919 * (it + 1),
                               progress=progress).reshape(-1, problem.n_parameters)
         else:
@@ -175,21 +185,28 @@ def twin_polish(problem: F.OffsetProblem, model, twin, offsets, *, iterations: i
         A = J.T @ (J * w[:, None])
         g = J.T @ (w * r)
         scale = np.sqrt(np.clip(np.diag(A), 1e-30, None))
+        accepted = False
         for _ in range(4):  # Levenberg: raise the damping until the twin agrees the step helps
             step = -np.linalg.solve(A + lam * np.diag(scale ** 2) + 1e-12 * np.eye(len(A)), g)
             cand = np.clip(o + step, -lim, lim)
-            hc = trace(cand, seed + 1000 * (it + 1))
+            hc = trace(cand, seed)
             m = float(np.mean((hc - obs) ** 2))
             if m < mse[-1]:
+                gain = 1.0 - m / mse[-1]
                 o, h = cand, hc
                 mse.append(m)
                 lam = max(lam / 3, 1e-6)
+                accepted = True
                 break
             lam *= 10
-        else:
-            break
         if callback:
-            callback({"iteration": it + 1, "twin_mse": mse[-1]})
+            callback({"iteration": it + 1, "twin_mse": mse[-1], "jacobian": "twin" if use_twin else "surrogate"})
+        if jacobian == "auto" and not use_twin and (not accepted or gain < 0.02):
+            # the surrogate's Jacobian has done what its accuracy allows: finish with the twin's own
+            use_twin, lam = True, damping
+            continue
+        if not accepted:
+            break
     return o, mse
 
 

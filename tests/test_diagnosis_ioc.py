@@ -10,16 +10,16 @@ every registered effect, the winner added and refitted.
 
 from __future__ import annotations
 
+import os
 import time
 
-import numpy as np
 import pytest
 from bluesky import RunEngine
 
 from bluesky_offsets import effects as E
 from bluesky_offsets.diagnosis import diagnose, diagnostic_configurations, evaluate
 from bluesky_offsets.model import Measurement, ModelState, build_local_model, refine, sensitive_columns
-from bluesky_offsets.parameters import MAX_OFFSET, METRIXS
+from bluesky_offsets.parameters import MAX_OFFSET
 from bluesky_offsets.twin import Twin
 from conftest import start_metrixs_ioc
 from plans import measure_configurations
@@ -109,6 +109,9 @@ def _workflow(meas: Measurement, twin):
 
 @pytest.mark.slow
 @pytest.mark.timeout(900)
+@pytest.mark.skipif(os.environ.get("BLUESKY_OFFSETS_RUN_KNOWN_FAILING") != "1", reason=(
+    "a known-failing acceptance check (strict xfail, 5-10 min): run it with "
+    "BLUESKY_OFFSETS_RUN_KNOWN_FAILING=1"))
 @pytest.mark.xfail(strict=True, reason=(
     "issue 6 acceptance not met yet (docs/diagnosis.md, 'Against the simulated IOC'): chamber_z 20 mm "
     "ranked first in 1 of 3 runs (else chamber_translation, which carries the same z, or vetoed by the "
