@@ -491,10 +491,4 @@ def refine(meas: Measurement, state: ModelState, twin, forward_model, *, iterati
                       iterations=0 if sigma_offset_prior else 1)
     p = len(current.effect_vector())
     sig = np.sqrt(np.clip(np.diag(final.covariance)[-p:], 0, None)) if p else np.array([])
-    effect_sigma, i = {}, 0
-    for name, vals in current.effects.items():
-        effect_sigma[name] = {}
-        for key in vals:
-            effect_sigma[name][key] = float(sig[i])
-            i += 1
-    return RefineResult(current, effect_sigma, history, lm)
+    return RefineResult(current, current.set_effect_vector(sig), history, lm)
