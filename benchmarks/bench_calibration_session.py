@@ -23,7 +23,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import signal
 import subprocess
 import sys
 import tempfile
@@ -32,7 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
-from sim_iocs.ports import free_port
+from sim_iocs.ports import free_port, loopback_env, stop_process_group
 
 DEFAULT_TRUTH = {  # offsets in the sensitive axes large enough to move the footprint by several bins
     "offsets": {"E1.rotationXerror": 0.1, "E2.rotationXerror": -0.12, "M1_Cylinder.rotationXerror": 0.06,
@@ -59,15 +58,14 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
 
     port = free_port()
-    os.environ.update(EPICS_CA_ADDR_LIST=f"127.0.0.1:{port}", EPICS_CA_AUTO_ADDR_LIST="NO")
+    ca_env = loopback_env(port)
+    os.environ.update(EPICS_CA_ADDR_LIST=ca_env["EPICS_CA_ADDR_LIST"], EPICS_CA_AUTO_ADDR_LIST="NO")
     work = Path(tempfile.mkdtemp(prefix="calib-session-"))
     truth_path = Path(args.truth) if args.truth else work / "truth.json"
     if not args.truth:
         truth_path.write_text(json.dumps(DEFAULT_TRUTH))
     prefix = f"BENCH{port}:"
-    env = dict(os.environ, EPICS_CA_SERVER_PORT=str(port), EPICS_CAS_SERVER_PORT=str(port),
-               EPICS_CAS_INTF_ADDR_LIST="127.0.0.1", EPICS_CAS_BEACON_ADDR_LIST="127.0.0.1",
-               EPICS_CAS_AUTO_BEACON_ADDR_LIST="NO", PYTHONUNBUFFERED="1")
+    env = dict(os.environ, **ca_env)
     t0 = time.perf_counter()
     log = open(work / "ioc.log", "w")
     ioc = subprocess.Popen([sys.executable, "-m", "sim_iocs.metrixs", "--prefix", prefix, "--truth", str(truth_path),
@@ -149,16 +147,7 @@ def main(argv=None) -> int:
             parameter_rmse=float(np.sqrt(np.mean((cal.offsets - truth.offsets) ** 2))),
             identifiability=cal.extra.get("identifiability"))
     finally:
-        if ioc.poll() is None:
-            ioc.send_signal(signal.SIGINT)
-            try:
-                ioc.wait(10)
-            except subprocess.TimeoutExpired:
-                pass
-        try:
-            os.killpg(ioc.pid, signal.SIGKILL)
-        except (ProcessLookupError, PermissionError):
-            pass
+        stop_process_group(ioc)
         log.close()
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)

@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import json
 import os
-import signal
 import socket
 import subprocess
 import sys
@@ -102,7 +101,7 @@ class SimulatedBeamline:
     """The METRIXS IOC in a subprocess on loopback, a free port; :meth:`stop` always kills it."""
 
     def __init__(self, truth: Mapping, n_rays: int, work: Path, move_time: float = 0.5):
-        from sim_iocs.ports import free_port
+        from sim_iocs.ports import free_port, loopback_env
         self.port = free_port()
         self.prefix = f"DEMO{self.port}:"
         self.work = work
@@ -112,11 +111,9 @@ class SimulatedBeamline:
         self._sink = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         self._sink.bind(("127.0.0.1", 0))
         # this process's Channel Access clients look only at this IOC
-        os.environ.update(EPICS_CA_ADDR_LIST=f"127.0.0.1:{self.port}", EPICS_CA_AUTO_ADDR_LIST="NO")
-        env = dict(os.environ, EPICS_CA_SERVER_PORT=str(self.port), EPICS_CAS_SERVER_PORT=str(self.port),
-                   EPICS_CAS_INTF_ADDR_LIST="127.0.0.1", EPICS_CAS_BEACON_ADDR_LIST="127.0.0.1",
-                   EPICS_CAS_AUTO_BEACON_ADDR_LIST="NO", EPICS_CAS_BEACON_PORT=str(self._sink.getsockname()[1]),
-                   PYTHONUNBUFFERED="1")
+        env = loopback_env(self.port, self._sink.getsockname()[1])
+        os.environ.update(EPICS_CA_ADDR_LIST=env["EPICS_CA_ADDR_LIST"], EPICS_CA_AUTO_ADDR_LIST="NO")
+        env = dict(os.environ, **env)
         self.log_path = work / "ioc.log"
         self._log = open(self.log_path, "w")
         self.proc = subprocess.Popen(
@@ -149,20 +146,8 @@ class SimulatedBeamline:
         raise TimeoutError(f"the simulated IOC did not come up in {timeout:.0f} s:\n{self.log()}")
 
     def stop(self) -> None:
-        if self.proc.poll() is None:
-            self.proc.send_signal(signal.SIGINT)
-            try:
-                self.proc.wait(10)
-            except subprocess.TimeoutExpired:
-                pass
-        try:  # its frame worker shares its session: none may survive it
-            os.killpg(self.proc.pid, signal.SIGKILL)
-        except (ProcessLookupError, PermissionError):
-            pass
-        try:
-            self.proc.wait(5)
-        except subprocess.TimeoutExpired:
-            pass
+        from sim_iocs.ports import stop_process_group
+        stop_process_group(self.proc)
         self._log.close()
         self._sink.close()
 

@@ -24,7 +24,6 @@ from __future__ import annotations
 import itertools
 import json
 import os
-import signal
 import socket
 import subprocess
 import sys
@@ -33,7 +32,7 @@ from pathlib import Path
 
 import pytest
 
-from sim_iocs.ports import free_port
+from sim_iocs.ports import free_port, loopback_env, stop_process_group
 
 _POOL_SIZE = 8
 
@@ -79,12 +78,7 @@ class IocProcess:
 
     def __init__(self, module: str, args, prefix: str, port: int, log_path: Path):
         self.module, self.prefix, self.port, self.log_path = module, prefix, port, log_path
-        self.env = dict(os.environ,
-                        EPICS_CA_ADDR_LIST=f"127.0.0.1:{port}", EPICS_CA_AUTO_ADDR_LIST="NO",
-                        EPICS_CA_SERVER_PORT=str(port), EPICS_CAS_SERVER_PORT=str(port),
-                        EPICS_CAS_INTF_ADDR_LIST="127.0.0.1", EPICS_CAS_BEACON_ADDR_LIST="127.0.0.1",
-                        EPICS_CAS_AUTO_BEACON_ADDR_LIST="NO", EPICS_CAS_BEACON_PORT=str(BEACON_PORT),
-                        PYTHONUNBUFFERED="1")
+        self.env = dict(os.environ, **loopback_env(port, BEACON_PORT))
         self._log = open(log_path, "w")
         self.proc = subprocess.Popen([sys.executable, "-m", module, "--prefix", prefix, *map(str, args)],
                                      env=self.env, stdout=self._log, stderr=subprocess.STDOUT,
@@ -116,17 +110,7 @@ class IocProcess:
         raise TimeoutError(f"IOC {self.module} not ready ({pv} = {last!r}, {getattr(self, '_last_error', '')!r}):\n{self.log()[-3000:]}")
 
     def stop(self, timeout: float = 10.0) -> None:
-        if self.proc.poll() is None:
-            self.proc.send_signal(signal.SIGINT)
-            try:
-                self.proc.wait(timeout)
-            except subprocess.TimeoutExpired:
-                pass
-        try:  # the IOC's worker processes share its session: none may survive it
-            os.killpg(self.proc.pid, signal.SIGKILL)
-        except (ProcessLookupError, PermissionError):
-            pass
-        self.proc.wait(5)
+        stop_process_group(self.proc, timeout)
         self._log.close()
         if self.port not in _free_ports:
             _free_ports.append(self.port)
