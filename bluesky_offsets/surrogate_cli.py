@@ -97,9 +97,10 @@ def _cmd_train(args) -> int:
                              good_min_rays=args.good_min_rays,
                              good_fraction=None if args.good_fraction <= 0 else args.good_fraction,
                              split=tuple(args.split), width=args.width, n_layers=args.layers,
-                             output_norm=args.output_norm, decoder=args.decoder, members=args.members, patience=args.patience, min_delta=args.min_delta,
+                             output_norm=args.output_norm, decoder=args.decoder, members=args.members,
+                             patience=args.patience, min_delta=args.min_delta,
                              epoch_samples=args.epoch_samples, device=args.device, seed=args.seed,
-                             threads=args.threads, max_minutes=args.max_minutes)
+                             threads=args.threads, max_minutes=args.max_minutes, init=args.init)
     except ValueError as exc:
         raise CliError(str(exc)) from None
     try:
@@ -245,6 +246,8 @@ def add_cli(sub) -> None:
     t.add_argument("--seed", type=int, default=c.seed)
     t.add_argument("--threads", type=int, default=None, help="torch CPU threads")
     t.add_argument("--max-minutes", type=float, default=None, help="stop after this wall time (after an epoch)")
+    t.add_argument("--init", default=None, metavar="CHECKPOINT",
+                   help="start from this checkpoint's weights (fine-tune on a grown dataset; same architecture)")
     t.add_argument("--restart", action="store_true", help="ignore RUN_DIR/state.pt and start over")
     t.add_argument("--allow-partial", action="store_true", help="train on an unfinished store's committed rows")
     t.add_argument("--no-progress", action="store_true")

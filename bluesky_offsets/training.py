@@ -84,6 +84,9 @@ class TrainConfig:
         torch CPU threads (default: torch's choice).
     max_minutes : float, optional
         Stop (cleanly, after an epoch) when this wall time is used up.
+    init : str, optional
+        Checkpoint to start from instead of random weights (fine-tuning on a grown
+        dataset): its architecture and normalization must match these options.
     """
 
     epochs: int = 300
@@ -105,6 +108,7 @@ class TrainConfig:
     seed: int = 0
     threads: int | None = None
     max_minutes: float | None = None
+    init: str | None = None
 
     def __post_init__(self):
         self.split = tuple(float(s) for s in self.split)
@@ -143,7 +147,7 @@ class TrainConfig:
 
 # the keys that must agree to resume a run
 _RESUME_KEYS = ("batch_size", "lr", "gamma", "good_min_rays", "good_fraction", "split", "width", "n_layers",
-                "output_norm", "decoder", "members", "epoch_samples", "seed")
+                "output_norm", "decoder", "members", "epoch_samples", "seed", "init")
 
 
 def split_indices(n: int, fractions, seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -199,6 +203,30 @@ def _save_atomic(obj, path: Path) -> None:
     os.replace(tmp, path)
 
 
+def _init_provenance(path: str) -> dict:
+    from .surrogate import load
+    try:
+        m = load(path)
+    except Exception as exc:
+        raise TrainingError(f"cannot start from {path}: {exc}") from None
+    keep = ("n_samples", "n_good", "n_rays", "dataset", "init")
+    return {"path": str(path), **{k: m.provenance.get(k) for k in keep if k in m.provenance},
+            "training": m.training}
+
+
+def _warm_start(model: Surrogate, path: str, table: ParameterTable, hist: HistogramSpec) -> None:
+    # The normalization stays the new dataset's; for the factored decoder there is none,
+    # for "bins" a changed min/max would silently rescale the start, so it must agree.
+    from .surrogate import load
+    src = load(path, table=table, hist=hist)
+    if src.arch != model.arch:
+        raise TrainingError(f"cannot start from {path}: its architecture {src.arch} differs from {model.arch}")
+    if model.arch.decoder != "factored" and not (np.allclose(src.norm.out_low, model.norm.out_low)
+                                                 and np.allclose(src.norm.out_span, model.norm.out_span)):
+        raise TrainingError(f"cannot start from {path}: its output normalization differs from this dataset's")
+    model.net.load_state_dict(src.net.state_dict())
+
+
 def train(data: Dataset, run_dir: str | os.PathLike, config: TrainConfig | None = None, *,
           resume: bool = True, progress: bool = True, table: ParameterTable = METRIXS,
           hist: HistogramSpec | None = None) -> Surrogate:
@@ -240,7 +268,11 @@ def train(data: Dataset, run_dir: str | os.PathLike, config: TrainConfig | None 
                   "dataset_complete": data.meta.get("complete"),
                   "generation_cpu_s": data.meta.get("stats", {}).get("cpu_s")}
     torch.manual_seed(config.seed)
+    if config.init:
+        provenance["init"] = _init_provenance(config.init)
     model = Surrogate.new(arch, norm, table, hist, provenance=provenance, training=config.to_dict())
+    if config.init:
+        _warm_start(model, config.init, table, hist)
     model.to(device)
     opt = torch.optim.Adam(model.net.parameters(), lr=config.lr)
     sched = torch.optim.lr_scheduler.ExponentialLR(opt, gamma=config.gamma)

@@ -107,3 +107,17 @@ def test_early_stopping(store, tmp_path):
     m = training.train(data, tmp_path / "r", _small(epochs=50, patience=2, min_delta=0.5, lr=1e-7),
                        progress=False)
     assert m.metrics["epochs_run"] == 3 and m.metrics["best_epoch"] == 1
+
+
+def test_init_fine_tunes_from_a_checkpoint(store, tmp_path):
+    data = dataset.load(store)
+    first = training.train(data, tmp_path / "a", _small(epochs=3, decoder="factored", lr=1e-3), progress=False)
+    ckpt = tmp_path / "a" / "best.pt"
+    tuned = training.train(data, tmp_path / "b", _small(epochs=1, decoder="factored", lr=1e-12, init=str(ckpt)),
+                           progress=False)
+    # a vanishing learning rate keeps the starting weights: the start is the checkpoint, not random
+    assert tuned.metrics["test"]["mse"] == pytest.approx(first.metrics["test"]["mse"], rel=1e-4)
+    assert tuned.provenance["init"]["path"] == str(ckpt)
+    with pytest.raises(TrainingError, match="architecture"):
+        training.train(data, tmp_path / "c", _small(epochs=1, decoder="factored", width=32, init=str(ckpt)),
+                       progress=False)
