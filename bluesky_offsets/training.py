@@ -158,6 +158,19 @@ def split_indices(n: int, fractions, seed: int) -> tuple[np.ndarray, np.ndarray,
     return np.sort(perm[:n_tr]), np.sort(perm[n_tr:n_tr + n_va]), np.sort(perm[n_tr + n_va:])
 
 
+def grown_split_indices(n: int, n_old: int, fractions, seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The split of a store grown from ``n_old`` to ``n`` samples after training on the first ``n_old``.
+
+    The first ``n_old`` keep the split they had (so a model fine-tuned from one trained on them
+    never sees its own validation or test samples in training); the new ones are split apart.
+    """
+    if not 0 < n_old <= n:
+        raise TrainingError(f"the starting model was trained on {n_old} samples; this store holds {n}")
+    old = split_indices(n_old, fractions, seed)
+    new = split_indices(n - n_old, fractions, seed + 1) if n > n_old else (np.array([], int),) * 3
+    return tuple(np.concatenate([a, b + n_old]).astype(int) for a, b in zip(old, new))
+
+
 def epoch_order(good: np.ndarray, bad: np.ndarray, good_fraction: float | None, n_samples: int | None,
                 rng: np.random.Generator) -> np.ndarray:
     """Sample indices of one epoch: good and bad shown ``good_fraction : 1 - good_fraction``.
@@ -248,7 +261,18 @@ def train(data: Dataset, run_dir: str | os.PathLike, config: TrainConfig | None 
         raise TrainingError(f"dataset has only {len(data)} samples; need at least 10")
 
     Y = data.hist.astype(np.float32)
-    tr, va, te = split_indices(len(data), config.split, config.seed)
+    if config.init:
+        init_prov = _init_provenance(config.init)
+        it = init_prov["training"]
+        if list(it.get("split", [])) != list(config.split) or it.get("seed") != config.seed:
+            raise TrainingError(f"cannot start from {config.init}: it was trained with split {it.get('split')} "
+                                f"and seed {it.get('seed')}, this run has {list(config.split)} and {config.seed}")
+        if init_prov.get("dataset") != data.meta.get("path"):
+            raise TrainingError(f"cannot start from {config.init}: it was trained on {init_prov.get('dataset')}, "
+                                f"not {data.meta.get('path')} (its validation/test samples would leak)")
+        tr, va, te = grown_split_indices(len(data), int(init_prov["n_samples"]), config.split, config.seed)
+    else:
+        tr, va, te = split_indices(len(data), config.split, config.seed)
     norm = Normalization.fit(table, Y[tr], config.output_norm)
     X = torch.as_tensor(table.normalize(data.params), dtype=torch.float32, device=device)
     Yn = torch.as_tensor((Y - norm.out_low) / norm.out_span, dtype=torch.float32, device=device)
@@ -269,7 +293,7 @@ def train(data: Dataset, run_dir: str | os.PathLike, config: TrainConfig | None 
                   "generation_cpu_s": data.meta.get("stats", {}).get("cpu_s")}
     torch.manual_seed(config.seed)
     if config.init:
-        provenance["init"] = _init_provenance(config.init)
+        provenance["init"] = init_prov
     model = Surrogate.new(arch, norm, table, hist, provenance=provenance, training=config.to_dict())
     if config.init:
         _warm_start(model, config.init, table, hist)
