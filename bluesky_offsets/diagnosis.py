@@ -74,7 +74,11 @@ class Diagnosis:
     @property
     def verdict(self) -> str:
         if self.best is None:
-            return "no significant missing effect"
+            if self.within_noise:
+                return "no significant missing effect"
+            # not the same message: the model is off, the candidates just cannot say why
+            return (f"misfit beyond noise (chi2/dof = {self.base_misfit.chi2_reduced_total:.3g}) that no candidate "
+                    "effect explains significantly")
         b = self.best
         vals = ", ".join(f"{k} = {v:.4g} ± {b.sigma.get(k, float('nan')):.2g}" for k, v in b.values.items())
         return f"missing effect: {b.name} ({vals})"
@@ -127,7 +131,8 @@ def diagnose(meas: Measurement, state: ModelState, twin, forward_model, *,
     with the same start and iterations is their reference, so a candidate is credited only
     with what it adds; it is significant when its gain beyond the parameter price exceeds
     ``n_sigma`` times the chi-square noise ``sqrt(2 dof)``.  If the reference itself reaches
-    the noise, the verdict is "no significant missing effect".
+    the noise, the verdict is "no significant missing effect"; a misfit beyond noise that no
+    candidate explains is reported as such.
     ``refresh_columns`` are the offset columns differentiated afresh at every anchor
     (see :func:`bluesky_offsets.model.sensitive_columns`).  Cost:
     ``refine_top * refine_iterations * n (1 + len(refresh_columns) + 2 p)`` traces.

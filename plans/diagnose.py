@@ -633,7 +633,7 @@ def analyse_measurement(measurement, twin, forward_model, *, store=None,
         Effects to rank (default: all registered).
     add_best : bool
         Add the best significant candidate, starting from the values the diagnosis fitted,
-        and refit (nothing is added when the verdict is "no significant missing effect").
+        and refit (nothing is added when no candidate is significant).
     refine_kw, refit_kw, diagnose_kw : mapping, optional
         Further options of :func:`bluesky_offsets.model.refine` (offsets; refit) and
         :func:`bluesky_offsets.diagnosis.diagnose`; options they do not take are dropped.
