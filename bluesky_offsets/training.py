@@ -158,17 +158,30 @@ def split_indices(n: int, fractions, seed: int) -> tuple[np.ndarray, np.ndarray,
     return np.sort(perm[:n_tr]), np.sort(perm[n_tr:n_tr + n_va]), np.sort(perm[n_tr + n_va:])
 
 
-def grown_split_indices(n: int, n_old: int, fractions, seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The split of a store grown from ``n_old`` to ``n`` samples after training on the first ``n_old``.
+def grown_split_indices(n: int, sizes, fractions, seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The split of a store grown to ``n`` samples through the earlier sizes ``sizes`` (oldest first).
 
-    The first ``n_old`` keep the split they had (so a model fine-tuned from one trained on them
-    never sees its own validation or test samples in training); the new ones are split apart.
+    A model fine-tuned (``init``) from one trained on the first ``sizes[-1]`` samples keeps
+    their split, so it never trains on its predecessors' validation or test samples; each
+    growth step ``k`` is split apart with ``seed + k``.  ``sizes=[m]`` after one growth step.
     """
-    if not 0 < n_old <= n:
-        raise TrainingError(f"the starting model was trained on {n_old} samples; this store holds {n}")
-    old = split_indices(n_old, fractions, seed)
-    new = split_indices(n - n_old, fractions, seed + 1) if n > n_old else (np.array([], int),) * 3
-    return tuple(np.concatenate([a, b + n_old]).astype(int) for a, b in zip(old, new))
+    sizes = [int(m) for m in np.atleast_1d(sizes)] + [int(n)]
+    if sizes[0] < 1 or any(b < a for a, b in zip(sizes, sizes[1:])):
+        raise TrainingError(f"the starting model was trained on {sizes[-2]} samples; this store holds {n}")
+    parts = [split_indices(sizes[0], fractions, seed)]
+    for k, (a, b) in enumerate(zip(sizes, sizes[1:]), start=1):
+        if b > a:
+            parts.append(tuple(idx + a for idx in split_indices(b - a, fractions, seed + k)))
+    return tuple(np.concatenate([p[i] for p in parts]).astype(int) for i in range(3))
+
+
+def _size_chain(init_prov: dict) -> list[int]:
+    """Store sizes the chain of starting models was trained on, oldest first."""
+    chain, p = [], init_prov
+    while p:
+        chain.append(int(p["n_samples"]))
+        p = p.get("init")
+    return chain[::-1]
 
 
 def epoch_order(good: np.ndarray, bad: np.ndarray, good_fraction: float | None, n_samples: int | None,
@@ -270,7 +283,7 @@ def train(data: Dataset, run_dir: str | os.PathLike, config: TrainConfig | None 
         if init_prov.get("dataset") != data.meta.get("path"):
             raise TrainingError(f"cannot start from {config.init}: it was trained on {init_prov.get('dataset')}, "
                                 f"not {data.meta.get('path')} (its validation/test samples would leak)")
-        tr, va, te = grown_split_indices(len(data), int(init_prov["n_samples"]), config.split, config.seed)
+        tr, va, te = grown_split_indices(len(data), _size_chain(init_prov), config.split, config.seed)
     else:
         tr, va, te = split_indices(len(data), config.split, config.seed)
     norm = Normalization.fit(table, Y[tr], config.output_norm)

@@ -125,10 +125,14 @@ def test_init_fine_tunes_from_a_checkpoint(store, tmp_path):
 
 def test_grown_split_keeps_the_old_samples_where_they_were():
     old = training.split_indices(100, (0.8, 0.1, 0.1), 0)
-    grown = training.grown_split_indices(150, 100, (0.8, 0.1, 0.1), 0)
+    grown = training.grown_split_indices(150, [100], (0.8, 0.1, 0.1), 0)
     for a, b in zip(old, grown):
         assert np.array_equal(b[b < 100], a)
     assert sorted(np.concatenate(grown).tolist()) == list(range(150))
     assert [len(g[g >= 100]) for g in grown] == [40, 5, 5]
+    twice = training.grown_split_indices(200, [100, 150], (0.8, 0.1, 0.1), 0)  # a chain of fine-tunes
+    for a, b in zip(grown, twice):
+        assert np.array_equal(b[b < 150], a)
+    assert training._size_chain({"n_samples": 150, "init": {"n_samples": 100}}) == [100, 150]
     with pytest.raises(TrainingError, match="trained on 200"):
-        training.grown_split_indices(150, 200, (0.8, 0.1, 0.1), 0)
+        training.grown_split_indices(150, [200], (0.8, 0.1, 0.1), 0)
