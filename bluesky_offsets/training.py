@@ -229,22 +229,23 @@ def _save_atomic(obj, path: Path) -> None:
     os.replace(tmp, path)
 
 
-def _init_provenance(path: str) -> dict:
+def _load_init(path: str, table: ParameterTable, hist: HistogramSpec) -> Surrogate:
     from .surrogate import load
     try:
-        m = load(path)
+        return load(path, table=table, hist=hist)
     except Exception as exc:
         raise TrainingError(f"cannot start from {path}: {exc}") from None
+
+
+def _init_provenance(src: Surrogate, path: str) -> dict:
     keep = ("n_samples", "n_good", "n_rays", "dataset", "init")
-    return {"path": str(path), **{k: m.provenance.get(k) for k in keep if k in m.provenance},
-            "training": m.training}
+    return {"path": str(path), **{k: src.provenance.get(k) for k in keep if k in src.provenance},
+            "training": src.training}
 
 
-def _warm_start(model: Surrogate, path: str, table: ParameterTable, hist: HistogramSpec) -> None:
+def _warm_start(model: Surrogate, src: Surrogate, path: str) -> None:
     # The normalization stays the new dataset's; for the factored decoder there is none,
     # for "bins" a changed min/max would silently rescale the start, so it must agree.
-    from .surrogate import load
-    src = load(path, table=table, hist=hist)
     if src.arch != model.arch:
         raise TrainingError(f"cannot start from {path}: its architecture {src.arch} differs from {model.arch}")
     if model.arch.decoder != "factored" and not (np.allclose(src.norm.out_low, model.norm.out_low)
@@ -275,7 +276,8 @@ def train(data: Dataset, run_dir: str | os.PathLike, config: TrainConfig | None 
 
     Y = data.hist.astype(np.float32)
     if config.init:
-        init_prov = _init_provenance(config.init)
+        init_src = _load_init(config.init, table, hist)
+        init_prov = _init_provenance(init_src, config.init)
         it = init_prov["training"]
         if list(it.get("split", [])) != list(config.split) or it.get("seed") != config.seed:
             raise TrainingError(f"cannot start from {config.init}: it was trained with split {it.get('split')} "
@@ -309,7 +311,7 @@ def train(data: Dataset, run_dir: str | os.PathLike, config: TrainConfig | None 
         provenance["init"] = init_prov
     model = Surrogate.new(arch, norm, table, hist, provenance=provenance, training=config.to_dict())
     if config.init:
-        _warm_start(model, config.init, table, hist)
+        _warm_start(model, init_src, config.init)
     model.to(device)
     opt = torch.optim.Adam(model.net.parameters(), lr=config.lr)
     sched = torch.optim.lr_scheduler.ExponentialLR(opt, gamma=config.gamma)
