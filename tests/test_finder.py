@@ -205,3 +205,16 @@ def test_sinkhorn_and_twin_check(problem, tmp_path):
     assert off["mse_compensated"] > exact["mse_compensated"]
     path = E.plot_footprints(twin, sub, sub.true_offsets, tmp_path / "fp.png", n_rays=1000)
     assert path.stat().st_size > 10_000
+
+
+def test_smart_walker_selection(model, problem):
+    """"comma" walks from the best of the last candidates, "plus" from the best so far."""
+    # two candidates per step: both are often worse than the centre, which only "comma" follows
+    kw = dict(progress=False, threads=1, candidates=2, step=SETTINGS["smart-walker"]["step"])
+    plus = F.find_offsets(problem, model, "smart-walker", F.Budget(evaluations=500), seed=7, **kw)
+    comma = F.find_offsets(problem, model, "smart-walker", F.Budget(evaluations=500), seed=7, selection="comma", **kw)
+    assert comma.evaluations == plus.evaluations == 500
+    assert not np.array_equal(comma.offsets, plus.offsets)
+    assert comma.loss < F.final_mse(problem, model, np.zeros(34))
+    with pytest.raises(F.FinderError, match="selection must be 'plus' or 'comma'"):
+        F.find_offsets(problem, model, "smart-walker", F.Budget(evaluations=10), selection="best")
