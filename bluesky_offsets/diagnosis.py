@@ -1,13 +1,17 @@
 """Which physical effect is missing?  Rank candidates, add the winner, watch the error fall.
 
 For every candidate effect the offsets and the effect's parameters are fitted
-together on a twin-anchored local model (:mod:`bluesky_offsets.model`), in
-K folds over the configurations.  A candidate is scored by its improvement of
-the *held-out* chi-square, minus a BIC-like price ``p ln N`` for its ``p``
-parameters; it is significant only if that score and the same criterion on all
-data are positive and the base model is not already within noise.  Each
-candidate also predicts a residual signature (centroid shift, width change,
-asymmetry, tails, lost intensity per axis) to set beside the observed one.
+together on a twin-anchored local model (:mod:`bluesky_offsets.model`), solved
+to convergence, on all configurations and in K folds over them.  A candidate is
+scored by its chi-square improvement on all data over the offsets-only fit,
+divided by the offsets-only fit's chi-square per bin when that exceeds 1 (a model
+beyond noise inflates every candidate's gain alike: the quasi-likelihood
+correction), minus a BIC price ``p ln N`` for its ``p`` parameters.  It is
+significant only if that score is positive, it lowers the held-out chi-square in
+at least half of the folds (fitted without them), and the base model is not
+already within noise.  Each candidate also predicts a residual signature
+(centroid shift, width change, asymmetry, tails, lost intensity per axis) to set
+beside the observed one.
 """
 
 from __future__ import annotations
@@ -35,6 +39,11 @@ class Candidate:
     penalty: float
     significant: bool
     predicted_signature: dict[str, float]
+    # the offsets-only fit's chi-square per bin (>= 1) that every gain is divided by
+    dispersion: float = 1.0
+    # folds whose held-out chi-square the candidate lowered, of how many
+    folds_improved: int = 0
+    folds_total: int = 0
     # set when the candidate was refitted through the twin (re-anchored), see diagnose(refine_top=...)
     delta_chi2_twin: float | None = None
     refined_state: ModelState | None = field(default=None, repr=False)
@@ -45,14 +54,19 @@ class Candidate:
 
     @property
     def score(self) -> float:
-        if self.delta_chi2_twin is not None:
-            return self.delta_chi2_twin - self.penalty
-        return self.delta_chi2_heldout - self.penalty
+        gain = self.delta_chi2_twin if self.delta_chi2_twin is not None else self.delta_chi2_all
+        return gain / self.dispersion - self.penalty
+
+    @property
+    def heldout_confirms(self) -> bool:
+        return self.folds_total > 0 and 2 * self.folds_improved >= self.folds_total
 
     def as_dict(self) -> dict:
         return {"name": self.name, "n_params": self.n_params, "values": self.values, "sigma": self.sigma,
                 "delta_chi2_heldout": self.delta_chi2_heldout, "delta_chi2_all": self.delta_chi2_all,
                 "penalty": self.penalty, "score": self.score, "significant": self.significant,
+                "dispersion": self.dispersion, "folds_improved": self.folds_improved,
+                "folds_total": self.folds_total,
                 "predicted_signature": self.predicted_signature, "delta_chi2_twin": self.delta_chi2_twin}
 
 
@@ -170,7 +184,8 @@ def diagnose(meas: Measurement, state: ModelState, twin, forward_model, *,
     fold_idx = _folds(meas.n, folds, seed)
 
     def cv_chi2(lm: LocalModel, starts=None) -> tuple[float, float, object, list]:
-        # candidates start where the offsets-only fits ended (nested models: never worse)
+        # candidates start where the offsets-only fits ended (nested models: never worse on the
+        # data they are fitted to)
         ho, fits = 0.0, []
         for i, f in enumerate(fold_idx):
             train = np.setdiff1d(np.arange(meas.n), f)
@@ -185,11 +200,13 @@ def diagnose(meas: Measurement, state: ModelState, twin, forward_model, *,
     base_pred = base_lm.predict(base_fit.offsets - state.offsets, base_fit.effects - state.effect_vector())
     observed = _signature(m, base_pred, twin.hist)
     n_data = int(base_mf.dof_total)
+    dispersion = max(1.0, base_all / max(n_data, 1))
     out = []
     for n_ in names:
         eff = E.get(n_)
         lm = sub_model([n_])
-        ho, chi_all, fit, _ = cv_chi2(lm, base_fits)
+        ho, chi_all, fit, fits = cv_chi2(lm, base_fits)
+        improved = sum(b.chi2_heldout > f.chi2_heldout for b, f in zip(base_fits[:-1], fits[:-1]))
         p = len(eff.parameters)
         penalty = p * math.log(max(n_data, 2))
         d_ho, d_all = base_ho - ho, base_all - chi_all
@@ -200,8 +217,9 @@ def diagnose(meas: Measurement, state: ModelState, twin, forward_model, *,
         out.append(Candidate(
             n_, p, {q.name: float(v) for q, v in zip(eff.parameters, vals)},
             {q.name: float(s) for q, s in zip(eff.parameters, sig)}, float(d_ho), float(d_all), float(penalty),
-            bool(not within and d_ho - penalty > 0 and d_all - penalty > 0),
-            _signature(pred, base_pred, twin.hist)))
+            False, _signature(pred, base_pred, twin.hist), dispersion=dispersion,
+            folds_improved=int(improved), folds_total=len(fold_idx)))
+        out[-1].significant = bool(not within and out[-1].score > 0 and out[-1].heldout_confirms)
     out.sort(key=lambda c: -c.score)
     refit_note = None
     if refine_top and not within:

@@ -180,8 +180,10 @@ def analysis_sections(analysis, spec, work: Path, *, truth: Mapping | None = Non
         fig = plot_ranking(diag, work / "ranking.png")
         rows = []
         for i, c in enumerate(diag.candidates, 1):
-            rows.append({"rank": i, "effect": c.name, "score": c.score, "Δχ² held-out": c.delta_chi2_heldout,
-                         "Δχ² all": c.delta_chi2_all, "price p ln N": c.penalty,
+            rows.append({"rank": i, "effect": c.name, "score": c.score, "Δχ² all": c.delta_chi2_all,
+                         "÷ dispersion": c.dispersion, "price p ln N": c.penalty,
+                         "Δχ² held-out": c.delta_chi2_heldout,
+                         "folds improved": f"{c.folds_improved} / {c.folds_total}",
                          "significant": "yes" if c.significant else "no",
                          "fitted (diagnosis)": _fmt_values(c.values, c.sigma)})
         keys = [k for k in diag.observed_signature if not k.endswith("skewness")]
@@ -189,8 +191,10 @@ def analysis_sections(analysis, spec, work: Path, *, truth: Mapping | None = Non
                      **{c.name: c.predicted_signature.get(k, float("nan")) for c in diag.candidates[:4]}}
                     for k in keys]
         mf = diag.base_misfit
-        body = (paragraph(f"Each candidate is fitted with the offsets in {diag.folds} folds; score = held-out χ² "
-                          f"improvement over the offsets-only model − p ln N. Base model: χ²/dof "
+        body = (paragraph(f"Each candidate is fitted with the offsets on all configurations and in {diag.folds} "
+                          "folds; score = χ² improvement over the offsets-only fit on all data ÷ that fit's χ² "
+                          "per bin (when > 1) − p ln N; significant when the score is positive and the candidate "
+                          "lowers the held-out χ² in at least half of the folds. Base model: χ²/dof "
                           f"{mf.chi2_reduced_total:.3g} (noise: 1 ± {np.sqrt(2 / max(mf.dof_total, 1)):.2g}); "
                           f"{diag.n_traces} twin traces.")
                 + table_(rows) + image(fig, "candidate scores; predicted residual signature of the top candidates "

@@ -13,7 +13,8 @@ its progress comes out live as a ``progress`` stream.
 * :func:`refine_offsets` -> :class:`Refinement`: twin-anchored fit of the offsets (and the
   model's effects); streams ``progress``, ``offsets``, then a comparison.
 * :func:`diagnose_effects` -> :class:`Ranking`: every candidate effect fitted with the
-  offsets and ranked on held-out configurations; streams ``ranking`` (one event per
+  offsets, ranked by its all-data gain (a BIC price per parameter) and checked on held-out
+  configurations; streams ``ranking`` (one event per
   candidate, best first, predicted beside observed signature) and ``diagnosis``.
 * :func:`add_effect_and_refit` -> :class:`Refit`: ``state.with_effect(name)`` refitted;
   streams ``progress``, ``effect`` (magnitude ± uncertainty), a comparison and
@@ -466,6 +467,8 @@ def ranking_rows(d: Diagnosis) -> list[dict]:
         row = {"rank": rank, "effect": c.name, "description": eff.description, "level": eff.level,
                "n_params": c.n_params, "score": float(c.score), "delta_chi2_heldout": float(c.delta_chi2_heldout),
                "delta_chi2_all": float(c.delta_chi2_all), "penalty": float(c.penalty),
+               "dispersion": float(c.dispersion), "folds_improved": int(c.folds_improved),
+               "folds_total": int(c.folds_total),
                "significant": bool(c.significant), "values_json": _json(c.values), "sigma_json": _json(c.sigma),
                "units_json": _json({p.name: p.unit for p in eff.parameters})}
         for k, v in d.observed_signature.items():
