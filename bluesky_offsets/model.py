@@ -417,6 +417,7 @@ def refine(meas: Measurement, state: ModelState, twin, forward_model, *, iterati
            twin_columns: Sequence[int] | None = None, progress=None, reuse_jacobian: bool = False,
            effect_step: float = 0.25, start: LocalModel | None = None, sigma_offset_prior: float | None = None,
            offset_jacobian: np.ndarray | None = None, refresh_columns: Sequence[int] | None = None,
+           refresh_on_reject: bool = False, common_seeds: bool = False,
            table: ParameterTable = METRIXS) -> RefineResult:
     """Fit offsets and the state's effects to ``meas`` by re-anchored Gauss-Newton through the twin.
 
@@ -436,6 +437,14 @@ def refine(meas: Measurement, state: ModelState, twin, forward_model, *, iterati
     ``refresh_columns`` (with a reused Jacobian) are differentiated afresh at every anchor:
     the few offsets that move the footprint across bins (see :func:`sensitive_columns`),
     whose derivative changes as the footprint moves, at ``n`` traces per column.
+    ``refresh_on_reject`` (with a reused Jacobian): when the twin refuses a step, the whole
+    offset Jacobian is differentiated afresh at the current state (the surrogate's, or the
+    twin's for ``twin_columns``, all 34 without a surrogate: ``34 n`` traces) before the
+    trust region shrinks — a stale Jacobian, not the step size, is
+    then the likely cause; the fresh one is reused from there on.  ``common_seeds`` traces
+    every anchor with the same seeds (common random numbers); the default gives each
+    iteration new ones, which measured better (docs/diagnosis.md: the fit otherwise adapts
+    to one ray sample).
     The reported effect uncertainties come from the Gauss-Newton covariance at the
     solution with the offsets free within the final trust region (default), or within
     ``sigma_offset_prior`` (normalized; e.g. ``MAX_OFFSET``, the physical prior), which lets
@@ -455,28 +464,40 @@ def refine(meas: Measurement, state: ModelState, twin, forward_model, *, iterati
     jac = lm.jac if (reuse_jacobian or offset_jacobian is not None) else None
 
     mf = _twin_chi2(meas, lm)
-    history = [{"iteration": 0, "accepted": True, "chi2_reduced": mf.chi2_reduced_total, "mse": mf.mse_total,
+    history = [{"iteration": 0, "accepted": True, "jacobian_refreshed": False, "chi2_reduced": mf.chi2_reduced_total,
+                "mse": mf.mse_total,
                 "chi2": mf.chi2_total, "dof": mf.dof_total,
                 "effects": {k: dict(v) for k, v in state.effects.items()}}]
     if progress:
         progress(history[-1])
     current, prior = state, offset_prior
+    # a Jacobian differentiated here for the start state is fresh; one handed in may be stale
+    jac_fresh = jac is None or (start is None and offset_jacobian is None)
     for it in range(1, iterations + 1):
         fit = fit_local(meas, lm, offset_prior=prior, free_offsets=free_offsets, table=table)
         proposal = ModelState(np.clip(fit.offsets, -MAX_OFFSET, MAX_OFFSET), current.set_effect_vector(fit.effects),
                               current.label)
         lm_p = build_local_model(meas, proposal, twin, forward_model, anchor_rays=anchor_rays,
-                                 seed=seed + 1000 * it,
+                                 seed=seed if common_seeds else seed + 1000 * it,
                                  twin_columns=(refresh_columns or ()) if jac is not None else twin_columns,
                                  offset_jacobian=jac, effect_step=effect_step, table=table)
         mf_p = _twin_chi2(meas, lm_p)
         accepted = mf_p.chi2_total < mf.chi2_total
+        refreshed = False
         if accepted:
             current, lm, mf = proposal, lm_p, mf_p
             prior = min(prior * 2.0, 0.05)
+            jac_fresh = jac is None
+        elif refresh_on_reject and not jac_fresh:
+            # a new anchor with its own seeds and a full Jacobian there; it is the reference now
+            lm = build_local_model(meas, current, twin, forward_model, anchor_rays=anchor_rays,
+                                   seed=seed if common_seeds else seed + 1000 * it + 500, twin_columns=twin_columns,
+                                   effect_step=effect_step, table=table)
+            mf, jac, jac_fresh, refreshed = _twin_chi2(meas, lm), lm.jac, True, True
         else:
             prior /= 4.0
-        history.append({"iteration": it, "accepted": bool(accepted), "chi2_reduced": mf_p.chi2_reduced_total,
+        history.append({"iteration": it, "accepted": bool(accepted), "jacobian_refreshed": refreshed,
+                        "chi2_reduced": mf_p.chi2_reduced_total,
                         "mse": mf_p.mse_total, "chi2": mf_p.chi2_total, "dof": mf_p.dof_total,
                         "effects": {k: dict(v) for k, v in proposal.effects.items()}})
         if progress:

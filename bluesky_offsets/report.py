@@ -194,7 +194,8 @@ def analysis_sections(analysis, spec, work: Path, *, truth: Mapping | None = Non
         body = (paragraph(f"Each candidate is fitted with the offsets on all configurations and in {diag.folds} "
                           "folds; score = χ² improvement over the offsets-only fit on all data ÷ that fit's χ² "
                           "per bin (when > 1) − p ln N; significant when the score is positive and the candidate "
-                          "lowers the held-out χ² in at least half of the folds. Base model: χ²/dof "
+                          "lowers the held-out χ² in at least half of the folds (its parameters fitted without "
+                          "the fold, the offsets held at the offsets-only fit). Base model: χ²/dof "
                           f"{mf.chi2_reduced_total:.3g} (noise: 1 ± {np.sqrt(2 / max(mf.dof_total, 1)):.2g}); "
                           f"{diag.n_traces} twin traces.")
                 + table_(rows) + image(fig, "candidate scores; predicted residual signature of the top candidates "

@@ -51,6 +51,20 @@ def test_refine_finds_the_offsets_through_the_twin(twin):
     assert d.verdict == "no significant missing effect", d.as_dict()
 
 
+def test_refine_refreshes_a_stale_jacobian(twin):
+    """A Jacobian handed in that points nowhere: the refused step triggers a fresh one."""
+    meas, truth = _measure(twin)
+    stale = np.zeros((meas.n, 100, len(METRIXS)))
+    stale[:, :, COLS] = np.random.default_rng(0).normal(0, 0.05, (meas.n, 100, len(COLS)))
+    kw = dict(iterations=4, twin_columns=COLS, anchor_rays=4 * N_RAYS, offset_jacobian=stale)
+    stuck = refine(meas, ModelState(), twin, None, **kw)
+    fit = refine(meas, ModelState(), twin, None, refresh_on_reject=True, **kw)
+    assert not any(h["jacobian_refreshed"] for h in stuck.history)
+    assert [h["jacobian_refreshed"] for h in fit.history][:2] == [False, True]
+    # the stale Jacobian's steps are refused; the fresh one's are not (53 -> 11.5 when written)
+    assert evaluate(meas, fit.state, twin).chi2_reduced_total < 0.5 * evaluate(meas, stuck.state, twin).chi2_reduced_total
+
+
 def test_hidden_effect_ranked_first_and_fitted(twin, with_gain_loss, tmp_path):
     meas, truth, fit = with_gain_loss
     d = diagnose(meas, fit.state, twin, None, candidates=CANDIDATES, reuse=fit.local_model)

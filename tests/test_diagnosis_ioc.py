@@ -1,159 +1,71 @@
-"""Which effect is missing — against the simulated IOC (issue 6 acceptance).
+"""Which effect is missing — against the simulated IOC, through the main job (issue 6 acceptance).
 
-Each scenario starts the METRIXS IOC (twin backend) with hidden offsets and, but for the
-last one, a hidden physical effect (sim_iocs/truth.py: RML-level overrides).  The
-configurations are measured through the IOC by the ``measure_configurations`` plan into
-the embedded run store, loaded back by uid, and only then fitted and diagnosed:
-offsets through the twin (twin Jacobian over all 34 parameters), the diagnosis against
-every registered effect, the winner added and refitted.
+Each scenario runs ``bluesky-offsets demo`` as a user does: the METRIXS IOC (twin backend,
+127.0.0.1, a free port) with the hidden offsets of ``demo.DEMO_OFFSETS`` and a hidden effect
+(or none), the search, the measurement of 16 bright configurations through the IOC into the
+run store, the surrogate finder, then compare → refine → diagnose (all 13 candidates) → add
+the winner → refit, every step a run in the store.  The checks read ``summary.json``.
+
+5-8 minutes per scenario on two idle cores, so they are skipped unless
+``BLUESKY_OFFSETS_RUN_KNOWN_FAILING=1``; the measured outcomes are in docs/diagnosis.md.
 """
 
 from __future__ import annotations
 
+import json
 import os
-import time
+import shutil
+import subprocess
+import sys
+from pathlib import Path
 
 import pytest
-from bluesky import RunEngine
 
-from bluesky_offsets import effects as E
-from bluesky_offsets.diagnosis import diagnose, diagnostic_configurations, evaluate
-from bluesky_offsets.model import Measurement, ModelState, build_local_model, refine, sensitive_columns
-from bluesky_offsets.parameters import MAX_OFFSET
-from bluesky_offsets.twin import Twin
-from conftest import start_metrixs_ioc
-from plans import measure_configurations
-from sim_iocs.truth import Truth, default_start
+RUN = os.environ.get("BLUESKY_OFFSETS_RUN_KNOWN_FAILING") == "1"
+pytestmark = [pytest.mark.slow, pytest.mark.timeout(1200),
+              pytest.mark.skipif(not RUN, reason="5-8 min each: run with BLUESKY_OFFSETS_RUN_KNOWN_FAILING=1")]
 
-N_RAYS = 5000          # per frame on the IOC
-ANCHOR_RAYS = 5000     # twin traces of the model
-N_REFRESH = 8          # offset columns differentiated afresh at every anchor
-N_CONFIGS = 12
-# hidden offsets (normalized): sensitive motor axes and one fixed-but-unknown focal parameter
-HIDDEN_OFFSETS = {"E1.rotationXerror": 0.04, "E2.rotationXerror": -0.04, "M1_Cylinder.rotationXerror": 0.02,
-                  "E1.translationYerror": 0.03, "E2.translationYerror": -0.03,
-                  "ExitSlit.translationZerror": 0.05, "E1.longHalfAxisA": 0.02}
-
-# (effect, parameter, hidden value, RML overrides the IOC hides) — written as raw RML, not
-# through the effects library, so the test also checks the effect's implementation.
-# Only the focus-chamber translation along the beam is here: a mirror thermal bump (300 nm)
-# and a photon-energy (5 meV) or source-divergence (+20 %) change are 97-99.5 % absorbed by
-# the offsets on this detector and cannot be told apart from their rivals
-# (benchmarks/bench_effect_identifiability.py, docs/diagnosis.md); M1/E1/E2 slope errors
-# of realistic size leave no trace at all in the 400/120 µm bins.
+# (hidden effect as given to --effect, its name, the parameter checked, its hidden value)
 SCENARIOS = {
-    "chamber_z": ("chamber_z", "z", 20.0, {"ImagePlane": {"translationZerror": 20.0}}),
+    "chamber_z": ("chamber_z:z=20", "chamber_z", "z", 20.0),
+    "thermal_bump_m1": ("thermal_bump_m1:height=450", "thermal_bump_m1", "height", 450.0),
+    "source_size": ("source_size_divergence:size=0.8,divergence=0", "source_size_divergence", "size", 0.8),
+}
+KNOWN = {
+    "chamber_z": "ranked first in 2 of 4 demo runs of 2026-11-21 (z within 5 % after the refit), but the "
+                 "refit ends at chi2/dof 1.8-2.5, not <= 1.5 (docs/diagnosis.md)",
+    "thermal_bump_m1": "offsets absorb ~97 % of a thermal bump on this detector (docs/diagnosis.md)",
+    "source_size": "offsets absorb ~99 % of a source change on this detector (docs/diagnosis.md)",
 }
 
 
-@pytest.fixture(scope="module")
-def RE():
-    return RunEngine({}, call_returns_result=True)
+def _demo(tmp_path: Path, effect: str) -> dict:
+    exe = Path(sys.executable).parent / "bluesky-offsets"
+    cmd = [str(exe) if exe.exists() else shutil.which("bluesky-offsets"), "demo", "--effect", effect,
+           "--out", str(tmp_path / "out"), "--store", str(tmp_path / "runs")]
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=1150,
+                          env=dict(os.environ, PYTHONUNBUFFERED="1"))
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    print(proc.stdout[-2500:])
+    return json.loads((tmp_path / "out" / "summary.json").read_text())
 
 
-@pytest.fixture(scope="module")
-def twin():
-    return Twin(scheduler="inline", n_rays=ANCHOR_RAYS)
-
-
-def _devices(prefix):
-    from ophyd_async.core import init_devices
-
-    from bluesky_offsets.devices import FocusChamber, MetrixsBeamline
-    with init_devices():
-        beamline = MetrixsBeamline(prefix, name="metrixs")
-        chamber = FocusChamber(prefix + "chamber:", name="chamber")
-    return beamline, chamber
-
-
-def _measure(RE, store, tmp_path, overrides) -> Measurement:
-    truth = {"offsets": HIDDEN_OFFSETS, "overrides": overrides}
-    ioc = start_metrixs_ioc(tmp_path, truth, extra=("--rays", N_RAYS))
-    try:
-        beamline, chamber = _devices(ioc.prefix)
-        configs = diagnostic_configurations(default_start(), N_CONFIGS, seed=1)
-        token = store.subscribe(RE)
-        try:
-            result = RE(measure_configurations(configs, beamline, chamber))
-        finally:
-            RE.unsubscribe(token)
-    finally:
-        ioc.stop()
-    assert result.exit_status == "success"
-    (uid,) = result.run_start_uids
-    stored = store.load_measurement(uid)
-    assert stored.truth_id == Truth.from_mapping(truth).truth_id
-    return Measurement.from_store(stored)
-
-
-def _workflow(meas: Measurement, twin):
-    """Offsets through the twin, diagnosis against all effects, the winner added and refitted."""
-    t0 = time.perf_counter()
-    origin = ModelState()  # where the finder left the model (here: no offsets known)
-    lm0 = build_local_model(meas, origin, twin, None, anchor_rays=ANCHOR_RAYS)  # full twin Jacobian, 34 n traces
-    cols = sensitive_columns(meas, lm0, N_REFRESH)
-    base = refine(meas, origin, twin, None, iterations=6, anchor_rays=ANCHOR_RAYS, start=lm0, reuse_jacobian=True,
-                  refresh_columns=cols)
-    diag = diagnose(meas, base.state, twin, None, reuse=base.local_model, refine_top=2, refine_iterations=4,
-                    refresh_columns=cols)
-    out = {"base": base, "diagnosis": diag, "t_diagnosis": time.perf_counter() - t0}
-    if diag.best is not None:
-        # the diagnosis refitted the winner with the offsets: continue from there with a fresh
-        # full Jacobian at that state (the footprints have moved since the first one)
-        out["added"] = refine(meas, diag.best.refined_state, twin, None, iterations=4, anchor_rays=ANCHOR_RAYS,
-                              reuse_jacobian=True, refresh_columns=cols, effect_step=0.1,
-                              sigma_offset_prior=MAX_OFFSET)
-    out["t_total"] = time.perf_counter() - t0
-    return out
-
-
-@pytest.mark.slow
-@pytest.mark.timeout(900)
-@pytest.mark.skipif(os.environ.get("BLUESKY_OFFSETS_RUN_KNOWN_FAILING") != "1", reason=(
-    "a known-failing acceptance check (strict xfail, 5-10 min): run it with "
-    "BLUESKY_OFFSETS_RUN_KNOWN_FAILING=1"))
-@pytest.mark.xfail(strict=True, reason=(
-    "issue 6 acceptance not met yet (docs/diagnosis.md, 'Against the simulated IOC'): chamber_z 20 mm "
-    "ranked first in 1 of 3 runs (else chamber_translation, which carries the same z, or vetoed by the "
-    "noisy local held-out test); when it won, fitted 19.55 ± 0.98 mm but chi2/dof 6.3 after the refit "
-    "(13.5 before), not <= 1.5"))
-@pytest.mark.parametrize("scenario", list(SCENARIOS))
-def test_hidden_effect_is_found_added_and_fitted(scenario, RE, run_store, twin, tmp_path):
-    name, param, hidden, overrides = SCENARIOS[scenario]
-    meas = _measure(RE, run_store, tmp_path, overrides)
-    res = _workflow(meas, twin)
-    d = res["diagnosis"]
-    ranking = [(c.name, round(c.score, 1)) for c in d.candidates]
-    print(f"\n[{scenario}] base chi2/dof {d.base_misfit.chi2_reduced_total:.2f}; ranking {ranking[:5]}; "
-          f"{d.verdict}; {d.notes}; {res['t_diagnosis']:.0f} s")
-    assert d.candidates[0].name == name and d.best is not None and d.best.name == name, ranking
-    added = res["added"]
-    fitted, sigma = added.state.effects[name][param], added.effect_sigma[name][param]
-    before = evaluate(meas, res["base"].state, twin, model_rays=4 * N_RAYS)
-    after = evaluate(meas, added.state, twin, model_rays=4 * N_RAYS)
-    print(f"[{scenario}] hidden {hidden:g}, fitted {fitted:.4g} ± {sigma:.2g}; chi2/dof before "
-          f"{before.chi2_reduced_total:.2f}, after {after.chi2_reduced_total:.2f}; MSE/expected "
-          f"{after.mse_total / after.expected_mse_total:.2f}; {res['t_total']:.0f} s")
+@pytest.mark.parametrize("scenario", [
+    pytest.param(k, marks=pytest.mark.xfail(strict=False, reason=KNOWN[k])) if k in KNOWN else k
+    for k in SCENARIOS])
+def test_hidden_effect_is_found_added_and_fitted(scenario, tmp_path):
+    effect, name, param, hidden = SCENARIOS[scenario]
+    s = _demo(tmp_path, effect)
+    assert s["ranking"][0] == name and s["verdict"].startswith(f"missing effect: {name}"), s["ranking"]
+    fitted = s["fitted_effect"][name][param][0]
     assert fitted == pytest.approx(hidden, rel=0.25)
-    assert after.chi2_total < 1.5 * after.dof_total
-    assert after.chi2_total < before.chi2_total
+    before, after = s["history"][-2], s["history"][-1]
+    assert after["chi2"] < before["chi2"]
+    assert after["chi2"] < 1.5 * after["dof"], f"chi2/dof {after['chi2_reduced']:.2f} after adding {name}"
 
 
-@pytest.mark.slow
-@pytest.mark.timeout(900)
-@pytest.mark.skipif(os.environ.get("BLUESKY_OFFSETS_RUN_KNOWN_FAILING") != "1", reason=(
-    "a known-failing acceptance check (5-10 min): run it with BLUESKY_OFFSETS_RUN_KNOWN_FAILING=1"))
-@pytest.mark.xfail(strict=False, reason=(
-    "issue 6 acceptance not met reliably: passed in development (chamber_z gained 101 but the K-fold "
-    "check vetoed it), failed in the fresh-clone CI run of 2026-11-21 with 'missing effect: "
-    "thermal_bump_m1 (height = 183.2 +- 14)': the offsets do not converge to noise, and an effect "
-    "that soaks up the unconverged offsets is scored as significant"))
-def test_no_hidden_effect_reports_none(RE, run_store, twin, tmp_path):
-    meas = _measure(RE, run_store, tmp_path, {})
-    res = _workflow(meas, twin)
-    d = res["diagnosis"]
-    print(f"\n[none] base chi2/dof {d.base_misfit.chi2_reduced_total:.2f}; top "
-          f"{[(c.name, round(c.score, 1)) for c in d.candidates[:4]]}; {d.verdict}; {d.notes}; "
-          f"{res['t_total']:.0f} s")
-    assert len(d.candidates) == len(E.EFFECTS)
-    assert d.verdict == "no significant missing effect", d.as_dict()
+@pytest.mark.xfail(strict=False, reason="the offsets-only refinement ends at chi2/dof 2.9-10 and a "
+                                        "candidate soaks up the rest (3 of 3 runs, docs/diagnosis.md)")
+def test_no_hidden_effect_reports_none(tmp_path):
+    s = _demo(tmp_path, "none")
+    assert s["verdict"] == "no significant missing effect", (s["verdict"], s["history"][-1])
