@@ -79,7 +79,8 @@ def demo_truth(s: DemoSettings) -> dict:
     off.update(s.offsets)
     name, values = s.effect
     overrides = E.twin_overrides({name: values}) if name else {}
-    return {"offsets": off, "overrides": {k: {f: float(v) for f, v in fv.items()} for k, fv in overrides.items()},
+    return {"offsets": off, "overrides": {k: {f: (v if isinstance(v, str) else float(v)) for f, v in fv.items()}
+                                          for k, fv in overrides.items()},
             "comment": f"bluesky-offsets demo: hidden effect {name or 'none'} {values}"}
 
 

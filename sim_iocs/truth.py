@@ -42,6 +42,22 @@ def default_start(table: ParameterTable = METRIXS) -> np.ndarray:
     return np.where(table.motorized, start, table.reference)
 
 
+def _field_value(obj, field, x):
+    """An RML field value: a number, or a word such as an element type (a thermal bump turns
+    M1 into a ``Toroid``)."""
+    if isinstance(x, str):
+        try:
+            return float(x)
+        except ValueError:
+            if not x.strip():
+                raise ParameterError(f"overrides: {obj}.{field} is empty") from None
+            return x
+    try:
+        return float(x)
+    except (TypeError, ValueError):
+        raise ParameterError(f"overrides: {obj}.{field} = {x!r} is neither a number nor a word") from None
+
+
 @dataclass
 class Truth:
     """Hidden offsets (normalized, table order), hidden effects and start positions."""
@@ -62,7 +78,8 @@ class Truth:
             raise ParameterError(f"start position outside the motor limits for {', '.join(bad)}")
         if not isinstance(self.overrides, Mapping) or not all(isinstance(v, Mapping) for v in self.overrides.values()):
             raise ParameterError("overrides must be {object name: {RML field: value}}")
-        self.overrides = {str(k): {str(f): float(x) for f, x in v.items()} for k, v in self.overrides.items()}
+        self.overrides = {str(k): {str(f): _field_value(k, f, x) for f, x in v.items()}
+                          for k, v in self.overrides.items()}
 
     # -- construction -------------------------------------------------------
     @classmethod

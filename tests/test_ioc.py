@@ -65,6 +65,11 @@ def test_truth_from_seed_file_and_errors(tmp_path):
         Truth.from_mapping({"start": {"E1.longHalfAxisA": 20700}})
     with pytest.raises(ValueError, match="outside the motor limits"):
         Truth.from_mapping({"start": {"E1.rotationZerror": 0.0}})
+    # a thermal bump turns M1 into a toroid: RML fields may be words as well as numbers
+    bump = Truth.from_mapping({"overrides": {"M1-Cylinder": {"type": "Toroid", "longRadius": "-1.4e6"}}})
+    assert bump.overrides == {"M1-Cylinder": {"type": "Toroid", "longRadius": -1.4e6}}
+    with pytest.raises(ValueError, match="neither a number nor a word"):
+        Truth.from_mapping({"overrides": {"M1-Cylinder": {"longRadius": [1]}}})
 
 
 def test_bad_truth_file_gives_clear_error_and_exit_2(tmp_path):
