@@ -183,7 +183,7 @@ def analysis_sections(analysis, spec, work: Path, *, truth: Mapping | None = Non
             rows.append({"rank": i, "effect": c.name, "score": c.score, "Δχ² all": c.delta_chi2_all,
                          "÷ dispersion": c.dispersion, "price p ln N": c.penalty,
                          "Δχ² held-out": c.delta_chi2_heldout,
-                         "folds improved": f"{c.folds_improved} / {c.folds_total}",
+                         "held-out folds better / worse": f"{c.folds_improved} / {c.folds_worse} of {c.folds_total}",
                          "significant": "yes" if c.significant else "no",
                          "fitted (diagnosis)": _fmt_values(c.values, c.sigma)})
         keys = [k for k in diag.observed_signature if not k.endswith("skewness")]
@@ -193,9 +193,10 @@ def analysis_sections(analysis, spec, work: Path, *, truth: Mapping | None = Non
         mf = diag.base_misfit
         body = (paragraph(f"Each candidate is fitted with the offsets on all configurations and in {diag.folds} "
                           "folds; score = χ² improvement over the offsets-only fit on all data ÷ that fit's χ² "
-                          "per bin (when > 1) − p ln N; significant when the score is positive and the candidate "
-                          "lowers the held-out χ² in at least half of the folds (its parameters fitted without "
-                          "the fold, the offsets held at the offsets-only fit). Base model: χ²/dof "
+                          "per bin (when > 1) − p ln N; significant when the score is positive and the held-out folds "
+                          "do not contradict it (its parameters fitted without the fold, the offsets held at the "
+                          "offsets-only fit, lower the fold's χ² at least as often as they raise it). Base model: "
+                          "χ²/dof "
                           f"{mf.chi2_reduced_total:.3g} (noise: 1 ± {np.sqrt(2 / max(mf.dof_total, 1)):.2g}); "
                           f"{diag.n_traces} twin traces.")
                 + table_(rows) + image(fig, "candidate scores; predicted residual signature of the top candidates "

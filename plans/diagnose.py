@@ -468,7 +468,7 @@ def ranking_rows(d: Diagnosis) -> list[dict]:
                "n_params": c.n_params, "score": float(c.score), "delta_chi2_heldout": float(c.delta_chi2_heldout),
                "delta_chi2_all": float(c.delta_chi2_all), "penalty": float(c.penalty),
                "dispersion": float(c.dispersion), "folds_improved": int(c.folds_improved),
-               "folds_total": int(c.folds_total),
+               "folds_worse": int(c.folds_worse), "folds_total": int(c.folds_total),
                "significant": bool(c.significant), "values_json": _json(c.values), "sigma_json": _json(c.sigma),
                "units_json": _json({p.name: p.unit for p in eff.parameters})}
         for k, v in d.observed_signature.items():
