@@ -34,7 +34,8 @@ SCENARIOS = {
 KNOWN = {
     "chamber_z": "ranked first in 2 of 4 demo runs of 2026-11-21 (z within 5 % after the refit), but the "
                  "refit ends at chi2/dof 1.8-2.5, not <= 1.5 (docs/diagnosis.md)",
-    "thermal_bump_m1": "offsets absorb ~97 % of a thermal bump on this detector (docs/diagnosis.md)",
+    "thermal_bump_m1": "ranked first in its one run (2026-11-21) but fitted 220 +- 12 nm against 450 (-51 %), "
+                       "chi2/dof 2.09 after the refit (docs/diagnosis.md)",
     "source_size": "offsets absorb ~99 % of a source change on this detector (docs/diagnosis.md)",
 }
 
