@@ -78,9 +78,11 @@ def demo_truth(s: DemoSettings) -> dict:
            for n in METRIXS.names} if s.background_offsets else {}
     off.update(s.offsets)
     name, values = s.effect
-    overrides = E.twin_overrides({name: values}) if name else {}
-    return {"offsets": off, "overrides": {k: {f: (v if isinstance(v, str) else float(v)) for f, v in fv.items()}
-                                          for k, fv in overrides.items()},
+    from sim_iocs.truth import Truth
+    # the IOC's own reading of the overrides (numbers, or words such as an element type),
+    # refused here with its message rather than in the IOC's subprocess
+    overrides = Truth.from_mapping({"overrides": E.twin_overrides({name: values}) if name else {}}).overrides
+    return {"offsets": off, "overrides": overrides,
             "comment": f"bluesky-offsets demo: hidden effect {name or 'none'} {values}"}
 
 

@@ -213,6 +213,7 @@ def diagnose(meas: Measurement, state: ModelState, twin, forward_model, *,
     observed = _signature(m, base_pred, twin.hist)
     n_data = int(base_mf.dof_total)
     dispersion = max(1.0, base_all / max(n_data, 1))
+    tol = [1e-9 * max(b_, 1.0) for b_ in base_ho]  # rounding, not evidence
     out = []
     for n_ in names:
         eff = E.get(n_)
@@ -221,7 +222,6 @@ def diagnose(meas: Measurement, state: ModelState, twin, forward_model, *,
         fit = fit_local(meas, lm, table=table, start=base_fit)
         chi_all = fit.chi2_train
         ho = heldout_chi2(lm, base_fit)
-        tol = [1e-9 * max(b_, 1.0) for b_ in base_ho]  # rounding, not evidence
         improved = sum(b_ - c_ > t for b_, c_, t in zip(base_ho, ho, tol))
         worse = sum(c_ - b_ > t for b_, c_, t in zip(base_ho, ho, tol))
         p = len(eff.parameters)

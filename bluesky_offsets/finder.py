@@ -561,8 +561,8 @@ class SmartWalker:
     candidates even when it is worse (``"comma"``: the paper's text read
     literally, "evaluate these offsets ... take only the best solution").  With
     m = 1e6 the two coincide; at m = 256-1024 on this CPU neither leaves the
-    valley that traps the benchmark's seed 9 (docs/benchmarks.md).  The paper uses m = 1e6 on an A100 (200
-    iterations).  The CPU default m = 4096 keeps one iteration (4096 x 16
+    valley that traps the benchmark's seed 9 (docs/benchmarks.md).  The paper
+    uses m = 1e6 on an A100 (200 iterations).  The CPU default m = 4096 keeps one iteration (4096 x 16
     model rows) at ~30 MB of activations for a 7-layer, 512-wide MLP and a
     fraction of a second on two cores; :func:`paper_budget` gives the
     matching evaluation count.
@@ -583,15 +583,14 @@ class SmartWalker:
         x = _uniform(m, P, lim, gen, obj)
         loss = obj(x)
         tr.update(x, loss)
-        centre = x[int(torch.argmin(torch.nan_to_num(loss, nan=math.inf)))]
         while not tr.exhausted():
+            # "plus": the best so far; "comma": the best of the last m, even when worse
+            centre = tr.best if self.selection == "plus" else \
+                x[int(torch.argmin(torch.nan_to_num(loss, nan=math.inf)))]
             m = tr.cap(self.candidates)
-            if self.selection == "plus":
-                centre = tr.best
             x = (centre[None, :] + self.step * _normal((m, P), gen, obj)).clamp_(-lim, lim)
             loss = obj(x)
             tr.update(x, loss)
-            centre = x[int(torch.argmin(torch.nan_to_num(loss, nan=math.inf)))]
 
 
 @dataclass

@@ -417,8 +417,7 @@ def refine(meas: Measurement, state: ModelState, twin, forward_model, *, iterati
            twin_columns: Sequence[int] | None = None, progress=None, reuse_jacobian: bool = False,
            effect_step: float = 0.25, start: LocalModel | None = None, sigma_offset_prior: float | None = None,
            offset_jacobian: np.ndarray | None = None, refresh_columns: Sequence[int] | None = None,
-           refresh_on_reject: bool = False, common_seeds: bool = False,
-           table: ParameterTable = METRIXS) -> RefineResult:
+           refresh_on_reject: bool = False, table: ParameterTable = METRIXS) -> RefineResult:
     """Fit offsets and the state's effects to ``meas`` by re-anchored Gauss-Newton through the twin.
 
     Each iteration solves the local problem, traces the twin at the proposed
@@ -441,10 +440,9 @@ def refine(meas: Measurement, state: ModelState, twin, forward_model, *, iterati
     offset Jacobian is differentiated afresh at the current state (the surrogate's, or the
     twin's for ``twin_columns``, all 34 without a surrogate: ``34 n`` traces) before the
     trust region shrinks — a stale Jacobian, not the step size, is
-    then the likely cause; the fresh one is reused from there on.  ``common_seeds`` traces
-    every anchor with the same seeds (common random numbers); the default gives each
-    iteration new ones, which measured better (docs/diagnosis.md: the fit otherwise adapts
-    to one ray sample).
+    then the likely cause; the fresh one is reused from there on.  Each anchor gets new
+    ray seeds: the same seeds at every anchor measured worse (docs/diagnosis.md: the fit
+    adapts to one ray sample).
     The reported effect uncertainties come from the Gauss-Newton covariance at the
     solution with the offsets free within the final trust region (default), or within
     ``sigma_offset_prior`` (normalized; e.g. ``MAX_OFFSET``, the physical prior), which lets
@@ -478,7 +476,7 @@ def refine(meas: Measurement, state: ModelState, twin, forward_model, *, iterati
         proposal = ModelState(np.clip(fit.offsets, -MAX_OFFSET, MAX_OFFSET), current.set_effect_vector(fit.effects),
                               current.label)
         lm_p = build_local_model(meas, proposal, twin, forward_model, anchor_rays=anchor_rays,
-                                 seed=seed if common_seeds else seed + 1000 * it,
+                                 seed=seed + 1000 * it,
                                  twin_columns=(refresh_columns or ()) if jac is not None else twin_columns,
                                  offset_jacobian=jac, effect_step=effect_step, table=table)
         mf_p = _twin_chi2(meas, lm_p)
@@ -491,7 +489,7 @@ def refine(meas: Measurement, state: ModelState, twin, forward_model, *, iterati
         elif refresh_on_reject and not jac_fresh:
             # a new anchor with its own seeds and a full Jacobian there; it is the reference now
             lm = build_local_model(meas, current, twin, forward_model, anchor_rays=anchor_rays,
-                                   seed=seed if common_seeds else seed + 1000 * it + 500, twin_columns=twin_columns,
+                                   seed=seed + 1000 * it + 500, twin_columns=twin_columns,
                                    effect_step=effect_step, table=table)
             mf, jac, jac_fresh, refreshed = _twin_chi2(meas, lm), lm.jac, True, True
         else:
