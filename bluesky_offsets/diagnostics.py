@@ -51,7 +51,7 @@ class Misfit:
     """Noise-aware misfit of a model against measured histograms."""
 
     chi2: np.ndarray            # per configuration
-    dof: np.ndarray             # bins that carry signal, per configuration
+    dof: np.ndarray             # expected chi2 of a correct model, per configuration
     mse: np.ndarray             # per configuration, x and y bins together
     expected_mse: np.ndarray    # per configuration, for a correct model
     pulls_x: np.ndarray         # (n, bins) normalized residuals (measured - model) / sigma
@@ -62,8 +62,8 @@ class Misfit:
         return float(self.chi2.sum())
 
     @property
-    def dof_total(self) -> int:
-        return int(self.dof.sum())
+    def dof_total(self) -> float:
+        return float(self.dof.sum())
 
     @property
     def chi2_reduced(self) -> np.ndarray:
@@ -94,6 +94,18 @@ class Misfit:
                 "expected_mse_total": self.expected_mse_total,
                 "chi2_reduced": self.chi2_reduced.tolist(), "mse": self.mse.tolist(),
                 "configurations_beyond_noise": np.flatnonzero(self.beyond_noise()).tolist()}
+
+
+def expected_pull2(meas: np.ndarray, model: np.ndarray, n_rays) -> np.ndarray:
+    """What each bin adds to chi-square on average for a correct model (its degrees of freedom).
+
+    One where the measurement saw rays; where it saw none, ``n p`` for a model that
+    expects ``p n < 1`` rays there: such a bin is almost always empty, and its pull is then
+    tiny.  Counting it as a whole degree of freedom let a model with a faint background
+    (non-zero in all 1600 bins) report chi2/dof ~ 1 while its MSE was 11x its noise.
+    """
+    n = np.asarray(n_rays, dtype=float)
+    return np.where(meas > 0, 1.0, np.clip(model * n, 0.0, 1.0))
 
 
 def misfit(meas_x, meas_y, model_x, model_y, n_rays: int | Sequence[int], *,
@@ -128,14 +140,15 @@ def misfit(meas_x, meas_y, model_x, model_y, n_rays: int | Sequence[int], *,
         pull = np.where(signal, (m - f) / np.sqrt(var), 0.0)
         return pull, signal, p
 
-    px, sx, ppx = _pulls(mx, fx)
-    py, sy, ppy = _pulls(my, fy)
+    px, _, ppx = _pulls(mx, fx)
+    py, _, ppy = _pulls(my, fy)
     chi2 = (px ** 2).sum(1) + (py ** 2).sum(1)
-    dof = sx.sum(1) + sy.sum(1)
+    wx, wy = expected_pull2(mx, fx, n), expected_pull2(my, fy, n)
+    dof = wx.sum(1) + wy.sum(1)
     mse = np.concatenate([(mx - fx) ** 2, (my - fy) ** 2], axis=1).mean(1)
-    # a correct model: E[(m - f)^2] = var per bin
+    # a correct model: E[(m - f)^2] = var per bin (scaled like the dof in nearly empty bins)
     var_factor = 1.0 / n + (1.0 / model_rays if model_rays else 0.0)
-    exp_mse = (np.concatenate([ppx * (1 - ppx) * sx, ppy * (1 - ppy) * sy], axis=1) * var_factor
+    exp_mse = (np.concatenate([ppx * (1 - ppx) * wx, ppy * (1 - ppy) * wy], axis=1) * var_factor
                + model_var).mean(1)
     return Misfit(chi2, dof, mse, exp_mse, px, py)
 

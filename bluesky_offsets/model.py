@@ -30,7 +30,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from . import effects as E
-from .diagnostics import MeasurementError, check_histograms, misfit
+from .diagnostics import MeasurementError, Misfit, check_histograms, misfit
 from .parameters import MAX_OFFSET, METRIXS, ParameterTable
 
 
@@ -221,6 +221,8 @@ def twin_jacobian(twin, configurations: np.ndarray, state: ModelState, raw0, n_r
 def build_local_model(meas: Measurement, state: ModelState, twin, forward_model, *, anchor_rays: int,
                       seed: int = 0, twin_columns: Sequence[int] | None = None, reuse: LocalModel | None = None,
                       offset_jacobian: np.ndarray | None = None, effect_step: float = 0.25,
+                      jacobian_rays: int | None = None, jacobian_step: float = 0.002,
+                      anchor_raw: tuple[np.ndarray, np.ndarray] | None = None,
                       table: ParameterTable = METRIXS) -> LocalModel:
     """Trace the anchor and the effect responses; the offset Jacobian comes from the surrogate.
 
@@ -229,7 +231,10 @@ def build_local_model(meas: Measurement, state: ModelState, twin, forward_model,
     ``±effect_step`` of each parameter's prior range; detector-level ones are applied to the
     anchor's histograms and cost nothing.  ``offset_jacobian`` (n, 100, 34) is used as is
     instead of differentiating again (a Jacobian traced at a nearby state: it changes slowly,
-    while the anchor carries the exact twin).
+    while the anchor carries the exact twin).  ``jacobian_rays`` (default: ``anchor_rays``)
+    traces the twin's finite differences with fewer rays, against a base traced with those
+    rays and the same seeds: the cost of a Jacobian is linear in rays, and Gauss-Newton
+    needs its direction, not the anchor's precision (the anchor keeps ``anchor_rays``).
     """
     n = meas.n
     if reuse is not None:
@@ -239,8 +244,12 @@ def build_local_model(meas: Measurement, state: ModelState, twin, forward_model,
             raise ValueError("reuse: the local model was built for another state")
         seed = reuse.seed
     seeds = [seed + i for i in range(n)]
-    raw = reuse.raw if reuse is not None else simulate_raw(twin, meas.configurations, state, anchor_rays, seeds,
-                                                           table)
+    if reuse is not None:
+        raw = reuse.raw
+    elif anchor_raw is not None:  # the anchor traced already, with these seeds and rays
+        raw = anchor_raw
+    else:
+        raw = simulate_raw(twin, meas.configurations, state, anchor_rays, seeds, table)
 
     def view(st: ModelState, raw_h) -> np.ndarray:
         return np.concatenate(detector_view(*raw_h, st, twin.hist), axis=1)
@@ -262,7 +271,10 @@ def build_local_model(meas: Measurement, state: ModelState, twin, forward_model,
         twin_columns = range(len(table)) if twin_columns is None else twin_columns
     if twin_columns:
         # columns the twin differentiates itself (before detector effects, which scale linearly)
-        tj = twin_jacobian(twin, meas.configurations, state, raw, anchor_rays, seeds, twin_columns, table=table)
+        j_rays = int(jacobian_rays or anchor_rays)
+        raw_j = raw if j_rays == anchor_rays else simulate_raw(twin, meas.configurations, state, j_rays, seeds, table)
+        tj = twin_jacobian(twin, meas.configurations, state, raw_j, j_rays, seeds, twin_columns, step=jacobian_step,
+                           table=table)
         for j in twin_columns:
             # detector effects are affine in the histograms: map the raw derivative through them
             jac[:, :, j] = view(state, (raw[0] + tj[:, :50, j], raw[1] + tj[:, 50:, j])) - t0
@@ -417,7 +429,9 @@ def refine(meas: Measurement, state: ModelState, twin, forward_model, *, iterati
            twin_columns: Sequence[int] | None = None, progress=None, reuse_jacobian: bool = False,
            effect_step: float = 0.25, start: LocalModel | None = None, sigma_offset_prior: float | None = None,
            offset_jacobian: np.ndarray | None = None, refresh_columns: Sequence[int] | None = None,
-           refresh_on_reject: bool = False, table: ParameterTable = METRIXS) -> RefineResult:
+           refresh_on_reject: bool = False, jacobian_rays: int | None = None, jacobian_step: float = 0.002,
+           paired: bool = True, step_factors: Sequence[float] = (1.0, 0.25, 0.0625),
+           table: ParameterTable = METRIXS) -> RefineResult:
     """Fit offsets and the state's effects to ``meas`` by re-anchored Gauss-Newton through the twin.
 
     Each iteration solves the local problem, traces the twin at the proposed
@@ -447,8 +461,17 @@ def refine(meas: Measurement, state: ModelState, twin, forward_model, *, iterati
     solution with the offsets free within the final trust region (default), or within
     ``sigma_offset_prior`` (normalized; e.g. ``MAX_OFFSET``, the physical prior), which lets
     correlations with poorly determined offsets widen them: the honest, larger number.
+    ``jacobian_rays`` and ``jacobian_step`` set the twin's finite differences (see
+    :func:`build_local_model`).  ``paired`` (default) judges a step against the current state
+    traced with the proposal's own ray seeds (``n`` more traces per iteration) rather than
+    against the current anchor's chi-square: that one is the minimum of noisy draws, and far
+    from the noise floor a draw scatters by about ``2 sqrt(chi2)``.  ``step_factors`` scale
+    the trust region into a ladder of steps per iteration, all traced with the same rays
+    (``n`` traces each); the best is proposed, and a local model (Jacobian, effect probes)
+    is built only for an accepted step.
     """
     anchor_rays = anchor_rays or int(meas.n_rays)
+    jkw = {"jacobian_rays": jacobian_rays, "jacobian_step": jacobian_step}
     if start is not None:
         if not (np.array_equal(start.anchor.offsets, state.offsets) and start.anchor_rays == anchor_rays
                 and start.anchor.effect_vector().size == state.effect_vector().size
@@ -458,7 +481,7 @@ def refine(meas: Measurement, state: ModelState, twin, forward_model, *, iterati
     else:
         lm = build_local_model(meas, state, twin, forward_model, anchor_rays=anchor_rays, seed=seed,
                                twin_columns=(refresh_columns or ()) if offset_jacobian is not None else twin_columns,
-                               offset_jacobian=offset_jacobian, effect_step=effect_step, table=table)
+                               offset_jacobian=offset_jacobian, effect_step=effect_step, table=table, **jkw)
     jac = lm.jac if (reuse_jacobian or offset_jacobian is not None) else None
 
     mf = _twin_chi2(meas, lm)
@@ -471,31 +494,55 @@ def refine(meas: Measurement, state: ModelState, twin, forward_model, *, iterati
     current, prior = state, offset_prior
     # a Jacobian differentiated here for the start state is fresh; one handed in may be stale
     jac_fresh = jac is None or (start is None and offset_jacobian is None)
+
+    def traced_chi2(st: ModelState, raw) -> Misfit:
+        hx, hy = detector_view(*raw, st, twin.hist)
+        return misfit(meas.hist_x, meas.hist_y, hx, hy, meas.n_rays, model_rays=anchor_rays)
+
     for it in range(1, iterations + 1):
-        fit = fit_local(meas, lm, offset_prior=prior, free_offsets=free_offsets, table=table)
-        proposal = ModelState(np.clip(fit.offsets, -MAX_OFFSET, MAX_OFFSET), current.set_effect_vector(fit.effects),
-                              current.label)
-        lm_p = build_local_model(meas, proposal, twin, forward_model, anchor_rays=anchor_rays,
-                                 seed=seed + 1000 * it,
-                                 twin_columns=(refresh_columns or ()) if jac is not None else twin_columns,
-                                 offset_jacobian=jac, effect_step=effect_step, table=table)
-        mf_p = _twin_chi2(meas, lm_p)
-        accepted = mf_p.chi2_total < mf.chi2_total
+        it_seed = seed + 1000 * it
+        seeds_it = [it_seed + i for i in range(meas.n)]
+        # a ladder of trust regions, each step traced with the same rays: the footprint spans
+        # one or two bins, so how far the linear model holds changes from step to step
+        priors = [prior * f for f in step_factors]
+        proposals = []
+        for pr_ in priors:
+            fit = fit_local(meas, lm, offset_prior=pr_, free_offsets=free_offsets, table=table)
+            proposals.append(ModelState(np.clip(fit.offsets, -MAX_OFFSET, MAX_OFFSET),
+                                        current.set_effect_vector(fit.effects), current.label))
+        raws = [simulate_raw(twin, meas.configurations, st, anchor_rays, seeds_it, table) for st in proposals]
+        mfs = [traced_chi2(st, raw) for st, raw in zip(proposals, raws)]
+        best = int(np.argmin([m_.chi2_total for m_ in mfs]))
+        proposal, mf_p = proposals[best], mfs[best]
+        if paired:
+            # the current state with the proposals' rays: common random numbers make the
+            # comparison sharp, and a current chi-square that won its own draw no longer
+            # refuses every later step (the winner's curse stalled refinements at 16-19)
+            chi2_ref = traced_chi2(current, simulate_raw(twin, meas.configurations, current, anchor_rays, seeds_it,
+                                                         table)).chi2_total
+        else:
+            chi2_ref = mf.chi2_total
+        accepted = mf_p.chi2_total < chi2_ref
         refreshed = False
         if accepted:
-            current, lm, mf = proposal, lm_p, mf_p
-            prior = min(prior * 2.0, 0.05)
+            lm = build_local_model(meas, proposal, twin, forward_model, anchor_rays=anchor_rays, seed=it_seed,
+                                   anchor_raw=raws[best],
+                                   twin_columns=(refresh_columns or ()) if jac is not None else twin_columns,
+                                   offset_jacobian=jac, effect_step=effect_step, table=table, **jkw)
+            current, mf = proposal, _twin_chi2(meas, lm)
+            prior = min(priors[best] * 2.0, 0.05)
             jac_fresh = jac is None
         elif refresh_on_reject and not jac_fresh:
             # a new anchor with its own seeds and a full Jacobian there; it is the reference now
             lm = build_local_model(meas, current, twin, forward_model, anchor_rays=anchor_rays,
-                                   seed=seed + 1000 * it + 500, twin_columns=twin_columns,
-                                   effect_step=effect_step, table=table)
+                                   seed=it_seed + 500, twin_columns=twin_columns,
+                                   effect_step=effect_step, table=table, **jkw)
             mf, jac, jac_fresh, refreshed = _twin_chi2(meas, lm), lm.jac, True, True
         else:
-            prior /= 4.0
+            prior = min(priors) / 4.0
         history.append({"iteration": it, "accepted": bool(accepted), "jacobian_refreshed": refreshed,
-                        "chi2_reduced": mf_p.chi2_reduced_total,
+                        "chi2_reduced": mf_p.chi2_reduced_total, "chi2_reference": float(chi2_ref),
+                        "trust_region": float(priors[best]),
                         "mse": mf_p.mse_total, "chi2": mf_p.chi2_total, "dof": mf_p.dof_total,
                         "effects": {k: dict(v) for k, v in proposal.effects.items()}})
         if progress:

@@ -334,7 +334,7 @@ def emit_comparison(c: Comparison) -> MsgGenerator[None]:
     beyond = mf.beyond_noise()
     rows = []
     for i in range(len(mf.chi2)):
-        row = {"config_index": i, "chi2": float(mf.chi2[i]), "dof": int(mf.dof[i]),
+        row = {"config_index": i, "chi2": float(mf.chi2[i]), "dof": float(mf.dof[i]),
                "chi2_reduced": float(mf.chi2_reduced[i]), "mse": float(mf.mse[i]),
                "expected_mse": float(mf.expected_mse[i]), "beyond_noise": bool(beyond[i]),
                "model_hist_x": c.model_x[i], "model_hist_y": c.model_y[i],

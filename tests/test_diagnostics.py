@@ -38,6 +38,20 @@ def test_correct_model_is_within_noise(data):
     assert m.mse_total < 2 * m.expected_mse_total
 
 
+def test_faint_model_background_does_not_inflate_the_degrees_of_freedom(data):
+    """A background in the model fills every bin; nearly empty bins must not count as whole
+    degrees of freedom (they did: chi2/dof ~ 1 with the MSE 11x its noise, demo run v7)."""
+    (mx, my), (fx, fy) = data["meas"], data["wrong"]
+    plain = misfit(mx, my, fx, fy, N_MEAS, model_rays=N_MODEL)
+    faint = 2.5e-6  # 0.025 rays per bin at N_MEAS
+    bg = misfit(mx, my, fx + faint, fy + faint, N_MEAS, model_rays=N_MODEL)
+    empty = int(((mx == 0) & (fx == 0)).sum() + ((my == 0) & (fy == 0)).sum())
+    assert empty > 500
+    assert bg.dof_total - plain.dof_total == pytest.approx(empty * faint * N_MEAS, rel=1e-6)
+    assert bg.chi2_total == pytest.approx(plain.chi2_total, rel=1e-3)
+    assert bg.chi2_reduced_total > 5 and bg.mse_total > 5 * bg.expected_mse_total
+
+
 def test_missing_effect_is_beyond_noise_with_its_signature(data, tmp_path):
     (mx, my), (fx, fy) = data["meas"], data["wrong"]
     m = misfit(mx, my, fx, fy, N_MEAS, model_rays=N_MODEL)
