@@ -17,6 +17,7 @@ The IOC is always stopped, also after an error or Ctrl-C.
 
 from __future__ import annotations
 
+import copy
 import json
 import os
 import socket
@@ -31,6 +32,7 @@ from pathlib import Path
 import numpy as np
 
 from . import effects as E
+from .diagnosis import RECIPE
 from .parameters import METRIXS
 
 # Hidden truth: offsets of a few per cent of each range in the motors that steer the focus and
@@ -57,15 +59,15 @@ class DemoSettings:
     background_offsets: float = 0.0   # ± this (normalized) on every other parameter
     finder_evaluations: int = 3000
     finder_seconds: float = 30.0
-    refine_iterations: int = 10
-    refit_iterations: int = 7
+    # the fitting recipe (diagnosis.RECIPE: features first, then bins; see docs/diagnosis.md)
+    refine_iterations: int = RECIPE["refine_iterations"]
+    refit_iterations: int = RECIPE["refit_iterations"]
     jacobian: str = "twin"            # offset Jacobian of the fits: "twin" (finite differences) or "surrogate"
-    # the refinement reuses its first Jacobian and differentiates the twin afresh only when a
-    # step is refused (reused throughout, it stalled at chi2/dof 10-20)
-    refine_kw: dict = field(default_factory=lambda: {"reuse_jacobian": True, "refresh_on_reject": True})
-    # the refit differentiates the twin afresh at every anchor (34 n traces per iteration): with
-    # the refinement's Jacobian reused it stalled at chi2/dof 8 where the truth scores 1
-    refit_kw: dict = field(default_factory=lambda: {"effect_step": 0.1, "offset_jacobian": None})
+    refine_kw: dict = field(default_factory=lambda: copy.deepcopy(RECIPE["refine_kw"]))
+    refit_kw: dict = field(default_factory=lambda: copy.deepcopy(RECIPE["refit_kw"]))
+    diagnose_kw: dict = field(default_factory=lambda: copy.deepcopy(RECIPE["diagnose_kw"]))
+    # the diagnosis reads the camera-resolution profiles ("camera") or the paper's histograms ("paper")
+    resolution: str = "camera"
     candidates_effects: Sequence[str] | None = None
     seed: int = 0
     workers: int | None = None
@@ -107,7 +109,7 @@ def candidate_configurations(s: DemoSettings, start: np.ndarray) -> np.ndarray:
 class SimulatedBeamline:
     """The METRIXS IOC in a subprocess on loopback, a free port; :meth:`stop` always kills it."""
 
-    def __init__(self, truth: Mapping, n_rays: int, work: Path, move_time: float = 0.5):
+    def __init__(self, truth: Mapping, n_rays: int, work: Path, move_time: float = 0.5, noise_seed: int = 0):
         from sim_iocs.ports import free_port, loopback_env
         self.port = free_port()
         self.prefix = f"DEMO{self.port}:"
@@ -125,8 +127,8 @@ class SimulatedBeamline:
         self._log = open(self.log_path, "w")
         self.proc = subprocess.Popen(
             [sys.executable, "-m", "sim_iocs.metrixs", "--prefix", self.prefix, "--truth", str(self.truth_path),
-             "--backend", "twin", "--rays", str(n_rays), "--move-time", str(move_time), "--accel-time", "0.02",
-             "--tick", "0.02", "--interfaces", "127.0.0.1"],
+             "--backend", "twin", "--rays", str(n_rays), "--noise-seed", str(noise_seed),
+             "--move-time", str(move_time), "--accel-time", "0.02", "--tick", "0.02", "--interfaces", "127.0.0.1"],
             env=env, stdout=self._log, stderr=subprocess.STDOUT, start_new_session=True)
 
     def log(self) -> str:
@@ -214,7 +216,7 @@ def demo_plan(s: DemoSettings, beamline, chamber, twin, forward_model, store, lo
     log(f"[3/6] measuring {len(bright)} bright configurations at {s.n_rays} rays")
     m = yield from measure_configurations(bright, beamline, chamber, md={"purpose": "demo measurement"})
     t["measure"] = time.perf_counter()
-    meas = Measurement.from_store(m)
+    meas = Measurement.from_store(m, resolution=s.resolution)
 
     log(f"[4/6] finding the offsets with the surrogate ({s.finder_evaluations} evaluations, "
         f"≤ {s.finder_seconds:.0f} s), then through the twin")
@@ -228,6 +230,7 @@ def demo_plan(s: DemoSettings, beamline, chamber, twin, forward_model, store, lo
     analysis = yield from analyse_measurement(meas, twin, fm, starts=starts, refine_iterations=s.refine_iterations,
                                               candidates=s.candidates_effects, refit_iterations=s.refit_iterations,
                                               anchor_rays=s.anchor_rays, refine_kw=s.refine_kw, refit_kw=s.refit_kw,
+                                              diagnose_kw=s.diagnose_kw,
                                               seed=s.seed, md={"purpose": "bluesky-offsets demo"})
     t["analysis"] = time.perf_counter()
     return {"measurement": m, "offsets": found, "analysis": analysis, "times": t}
@@ -267,7 +270,8 @@ def run_demo(out: Path, settings: DemoSettings | None = None, store_location: st
     load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
     log(f"[1/6] starting the simulated METRIXS IOC (RAYX twin backend, hidden offsets and a hidden "
         f"{s.effect[0]}); load average {load:.1f} on {os.cpu_count()} cores")
-    ioc = SimulatedBeamline(truth, s.n_rays, work)
+    # seeded frame noise: the same settings give the same demo, --seed another draw of it
+    ioc = SimulatedBeamline(truth, s.n_rays, work, noise_seed=s.seed + 2)
     twin = None
     try:
         from bluesky import RunEngine
@@ -320,7 +324,7 @@ def run_demo(out: Path, settings: DemoSettings | None = None, store_location: st
         timing = {"IOC up + search": t["search"] - t0, "measure": t["measure"] - t["search"],
                   "surrogate finder": t["finder"] - t["measure"], "compare/refine/diagnose/refit":
                   t["analysis"] - t["finder"]}
-        report = write_analysis_report(out / "report.html", analysis, twin.hist, title="bluesky-offsets demo",
+        report = write_analysis_report(out / "report.html", analysis, analysis.measurement.spec, title="bluesky-offsets demo",
                                        intro=intro, truth=hidden, uids=steps, store_location=store.location,
                                        extra=[("Timing", table_([{k: f"{v:.0f} s" for k, v in timing.items()}]))])
         seconds = time.perf_counter() - t0
@@ -378,10 +382,19 @@ def add_cli(sub) -> None:
     p.add_argument("--effect", default=f"{DEMO_EFFECT[0]}:" + ",".join(f"{k}={v}" for k, v in DEMO_EFFECT[1].items()),
                    help="hidden effect NAME:PARAM=VALUE,... or 'none' (default %(default)s)")
     p.add_argument("--candidates", default=None, help="effects to rank, comma separated (default: all)")
-    p.add_argument("--refine-iterations", type=int, default=10)
-    p.add_argument("--refit-iterations", type=int, default=7)
+    p.add_argument("--refine-iterations", type=int, default=RECIPE["refine_iterations"],
+                   help="Gauss-Newton iterations on the bins after the feature stage (default %(default)s)")
+    p.add_argument("--refit-iterations", type=int, default=RECIPE["refit_iterations"])
+    p.add_argument("--feature-iterations", type=int, default=None,
+                   help="iterations on the beam features that start every fit (default: "
+                        f"{RECIPE['refine_kw']['feature_iterations']} before the diagnosis, "
+                        f"{RECIPE['refit_kw']['feature_iterations']} in the refit)")
     p.add_argument("--jacobian", choices=("twin", "surrogate"), default="twin",
-                   help="offset Jacobian of the fits through the twin (default: the twin's own)")
+                   help="offset Jacobian of the fits through the twin (default: the twin's own; the surrogate's "
+                        "needs --resolution paper)")
+    p.add_argument("--resolution", choices=("camera", "paper"), default="camera",
+                   help="histograms the diagnosis fits: the camera's profiles (20 µm x 5 µm bins, default) or the "
+                        "paper's 50 x 50 bins")
     p.add_argument("--seed", type=int, default=0)
     p.set_defaults(func=_cmd_demo)
 
@@ -419,11 +432,17 @@ def _cmd_demo(args) -> int:
         raise CliError("--configurations must be at least 2 (the paper asks for 16)")
     if args.rays < 100:
         raise CliError("--rays must be at least 100")
+    if args.jacobian == "surrogate" and args.resolution == "camera":
+        raise CliError("--jacobian surrogate: the surrogate predicts the paper's 50 x 50 bins; add --resolution paper")
     s = DemoSettings(n_rays=args.rays, anchor_rays=args.anchor_rays, configurations=args.configurations,
                      effect=parse_effect(args.effect),
                      refine_iterations=args.refine_iterations, refit_iterations=args.refit_iterations,
-                     jacobian=args.jacobian, seed=args.seed,
+                     jacobian=args.jacobian, seed=args.seed, resolution=args.resolution,
                      candidates_effects=[c.strip() for c in args.candidates.split(",")] if args.candidates else None)
+    if args.feature_iterations is not None:
+        if args.feature_iterations < 0:
+            raise CliError("--feature-iterations must be >= 0")
+        s.refine_kw["feature_iterations"] = s.refit_kw["feature_iterations"] = args.feature_iterations
     for n in s.candidates_effects or ():
         try:
             E.get(n)

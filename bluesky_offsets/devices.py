@@ -61,7 +61,8 @@ CHAMBER_PVS = {
     "hist_x": "HistX", "hist_y": "HistY", "image": "Image", "total_counts": "TotalCounts",
     "transmission": "Transmission", "array_counter": "ArrayCounter", "axis_x": "AxisX", "axis_y": "AxisY",
     "status": "Status", "message": "Message", "truth_id": "TruthId", "table_version": "TableVersion",
-    "backend": "Backend",
+    "backend": "Backend", "profile_x": "ProfileX", "profile_y": "ProfileY", "profile_axis_x": "ProfileAxisX",
+    "profile_axis_y": "ProfileAxisY",
 }
 """Detector signal -> PV suffix (after the chamber prefix) on the simulation IOC."""
 
@@ -168,7 +169,8 @@ class ChamberStatus(StrictEnum):
 
 class FocusChamber(StandardReadable):
     """Focus-chamber detector: ``trigger()`` acquires one frame, ``read()`` gives both
-    histograms, the image (flattened, rows y), the ray count and the frame number.
+    histograms, the image (flattened, rows y), both profiles at the camera's resolution,
+    the ray count and the frame number.
 
     Parameters
     ----------
@@ -196,11 +198,15 @@ class FocusChamber(StandardReadable):
             self.total_counts = epics_signal_r(int, pv["total_counts"])
             self.array_counter = epics_signal_r(int, pv["array_counter"])
             self.image = epics_signal_r(Array1D[np.float64], pv["image"])
+            self.profile_x = epics_signal_r(Array1D[np.float64], pv["profile_x"])
+            self.profile_y = epics_signal_r(Array1D[np.float64], pv["profile_y"])
         with self.add_children_as_readables(Format.CONFIG_SIGNAL):
             self.num_rays = epics_signal_rw(int, pv["num_rays"])
             self.acquire_time = epics_signal_rw(float, pv["acquire_time"])
             self.axis_x = epics_signal_r(Array1D[np.float64], pv["axis_x"])
             self.axis_y = epics_signal_r(Array1D[np.float64], pv["axis_y"])
+            self.profile_axis_x = epics_signal_r(Array1D[np.float64], pv["profile_axis_x"])
+            self.profile_axis_y = epics_signal_r(Array1D[np.float64], pv["profile_axis_y"])
             self.truth_id = epics_signal_r(str, pv["truth_id"])
             self.table_version = epics_signal_r(str, pv["table_version"])
             self.backend = epics_signal_r(str, pv["backend"])
@@ -304,10 +310,14 @@ class FocusChamberV1(DeviceV1):
     total_counts = Cpt(EpicsSignalRO, "TotalCounts", kind="normal", auto_monitor=False)
     array_counter = Cpt(EpicsSignalRO, "ArrayCounter", kind="normal", auto_monitor=False)
     image = Cpt(EpicsSignalRO, "Image", kind="normal", auto_monitor=False)
+    profile_x = Cpt(EpicsSignalRO, "ProfileX", kind="normal", auto_monitor=False)
+    profile_y = Cpt(EpicsSignalRO, "ProfileY", kind="normal", auto_monitor=False)
     num_rays = Cpt(EpicsSignal, "NumRays", kind="config")
     acquire_time = Cpt(EpicsSignal, "AcquireTime", kind="config")
     axis_x = Cpt(EpicsSignalRO, "AxisX", kind="config")
     axis_y = Cpt(EpicsSignalRO, "AxisY", kind="config")
+    profile_axis_x = Cpt(EpicsSignalRO, "ProfileAxisX", kind="config")
+    profile_axis_y = Cpt(EpicsSignalRO, "ProfileAxisY", kind="config")
     truth_id = Cpt(EpicsSignalRO, "TruthId", string=True, kind="config")
     table_version = Cpt(EpicsSignalRO, "TableVersion", string=True, kind="config")
     backend = Cpt(EpicsSignalRO, "Backend", string=True, kind="config")

@@ -1,18 +1,29 @@
 """Which physical effect is missing?  Rank candidates, add the winner, watch the error fall.
 
-For every candidate effect the offsets and the effect's parameters are fitted
-together on a twin-anchored local model (:mod:`bluesky_offsets.model`), solved
-to convergence, on all configurations and in K folds over them.  A candidate is
-scored by its chi-square improvement on all data over the offsets-only fit,
-divided by the offsets-only fit's chi-square per bin when that exceeds 1 (a model
-beyond noise inflates every candidate's gain alike: the quasi-likelihood
-correction), minus a BIC price ``p ln N`` for its ``p`` parameters.  It is
-significant only if that score is positive, the held-out folds do not contradict it
-(its parameters fitted without a fold, the offsets held where the offsets-only fit
-put them, lower that fold's chi-square in at least as many folds as they raise it),
-and the base model is not already within noise.
-Each candidate also predicts a residual signature (centroid shift, width change,
-asymmetry, tails, lost intensity per axis) to set beside the observed one.
+The offsets absorb much of what a missing effect does to the histograms (they move, widen
+and dim the focus too), and a fit of the offsets alone leaves them where they absorbed it: at
+that point an effect's own gradient is often flat (a defocus).  So every candidate is *fitted*
+together with the offsets, from starting values spread over its prior range, and judged by
+the misfit left:
+
+1. **Fit** each candidate effect with the offsets on the beam features (intensity,
+   centroids, widths: :func:`bluesky_offsets.diagnostics.beam_features`, smooth and nearly
+   linear in the offsets), a few Levenberg-Marquardt iterations through the twin, starting
+   from the offsets-only fit with each parameter at ±1/4 of its prior span (or 1/4 of its
+   bound for one-sided ones); an offsets-only fit with the same iterations is the reference.
+   All fits share one set of rays, so their bins χ² at the end compare sharply.
+2. **Verify** the best candidates through the twin in the histogram bins with fresh rays,
+   beside the reference and the state as it was; a candidate's *twin gain* is its bins χ²
+   improvement over the better of the two.  Held out: each verified fit and the reference
+   re-solved (one linear step on the features) without each of K folds of configurations,
+   scored on the left-out ones.
+3. **Decide**: a candidate is significant when the model is beyond noise, its twin gain,
+   divided by the dispersion (the reference's χ² per degree of freedom when above 1: a model
+   beyond noise inflates every gain alike) and less a BIC price ``p ln N``, exceeds
+   ``n_sigma`` times the χ² noise ``sqrt(2 dof)``, and the held-out folds do not contradict it.
+
+Each candidate also predicts a residual signature (centroid shift, width change, asymmetry,
+tails, lost intensity per axis) to set beside the observed one.
 """
 
 from __future__ import annotations
@@ -25,8 +36,8 @@ import numpy as np
 
 from . import effects as E
 from .diagnostics import Misfit, misfit, moments
-from .model import (LocalFit, LocalModel, Measurement, ModelState, _twin_chi2, build_local_model, fit_local, refine,
-                    simulate)
+from .model import (FeatureFit, LocalModel, Measurement, ModelState, _Features, build_local_model, detector_view,
+                    fit_features_many, refine, simulate, simulate_raw_many)
 from .parameters import METRIXS, ParameterTable
 
 
@@ -36,44 +47,53 @@ class Candidate:
     n_params: int
     values: dict[str, float]
     sigma: dict[str, float]
-    delta_chi2_heldout: float
-    delta_chi2_all: float
-    penalty: float
+    delta_chi2_heldout: float          # feature χ² gain on held-out configurations (summed over folds)
+    delta_chi2_all: float              # feature χ² gain of its fit over the offsets-only fit (same rays)
+    penalty: float                     # p ln N, N the bins with signal
     significant: bool
     predicted_signature: dict[str, float]
-    # the offsets-only fit's chi-square per bin (>= 1) that every gain is divided by
+    # the reference's χ² per degree of freedom (>= 1) that every gain is divided by
     dispersion: float = 1.0
-    # folds whose held-out chi-square the candidate lowered / raised (beyond rounding), of how many
+    # folds whose held-out feature χ² the candidate lowered / raised (beyond rounding), of how many
     folds_improved: int = 0
     folds_total: int = 0
     folds_worse: int = 0
-    # set when the candidate was refitted through the twin (re-anchored), see diagnose(refine_top=...)
+    # bins χ² gain through the twin, set for the verified candidates
     delta_chi2_twin: float | None = None
-    refined_state: ModelState | None = field(default=None, repr=False)
+    refined_state: ModelState | None = field(default=None, repr=False)  # where its fit ended
+    feature_penalty: float = 0.0       # p ln (number of features)
+    feature_dispersion: float = 1.0    # the offsets-only fit's feature χ² per feature (>= 1)
 
     @property
     def refined(self) -> bool:
+        """Verified through the twin in bins with fresh rays."""
         return self.delta_chi2_twin is not None
 
     @property
+    def feature_score(self) -> float:
+        return self.delta_chi2_all / self.feature_dispersion - self.feature_penalty
+
+    @property
     def score(self) -> float:
-        gain = self.delta_chi2_twin if self.delta_chi2_twin is not None else self.delta_chi2_all
-        return gain / self.dispersion - self.penalty
+        """Gain ÷ dispersion − p ln N: in bins once verified, else on the features its fit saw."""
+        if self.delta_chi2_twin is not None:
+            return self.delta_chi2_twin / self.dispersion - self.penalty
+        return self.feature_score
 
     @property
     def heldout_confirms(self) -> bool:
-        """The held-out folds do not contradict the candidate: it lowers the held-out chi-square
-        in at least as many folds as it raises it.  Folds it leaves unchanged (its parameters,
-        fitted with the offsets held, stay at their start) count for neither side."""
+        """The held-out folds do not contradict the candidate: it lowers the held-out χ² in at
+        least as many folds as it raises it."""
         return self.folds_total > 0 and self.folds_improved >= self.folds_worse
 
     def as_dict(self) -> dict:
         return {"name": self.name, "n_params": self.n_params, "values": self.values, "sigma": self.sigma,
                 "delta_chi2_heldout": self.delta_chi2_heldout, "delta_chi2_all": self.delta_chi2_all,
-                "penalty": self.penalty, "score": self.score, "significant": self.significant,
-                "dispersion": self.dispersion, "folds_improved": self.folds_improved,
-                "folds_worse": self.folds_worse, "folds_total": self.folds_total,
-                "predicted_signature": self.predicted_signature, "delta_chi2_twin": self.delta_chi2_twin}
+                "penalty": self.penalty, "score": self.score, "feature_score": self.feature_score,
+                "significant": self.significant, "dispersion": self.dispersion,
+                "folds_improved": self.folds_improved, "folds_worse": self.folds_worse,
+                "folds_total": self.folds_total, "predicted_signature": self.predicted_signature,
+                "delta_chi2_twin": self.delta_chi2_twin}
 
 
 @dataclass
@@ -85,6 +105,8 @@ class Diagnosis:
     folds: int
     n_traces: int = 0
     notes: list[str] = field(default_factory=list)
+    reference: ModelState | None = field(default=None, repr=False)  # offsets-only compensation
+    reference_misfit: Misfit | None = field(default=None, repr=False)
 
     @property
     def best(self) -> Candidate | None:
@@ -115,7 +137,8 @@ def _signature(h: np.ndarray, ref: np.ndarray, spec) -> dict[str, float]:
     out = {}
     # local-model predictions can dip below zero in empty bins: moments need counts >= 0
     h, ref = np.clip(h, 0, None), np.clip(ref, 0, None)
-    for axis, sl, c in (("x", slice(0, 50), spec.centers_x), ("y", slice(50, 100), spec.centers_y)):
+    nx = spec.bins_x
+    for axis, sl, c in (("x", slice(0, nx), spec.centers_x), ("y", slice(nx, None), spec.centers_y)):
         a, b = moments(h[:, sl], c), moments(ref[:, sl], c)
         for k in a:
             out[f"{axis}.{k}"] = float(np.mean(a[k] - b[k]))
@@ -127,155 +150,175 @@ def _folds(n: int, k: int, seed: int) -> list[np.ndarray]:
     return [np.sort(order[i::k]) for i in range(k)]
 
 
-def diagnose(meas: Measurement, state: ModelState, twin, forward_model, *,
-             candidates: Sequence[str] | None = None, folds: int = 4, anchor_rays: int | None = None,
-             seed: int = 0, n_sigma: float = 3.0, reuse=None, refine_top: int = 0, refine_iterations: int = 3,
-             origin: ModelState | None = None, refresh_columns: Sequence[int] | None = None,
-             table: ParameterTable = METRIXS) -> Diagnosis:
-    """Rank candidate effects for the misfit of ``state`` against ``meas``.
+# The fitting recipe of ``bluesky-offsets demo`` and ``bluesky-offsets diagnose`` (measured:
+# docs/diagnosis.md).  Every fit starts on the beam features, whose wide basin a fit on the
+# bins of a focus a few camera pixels wide lacks (from the surrogate's offsets and from the
+# nominal twin: model.refine's also_from), at 5000 rays with Jacobians at 2000 (features are
+# robust to ray noise, and a Jacobian costs 34 n traces); then Gauss-Newton on the bins with
+# that Jacobian, traced afresh once when the twin refuses a step.  The refit after adding an
+# effect traces a Jacobian of its own: an effect such as a defocus changes how the beam
+# responds to the offsets, and a fit on the old one stalls.  The candidates' fits trace 2000
+# rays (~22 fits side by side).
+RECIPE = {
+    "refine_iterations": 4,
+    "refit_iterations": 4,
+    "refine_kw": {"feature_iterations": 10, "feature_kw": {"anchor_rays": 5000, "jacobian_rays": 2000},
+                  "reuse_jacobian": True, "refresh_on_reject": True, "max_refreshes": 1, "jacobian_rays": 5000},
+    "refit_kw": {"feature_iterations": 15, "feature_kw": {"anchor_rays": 5000, "jacobian_rays": 2000},
+                 "effect_step": 0.05, "refresh_on_reject": True, "max_refreshes": 1, "jacobian_rays": 5000,
+                 "offset_jacobian": None},
+    "diagnose_kw": {"scan_rays": 2000},
+}
 
-    ``state`` should already carry fitted offsets (the finder's, refined by
-    :func:`bluesky_offsets.model.refine`).  Candidates default to every registered
-    effect the state does not include yet.  ``reuse`` takes the refinement's final
-    local model (same state) so that its anchor and offset Jacobian are not traced again.
 
-    ``refine_top`` > 0: when the base model is beyond noise, the best ``refine_top``
-    candidates of the local ranking are refitted *through the twin* with the offsets
-    (``refine_iterations`` re-anchored iterations, the offset Jacobian reused) and re-ranked
-    by the twin's own chi-square improvement minus the parameter price (the ``refine_top``
-    with the largest all-data gain of the local fit are chosen).  The local model is
-    quadratic in each effect around zero; effects far from zero (a defocus of 20 mm) or
-    strongly non-linear ones (an energy offset at the slit edge) are judged by the twin
-    itself this way.  Their held-out test stays the local K-fold one.  The refits start
-    from ``origin`` (default ``state``) with the effect absent, and an offsets-only refit
-    with the same start and iterations is their reference, so a candidate is credited only
-    with what it adds; it is significant when its gain beyond the parameter price exceeds
-    ``n_sigma`` times the chi-square noise ``sqrt(2 dof)``.  If the reference itself reaches
-    the noise, the verdict is "no significant missing effect"; a misfit beyond noise that no
-    candidate explains is reported as such.
-    ``refresh_columns`` are the offset columns differentiated afresh at every anchor
-    (see :func:`bluesky_offsets.model.sensitive_columns`).  Cost:
-    ``refine_top * refine_iterations * n (1 + len(refresh_columns) + 2 p)`` traces.
-    """
-    names = [n for n in (candidates or list(E.EFFECTS)) if n not in state.effects]
-    anchor_rays = anchor_rays or (reuse.anchor_rays if reuse is not None else int(meas.n_rays))
-    # one anchor for all candidates: every candidate effect at 0, probes one parameter at a time
-    probe_state = state
-    for n_ in names:
-        probe_state = probe_state.with_effect(n_)
-    lm_all = build_local_model(meas, probe_state, twin, forward_model, anchor_rays=anchor_rays, seed=seed,
-                               reuse=reuse, table=table)
-    n_twin_params = sum(len(E.get(n_).parameters) for n_ in names if E.get(n_).level == "twin")
-    n_traces = meas.n * (2 * n_twin_params + (0 if reuse is not None else 1 + len(table)))
-    m = np.concatenate([meas.hist_x, meas.hist_y], axis=1)
-    base_mf = misfit(meas.hist_x, meas.hist_y, lm_all.t0[:, :50], lm_all.t0[:, 50:], meas.n_rays,
-                     model_rays=anchor_rays)
-    within = not base_mf.total_beyond_noise(n_sigma)
-
-    # column bookkeeping: the state's own effects first, then each candidate's block
-    own = len(state.effect_vector())
-    blocks, col = {}, own
-    for n_ in names:
-        k = len(E.get(n_).parameters)
-        blocks[n_] = np.arange(col, col + k)
-        col += k
-
-    def sub_model(extra_names: Sequence[str]) -> LocalModel:
-        """The shared anchor seen by the state plus ``extra_names`` (their columns only)."""
-        cols = [blocks[n_] for n_ in extra_names]
-        keep = np.concatenate([np.arange(own), *cols]).astype(int)
-        return LocalModel(_with(state, extra_names), lm_all.t0, lm_all.jac, lm_all.a[:, :, keep],
-                          lm_all.b[:, :, keep], anchor_rays)
-
-    fold_idx = _folds(meas.n, folds, seed)
-
-    def shifted(lm: LocalModel, d_th: np.ndarray, d_own: np.ndarray) -> LocalModel:
-        """``lm`` re-anchored (linearly) at offsets + ``d_th`` and the state's effects + ``d_own``."""
-        d = np.concatenate([d_own, np.zeros(lm.a.shape[2] - own)])
-        anchor = ModelState(lm.anchor.offsets + d_th, lm.anchor.set_effect_vector(lm.anchor.effect_vector() + d),
-                            lm.anchor.label)
-        return LocalModel(anchor, lm.predict(d_th, d), lm.jac, lm.a + 2 * lm.b * d[None, None, :], lm.b,
-                          lm.anchor_rays)
-
-    def heldout_chi2(lm: LocalModel, at: LocalFit) -> list[float]:
-        # the effect's parameters fitted without each fold, the offsets held where the
-        # offsets-only fit put them on all data: 34 offsets refitted to 3/4 of the
-        # configurations extrapolate too wildly to the rest to judge one more parameter
-        lm_s = shifted(lm, at.offsets - state.offsets, at.effects - state.effect_vector())
-        return [fit_local(meas, lm_s, train=np.setdiff1d(np.arange(meas.n), f), heldout=f, free_offsets=False,
-                          table=table).chi2_heldout for f in fold_idx]
-
-    base_lm = sub_model([])
-    base_fit = fit_local(meas, base_lm, table=table)
-    base_all = base_fit.chi2_train
-    base_ho = heldout_chi2(base_lm, base_fit)
-    base_pred = base_lm.predict(base_fit.offsets - state.offsets, base_fit.effects - state.effect_vector())
-    observed = _signature(m, base_pred, twin.hist)
-    n_data = int(base_mf.dof_total)
-    dispersion = max(1.0, base_all / max(n_data, 1))
-    tol = [1e-9 * max(b_, 1.0) for b_ in base_ho]  # rounding, not evidence
+def starting_values(effect: E.Effect) -> list[dict[str, float]]:
+    """Where :func:`diagnose` starts fitting ``effect``: each parameter alone (of those marked
+    ``start``) at ±1/4 of its prior span when it may take either sign, at 1/4 of its bound when
+    one-sided; zero when none is marked.  Away from
+    zero on purpose: the offsets-only fit has absorbed what it could of the effect, and there
+    the effect's gradient is often flat (a defocus is symmetric about the focus)."""
     out = []
+    for q in effect.parameters:
+        if not q.start:
+            continue
+        if q.low < 0 < q.high:
+            vals = (max(q.low, -0.25 * q.span), min(q.high, 0.25 * q.span))
+        else:
+            vals = (0.25 * (q.high if q.high > 0 else q.low),)
+        out += [{q.name: float(v)} for v in vals]
+    return out or [{}]  # nothing worth a start away from zero: one fit from zero
+
+
+def _heldout(fx, fit: FeatureFit, folds: Sequence[np.ndarray], everything: np.ndarray) -> np.ndarray:
+    """Held-out feature χ² per fold: the fit re-solved without the fold (one Levenberg-Marquardt
+    step from the all-data solution, on its final feature Jacobian), scored on the fold."""
+    f, v = fx.of(fit.state, fit.raw)
+    G = fit.columns
+    w = 1.0 / (fx.vm + v)
+    out = []
+    for fold in folds:
+        train = np.setdiff1d(everything, fold)
+        Gt = G[train].reshape(-1, G.shape[2])
+        wt = w[train].reshape(-1)
+        A = Gt.T @ (Gt * wt[:, None])
+        A = A + np.diag(np.diag(A)) * 1e-2 + 1e-9 * np.trace(A) / len(A) * np.eye(len(A))
+        d = np.linalg.solve(A, Gt.T @ (wt * (fx.fm - f)[train].reshape(-1)))
+        r = (fx.fm - f - np.einsum("nkp,p->nk", G, d))[fold]
+        out.append(float((w[fold] * r * r).sum()))
+    return np.array(out)
+
+
+def diagnose(meas: Measurement, state: ModelState, twin, forward_model=None, *,
+             candidates: Sequence[str] | None = None, folds: int = 4, anchor_rays: int | None = None,
+             scan_rays: int | None = None, seed: int = 0, n_sigma: float = 3.0, reuse: LocalModel | None = None,
+             iterations: int = 4, directions: int = 12, verify_top: int = 3,
+             table: ParameterTable = METRIXS) -> Diagnosis:
+    """Rank candidate effects for the misfit of ``state`` against ``meas`` (see the module text).
+
+    ``state`` should already carry fitted offsets (:func:`bluesky_offsets.model.refine`).
+    Candidates default to every registered effect the state does not include yet.  ``reuse``
+    takes the refinement's final local model (same state), whose twin Jacobian is then not
+    traced again (``34 n`` traces otherwise).  The candidate fits trace ``scan_rays`` per
+    configuration (default ``anchor_rays``): ``iterations * n * (1 + p)`` traces per start
+    (see :func:`starting_values`; ``p`` twin-level parameters, none for detector-level
+    effects); the verification ``anchor_rays``, ``2 + verify_top`` states.
+    ``forward_model`` is accepted for symmetry with the fits and not used.
+    """
+    names = [n_ for n_ in (candidates or list(E.EFFECTS)) if n_ not in state.effects]
     for n_ in names:
-        eff = E.get(n_)
-        lm = sub_model([n_])
-        # on all data the candidate starts where the offsets-only fit ended (nested: never worse)
-        fit = fit_local(meas, lm, table=table, start=base_fit)
-        chi_all = fit.chi2_train
-        ho = heldout_chi2(lm, base_fit)
-        improved = sum(b_ - c_ > t for b_, c_, t in zip(base_ho, ho, tol))
-        worse = sum(c_ - b_ > t for b_, c_, t in zip(base_ho, ho, tol))
-        p = len(eff.parameters)
-        penalty = p * math.log(max(n_data, 2))
-        d_ho, d_all = sum(base_ho) - sum(ho), base_all - chi_all
-        phi0 = lm.anchor.effect_vector()
-        pred = lm.predict(fit.offsets - state.offsets, fit.effects - phi0)
-        vals = fit.effects[own:]
-        sig = np.sqrt(np.clip(np.diag(fit.covariance)[-p:], 0, None))
-        out.append(Candidate(
-            n_, p, {q.name: float(v) for q, v in zip(eff.parameters, vals)},
-            {q.name: float(s) for q, s in zip(eff.parameters, sig)}, float(d_ho), float(d_all), float(penalty),
-            False, _signature(pred, base_pred, twin.hist), dispersion=dispersion,
-            folds_improved=int(improved), folds_total=len(fold_idx), folds_worse=int(worse)))
-        out[-1].significant = bool(not within and out[-1].score > 0 and out[-1].heldout_confirms)
-    out.sort(key=lambda c: -c.score)
-    refit_note = None
-    if refine_top and not within:
-        # the twin refits start from the same origin and get the same iterations as an
-        # offsets-only refit beside them: a candidate is credited only with what it adds
-        origin = origin if origin is not None else state
-        common = dict(iterations=refine_iterations, anchor_rays=anchor_rays, offset_jacobian=lm_all.jac,
-                      refresh_columns=refresh_columns, effect_step=0.1, table=table)
-        ref = refine(meas, origin, twin, forward_model, seed=seed + 7919, **common)
-        ref_chi2 = [h for h in ref.history if h["accepted"]][-1]["chi2"]
-        ref_mf = _twin_chi2(meas, ref.local_model)
-        n_traces += (refine_iterations + 1) * meas.n * (1 + len(refresh_columns or ()))
-        if not ref_mf.total_beyond_noise(n_sigma):
-            within = True  # the offsets alone reach the noise once refined further
-        # a refit's chi-square carries the noise of its anchor: demand more than that
-        threshold = n_sigma * math.sqrt(2 * max(ref_mf.dof_total, 1))
-        chosen = sorted(out, key=lambda c: -(c.delta_chi2_all - c.penalty))[:refine_top]
-        for i, cand in enumerate(chosen):
-            if within or cand.delta_chi2_all - cand.penalty <= 0:
-                continue  # no gain even on the data it is fitted to: not worth the traces
-            res = refine(meas, origin.with_effect(cand.name), twin, forward_model, seed=seed + 7919 * (i + 2),
-                         **common)
-            accepted = [h for h in res.history if h["accepted"]]
-            cand.delta_chi2_twin = float(ref_chi2 - accepted[-1]["chi2"])
-            cand.values = {k: float(v) for k, v in res.state.effects[cand.name].items()}
-            cand.sigma = dict(res.effect_sigma[cand.name])
-            cand.refined_state = res.state
-            cand.significant = bool(cand.significant and cand.delta_chi2_twin - cand.penalty > threshold)
-            n_traces += (refine_iterations + 1) * meas.n * (1 + len(refresh_columns or ())
-                                                            + 2 * len(E.get(cand.name).parameters))
-        for cand in out:
-            # only what the twin confirmed counts once refits are asked for
-            cand.significant = bool(cand.significant and cand.refined and not within)
-        refit_note = f"offsets-only twin refit: chi2/dof = {ref_mf.chi2_reduced_total:.2f}"
-        out.sort(key=lambda c: (not c.refined, -c.score))
-    notes = [refit_note] if refit_note else []
+        E.get(n_)
+    anchor_rays = int(anchor_rays or (reuse.anchor_rays if reuse is not None else meas.n_rays))
+    scan_rays = int(scan_rays or anchor_rays)
+    spec, n, P = meas.spec, meas.n, len(table)
+    n_traces = 0
+    if reuse is not None:
+        if not np.array_equal(reuse.anchor.offsets, state.offsets):
+            raise ValueError("reuse: the local model was built for another state")
+        lm = reuse
+    else:
+        lm = build_local_model(meas, state, twin, None, anchor_rays=anchor_rays, seed=seed, table=table)
+        n_traces += n * (1 + P)
+    base_mf = misfit(meas.hist_x, meas.hist_y, *lm.split(lm.t0), meas.n_rays, model_rays=lm.anchor_rays)
+    within = not base_mf.total_beyond_noise(n_sigma)
+    fold_idx = _folds(n, folds, seed)
+    everything = np.arange(n)
     if within:
-        notes.append(f"the base model is within noise (chi2/dof = {base_mf.chi2_reduced_total:.2f})")
-    return Diagnosis(base_mf, within, out, observed, folds, n_traces, notes)
+        # nothing to explain: no candidate is fitted (their fits would cost ~n * 100 traces each)
+        return Diagnosis(base_mf, True, [], _signature(meas.histograms(), lm.t0, spec), folds, n_traces,
+                         [f"the base model is within noise (chi2/dof = {base_mf.chi2_reduced_total:.2f}): "
+                          "no candidate fitted"], state, base_mf)
+
+    # 1. every candidate fitted with the offsets from its starts, beside an offsets-only fit
+    starts = [(None, state)] + [(name, state.with_effect(name, v)) for name in names
+                                for v in starting_values(E.get(name))]
+    fits = fit_features_many(meas, [st for _, st in starts], twin, lm.jac, iterations=iterations, rays=scan_rays,
+                             seed=seed + 7919, directions=directions, table=table)
+    for name, st in starts:
+        new = [k for k in st.effects if k not in state.effects]
+        p_twin = sum(len(E.get(k).parameters) for k in new if E.get(k).level == "twin")
+        n_traces += n * (1 + iterations * (1 + p_twin) + (directions if p_twin or name is None else 0))
+    ref_fit = fits[0]
+    best: dict[str, FeatureFit] = {}
+    for (name, _), fit in zip(starts[1:], fits[1:]):
+        if name not in best or fit.chi2_features < best[name].chi2_features:
+            best[name] = fit
+    n_signal = int(base_mf.dof_total)
+    fx = _Features(meas, twin, scan_rays, 0.005, 0.1, table)
+    n_features = fx.fm.size
+    feature_disp = max(1.0, ref_fit.chi2_features / n_features)
+    out = []
+    for name in names:
+        eff, fit = E.get(name), best[name]
+        p = len(eff.parameters)
+        values = {k: float(v) for k, v in fit.state.effects[name].items()}
+        out.append(Candidate(name, p, values, {k: float("nan") for k in values}, 0.0,
+                             ref_fit.chi2_features - fit.chi2_features, p * math.log(max(n_signal, 2)), False, {},
+                             refined_state=fit.state, feature_penalty=p * math.log(n_features),
+                             feature_dispersion=feature_disp))
+    out.sort(key=lambda c: -c.score)
+
+    # 2. verification in bins with fresh rays; held-out folds on the features
+    top = [c for c in out if c.score > 0][:verify_top]
+    reference = ModelState(ref_fit.state.offsets, state.effects, f"{state.label} (offsets refitted)")
+    ver_states = [state, reference] + [c.refined_state for c in top]
+    ver = simulate_raw_many(twin, meas.configurations, ver_states, anchor_rays, [seed + 104729 + i for i in range(n)],
+                            table)
+    n_traces += n * len(ver_states)
+    views = [np.concatenate(detector_view(*r, st, twin.hist), axis=1) for r, st in zip(ver, ver_states)]
+    mfs = [misfit(meas.hist_x, meas.hist_y, *lm.split(h), meas.n_rays, model_rays=anchor_rays) for h in views]
+    k_ref = int(np.argmin([mfs[0].chi2_total, mfs[1].chi2_total]))
+    ref_mf, ref_view = mfs[k_ref], views[k_ref]
+    if not ref_mf.total_beyond_noise(n_sigma):
+        within = True  # the offsets alone reach the noise once refitted
+    dispersion = max(1.0, ref_mf.chi2_total / max(ref_mf.dof_total, 1.0))
+    threshold = n_sigma * math.sqrt(2 * max(ref_mf.dof_total, 1.0))
+    ref_ho = _heldout(fx, ref_fit, fold_idx, everything)
+    for c, mf_c, h in zip(top, mfs[2:], views[2:]):
+        c.delta_chi2_twin = float(ref_mf.chi2_total - mf_c.chi2_total)
+        c.dispersion = dispersion
+        c.predicted_signature = _signature(h, ref_view, spec)
+        ho = _heldout(fx, best[c.name], fold_idx, everything)
+        gain = ref_ho - ho
+        tol = 1e-9 * np.maximum(ref_ho, 1.0)
+        c.delta_chi2_heldout = float(gain.sum())
+        c.folds_improved, c.folds_worse, c.folds_total = int((gain > tol).sum()), int((gain < -tol).sum()), folds
+        c.significant = bool(not within and c.score > threshold / dispersion and c.heldout_confirms)
+    base_view = np.concatenate(detector_view(*ref_fit.raw, ref_fit.state, twin.hist), axis=1)
+    for c in out:
+        if not c.refined:
+            fit = best[c.name]
+            c.predicted_signature = _signature(np.concatenate(detector_view(*fit.raw, fit.state, twin.hist), axis=1),
+                                               base_view, spec)
+    observed = _signature(meas.histograms(), ref_view, spec)
+    out.sort(key=lambda c: (not c.refined, -c.score))
+    notes = [f"{len(starts) - 1} fits of {len(names)} candidates with the offsets ({iterations} iterations on the "
+             f"beam features, {scan_rays} rays); offsets-only refit: feature χ² {ref_fit.chi2_features:.4g} for "
+             f"{n_features} features; verified through "
+             f"the twin: {', '.join(c.name for c in top) or 'none'}; offsets-only reference chi2/dof = "
+             f"{ref_mf.chi2_reduced_total:.3g} ({'refitted' if k_ref else 'the state as is'})"]
+    if within:
+        notes.append(f"the base model is within noise (chi2/dof = {ref_mf.chi2_reduced_total:.2f})")
+    return Diagnosis(base_mf, within, out, observed, folds, n_traces, notes, reference if k_ref else state, ref_mf)
 
 
 # Lever arms that separate a screen translation from focal-length (half-axis) offsets: tilting
@@ -398,7 +441,7 @@ def plot_ranking(diag: Diagnosis, path, top: int = 5):
     ax0.barh(names, scores, color=colors)
     ax0.axvline(0, color="k", lw=0.8)
     ax0.set_xscale("symlog")
-    ax0.set_xlabel("held-out Δχ² − p ln N")
+    ax0.set_xlabel("score: Δχ² ÷ dispersion − p ln N")
     ax0.set_title(diag.verdict, fontsize=9)
     x = np.arange(len(keys))
     width = 0.8 / (len(cands) + 1)

@@ -15,9 +15,10 @@ from pathlib import Path
 import numpy as np
 
 from .cli import CliError
+from .diagnosis import RECIPE
 
 
-def _load(store, uid: str, n_rays: int | None):
+def _load(store, uid: str, n_rays: int | None, resolution: str = "camera"):
     from .diagnostics import MeasurementError
     from .model import Measurement
     try:
@@ -29,7 +30,7 @@ def _load(store, uid: str, n_rays: int | None):
     if len(stored) == 0:
         raise CliError(f"run {uid} holds no measured configurations")
     try:
-        return stored, Measurement.from_store(stored, n_rays)
+        return stored, Measurement.from_store(stored, n_rays, resolution=resolution)
     except MeasurementError as exc:
         raise CliError(f"run {uid}: {exc}") from None
 
@@ -89,7 +90,11 @@ def _cmd_diagnose(args) -> int:
     except OSError as exc:
         raise CliError(str(exc)) from None
     try:
-        stored, meas = _load(store, args.uid, args.rays)
+        stored, meas = _load(store, args.uid, args.rays, args.resolution)
+        from .twin import HistogramSpec
+        if args.jacobian == "surrogate" and meas.spec != HistogramSpec():
+            raise CliError("--jacobian surrogate: the surrogate predicts the paper's 50 x 50 bins and this run has "
+                           "camera-resolution profiles; add --resolution paper")
         from .model import ModelState
         starts = [ModelState(label="twin")]
         if args.offsets_uid:
@@ -117,10 +122,12 @@ def _cmd_diagnose(args) -> int:
             analysis = RE(analyse_measurement(
                 stored, twin, fm, starts=starts, refine_iterations=args.refine_iterations,
                 candidates=candidates, add_best=not args.no_add, refit_iterations=args.refit_iterations,
-                anchor_rays=args.anchor_rays, seed=args.seed, md={"purpose": "bluesky-offsets diagnose"})).plan_result
+                anchor_rays=args.anchor_rays, seed=args.seed, resolution=args.resolution,
+                refine_kw=RECIPE["refine_kw"], refit_kw=RECIPE["refit_kw"], diagnose_kw=RECIPE["diagnose_kw"],
+                md={"purpose": "bluesky-offsets diagnose"})).plan_result
             if args.report:
                 from .report import write_analysis_report
-                path = write_analysis_report(args.report, analysis, twin.hist,
+                path = write_analysis_report(args.report, analysis, analysis.measurement.spec,
                                              title=f"model vs. measurement {meas.uid}",
                                              store_location=store.location)
                 print(f"report: {path}", file=log)
@@ -148,11 +155,17 @@ def add_cli(sub) -> None:
     p.add_argument("--effects", default=None, help="candidate effects, comma separated (default: all registered)")
     p.add_argument("--offsets-uid", default=None,
                    help="also start from the offsets of this run (find_offsets / refine_offsets)")
-    p.add_argument("--refine-iterations", type=int, default=4, help="offset refinement through the twin (0: none)")
-    p.add_argument("--refit-iterations", type=int, default=3, help="refit after adding the effect")
+    p.add_argument("--refine-iterations", type=int, default=RECIPE["refine_iterations"],
+                   help="Gauss-Newton iterations on the bins after the feature stage (0: no refinement)")
+    p.add_argument("--refit-iterations", type=int, default=RECIPE["refit_iterations"],
+                   help="the same after adding the effect")
     p.add_argument("--no-add", action="store_true", help="rank only; do not add the best effect")
     p.add_argument("--jacobian", choices=("twin", "surrogate"), default="twin",
-                   help="offset Jacobian of the fits (default: the twin's finite differences)")
+                   help="offset Jacobian of the fits (default: the twin's finite differences; the surrogate's "
+                        "needs --resolution paper)")
+    p.add_argument("--resolution", choices=("camera", "paper"), default="camera",
+                   help="histograms to fit: the camera's profiles where the run has them (default) or the "
+                        "paper's 50 x 50 bins")
     p.add_argument("--rays", type=int, default=None, help="ray budget of the measurement when the run lacks it")
     p.add_argument("--anchor-rays", type=int, default=None, help="rays per model trace in the fits")
     p.add_argument("--scheduler", default=None, help="Dask scheduler address, or 'inline' (default: local cluster)")

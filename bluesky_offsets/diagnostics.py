@@ -25,12 +25,14 @@ class MeasurementError(ValueError):
     """Measurement data that cannot be compared (shape, NaN, table mismatch)."""
 
 
-def check_histograms(hist_x, hist_y, bins_x: int = 50, bins_y: int = 50, what: str = "measurement"):
-    """Validate a stack of x/y histograms; return float arrays (n, bins)."""
+def check_histograms(hist_x, hist_y, bins_x: int | None = 50, bins_y: int | None = 50, what: str = "measurement"):
+    """Validate a stack of x/y histograms; return float arrays (n, bins).  ``None`` bins: any."""
     hx = np.asarray(hist_x, dtype=float)
     hy = np.asarray(hist_y, dtype=float)
     if hx.ndim == 1:
         hx, hy = hx[None], hy[None]
+    bins_x = hx.shape[-1] if bins_x is None else bins_x
+    bins_y = hy.shape[-1] if bins_y is None and hy.ndim == 2 else bins_y
     if hx.ndim != 2 or hx.shape[1] != bins_x:
         raise MeasurementError(f"{what}: x histograms must be (configurations, {bins_x}), got {hx.shape}")
     if hy.shape != (hx.shape[0], bins_y):
@@ -123,8 +125,12 @@ def misfit(meas_x, meas_y, model_x, model_y, n_rays: int | Sequence[int], *,
     model_var : float
         Extra per-bin variance of the model (e.g. a surrogate's test MSE).
     """
-    mx, my = check_histograms(meas_x, meas_y)
-    fx, fy = check_histograms(model_x, model_y, mx.shape[1], my.shape[1], what="model")
+    mx, my = check_histograms(meas_x, meas_y, None, None)
+    fx, fy = check_histograms(model_x, model_y, None, None, what="model")
+    for axis, a, b in (("x", fx, mx), ("y", fy, my)):
+        if a.shape[1] != b.shape[1]:
+            raise MeasurementError(f"the model's {axis} histograms have {a.shape[1]} bins, the measurement's "
+                                   f"{b.shape[1]}: bin both alike")
     if fx.shape[0] != mx.shape[0]:
         raise MeasurementError(f"{mx.shape[0]} measured configurations but {fx.shape[0]} modelled")
     n = np.broadcast_to(np.asarray(n_rays, dtype=float), (mx.shape[0],))[:, None]
@@ -176,6 +182,43 @@ def moments(hist: np.ndarray, centers: np.ndarray) -> dict[str, np.ndarray]:
     empty = tot <= 0
     return {"intensity": tot, "centroid": np.where(empty, 0.0, mu), "width": np.where(empty, 0.0, sd),
             "skewness": np.where(empty, 0.0, skew), "tails": tails}
+
+
+FEATURE_NAMES = ("intensity", "x.centroid", "x.width", "y.centroid", "y.width")
+
+
+def beam_features(hist_x, hist_y, spec, n_rays) -> tuple[np.ndarray, np.ndarray]:
+    """The beam on the screen in five numbers per configuration, with their noise variances.
+
+    Intensity (fraction of the source rays in the window), centroid and rms width per axis;
+    variances for ``n_rays`` source rays (binomial intensity, ``sd^2/N`` centroid,
+    ``sd^2/2N`` width).  Unlike bin contents these move smoothly and almost linearly with
+    the offsets over many spot widths, which is why fits start on them: a focus narrower
+    than a few bins makes every bin a steep step function of the spot position.
+    Returns ``(features, variances)``, each ``(..., 5)`` in :data:`FEATURE_NAMES` order.
+    """
+    n = float(n_rays)
+    out, var = [], []
+    # a linearized model may dip below zero in empty bins
+    hx, hy = np.clip(np.asarray(hist_x, float), 0, None), np.clip(np.asarray(hist_y, float), 0, None)
+    inten = hx.sum(-1)
+    hits = np.maximum(inten * n, 1.0)
+    out.append(inten)
+    var.append(np.maximum(inten * (1 - inten), 1.0 / n) / n)
+    for h, c in ((hx, spec.centers_x), (hy, spec.centers_y)):
+        w = (c[-1] - c[0]) / (len(c) - 1)
+        tot = h.sum(-1)
+        dark = tot <= 0
+        tot = np.where(dark, 1.0, tot)
+        mu = (h * c).sum(-1) / tot
+        v = (h * (c - mu[..., None]) ** 2).sum(-1) / tot
+        # a beam inside one bin still has the bin's own spread (w^2 / 12) as a floor
+        v = np.maximum(v, w * w / 12)
+        # no rays, no position: the whole window as the uncertainty
+        big = (c[-1] - c[0]) ** 2
+        out += [mu, np.sqrt(v)]
+        var += [np.where(dark, big, v / hits), np.where(dark, big, v / (2 * hits))]
+    return np.stack(out, -1), np.stack(var, -1)
 
 
 @dataclass
@@ -281,10 +324,13 @@ def plot_residual_maps(misfit_: Misfit, spec, path, title: str = "normalized res
     plt = _plt()
     fig, axes = plt.subplots(1, 2, figsize=(11, 0.35 * len(misfit_.chi2) + 2), constrained_layout=True)
     lim = max(3.0, float(np.percentile(np.abs(np.concatenate([misfit_.pulls_x, misfit_.pulls_y])), 99)))
-    for ax, pulls, rng, lab in ((axes[0], misfit_.pulls_x, spec.range_x, "x"),
-                                (axes[1], misfit_.pulls_y, spec.range_y, "y")):
-        im = ax.imshow(pulls, aspect="auto", cmap="RdBu_r", vmin=-lim, vmax=lim,
-                       extent=(rng[0], rng[1], len(pulls) - 0.5, -0.5), interpolation="nearest")
+    for ax, pulls, edges, lab in ((axes[0], misfit_.pulls_x, spec.edges_x, "x"),
+                                  (axes[1], misfit_.pulls_y, spec.edges_y, "y")):
+        # only the bins where any configuration has signal (a focus fills a few per cent of the window)
+        cols = np.flatnonzero(np.any(pulls != 0, axis=0))
+        a, b = (max(cols.min() - 3, 0), min(cols.max() + 4, pulls.shape[1])) if cols.size else (0, pulls.shape[1])
+        im = ax.imshow(pulls[:, a:b], aspect="auto", cmap="RdBu_r", vmin=-lim, vmax=lim,
+                       extent=(edges[a], edges[b], len(pulls) - 0.5, -0.5), interpolation="nearest")
         ax.set_xlabel(f"{lab} [mm]")
         ax.set_ylabel("configuration")
     fig.colorbar(im, ax=axes, label="pull")

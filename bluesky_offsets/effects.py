@@ -45,6 +45,9 @@ class EffectParameter:
     low: float
     high: float
     description: str = ""
+    # the diagnosis starts a fit from this parameter alone, away from zero; off for a shift
+    # the offsets reproduce anyway (a screen moved across the beam)
+    start: bool = True
 
     @property
     def span(self) -> float:
@@ -150,15 +153,34 @@ def apply_detector_effects(hist_x, hist_y, effects: Mapping[str, Mapping[str, fl
 # twin-level effects
 # --------------------------------------------------------------------------- #
 class ChamberTranslation(Effect):
+    """All three axes at once, for a model that should carry them together.  Not registered:
+    the diagnosis ranks the axes as separate effects (``chamber_x``, ``chamber_y``,
+    ``chamber_z``), so that it names the one that is missing rather than a superset that wins
+    by absorbing noise; ``register(ChamberTranslation())`` ranks it too."""
+
     name = "chamber_translation"
     description = "focus-measurement chamber displaced (x, y across the beam; z along it)"
-    parameters = (EffectParameter("x", "mm", -1.0, 1.0, "horizontal"),
-                  EffectParameter("y", "mm", -1.0, 1.0, "vertical"),
+    parameters = (EffectParameter("x", "mm", -1.0, 1.0, "horizontal", start=False),
+                  EffectParameter("y", "mm", -1.0, 1.0, "vertical", start=False),
                   EffectParameter("z", "mm", -33.0, 33.0, "along the beam"))
 
     def overrides(self, v):
         return {IMAGE_PLANE: {"translationXerror": v["x"], "translationYerror": v["y"],
                               "translationZerror": v["z"]}}
+
+
+class ChamberShift(Effect):
+    """The focus-measurement chamber displaced across the beam: the whole footprint moves, as
+    offsets of the last mirrors move it too, so a fit starts it at zero."""
+
+    def __init__(self, axis: str):
+        self.axis, self.name = axis, f"chamber_{axis}"
+        what = {"x": "horizontally", "y": "vertically"}[axis]
+        self.description = f"focus-measurement chamber displaced {what} (across the beam)"
+        self.parameters = (EffectParameter(axis, "mm", -1.0, 1.0, f"{what} across the beam", start=False),)
+
+    def overrides(self, v):
+        return {IMAGE_PLANE: {f"translation{self.axis.upper()}error": v[self.axis]}}
 
 
 class ChamberTranslationZ(Effect):
@@ -213,8 +235,10 @@ class SlopeError(Effect):
     def __init__(self, element: str, key: str, high: float = 5.0):
         self.element, self.name = element, f"slope_error_{key}"
         self.description = f"{element}: figure (slope) errors larger than specified"
+        # at grazing incidence a sagittal slope error deflects the ray ~ the grazing angle times
+        # less than a meridional one: a diagnosis starts from the meridional
         self.parameters = (EffectParameter("meridional", "µrad", 0.0, high, "extra rms slope error"),
-                           EffectParameter("sagittal", "µrad", 0.0, 4 * high, "extra rms slope error"))
+                           EffectParameter("sagittal", "µrad", 0.0, 4 * high, "extra rms slope error", start=False))
 
     def overrides(self, v):
         obj = _NOMINAL[self.element]
@@ -304,7 +328,7 @@ class IntensityScale(Effect):
         return np.asarray(hx) * (1 + v["delta"]), np.asarray(hy) * (1 + v["delta"])
 
 
-for _eff in (ChamberTranslation(), ChamberTranslationZ(), ChamberRotation(), SourceSizeDivergence(),
+for _eff in (ChamberShift("x"), ChamberShift("y"), ChamberTranslationZ(), ChamberRotation(), SourceSizeDivergence(),
              PhotonEnergyOffset(), SlopeError("M1-Cylinder", "m1"), SlopeError("E1", "e1"),
              SlopeError("E2", "e2"), ThermalBump(), LineDensityError(), DetectorBlur(), Background(),
              IntensityScale()):

@@ -24,14 +24,16 @@ parameters (see docs/diagnosis.md).
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, replace
 
 import numpy as np
 
 from . import effects as E
-from .diagnostics import MeasurementError, Misfit, check_histograms, misfit
+from .diagnostics import MeasurementError, Misfit, beam_features, check_histograms, misfit
 from .parameters import MAX_OFFSET, METRIXS, ParameterTable
+from .twin import HistogramSpec
 
 
 # --------------------------------------------------------------------------- #
@@ -40,14 +42,17 @@ from .parameters import MAX_OFFSET, METRIXS, ParameterTable
 @dataclass
 class Measurement:
     """Histograms measured at commanded configurations (absolute positions as the
-    beamline's motors report them)."""
+    beamline's motors report them), binned as ``spec`` says (default: the paper's 50 x 50;
+    the camera's own resolution, :data:`bluesky_offsets.twin.CAMERA`, where the detector
+    gives it)."""
 
     configurations: np.ndarray   # (n, 34) physical
-    hist_x: np.ndarray           # (n, 50) fraction of source rays
-    hist_y: np.ndarray           # (n, 50)
+    hist_x: np.ndarray           # (n, spec.bins_x) fraction of source rays
+    hist_y: np.ndarray           # (n, spec.bins_y)
     n_rays: int                  # source rays (ray budget) per measurement
     table_version: str = METRIXS.version
     uid: str | None = None
+    spec: HistogramSpec = field(default_factory=HistogramSpec)
 
     def __post_init__(self):
         self.validate()
@@ -62,7 +67,7 @@ class Measurement:
             raise MeasurementError(str(exc)) from None
         if cfg.ndim != 2:
             raise MeasurementError("configurations must be (n, 34)")
-        hx, hy = check_histograms(self.hist_x, self.hist_y)
+        hx, hy = check_histograms(self.hist_x, self.hist_y, self.spec.bins_x, self.spec.bins_y)
         if hx.shape[0] != cfg.shape[0]:
             raise MeasurementError(f"{cfg.shape[0]} configurations but {hx.shape[0]} histogram pairs")
         if int(self.n_rays) <= 0:
@@ -70,17 +75,36 @@ class Measurement:
         self.configurations, self.hist_x, self.hist_y = cfg, hx, hy
 
     @classmethod
-    def from_store(cls, m, n_rays: int | None = None, table: ParameterTable = METRIXS) -> Measurement:
+    def from_store(cls, m, n_rays: int | None = None, table: ParameterTable = METRIXS,
+                   resolution: str = "camera") -> Measurement:
         """From a run-store :class:`bluesky_offsets.store.Measurement` (ray budget from its
-        metadata unless given)."""
+        metadata unless given).  ``resolution="camera"`` takes the camera-resolution profiles
+        where the run has them (the paper's histograms otherwise); ``"paper"`` the 50 x 50 ones."""
         try:
             m.check_table(table)
         except ValueError as exc:
             raise MeasurementError(str(exc)) from None
+        if resolution not in ("camera", "paper"):
+            raise ValueError(f"resolution must be 'camera' or 'paper', not {resolution!r}")
         rays = n_rays or m.metadata.get("n_rays") or m.metadata.get("num_rays")
         if not rays:
             raise MeasurementError(f"measurement {m.uid or ''} does not say its ray budget; pass n_rays")
+        if resolution == "camera" and getattr(m, "profile_x", None) is not None:
+            return cls(m.configurations, m.profile_x, m.profile_y, int(rays), table.version, m.uid, m.profile_spec)
         return cls(m.configurations, m.hist_x, m.hist_y, int(rays), table.version, m.uid)
+
+    @property
+    def bins_x(self) -> int:
+        return self.spec.bins_x
+
+    def histograms(self) -> np.ndarray:
+        """(n, bins_x + bins_y): x then y."""
+        return np.concatenate([self.hist_x, self.hist_y], axis=1)
+
+    def rebinned(self, coarse: HistogramSpec) -> Measurement:
+        """The same measurement in coarser bins (e.g. the paper's, for the surrogate)."""
+        hx, hy = self.spec.rebin(self.hist_x, self.hist_y, coarse)
+        return replace(self, hist_x=hx, hist_y=hy, spec=coarse)
 
     @property
     def n(self) -> int:
@@ -136,6 +160,22 @@ def simulate_raw(twin, configurations: np.ndarray, state: ModelState, n_rays: in
     return res.hist_x, res.hist_y
 
 
+def simulate_raw_many(twin, configurations: np.ndarray, states: Sequence[ModelState], n_rays: int, seeds,
+                      table: ParameterTable = METRIXS) -> list[tuple[np.ndarray, np.ndarray]]:
+    """:func:`simulate_raw` for several states at the same configurations and seeds, in one
+    batch (the workers stay busy; common random numbers make the states comparable)."""
+    n = len(configurations)
+    if not states:
+        return []
+    vals = np.concatenate([_true_values(configurations, st, table) for st in states])
+    ovs = [E.twin_overrides({k: v for k, v in st.effects.items() if E.get(k).level == "twin"})
+           for st in states for _ in range(n)]
+    res = twin.trace_batch(vals, overrides=ovs, n_rays=n_rays, seed=list(seeds) * len(states), progress=False,
+                           raise_on_error=True)
+    hx, hy = res.hist_x, res.hist_y
+    return [(hx[i * n:(i + 1) * n], hy[i * n:(i + 1) * n]) for i in range(len(states))]
+
+
 def detector_view(hx, hy, state: ModelState, spec):
     det = {n: v for n, v in state.effects.items() if E.get(n).level == "detector"}
     return E.apply_detector_effects(hx, hy, det, spec) if det else (hx, hy)
@@ -151,7 +191,7 @@ def simulate(twin, configurations: np.ndarray, state: ModelState, n_rays: int, s
 
 def surrogate_jacobian(forward_model, configurations: np.ndarray, offsets: np.ndarray,
                        table: ParameterTable = METRIXS) -> np.ndarray:
-    """d histograms / d normalized offsets at each configuration: (n, 100, 34)."""
+    """d histograms / d normalized offsets at each configuration: (n, bins, 34)."""
     import torch
     x = table.normalize(configurations) + np.clip(offsets, -MAX_OFFSET, MAX_OFFSET)
     dtype = next(iter(forward_model.parameters()), torch.zeros(())).dtype if hasattr(forward_model, "parameters") \
@@ -169,13 +209,17 @@ class LocalModel:
     """Histograms around an anchor state, linear in offsets, quadratic in effect parameters."""
 
     anchor: ModelState
-    t0: np.ndarray            # (n, 100) twin at the anchor
-    jac: np.ndarray           # (n, 100, 34) surrogate Jacobian in normalized offsets
-    a: np.ndarray             # (n, 100, p) effect slopes
-    b: np.ndarray             # (n, 100, p) effect curvatures
+    t0: np.ndarray            # (n, bins) twin at the anchor
+    jac: np.ndarray           # (n, bins, 34) surrogate Jacobian in normalized offsets
+    a: np.ndarray             # (n, bins, p) effect slopes
+    b: np.ndarray             # (n, bins, p) effect curvatures
     anchor_rays: int
     raw: tuple[np.ndarray, np.ndarray] | None = None  # twin at the anchor before detector effects
     seed: int = 0
+    bins_x: int = 50          # x bins, then y bins, along axis 1
+
+    def split(self, h: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        return h[..., :self.bins_x], h[..., self.bins_x:]
 
     def predict(self, d_offsets: np.ndarray, d_effects: np.ndarray, idx=slice(None)) -> np.ndarray:
         h = self.t0[idx] + np.einsum("nbk,k->nb", self.jac[idx], d_offsets)
@@ -185,14 +229,21 @@ class LocalModel:
         return h
 
     def design(self, d_effects: np.ndarray, idx=slice(None)) -> np.ndarray:
-        """Jacobian of :meth:`predict` w.r.t. (offsets, effects): (n, 100, 34 + p)."""
+        """Jacobian of :meth:`predict` w.r.t. (offsets, effects): (n, bins, 34 + p)."""
         eff = self.a[idx] + 2 * self.b[idx] * d_effects[None, None, :] if d_effects.size else self.a[idx]
         return np.concatenate([self.jac[idx], eff], axis=2)
 
 
+def check_twin(meas: Measurement, twin) -> None:
+    """The twin must bin its histograms as the measurement is binned."""
+    if twin.hist != meas.spec:
+        raise ValueError(f"the twin bins its histograms as {twin.hist.fingerprint()}, the measurement as "
+                         f"{meas.spec.fingerprint()}: use twin.with_hist(measurement.spec)")
+
+
 def twin_jacobian(twin, configurations: np.ndarray, state: ModelState, raw0, n_rays: int, seeds,
                   columns: Sequence[int], step: float = 0.002, table: ParameterTable = METRIXS) -> np.ndarray:
-    """Finite-difference Jacobian of the twin's histograms in normalized offsets, (n, 100, 34),
+    """Finite-difference Jacobian of the twin's histograms in normalized offsets, (n, bins, 34),
     for ``columns`` (others zero).  Forward differences with the anchor's seeds: common random
     numbers cancel most of the ray noise."""
     n = len(configurations)
@@ -229,14 +280,15 @@ def build_local_model(meas: Measurement, state: ModelState, twin, forward_model,
     Twin-level effect parameters cost two traces per configuration each (same seeds as
     the anchor: common random numbers make the differences smooth), probed at
     ``±effect_step`` of each parameter's prior range; detector-level ones are applied to the
-    anchor's histograms and cost nothing.  ``offset_jacobian`` (n, 100, 34) is used as is
+    anchor's histograms and cost nothing.  ``offset_jacobian`` (n, bins, 34) is used as is
     instead of differentiating again (a Jacobian traced at a nearby state: it changes slowly,
     while the anchor carries the exact twin).  ``jacobian_rays`` (default: ``anchor_rays``)
     traces the twin's finite differences with fewer rays, against a base traced with those
     rays and the same seeds: the cost of a Jacobian is linear in rays, and Gauss-Newton
     needs its direction, not the anchor's precision (the anchor keeps ``anchor_rays``).
     """
-    n = meas.n
+    check_twin(meas, twin)
+    n, nx = meas.n, meas.bins_x
     if reuse is not None:
         # same offsets and twin-level effects as a model already traced: reuse its anchor and Jacobian
         if not (np.array_equal(reuse.anchor.offsets, state.offsets) and reuse.raw is not None
@@ -266,6 +318,10 @@ def build_local_model(meas: Measurement, state: ModelState, twin, forward_model,
         twin_columns = () if twin_columns is None else twin_columns
     elif forward_model is not None:
         jac = surrogate_jacobian(forward_model, meas.configurations, state.offsets, table)
+        if jac.shape[1] != t0.shape[1]:
+            raise ValueError(f"the surrogate predicts {jac.shape[1]} bins per configuration, the measurement has "
+                             f"{t0.shape[1]}: use the twin's Jacobian (forward_model=None) or the paper's binning "
+                             "(Measurement.rebinned / resolution='paper')")
     else:
         jac = np.zeros((n, t0.shape[1], len(table)))
         twin_columns = range(len(table)) if twin_columns is None else twin_columns
@@ -277,7 +333,7 @@ def build_local_model(meas: Measurement, state: ModelState, twin, forward_model,
                            table=table)
         for j in twin_columns:
             # detector effects are affine in the histograms: map the raw derivative through them
-            jac[:, :, j] = view(state, (raw[0] + tj[:, :50, j], raw[1] + tj[:, 50:, j])) - t0
+            jac[:, :, j] = view(state, (raw[0] + tj[:, :nx, j], raw[1] + tj[:, nx:, j])) - t0
     params = state.effect_parameters()
     phi0 = state.effect_vector()
     a = np.zeros((n, t0.shape[1], len(params)))
@@ -303,7 +359,7 @@ def build_local_model(meas: Measurement, state: ModelState, twin, forward_model,
         det = d1 * d2 * (d2 - d1)
         a[:, :, j] = ((h1 - t0) * d2 ** 2 - (h2 - t0) * d1 ** 2) / det
         b[:, :, j] = ((h2 - t0) * d1 - (h1 - t0) * d2) / det
-    return LocalModel(state, t0, jac, a, b, anchor_rays, raw, seed)
+    return LocalModel(state, t0, jac, a, b, anchor_rays, raw, seed, nx)
 
 
 @dataclass
@@ -420,8 +476,294 @@ class RefineResult:
     local_model: LocalModel
 
 
+@dataclass
+class FeatureFit:
+    """Result of :func:`fit_features` / :func:`fit_features_many`."""
+
+    state: ModelState
+    history: list[dict]
+    jacobian: np.ndarray | None          # the twin's bin Jacobian in the offsets, last traced (n, bins, 34)
+    jacobian_state: ModelState | None    # where it was traced
+    columns: np.ndarray | None = field(default=None, repr=False)  # feature Jacobian at the end (n, 5, P + p)
+    raw: tuple[np.ndarray, np.ndarray] | None = field(default=None, repr=False)  # the last anchor
+    seeds: list[int] | None = field(default=None, repr=False)
+
+    @property
+    def chi2(self) -> float:
+        """Bins χ² at the last anchor."""
+        return float(self.history[-1]["chi2"])
+
+    @property
+    def chi2_features(self) -> float:
+        return float(self.history[-1]["chi2_features"])
+
+
+class _Features:
+    """The beam features of a measurement and of twin traces, and their Jacobian (shared by the
+    feature fits)."""
+
+    def __init__(self, meas: Measurement, twin, rays: int, jacobian_step: float, effect_step: float,
+                 table: ParameterTable):
+        self.meas, self.twin, self.rays, self.table = meas, twin, rays, table
+        self.jacobian_step, self.effect_step = jacobian_step, effect_step
+        self.fm, self.vm = beam_features(meas.hist_x, meas.hist_y, meas.spec, meas.n_rays)
+        self.P = len(table)
+
+    def seeds(self, s: int) -> list[int]:
+        return [s + i for i in range(self.meas.n)]
+
+    def of(self, st: ModelState, raw) -> tuple[np.ndarray, np.ndarray]:
+        return beam_features(*detector_view(*raw, st, self.twin.hist), self.meas.spec, self.rays)
+
+    def chi2(self, f, v, z=None, ridge=None) -> float:
+        penalty = 0.0 if z is None or ridge is None else float((ridge * z * z).sum())
+        return float(((self.fm - f) ** 2 / (self.vm + v)).sum()) + penalty
+
+    def bins(self, st: ModelState, raw) -> dict:
+        # the anchors are whole histograms: their bin misfit comes for free
+        m = self.meas
+        mf = misfit(m.hist_x, m.hist_y, *detector_view(*raw, st, self.twin.hist), m.n_rays, model_rays=self.rays)
+        return {"chi2_reduced": mf.chi2_reduced_total, "chi2": mf.chi2_total, "dof": mf.dof_total,
+                "mse": mf.mse_total, "chi2_reference": float("nan"), "trust_region": float("nan")}
+
+    @staticmethod
+    def vector(st: ModelState) -> np.ndarray:
+        return np.r_[st.offsets, st.effect_vector()]
+
+    @staticmethod
+    def bounds(st: ModelState) -> tuple[np.ndarray, np.ndarray]:
+        params = st.effect_parameters()
+        P = len(st.offsets)
+        return (np.r_[np.full(P, -MAX_OFFSET), [q.low for _, q in params]],
+                np.r_[np.full(P, MAX_OFFSET), [q.high for _, q in params]])
+
+    def probes(self, st: ModelState) -> list[tuple[float, ModelState]]:
+        """One forward probe per effect parameter (backwards at its upper bound)."""
+        z0, out = self.vector(st), []
+        for k, (_, q) in enumerate(st.effect_parameters()):
+            d = self.effect_step * q.span * (1 if z0[self.P + k] + self.effect_step * q.span <= q.high else -1)
+            z = z0.copy()
+            z[self.P + k] += d
+            out.append((d, ModelState(z[:self.P].copy(), st.set_effect_vector(z[self.P:]), st.label)))
+        return out
+
+    def columns(self, st: ModelState, raw, f0, jac, probe_raws) -> np.ndarray:
+        """Feature Jacobian (n, 5, P + p) at ``st``: offsets through the bin Jacobian, effect
+        parameters from their probes (traced with the anchor's rays, or none for detector effects)."""
+        n, nx, h = self.meas.n, self.meas.bins_x, self.jacobian_step
+        params = st.effect_parameters()
+        G = np.zeros((n, self.fm.shape[1], self.P + len(params)))
+        for j in range(self.P):
+            if jac[:, :, j].any():
+                bumped = (raw[0] + h * jac[:, :nx, j], raw[1] + h * jac[:, nx:, j])
+                G[:, :, j] = (self.of(st, bumped)[0] - f0) / h
+        for k, ((d, probe), (name, _)) in enumerate(zip(self.probes(st), params)):
+            praw = raw if E.get(name).level == "detector" else probe_raws[k]
+            G[:, :, self.P + k] = (self.of(probe, praw)[0] - f0) / d
+        return G
+
+    def trace_probes(self, states: Sequence[ModelState], seeds) -> list[list]:
+        """Raw traces of every twin-level probe of every state, in one batch."""
+        todo = [(i, k, pr) for i, st in enumerate(states)
+                for k, ((_, pr), (name, _)) in enumerate(zip(self.probes(st), st.effect_parameters()))
+                if E.get(name).level == "twin"]
+        raws = simulate_raw_many(self.twin, self.meas.configurations, [pr for _, _, pr in todo], self.rays, seeds,
+                                 self.table)
+        out = [[None] * len(st.effect_parameters()) for st in states]
+        for (i, k, _), r in zip(todo, raws):
+            out[i][k] = r
+        return out
+
+    def step(self, G, f0, v0, z0, lam: float, ridge) -> np.ndarray:
+        """A Levenberg-Marquardt step on the features (Marquardt's scaling)."""
+        w = (1.0 / (self.vm + v0)).reshape(-1)
+        Gf = G.reshape(-1, G.shape[2])
+        A = Gf.T @ (Gf * w[:, None]) + np.diag(ridge)
+        g = Gf.T @ (w * (self.fm - f0).reshape(-1)) - ridge * z0
+        # the small ridge keeps parameters the features do not see in place
+        d = np.linalg.solve(A + lam * np.diag(np.diag(A)) + 1e-9 * np.trace(A) / len(A) * np.eye(len(A)), g)
+        return d if np.all(np.isfinite(d)) else np.zeros_like(z0)
+
+
+def fit_features(meas: Measurement, state: ModelState, twin, *, iterations: int = 8, anchor_rays: int | None = None,
+                 seed: int = 0, jacobian_step: float = 0.005, effect_step: float = 0.05, damping: float = 1.0,
+                 offset_jacobian: np.ndarray | None = None, progress=None, n_sigma: float = 3.0,
+                 prior_sigma: float | None = None, jacobian_rays: int | None = None,
+                 table: ParameterTable = METRIXS) -> FeatureFit:
+    """Fit the offsets (and the state's effects) to the beam's intensity, centroids and widths
+    (:func:`bluesky_offsets.diagnostics.beam_features`) through the twin.
+
+    The first stage of a fit: these five numbers per configuration respond smoothly and
+    almost linearly to the offsets over many spot widths, while bin contents of a focus a
+    few bins wide are steep steps, so a fit on bins only converges from close by (measured:
+    from the nominal twin, bins χ²/dof 40 -> 18 in 8 Gauss-Newton iterations, features ->
+    1.0 in 4; docs/diagnosis.md).  Levenberg-Marquardt on the features with Marquardt's
+    scaling; the offset Jacobian is the twin's (finite differences with common random
+    numbers, ``34 n`` traces), traced once and reused at later anchors until a step is
+    refused after the fit has moved on; effect parameters are differentiated at every anchor
+    (``n`` traces each, step ``effect_step`` of their prior range).  Each proposal is judged
+    against the current state traced with the proposal's rays (``2 n`` traces).  Stops after
+    ``iterations`` or once the features fit within noise (χ² below its expectation +
+    ``n_sigma`` σ).  ``prior_sigma`` adds a Gaussian prior on the offsets (normalized units).
+    ``jacobian_rays`` (default ``anchor_rays``) traces the offset Jacobian with fewer rays:
+    with common random numbers every ray moves smoothly, so centroids and widths differentiate
+    cleanly from a few thousand rays, and the Jacobian is most of a fit's cost.
+    """
+    check_twin(meas, twin)
+    rays = int(anchor_rays or meas.n_rays)
+    fx = _Features(meas, twin, rays, jacobian_step, effect_step, table)
+    cfg, n, P = meas.configurations, meas.n, len(table)
+    lo, hi = fx.bounds(state)
+    limit = fx.fm.size + n_sigma * math.sqrt(2 * fx.fm.size)
+    ridge = np.r_[np.full(P, 0.0 if prior_sigma is None else prior_sigma ** -2.0),
+                  np.zeros(len(state.effect_parameters()))]
+
+    def state_of(z):
+        return ModelState(z[:P].copy(), state.set_effect_vector(z[P:]), state.label)
+
+    s, cur = seed, state
+    raw = simulate_raw(twin, cfg, cur, rays, fx.seeds(s), table)
+    f0, v0 = fx.of(cur, raw)
+    jac, jac_state, fresh = offset_jacobian, None, False
+    # moved: steps accepted since the Jacobian was traced (one handed in may be from elsewhere)
+    lam, moved = damping, 0 if offset_jacobian is None else 2
+    G = last = None
+    history = [{"stage": "features", "iteration": 0, "accepted": True, "jacobian_refreshed": False,
+                "chi2_features": fx.chi2(f0, v0), "features": fx.fm.size, "damping": lam, **fx.bins(cur, raw),
+                "effects": {k: dict(v) for k, v in cur.effects.items()}}]
+    if progress:
+        progress(history[-1])
+    for it in range(1, iterations + 1):
+        if history[-1]["chi2_features"] <= limit or lam > 1e3 * damping:
+            break  # within noise, or five refusals in a row on a fresh Jacobian: no step left to try
+        refreshed = False
+        if jac is None:
+            j_rays = int(jacobian_rays or rays)
+            raw_j = raw if j_rays == rays else simulate_raw(twin, cfg, cur, j_rays, fx.seeds(s), table)
+            jac = twin_jacobian(twin, cfg, cur, raw_j, j_rays, fx.seeds(s), range(P), step=jacobian_step, table=table)
+            jac_state, fresh, refreshed = cur, True, True
+        G = fx.columns(cur, raw, f0, jac, fx.trace_probes([cur], fx.seeds(s))[0])
+        z0 = fx.vector(cur)
+        step = fx.step(G, f0, v0, z0, lam, ridge)
+        cand = state_of(np.clip(z0 + step, lo, hi))
+        s2 = seed + 1000 * it
+        raw_c, raw_r = simulate_raw_many(twin, cfg, [cand, cur], rays, fx.seeds(s2), table)
+        (fc, vc), (fr, vr) = fx.of(cand, raw_c), fx.of(cur, raw_r)
+        cc, cr = fx.chi2(fc, vc, fx.vector(cand), ridge), fx.chi2(fr, vr, z0, ridge)
+        accepted = bool(cc < cr) and bool(step.any())
+        if accepted:
+            cur, raw, f0, v0, s = cand, raw_c, fc, vc, s2
+            lam, fresh = max(lam / 3, 1e-6), False
+            moved += 1
+        else:
+            raw, f0, v0, s = raw_r, fr, vr, s2  # the current state, freshly traced: the next anchor
+            if fresh or moved < 2 or cr < 1.2 * limit:
+                # near the noise a refusal is mostly noise, and a Jacobian a step or two old is
+                # not stale: a fresh one (34 n traces) would not help
+                lam *= 4
+            else:
+                last, jac, moved = jac, None, 0  # a stale Jacobian is the first suspect: trace it afresh next
+        history.append({"stage": "features", "iteration": it, "accepted": accepted,
+                        "jacobian_refreshed": refreshed, "chi2_features": cc if accepted else cr,
+                        "features": fx.fm.size, "damping": lam, **fx.bins(cur, raw),
+                        "effects": {k: dict(v) for k, v in cur.effects.items()}})
+        if progress:
+            progress(history[-1])
+    return FeatureFit(cur, history, jac if jac is not None else last, jac_state, G, raw, fx.seeds(s))
+
+
+def fit_features_many(meas: Measurement, states: Sequence[ModelState], twin, offset_jacobian: np.ndarray, *,
+                      iterations: int = 5, rays: int | None = None, seed: int = 0, jacobian_step: float = 0.005,
+                      effect_step: float = 0.1, damping: float = 1.0, directions: int = 12,
+                      table: ParameterTable = METRIXS) -> list[FeatureFit]:
+    """:func:`fit_features` for many states side by side — the candidate models of a diagnosis.
+
+    The offsets move in the ``directions`` combinations the beam features respond to most at
+    ``states[0]`` (principal directions of its noise-weighted feature Jacobian, from
+    ``offset_jacobian``).  The derivatives along them are traced where each fit starts
+    (``directions * n`` traces; states that differ from ``states[0]`` only at the detector
+    share its): an effect such as a defocus changes how the features respond to the offsets,
+    and a fit on the old Jacobian stalls (measured: chamber_z from 16.5 mm, feature χ² stuck at
+    3700 until the Jacobian was traced at the defocused state, then 470 with z = 20.5 mm).
+    All fits share one set of
+    rays (the same seeds at every anchor), so their χ² compare sharply with each other and a
+    step is judged against the current anchor without a second trace; each iteration traces
+    every fit's proposal and effect probes in one batch (``n (1 + p)`` traces per fit for
+    ``p`` twin-level effect parameters).
+    """
+    check_twin(meas, twin)
+    rays = int(rays or meas.n_rays)
+    fx = _Features(meas, twin, rays, jacobian_step, effect_step, table)
+    cfg, P, nx, h = meas.configurations, len(table), meas.bins_x, jacobian_step
+    seeds = fx.seeds(seed)
+    cur = list(states)
+    raws = simulate_raw_many(twin, cfg, cur, rays, seeds, table)
+    fs = [fx.of(st, r) for st, r in zip(cur, raws)]
+
+    def offset_columns(st, raw, f0):
+        G = np.zeros((*f0.shape, P))
+        for j in range(P):
+            if offset_jacobian[:, :, j].any():
+                bumped = (raw[0] + h * offset_jacobian[:, :nx, j], raw[1] + h * offset_jacobian[:, nx:, j])
+                G[:, :, j] = (fx.of(st, bumped)[0] - f0) / h
+        return G
+
+    G0 = offset_columns(cur[0], raws[0], fs[0][0])
+    sw = np.sqrt(1.0 / (fx.vm + fs[0][1])).reshape(-1)
+    U = np.linalg.svd(G0.reshape(-1, P) * sw[:, None], full_matrices=False)[2][:directions].T  # (P, r)
+    # derivatives along the directions, traced where each fit starts (one batch): the first
+    # state's serve every state that differs from it only at the detector.  All fits get fresh
+    # ones alike: a fit on a fresher Jacobian than its reference would be credited with the
+    # offsets' further convergence (measured: chamber_x at x = 0 "gained" 380)
+    r = U.shape[1]
+    own = [k == 0 or any(E.get(e).level == "twin" for e in st.effects if e not in states[0].effects)
+           for k, st in enumerate(cur)]
+    bumped = [ModelState(st.offsets + h * U[:, k], st.effects, st.label)
+              for st, o in zip(cur, own) if o for k in range(r)]
+    braws = simulate_raw_many(twin, cfg, bumped, rays, seeds, table)
+    by_state, i = [], 0
+    for o in own:
+        by_state.append(braws[i:i + r] if o else None)
+        i += r if o else 0
+    Goff = []
+    for st, (f0, _), b in zip(cur, fs, by_state):
+        b = b if b is not None else by_state[0]
+        Goff.append(np.stack([(fx.of(st, b[k])[0] - f0) / h for k in range(r)], axis=-1))
+    lams = [damping] * len(cur)
+    hist = [[{"stage": "features", "iteration": 0, "accepted": True, "chi2_features": fx.chi2(*f), **fx.bins(st, rr),
+              "effects": {k: dict(v) for k, v in st.effects.items()}}] for st, rr, f in zip(cur, raws, fs)]
+    cols = [None] * len(cur)
+    for it in range(1, iterations + 1):
+        probe_raws = fx.trace_probes(cur, seeds)
+        cands = []
+        for i, st in enumerate(cur):
+            params = st.effect_parameters()
+            Ge = np.zeros((*fs[i][0].shape, len(params)))
+            for k, ((d, probe), (name, _)) in enumerate(zip(fx.probes(st), params)):
+                praw = raws[i] if E.get(name).level == "detector" else probe_raws[i][k]
+                Ge[:, :, k] = (fx.of(probe, praw)[0] - fs[i][0]) / d
+            cols[i] = np.concatenate([Goff[i] @ U.T, Ge], axis=2)  # back in offset coordinates
+            za = np.r_[np.zeros(r), st.effect_vector()]
+            step = fx.step(np.concatenate([Goff[i], Ge], axis=2), fs[i][0], fs[i][1], za, lams[i], np.zeros_like(za))
+            lo, hi = fx.bounds(st)
+            zz = np.clip(np.r_[st.offsets + U @ step[:r], st.effect_vector() + step[r:]], lo, hi)
+            cands.append(ModelState(zz[:P].copy(), st.set_effect_vector(zz[P:]), st.label))
+        craws = simulate_raw_many(twin, cfg, cands, rays, seeds, table)
+        for i, (c, rr) in enumerate(zip(cands, craws)):
+            fc = fx.of(c, rr)
+            ok = fx.chi2(*fc) < fx.chi2(*fs[i])
+            if ok:
+                cur[i], raws[i], fs[i], lams[i] = c, rr, fc, max(lams[i] / 3, 1e-6)
+            else:
+                lams[i] *= 4
+            hist[i].append({"stage": "features", "iteration": it, "accepted": bool(ok),
+                            "chi2_features": fx.chi2(*fs[i]), **fx.bins(cur[i], raws[i]),
+                            "effects": {k: dict(v) for k, v in cur[i].effects.items()}})
+    return [FeatureFit(st, hh, offset_jacobian, None, G, rr, seeds) for st, hh, G, rr in zip(cur, hist, cols, raws)]
+
+
 def _twin_chi2(meas: Measurement, lm: LocalModel):
-    return misfit(meas.hist_x, meas.hist_y, lm.t0[:, :50], lm.t0[:, 50:], meas.n_rays, model_rays=lm.anchor_rays)
+    return misfit(meas.hist_x, meas.hist_y, *lm.split(lm.t0), meas.n_rays, model_rays=lm.anchor_rays)
 
 
 def refine(meas: Measurement, state: ModelState, twin, forward_model, *, iterations: int = 4,
@@ -431,7 +773,8 @@ def refine(meas: Measurement, state: ModelState, twin, forward_model, *, iterati
            offset_jacobian: np.ndarray | None = None, refresh_columns: Sequence[int] | None = None,
            refresh_on_reject: bool = False, jacobian_rays: int | None = None, jacobian_step: float = 0.002,
            paired: bool = True, step_factors: Sequence[float] = (1.0, 0.25, 0.0625),
-           table: ParameterTable = METRIXS) -> RefineResult:
+           feature_iterations: int = 0, feature_kw: Mapping | None = None, also_from: Sequence = (),
+           max_refreshes: int | None = None, table: ParameterTable = METRIXS) -> RefineResult:
     """Fit offsets and the state's effects to ``meas`` by re-anchored Gauss-Newton through the twin.
 
     Each iteration solves the local problem, traces the twin at the proposed
@@ -446,7 +789,7 @@ def refine(meas: Measurement, state: ModelState, twin, forward_model, *, iterati
     traces instead of ``n (35 + 2 p)``); the anchor is the exact twin, so the
     fixed point is the same, only the convergence is linear.  ``start`` is a local
     model already built for ``state`` (e.g. a refinement's last one) to begin from;
-    ``offset_jacobian`` (n, 100, 34) one traced before at a nearby state, used throughout.
+    ``offset_jacobian`` (n, bins, 34) one traced before at a nearby state, used throughout.
     ``refresh_columns`` (with a reused Jacobian) are differentiated afresh at every anchor:
     the few offsets that move the footprint across bins (see :func:`sensitive_columns`),
     whose derivative changes as the footprint moves, at ``n`` traces per column.
@@ -461,6 +804,7 @@ def refine(meas: Measurement, state: ModelState, twin, forward_model, *, iterati
     solution with the offsets free within the final trust region (default), or within
     ``sigma_offset_prior`` (normalized; e.g. ``MAX_OFFSET``, the physical prior), which lets
     correlations with poorly determined offsets widen them: the honest, larger number.
+    ``max_refreshes`` bounds the Jacobians ``refresh_on_reject`` traces (``34 n`` traces each).
     ``jacobian_rays`` and ``jacobian_step`` set the twin's finite differences (see
     :func:`build_local_model`).  ``paired`` (default) judges a step against the current state
     traced with the proposal's own ray seeds (``n`` more traces per iteration) rather than
@@ -469,8 +813,37 @@ def refine(meas: Measurement, state: ModelState, twin, forward_model, *, iterati
     the trust region into a ladder of steps per iteration, all traced with the same rays
     (``n`` traces each); the best is proposed, and a local model (Jacobian, effect probes)
     is built only for an accepted step.
+    ``feature_iterations`` > 0 first fits the beam features (intensity, centroids, widths) with
+    :func:`fit_features` (options in ``feature_kw``), whose wide basin brings the state close
+    enough for the bins; its twin Jacobian then starts this fit (with a surrogate as
+    ``forward_model``, the surrogate's is used).  The history holds both stages (``"stage"``).
+    ``also_from`` (offset vectors or states) are further starts of the feature stage, sharing
+    its first Jacobian; the one whose bins fit best at the end of it goes on (a solution of
+    the surrogate on the paper's coarse histograms can sit in a basin of compensating offsets
+    that the camera's resolution tells apart: measured, features from there ended at bins
+    χ²/dof 1.4, from the nominal twin at 1.0; docs/diagnosis.md).
     """
+    check_twin(meas, twin)
     anchor_rays = anchor_rays or int(meas.n_rays)
+    history: list[dict] = []
+    if feature_iterations:
+        if start is not None:
+            raise ValueError("refine: start= and feature_iterations= exclude each other")
+        fkw = {"iterations": feature_iterations, "anchor_rays": anchor_rays, "seed": seed + 500_000,
+               "progress": progress, "table": table, **dict(feature_kw or {})}
+        ff = fit_features(meas, state, twin, offset_jacobian=offset_jacobian, **fkw)
+        for k, alt in enumerate(also_from):
+            off = np.asarray(getattr(alt, "offsets", alt), dtype=float)
+            fa = fit_features(meas, ModelState(off, state.effects, state.label), twin,
+                              offset_jacobian=ff.jacobian if offset_jacobian is None else offset_jacobian,
+                              **{**fkw, "seed": seed + 500_000 * (k + 2)})
+            for h in fa.history:
+                h["start"] = k + 1
+            if fa.history[-1]["chi2"] < ff.history[-1]["chi2"]:
+                ff = fa
+        state, history = ff.state, ff.history
+        if ff.jacobian is not None and forward_model is None:
+            offset_jacobian = ff.jacobian
     jkw = {"jacobian_rays": jacobian_rays, "jacobian_step": jacobian_step}
     if start is not None:
         if not (np.array_equal(start.anchor.offsets, state.offsets) and start.anchor_rays == anchor_rays
@@ -485,13 +858,15 @@ def refine(meas: Measurement, state: ModelState, twin, forward_model, *, iterati
     jac = lm.jac if (reuse_jacobian or offset_jacobian is not None) else None
 
     mf = _twin_chi2(meas, lm)
-    history = [{"iteration": 0, "accepted": True, "jacobian_refreshed": False, "chi2_reduced": mf.chi2_reduced_total,
-                "mse": mf.mse_total,
-                "chi2": mf.chi2_total, "dof": mf.dof_total,
-                "effects": {k: dict(v) for k, v in state.effects.items()}}]
+    nan = float("nan")
+    stage = {"stage": "bins", "chi2_features": nan, "features": nan, "damping": nan}
+    history.append({**stage, "iteration": 0, "accepted": True, "jacobian_refreshed": False,
+                    "chi2_reduced": mf.chi2_reduced_total, "mse": mf.mse_total, "chi2": mf.chi2_total,
+                    "dof": mf.dof_total, "chi2_reference": nan, "trust_region": nan,
+                    "effects": {k: dict(v) for k, v in state.effects.items()}})
     if progress:
         progress(history[-1])
-    current, prior = state, offset_prior
+    current, prior, refreshes = state, offset_prior, 0
     # a Jacobian differentiated here for the start state is fresh; one handed in may be stale
     jac_fresh = jac is None or (start is None and offset_jacobian is None)
 
@@ -532,7 +907,8 @@ def refine(meas: Measurement, state: ModelState, twin, forward_model, *, iterati
             current, mf = proposal, _twin_chi2(meas, lm)
             prior = min(priors[best] * 2.0, 0.05)
             jac_fresh = jac is None
-        elif refresh_on_reject and not jac_fresh:
+        elif refresh_on_reject and not jac_fresh and (max_refreshes is None or refreshes < max_refreshes):
+            refreshes += 1
             # a new anchor with its own seeds and a full Jacobian there; it is the reference now
             lm = build_local_model(meas, current, twin, forward_model, anchor_rays=anchor_rays,
                                    seed=it_seed + 500, twin_columns=twin_columns,
@@ -540,7 +916,7 @@ def refine(meas: Measurement, state: ModelState, twin, forward_model, *, iterati
             mf, jac, jac_fresh, refreshed = _twin_chi2(meas, lm), lm.jac, True, True
         else:
             prior = min(priors) / 4.0
-        history.append({"iteration": it, "accepted": bool(accepted), "jacobian_refreshed": refreshed,
+        history.append({**stage, "iteration": it, "accepted": bool(accepted), "jacobian_refreshed": refreshed,
                         "chi2_reduced": mf_p.chi2_reduced_total, "chi2_reference": float(chi2_ref),
                         "trust_region": float(priors[best]),
                         "mse": mf_p.mse_total, "chi2": mf_p.chi2_total, "dof": mf_p.dof_total,

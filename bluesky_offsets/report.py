@@ -180,23 +180,25 @@ def analysis_sections(analysis, spec, work: Path, *, truth: Mapping | None = Non
         fig = plot_ranking(diag, work / "ranking.png")
         rows = []
         for i, c in enumerate(diag.candidates, 1):
-            rows.append({"rank": i, "effect": c.name, "score": c.score, "Δχ² all": c.delta_chi2_all,
-                         "÷ dispersion": c.dispersion, "price p ln N": c.penalty,
-                         "Δχ² held-out": c.delta_chi2_heldout,
+            rows.append({"rank": i, "effect": c.name, "score": c.score,
+                         "twin Δχ² (bins)": c.delta_chi2_twin if c.refined else "—",
+                         "÷ dispersion": c.dispersion if c.refined else "—", "price p ln N": c.penalty,
+                         "feature Δχ²": c.delta_chi2_all, "held-out feature Δχ²": c.delta_chi2_heldout,
                          "held-out folds better / worse": f"{c.folds_improved} / {c.folds_worse} of {c.folds_total}",
                          "significant": "yes" if c.significant else "no",
-                         "fitted (diagnosis)": _fmt_values(c.values, c.sigma)})
+                         "value (diagnosis)": _fmt_values(c.values, c.sigma)})
         keys = [k for k in diag.observed_signature if not k.endswith("skewness")]
         sig_rows = [{"signature": k, "observed": diag.observed_signature[k],
                      **{c.name: c.predicted_signature.get(k, float("nan")) for c in diag.candidates[:4]}}
                     for k in keys]
         mf = diag.base_misfit
-        body = (paragraph(f"Each candidate is fitted with the offsets on all configurations and in {diag.folds} "
-                          "folds; score = χ² improvement over the offsets-only fit on all data ÷ that fit's χ² "
-                          "per bin (when > 1) − p ln N; significant when the score is positive and the held-out folds "
-                          "do not contradict it (its parameters fitted without the fold, the offsets held at the "
-                          "offsets-only fit, lower the fold's χ² at least as often as they raise it). Base model: "
-                          "χ²/dof "
+        body = (paragraph("Each candidate's parameters are scanned over a grid within their prior range through the "
+                          "twin, the offsets compensating each value on the beam features (intensity, centroids, "
+                          f"widths); held-out: the value and the compensation chosen without each of {diag.folds} "
+                          "folds of configurations. The best candidates are verified through the twin in the "
+                          "histogram bins against an offsets-only compensation; score = that χ² gain ÷ the "
+                          "reference's χ² per degree of freedom (when > 1) − p ln N. Significant: score above 3σ of "
+                          "the χ² noise, and the held-out folds do not contradict it. Base model: χ²/dof "
                           f"{mf.chi2_reduced_total:.3g} (noise: 1 ± {np.sqrt(2 / max(mf.dof_total, 1)):.2g}); "
                           f"{diag.n_traces} twin traces.")
                 + table_(rows) + image(fig, "candidate scores; predicted residual signature of the top candidates "

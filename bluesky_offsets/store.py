@@ -67,6 +67,8 @@ class Measurement:
         2-D histograms when recorded.
     metadata : dict
         The run's start document (or the plan's metadata).
+    profile_x, profile_y : ndarray, shape (n, bins), optional
+        The footprint at the camera's resolution (``profile_spec``), when the detector gave it.
     """
 
     configurations: np.ndarray
@@ -77,6 +79,8 @@ class Measurement:
     total_counts: np.ndarray | None = None
     images: np.ndarray | None = None
     metadata: dict = field(default_factory=dict)
+    profile_x: np.ndarray | None = None
+    profile_y: np.ndarray | None = None
 
     def __post_init__(self):
         self.configurations = np.atleast_2d(np.asarray(self.configurations, dtype=float))
@@ -93,6 +97,13 @@ class Measurement:
 
     def __len__(self) -> int:
         return len(self.configurations)
+
+    @property
+    def profile_spec(self):
+        """Binning of the profiles (from the run's ``profile`` metadata); None without profiles."""
+        from .twin import HistogramSpec
+        fp = self.metadata.get("profile")
+        return HistogramSpec.from_fingerprint(fp) if fp and self.profile_x is not None else None
 
     @property
     def truth_id(self) -> str | None:
@@ -158,7 +169,37 @@ def measurement_from_run(run, *, stream: str = "primary") -> Measurement:
         pass
     stop = run.metadata.get("stop") or {}
     md = dict(start, exit_status=stop.get("exit_status"))
-    return Measurement(configs[idx], hist_x, hist_y, names, uid, counts, images, md)
+    px, py = _profiles(ds, keys, hk, start, hist_x, hist_y)
+    return Measurement(configs[idx], hist_x, hist_y, names, uid, counts, images, md, px, py)
+
+
+def _profiles(ds, keys, hk, start, hist_x, hist_y):
+    """The camera-resolution profiles of a run's stream, or (None, None)."""
+    if not start.get("profile"):
+        return None, None
+    try:
+        px = np.asarray(ds[_key(keys, "profile_x", hk.get("profile_x"))])
+        py = np.asarray(ds[_key(keys, "profile_y", hk.get("profile_y"))])
+    except KeyError:
+        return None, None
+    return consistent_profiles(px, py, start["profile"], hist_x, hist_y)
+
+
+def consistent_profiles(profile_x, profile_y, fingerprint, hist_x, hist_y):
+    """``(profile_x, profile_y)`` as float arrays if, binned as ``fingerprint`` says, they sum up
+    to the histograms; ``(None, None)`` otherwise (a detector backend without rays publishes
+    zeros)."""
+    from .twin import HistogramSpec
+    try:
+        px, py = np.asarray(profile_x, dtype=float), np.asarray(profile_y, dtype=float)
+        spec = HistogramSpec.from_fingerprint(fingerprint)
+        hx, hy = np.asarray(hist_x, dtype=float), np.asarray(hist_y, dtype=float)
+        rx, ry = spec.rebin(px, py, HistogramSpec(hx.shape[-1], spec.range_x, hy.shape[-1], spec.range_y))
+    except (KeyError, ValueError, TypeError):
+        return None, None
+    if not (np.allclose(rx, hx, rtol=1e-4, atol=1e-7) and np.allclose(ry, hy, rtol=1e-4, atol=1e-7)):
+        return None, None
+    return px, py
 
 
 # --------------------------------------------------------------------------- #

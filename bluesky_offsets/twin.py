@@ -82,6 +82,48 @@ class HistogramSpec:
         return {"bins_x": self.bins_x, "range_x": list(self.range_x),
                 "bins_y": self.bins_y, "range_y": list(self.range_y), "normalization": "fraction of source rays"}
 
+    @classmethod
+    def from_fingerprint(cls, fp: Mapping) -> HistogramSpec:
+        return cls(int(fp["bins_x"]), tuple(map(float, fp["range_x"])), int(fp["bins_y"]),
+                   tuple(map(float, fp["range_y"])))
+
+    @classmethod
+    def from_centers(cls, centers_x, centers_y) -> HistogramSpec:
+        """The spec of uniform bins with these centres (as a detector publishes its axes)."""
+        def axis(c):
+            c = np.asarray(c, float)
+            if c.size < 2:
+                raise ValueError("a histogram axis needs at least two bin centres")
+            w = (c[-1] - c[0]) / (c.size - 1)
+            if not np.allclose(np.diff(c), w, rtol=1e-6, atol=1e-9):
+                raise ValueError("histogram bins are not uniform")
+            # rounded: the centres travel as float32 or text, the window edges are round numbers
+            return c.size, (round(float(c[0] - w / 2), 6), round(float(c[-1] + w / 2), 6))
+        (bx, rx), (by, ry) = axis(centers_x), axis(centers_y)
+        return cls(bx, rx, by, ry)
+
+    def factors(self, coarse: HistogramSpec) -> tuple[int, int]:
+        """How many of this spec's bins make one bin of ``coarse`` (x, y); ValueError if the
+        edges of ``coarse`` are not edges of this spec."""
+        if self.range_x != coarse.range_x or self.range_y != coarse.range_y \
+                or self.bins_x % coarse.bins_x or self.bins_y % coarse.bins_y:
+            raise ValueError(f"histograms binned as {self.fingerprint()} cannot be re-binned to {coarse.fingerprint()}")
+        return self.bins_x // coarse.bins_x, self.bins_y // coarse.bins_y
+
+    def rebin(self, hist_x: np.ndarray, hist_y: np.ndarray, coarse: HistogramSpec) -> tuple[np.ndarray, np.ndarray]:
+        """Histograms of this spec (..., bins) summed into the bins of ``coarse``."""
+        fx, fy = self.factors(coarse)
+        hx, hy = np.asarray(hist_x, float), np.asarray(hist_y, float)
+        return (hx.reshape(*hx.shape[:-1], coarse.bins_x, fx).sum(-1),
+                hy.reshape(*hy.shape[:-1], coarse.bins_y, fy).sum(-1))
+
+
+# The focus-chamber camera at its own resolution (20 µm x 5 µm bins over the paper's window):
+# the paper's 50 x 50 histograms are these summed 20 x 24 at a time.  The surrogate sees the
+# paper's binning; the diagnosis fits the camera's, where a focus (x 68 µm, y 16-23 µm rms)
+# spans several bins instead of one, so its position, width and shape carry information.
+CAMERA = HistogramSpec(1000, (-10.0, 10.0), 1200, (-3.0, 3.0))
+
 
 def _hist1d(v: np.ndarray, bins: int, rng: tuple[float, float]) -> np.ndarray:
     # Same bin convention as np.histogram (last bin closed), ~5x faster.
@@ -394,6 +436,21 @@ class Twin:
     def hist(self) -> HistogramSpec:
         return self.engine.hist
 
+    def with_hist(self, hist: HistogramSpec) -> Twin:
+        """The same tracer and workers, histograms binned by ``hist`` (``self`` if it already is).
+
+        The engine is copied with the new spec; the Dask client is shared (started first if
+        needed): the original twin owns it, closing the copy leaves it running."""
+        if hist == self.hist:
+            return self
+        import copy
+        engine = copy.copy(self.engine)
+        engine.hist = hist
+        client = None if self.scheduler == "inline" else self.client
+        twin = Twin(engine, n_rays=self.n_rays, scheduler=self.scheduler, n_workers=self.n_workers, client=client)
+        twin._borrowed = True
+        return twin
+
     # -- single traces (in-process) ------------------------------------------
     def trace(self, values, *, overrides: Mapping | None = None, n_rays: int | None = None,
               keep_rays: bool = False, seed: int | None = None) -> TraceResult:
@@ -427,6 +484,9 @@ class Twin:
         return self._client
 
     def close(self) -> None:
+        if getattr(self, "_borrowed", False):
+            self._client = None  # the twin it was made from owns the workers
+            return
         if self._client is not None:
             self._client.close()
             self._client = None

@@ -149,12 +149,14 @@ class Analysis:
 # --------------------------------------------------------------------------- #
 # stubs: measurements, events, work in a thread
 # --------------------------------------------------------------------------- #
-def resolve_measurement(measurement, store=None, *, n_rays: int | None = None,
+def resolve_measurement(measurement, store=None, *, n_rays: int | None = None, resolution: str = "camera",
                         table: ParameterTable = METRIXS) -> tuple[Measurement, dict]:
     """A :class:`bluesky_offsets.model.Measurement` and the run metadata worth linking.
 
     ``measurement`` is a model measurement, a run-store measurement
-    (:class:`bluesky_offsets.store.Measurement`) or a measurement run's uid in ``store``.
+    (:class:`bluesky_offsets.store.Measurement`) or a measurement run's uid in ``store``; of a
+    stored run the camera-resolution profiles are taken where it has them
+    (``resolution="camera"``), else (or with ``"paper"``) the 50 x 50 histograms.
     """
     from bluesky_offsets import store as S
     if isinstance(measurement, Measurement):
@@ -163,8 +165,8 @@ def resolve_measurement(measurement, store=None, *, n_rays: int | None = None,
         measurement = S.as_measurement(measurement, store)
     if not isinstance(measurement, S.Measurement):
         raise TypeError(f"expected a measurement or a run uid, got {type(measurement).__name__}")
-    m = Measurement.from_store(measurement, n_rays, table)
-    md = {"measurement_uid": m.uid}
+    m = Measurement.from_store(measurement, n_rays, table, resolution=resolution)
+    md = {"measurement_uid": m.uid, "histogram": m.spec.fingerprint()}
     if measurement.truth_id:
         md["truth_id"] = measurement.truth_id
     return m, md
@@ -230,6 +232,9 @@ def emit_rows(stream: str, rows: Sequence[Mapping[str, Any]]) -> MsgGenerator[No
         yield from bps.save()
 
 
+BAR_KEYS = ("iteration", "accepted", "chi2_reduced", "chi2_features", "jacobian_refreshed")
+
+
 def run_in_thread(func: Callable[[Callable[[dict], None]], Any], *, stream: str | None = "progress",
                   desc: str = "working", poll: float = 0.25, show: bool = True) -> MsgGenerator[Any]:
     """Call ``func(progress)`` in a worker thread; return its result (or raise its error).
@@ -263,7 +268,10 @@ def run_in_thread(func: Callable[[Callable[[dict], None]], Any], *, stream: str 
             num = {k: (int(v) if isinstance(v, (bool, np.bool_)) else v) for k, v in d.items()
                    if isinstance(v, (int, float, bool, np.number, np.bool_))}
             bar.update(1)
-            bar.set_postfix({k: (f"{v:.4g}" if isinstance(v, float) else v) for k, v in num.items()}, refresh=True)
+            # a few numbers on the bar (all of them go to the stream)
+            shown = {k: v for k, v in num.items() if k in BAR_KEYS and not (isinstance(v, float) and np.isnan(v))}
+            bar.set_postfix({k: (f"{v:.4g}" if isinstance(v, float) else v) for k, v in (shown or num).items()},
+                            refresh=True)
             if stream is None:
                 continue
             keys = keys or sorted(num)
@@ -384,6 +392,7 @@ def compare_model(measurement, state: ModelState, twin, *, label: str | None = N
         correlations with the parameters and the failing regions; ``uid`` of the run.
     """
     meas, link = resolve_measurement(measurement, store, table=table)
+    twin = twin.with_hist(meas.spec)  # the twin bins as the measurement does
     label = label or state.label
     rays = int(model_rays or 4 * meas.n_rays)
     _md = {"plan_name": "compare_model", "purpose": "model vs. measurement", **link, **_state_md(state, table),
@@ -428,6 +437,7 @@ def refine_offsets(measurement, state: ModelState, twin, forward_model, *, store
         The refined state and its comparison with the measurement (same run).
     """
     meas, link = resolve_measurement(measurement, store, table=table)
+    twin = twin.with_hist(meas.spec)  # the twin bins as the measurement does
     _md = {"plan_name": "refine_offsets", "purpose": "offsets through the twin", **link,
            **_state_md(state, table), "iterations": iterations, "n_configurations": meas.n,
            "jacobian": "twin" if forward_model is None else "surrogate", **dict(md or {})}
@@ -490,6 +500,7 @@ def diagnose_effects(measurement, state: ModelState, twin, forward_model, *, sto
     observed signature).
     """
     meas, link = resolve_measurement(measurement, store, table=table)
+    twin = twin.with_hist(meas.spec)  # the twin bins as the measurement does
     names = list(candidates) if candidates else [n for n in E.EFFECTS if n not in state.effects]
     for n in names:
         E.get(n)  # unknown names fail before the run opens
@@ -556,6 +567,7 @@ def add_effect_and_refit(measurement, state: ModelState, effect: str, twin, forw
     version).
     """
     meas, link = resolve_measurement(measurement, store, table=table)
+    twin = twin.with_hist(meas.spec)  # the twin bins as the measurement does
     eff = E.get(effect)
     start_values = eff.values(values)
     label = label or f"+ {effect}"
@@ -618,7 +630,8 @@ def analyse_measurement(measurement, twin, forward_model, *, store=None,
                         anchor_rays: int | None = None, twin_columns: Sequence[int] | None = None, folds: int = 4,
                         refine_kw: Mapping | None = None, refit_kw: Mapping | None = None,
                         diagnose_kw: Mapping | None = None, seed: int = 0, md: Mapping | None = None,
-                        show: bool = True, table: ParameterTable = METRIXS) -> MsgGenerator[Analysis]:
+                        show: bool = True, resolution: str = "camera",
+                        table: ParameterTable = METRIXS) -> MsgGenerator[Analysis]:
     """Compare, refine the offsets, diagnose, add the winning effect and refit — one run each.
 
     Parameters
@@ -639,7 +652,11 @@ def analyse_measurement(measurement, twin, forward_model, *, store=None,
         and refit (nothing is added when no candidate is significant).
     refine_kw, refit_kw, diagnose_kw : mapping, optional
         Further options of :func:`bluesky_offsets.model.refine` (offsets; refit) and
-        :func:`bluesky_offsets.diagnosis.diagnose`; options they do not take are dropped.
+        :func:`bluesky_offsets.diagnosis.diagnose`; options they do not take are dropped
+        (:data:`bluesky_offsets.diagnosis.RECIPE` is the demo's).
+    resolution : {"camera", "paper"}
+        Of a stored run: the camera-resolution profiles where it has them, or the 50 x 50
+        histograms.
 
     Returns
     -------
@@ -647,7 +664,8 @@ def analyse_measurement(measurement, twin, forward_model, *, store=None,
         The comparisons of every model version (the error history), the ranking, the
         refit and the uids of all runs (``analysis.uids``).
     """
-    meas, link = resolve_measurement(measurement, store, table=table)
+    meas, link = resolve_measurement(measurement, store, resolution=resolution, table=table)
+    twin = twin.with_hist(meas.spec)  # the twin bins as the measurement does
     if starts is None:
         starts = [ModelState()]
     elif isinstance(starts, ModelState):
@@ -662,9 +680,13 @@ def analyse_measurement(measurement, twin, forward_model, *, store=None,
     best_start = min(out.comparisons, key=lambda c: c.misfit.chi2_reduced_total)
     current, local = best_start.state, None
     if refine_iterations:
+        rkw = {**cols, **dict(refine_kw or {})}
+        if rkw.get("feature_iterations"):
+            # the other starts get a feature stage too: the one that fits the bins best goes on
+            rkw.setdefault("also_from", [c.state.offsets for c in out.comparisons if c is not best_start])
         r = yield from refine_offsets(meas, current, twin, forward_model, iterations=refine_iterations,
                                       anchor_rays=anchor_rays, seed=seed, md={**md, "start_label": best_start.label},
-                                      show=show, table=table, **supported(refine, {**cols, **dict(refine_kw or {})}))
+                                      show=show, table=table, **supported(refine, rkw))
         out.refinement = r
         out.comparisons.append(r.comparison)
         out.uids["refine_offsets"] = r.uid
@@ -680,6 +702,9 @@ def analyse_measurement(measurement, twin, forward_model, *, store=None,
         if local is not None and forward_model is None:
             # the twin's offset Jacobian from the refinement: the effect's probes are all the refit traces anew
             kw.setdefault("offset_jacobian", local.jac)
+        if best.refined_state is not None:
+            # start where the diagnosis compensated the effect with the offsets
+            current = ModelState(best.refined_state.offsets, current.effects, current.label)
         rf = yield from add_effect_and_refit(meas, current, best.name, twin, forward_model, values=best.values,
                                              history=out.versions, iterations=refit_iterations,
                                              anchor_rays=anchor_rays, seed=seed + 1, md=md, show=show, table=table,

@@ -20,7 +20,7 @@ import numpy as np
 from bluesky.utils import MsgGenerator
 
 from bluesky_offsets.parameters import METRIXS, ParameterTable
-from bluesky_offsets.store import Measurement
+from bluesky_offsets.store import Measurement, consistent_profiles
 from bluesky_offsets.twin import HistogramSpec
 
 from .motion import (
@@ -102,6 +102,9 @@ def scan_configurations(configurations, beamline, chamber, *, reference=None, ta
 
     truth_id = yield from _optional_read(chamber, "truth_id")
     n_rays = yield from _optional_read(chamber, "num_rays")
+    profile_axes = []
+    for axis in "xy":
+        profile_axes.append((yield from _optional_read(chamber, f"profile_axis_{axis}")))
     hist = HistogramSpec()
     commanded = CommandedConfiguration(len(table))
     _md = {
@@ -120,11 +123,16 @@ def scan_configurations(configurations, beamline, chamber, *, reference=None, ta
         "detectors": [getattr(chamber, "name", str(chamber))],
         "hist_keys": {k: v for k, v in {"x": _signal_name(chamber, "hist_x"), "y": _signal_name(chamber, "hist_y"),
                                         "counts": _signal_name(chamber, "total_counts"),
-                                        "image": _signal_name(chamber, "image")}.items() if v},
+                                        "image": _signal_name(chamber, "image"),
+                                        "profile_x": _signal_name(chamber, "profile_x"),
+                                        "profile_y": _signal_name(chamber, "profile_y")}.items() if v},
         "histogram": hist.fingerprint(),
         "image_shape": [hist.bins_y, hist.bins_x],
         "hints": {"dimensions": [(["time"], "primary")]},
     }
+    if all(ax is not None and len(ax) > 1 for ax in profile_axes):
+        # the camera-resolution profiles' binning, as the detector publishes it
+        _md["profile"] = HistogramSpec.from_centers(*profile_axes).fingerprint()
     if truth_id:
         _md["truth_id"] = str(truth_id)
     if n_rays is not None:
@@ -169,7 +177,15 @@ def _measurement(readings, configs, table, uid, md) -> Measurement:
     except KeyError:
         counts = None
     idx = [int(r["config_index"]["value"]) for r in readings]
-    return Measurement(configs[idx], hx, hy, table.names, uid, counts, None, dict(md))
+    px = py = None
+    if md.get("profile"):
+        try:
+            px, py = consistent_profiles([_value(r, "profile_x", keys.get("profile_x")) for r in readings],
+                                         [_value(r, "profile_y", keys.get("profile_y")) for r in readings],
+                                         md["profile"], hx, hy)
+        except KeyError:
+            pass
+    return Measurement(configs[idx], hx, hy, table.names, uid, counts, None, dict(md), px, py)
 
 
 def measure_configurations(configurations, beamline, chamber, *, reference=None,

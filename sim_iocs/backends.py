@@ -8,11 +8,11 @@ frame.  It must not block the IOC's event loop: :meth:`submit` returns a
 * :class:`TwinBackend` traces the RAYX twin in a worker process (RAYX holds
   the GIL for the whole trace, so a thread would freeze the IOC), with a
   fresh random seed per frame: the finite ray budget is the measurement
-  noise.
+  noise.  Its frames carry the footprint's profiles at the camera's resolution too.
 * :class:`SurrogateBackend` evaluates a trained surrogate checkpoint
   (:mod:`bluesky_offsets.surrogate`) and draws the finite-ray noise itself
-  (multinomial counts for the ray budget); it has no image and cannot apply
-  hidden physical effects.
+  (multinomial counts for the ray budget); it has no image, no camera-resolution
+  profiles and cannot apply hidden physical effects.
 * Any other backend plugs in through ``--backend module:factory``; the
   factory is called as ``factory(overrides=..., hist=...)`` and returns an
   object with the members of :class:`FootprintBackend`.
@@ -31,12 +31,15 @@ from typing import Protocol, runtime_checkable
 
 import numpy as np
 
-from bluesky_offsets.twin import HistogramSpec
+from bluesky_offsets.twin import CAMERA, HistogramSpec
 
 
 @dataclass
 class Frame:
-    """One focus-chamber frame; histograms are fractions of the source rays."""
+    """One focus-chamber frame; histograms are fractions of the source rays.
+
+    ``profile_x``/``profile_y`` are the same footprint projected at the camera's own
+    resolution (:data:`bluesky_offsets.twin.CAMERA`); None when the backend has no rays."""
 
     hist_x: np.ndarray
     hist_y: np.ndarray
@@ -44,12 +47,14 @@ class Frame:
     n_hits: int
     n_rays: int
     seconds: float = 0.0
+    profile_x: np.ndarray | None = None
+    profile_y: np.ndarray | None = None
 
     @classmethod
     def dark(cls, hist: HistogramSpec, n_rays: int = 0) -> Frame:
         """A frame without rays: all zeros, never NaN."""
         return cls(np.zeros(hist.bins_x), np.zeros(hist.bins_y), np.zeros((hist.bins_y, hist.bins_x)),
-                   0, int(n_rays))
+                   0, int(n_rays), profile_x=np.zeros(CAMERA.bins_x), profile_y=np.zeros(CAMERA.bins_y))
 
 
 @runtime_checkable
@@ -82,8 +87,9 @@ def _twin_frame(values: np.ndarray, overrides: Mapping, n_rays: int, seed: int |
     r = _worker_twin.trace(values, overrides=overrides, n_rays=n_rays, keep_rays=True, seed=seed)
     x, y = (r.rays[:, 0], r.rays[:, 1]) if r.rays is not None and len(r.rays) else (np.empty(0), np.empty(0))
     image = hist.image(x, y, n_rays)
+    px, py = CAMERA.histograms(x, y, n_rays)
     return Frame(np.nan_to_num(r.hist_x), np.nan_to_num(r.hist_y), np.nan_to_num(image), int(r.n_hits),
-                 int(n_rays), time.perf_counter() - t0)
+                 int(n_rays), time.perf_counter() - t0, px, py)
 
 
 class TwinBackend:
@@ -96,12 +102,17 @@ class TwinBackend:
         ``{"ImagePlane": {"translationZerror": 5.0}}``.
     hist : HistogramSpec, optional
         Binning of the chamber (default: the paper's 50 x 50 bins).
+    noise_seed : int, optional
+        Seeds the frames' ray noise: the same acquisitions then give the same frames
+        (default: fresh from the OS for every frame).
     """
 
-    def __init__(self, overrides: Mapping | None = None, hist: HistogramSpec | None = None):
+    def __init__(self, overrides: Mapping | None = None, hist: HistogramSpec | None = None,
+                 noise_seed: int | None = None):
         from importlib.metadata import PackageNotFoundError, version
         self.overrides = {k: dict(v) for k, v in (overrides or {}).items()}
         self.hist = hist or HistogramSpec()
+        self._noise = None if noise_seed is None else np.random.default_rng(noise_seed)
         try:
             self.name = f"twin (rayx {version('rayx')})"
         except PackageNotFoundError:  # pragma: no cover
@@ -115,7 +126,8 @@ class TwinBackend:
         return self._pool
 
     def submit(self, values: np.ndarray, n_rays: int) -> cf.Future:
-        seed = int.from_bytes(os.urandom(4), "little")  # fresh noise for every frame
+        # fresh noise for every frame
+        seed = int(self._noise.integers(2 ** 32)) if self._noise is not None else int.from_bytes(os.urandom(4), "little")
         try:
             return self._executor().submit(_twin_frame, np.asarray(values, float), self.overrides, int(n_rays),
                                            seed, self.hist)
@@ -161,7 +173,7 @@ class SurrogateBackend:
     """
 
     def __init__(self, path: str | None = None, overrides: Mapping | None = None,
-                 hist: HistogramSpec | None = None):
+                 hist: HistogramSpec | None = None, noise_seed: int | None = None):
         if overrides:
             raise ValueError("the surrogate backend cannot apply hidden physical effects "
                              f"({sorted(overrides)}); use the twin backend")
@@ -174,14 +186,14 @@ class SurrogateBackend:
         except SurrogateError as exc:
             raise ValueError(str(exc)) from None
         self.name = f"surrogate ({Path(path).name if path else 'shipped'})"
+        self._rng = np.random.default_rng(noise_seed)  # None: fresh from the OS
         self._pool = cf.ThreadPoolExecutor(max_workers=1, thread_name_prefix="surrogate")
 
     def _frame(self, values: np.ndarray, n_rays: int) -> Frame:
         t0 = time.perf_counter()
         pred = np.asarray(self.model.predict(np.asarray(values, float)[None, :]))[0]
         px, py = pred[:self.hist.bins_x], pred[self.hist.bins_x:]
-        rng = np.random.default_rng()  # fresh noise for every frame
-        cx, cy = finite_ray_sample(px, n_rays, rng), finite_ray_sample(py, n_rays, rng)
+        cx, cy = finite_ray_sample(px, n_rays, self._rng), finite_ray_sample(py, n_rays, self._rng)
         n = max(int(n_rays), 1)
         return Frame(cx / n, cy / n, None, int(max(cx.sum(), cy.sum())), int(n_rays), time.perf_counter() - t0)
 
@@ -192,13 +204,14 @@ class SurrogateBackend:
         self._pool.shutdown(wait=True, cancel_futures=True)
 
 
-def make_backend(spec: str, *, overrides: Mapping | None = None,
-                 hist: HistogramSpec | None = None) -> FootprintBackend:
-    """Backend from its command-line name: ``twin``, ``surrogate[:checkpoint]`` or ``module:factory``."""
+def make_backend(spec: str, *, overrides: Mapping | None = None, hist: HistogramSpec | None = None,
+                 noise_seed: int | None = None) -> FootprintBackend:
+    """Backend from its command-line name: ``twin``, ``surrogate[:checkpoint]`` or ``module:factory``
+    (``noise_seed``: see :class:`TwinBackend`; a factory's backend draws its own noise)."""
     if spec == "twin":
-        return TwinBackend(overrides=overrides, hist=hist)
+        return TwinBackend(overrides=overrides, hist=hist, noise_seed=noise_seed)
     if spec == "surrogate" or spec.startswith("surrogate:"):
-        return SurrogateBackend(spec.partition(":")[2] or None, overrides=overrides, hist=hist)
+        return SurrogateBackend(spec.partition(":")[2] or None, overrides=overrides, hist=hist, noise_seed=noise_seed)
     if ":" not in spec:
         raise ValueError(f"unknown backend {spec!r}: use 'twin' or 'module:factory'")
     module, func = spec.split(":", 1)

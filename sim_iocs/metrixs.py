@@ -10,7 +10,9 @@
   when the frame is ready), ``NumRays`` (ray budget), ``AcquireTime``,
   ``HistX``/``HistY`` (50 bins each, fraction of source rays per bin),
   ``Image`` (50 x 50, row-major y then x), ``TotalCounts``, ``AxisX``/``AxisY``
-  (bin centres, mm), ``Status``/``Message``, ``ArrayCounter``, ``TruthId``.
+  (bin centres, mm), ``ProfileX``/``ProfileY`` (the same footprint at the camera's
+  resolution, 20 µm x 5 µm bins over the same window, with ``ProfileAxisX``/``ProfileAxisY``),
+  ``Status``/``Message``, ``ArrayCounter``, ``TruthId``.
 
 Every frame is computed for the *true* state: motor positions plus hidden
 offsets, the hidden true values of the six fixed parameters, and hidden
@@ -39,7 +41,7 @@ from caproto.server import PVGroup, pvproperty
 from caproto._data import SkipWrite
 
 from bluesky_offsets.parameters import METRIXS, ParameterError, ParameterTable
-from bluesky_offsets.twin import HistogramSpec
+from bluesky_offsets.twin import CAMERA, HistogramSpec
 
 from .backends import FootprintBackend, Frame, make_backend
 from .motor_record import AxisSettings, MotorRecord
@@ -101,6 +103,14 @@ class FocusChamber(PVGroup):
     size_y = pvproperty(value=HIST.bins_y, name="ImageSizeY", dtype=ChannelType.LONG, read_only=True)
     axis_x = pvproperty(value=HIST.centers_x.tolist(), name="AxisX", read_only=True, max_length=HIST.bins_x,
                         units="mm", precision=3, doc="x bin centres (mm)")
+    profile_x = pvproperty(value=_zeros(CAMERA.bins_x), name="ProfileX", read_only=True, max_length=CAMERA.bins_x,
+                           doc="x profile at the camera's resolution, fraction of source rays per bin")
+    profile_y = pvproperty(value=_zeros(CAMERA.bins_y), name="ProfileY", read_only=True, max_length=CAMERA.bins_y,
+                           doc="y profile at the camera's resolution, fraction of source rays per bin")
+    profile_axis_x = pvproperty(value=CAMERA.centers_x.tolist(), name="ProfileAxisX", read_only=True,
+                                max_length=CAMERA.bins_x, units="mm", precision=4, doc="x profile bin centres (mm)")
+    profile_axis_y = pvproperty(value=CAMERA.centers_y.tolist(), name="ProfileAxisY", read_only=True,
+                                max_length=CAMERA.bins_y, units="mm", precision=4, doc="y profile bin centres (mm)")
     axis_y = pvproperty(value=HIST.centers_y.tolist(), name="AxisY", read_only=True, max_length=HIST.bins_y,
                         units="mm", precision=3, doc="y bin centres (mm)")
     total_counts = pvproperty(value=0, name="TotalCounts", dtype=ChannelType.LONG, read_only=True,
@@ -224,6 +234,12 @@ class FocusChamber(PVGroup):
         img = (np.zeros((HIST.bins_y, HIST.bins_x)) if frame.image is None
                else np.nan_to_num(np.asarray(frame.image, float)))
         await self.image.write(img.ravel().tolist(), timestamp=ts)
+        # a backend without rays (the surrogate) has no profiles: zeros, which the loaders
+        # recognize as inconsistent with the histograms and ignore
+        for pv, prof, n in ((self.profile_x, frame.profile_x, CAMERA.bins_x),
+                            (self.profile_y, frame.profile_y, CAMERA.bins_y)):
+            await pv.write((np.zeros(n) if prof is None else np.nan_to_num(np.asarray(prof, float))).tolist(),
+                           timestamp=ts)
         await self.hist_x.write(hx.tolist(), timestamp=ts)
         await self.hist_y.write(hy.tolist(), timestamp=ts)
         await self.total_counts.write(int(frame.n_hits), timestamp=ts)
@@ -231,6 +247,7 @@ class FocusChamber(PVGroup):
         await self.frame_time.write(seconds, timestamp=ts)
         await self.array_counter.write(self.array_counter.value + 1, timestamp=ts)
         note = "" if frame.image is not None else " (backend gives no image)"
+        note += "" if frame.profile_x is not None else " (backend gives no profiles)"
         await self.message.write(f"frame {self.array_counter.value}: {frame.n_hits} of {frame.n_rays} rays"
                                  f"{note}", timestamp=ts)
         await self.status.write("Idle", timestamp=ts)
@@ -256,16 +273,19 @@ class MetrixsIOC:
         Initial ray budget per frame.
     move_time, accel_time, tick : float
         A full-range move takes ``move_time`` s; ``ACCL``; readback update period.
+    noise_seed : int, optional
+        Seeds the frames' ray noise (a backend named by string); default: fresh from the OS.
     """
 
     def __init__(self, prefix: str = DEFAULT_PREFIX, truth: Truth | None = None,
                  backend: FootprintBackend | str = "twin", *, table: ParameterTable = METRIXS,
-                 n_rays: int = 10000, move_time: float = 4.0, accel_time: float = 0.2, tick: float = 0.05):
+                 n_rays: int = 10000, move_time: float = 4.0, accel_time: float = 0.2, tick: float = 0.05,
+                 noise_seed: int | None = None):
         self.prefix = prefix
         self.table = table
         self.truth = truth or Truth.from_seed(None, table)
         if isinstance(backend, str):
-            backend = make_backend(backend, overrides=self.truth.overrides, hist=HIST)
+            backend = make_backend(backend, overrides=self.truth.overrides, hist=HIST, noise_seed=noise_seed)
         self.backend = backend
         self.motors: dict[str, MotorRecord] = {}
         for i, p in enumerate(table):
@@ -324,6 +344,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--backend", default="twin",
                         help="footprint model: 'twin' (default), 'surrogate[:CHECKPOINT]' or module:factory")
     parser.add_argument("--rays", type=int, default=10000, help="initial ray budget per frame (NumRays)")
+    parser.add_argument("--noise-seed", type=int, default=None,
+                        help="seed of the frames' ray noise: the same acquisitions give the same frames "
+                             "(default: fresh noise from the OS for every frame)")
     parser.add_argument("--move-time", type=float, default=4.0, help="seconds for a full-range move (VELO)")
     parser.add_argument("--accel-time", type=float, default=0.2, help="motor acceleration time ACCL (s)")
     parser.add_argument("--tick", type=float, default=0.05, help="readback update period while moving (s)")
@@ -341,7 +364,7 @@ def _build(args) -> MetrixsIOC:
             json.dump(truth.to_dict(), f, indent=2)
     try:
         return MetrixsIOC(args.prefix, truth, args.backend, n_rays=args.rays, move_time=args.move_time,
-                          accel_time=args.accel_time, tick=args.tick)
+                          accel_time=args.accel_time, tick=args.tick, noise_seed=args.noise_seed)
     except ValueError as exc:
         raise ParameterError(str(exc)) from None
 

@@ -22,7 +22,7 @@ from bluesky_offsets.store import open_store
 from plans.diagnose import load_results
 
 ARGS = ["--rays", "2000", "--anchor-rays", "2000", "--configurations", "6", "--refine-iterations", "1",
-        "--refit-iterations", "1", "--candidates", "chamber_z,intensity_scale", "--jacobian", "surrogate"]
+        "--refit-iterations", "1", "--feature-iterations", "3", "--candidates", "chamber_z,intensity_scale"]
 
 
 def _demo(tmp_path, *extra, timeout=600):

@@ -140,3 +140,52 @@ def test_stored_measurement_with_another_parameter_table_is_refused():
                     metadata={"n_rays": 1000})
     with pytest.raises(MeasurementError, match=r"missing \['U41_318eV.translationXerror'\], unexpected \['U41.tx'\]"):
         Measurement.from_store(stored)
+
+
+# --------------------------------------------------------------------------- #
+# at the camera's resolution: the path the demo and the IOC tests take
+# --------------------------------------------------------------------------- #
+@pytest.fixture(scope="module")
+def camera_case():
+    """A defocus (the screen 20 mm downstream) hidden behind offsets, measured at the camera's
+    resolution on a small diagnostic design, and the offsets refined from the nominal twin
+    (features first, then bins)."""
+    from bluesky_offsets.diagnosis import diagnostic_configurations
+    from bluesky_offsets.twin import CAMERA
+    from sim_iocs.truth import default_start
+    twin = Twin(scheduler="inline", n_rays=N_RAYS).with_hist(CAMERA)
+    cfgs = diagnostic_configurations(default_start(), 8, seed=1)
+    off = np.zeros(len(METRIXS))
+    for n, v in HIDDEN.items():
+        off[METRIXS.index(n)] = v
+    truth = ModelState(off, {"chamber_z": {"z": 20.0}})
+    hx, hy = simulate(twin, cfgs, truth, N_RAYS, seed=[500 + i for i in range(len(cfgs))])
+    meas = Measurement(cfgs, hx, hy, N_RAYS, spec=CAMERA)
+    fit = refine(meas, ModelState(), twin, None, iterations=1, anchor_rays=2 * N_RAYS, reuse_jacobian=True,
+                 feature_iterations=6, feature_kw={"anchor_rays": N_RAYS, "jacobian_rays": 2000})
+    return twin, meas, truth, fit
+
+
+def test_feature_stage_then_diagnosis_find_a_hidden_defocus(camera_case):
+    """The workflow's physics on a small design (8 configurations, 4000 rays): the acceptance
+    numbers (magnitude within 25 %, misfit within 1.5x noise) are checked on the demo's design
+    against the IOC (tests/test_diagnosis_ioc.py)."""
+    from bluesky_offsets.diagnosis import add_effect_result
+    twin, meas, truth, fit = camera_case
+    stages = [h["stage"] for h in fit.history]
+    assert stages[0] == "features" and "bins" in stages
+    features = [h["chi2_features"] for h in fit.history if h["stage"] == "features"]
+    assert features[-1] < 0.5 * features[0]  # the offsets alone explain part of it ...
+    at_truth = evaluate(meas, truth, twin).chi2_reduced_total
+    offsets_only = evaluate(meas, fit.state, twin).chi2_reduced_total
+    assert offsets_only > 2 * at_truth  # ... not all of it
+    d = diagnose(meas, fit.state, twin, None, candidates=["chamber_z", "detector_blur", "intensity_scale"],
+                 reuse=fit.local_model, scan_rays=2000)
+    assert d.best is not None and d.best.name == "chamber_z", d.as_dict()
+    assert d.candidates[0].refined and d.candidates[0].delta_chi2_twin > 0
+    start = ModelState(d.best.refined_state.offsets)
+    res = add_effect_result(meas, start, "chamber_z", twin, None, values=d.best.values, iterations=1,
+                            anchor_rays=2 * N_RAYS, feature_iterations=8,
+                            feature_kw={"anchor_rays": N_RAYS, "jacobian_rays": 2000})
+    assert res.state.effects["chamber_z"]["z"] > 5.0  # downstream, as hidden
+    assert evaluate(meas, res.state, twin).chi2_reduced_total < 0.6 * offsets_only

@@ -71,8 +71,9 @@ def test_analysis_plans_store_runs_linked_to_the_measurement(RE, twin, measured,
     m, _ = measured
     token = run_store.subscribe(RE)
     try:
+        # the paper's 50 x 50 histograms keep this workflow check small (the camera path: test_demo.py)
         out = RE(analyse_measurement(m.uid, twin, None, store=run_store, refine_iterations=1, twin_columns=COLS,
-                                     candidates=CANDIDATES, add_best=False, show=False))
+                                     candidates=CANDIDATES, add_best=False, show=False, resolution="paper"))
     finally:
         RE.unsubscribe(token)
     a = out.plan_result
@@ -183,10 +184,13 @@ def test_diagnose_command_end_to_end_and_its_errors(RE, measured, tmp_path, caps
     assert rc == 2 and "x histogram of configuration 2 has a non-finite bin 3" in io.err
     rc, io = run("--uid", m2.uid, "--offsets-uid", m2.uid)
     assert rc == 2 and "holds no offsets" in io.err
+    rc, io = run("--uid", m2.uid, "--jacobian", "surrogate")
+    assert rc == 2 and "add --resolution paper" in io.err
 
     report = tmp_path / "report.html"
     rc, io = run("--uid", m2.uid, "--effects", ",".join(CANDIDATES), "--refine-iterations", "1", "--refit-iterations",
-                 "1", "--jacobian", "surrogate", "--scheduler", "inline", "--report", str(report), "--json")
+                 "1", "--jacobian", "surrogate", "--resolution", "paper", "--scheduler", "inline", "--report", str(report),
+                 "--json")
     assert rc == 0, io.err
     out = json.loads(io.out)
     assert out["measurement_uid"] == m2.uid and out["verdict"]

@@ -71,7 +71,7 @@ def test_missing_effect_is_beyond_noise_with_its_signature(data, tmp_path):
 
 
 @pytest.mark.parametrize("mutate, message", [
-    (lambda x, y: (x[:, :40], y), r"x histograms must be \(configurations, 50\)"),
+    (lambda x, y: (x[:, :40], y), "the model's x histograms have 50 bins, the measurement's 40"),
     (lambda x, y: (x, y[:3]), r"y histograms must be"),
     (lambda x, y: (np.where(np.arange(50) == 7, np.nan, x), y), "non-finite bin 7"),
     (lambda x, y: (x, -y), "negative"),
@@ -81,3 +81,45 @@ def test_bad_measurements_are_refused(data, mutate, message):
     fx, fy = data["right"]
     with pytest.raises(MeasurementError, match=message):
         misfit(mx, my, fx, fy, N_MEAS)
+
+
+def test_beam_features_of_a_known_beam():
+    """Intensity, centroid and width of a Gaussian beam binned at the camera's resolution,
+    with noise variances that match the scatter of repeated finite-ray frames."""
+    from bluesky_offsets.diagnostics import FEATURE_NAMES, beam_features
+    from bluesky_offsets.twin import CAMERA
+    rng = np.random.default_rng(1)
+    n_rays, frames = 5000, 200
+    feats = []
+    for _ in range(frames):
+        k = rng.binomial(n_rays, 0.3)  # 30 % of the rays reach the screen
+        x, y = rng.normal(0.5, 0.07, k), rng.normal(-0.2, 0.02, k)
+        feats.append(beam_features(*CAMERA.histograms(x, y, n_rays), CAMERA, n_rays))
+    f = np.array([a for a, _ in feats])
+    var = np.array([v for _, v in feats]).mean(0)
+    assert len(FEATURE_NAMES) == f.shape[1] == 5
+    np.testing.assert_allclose(f.mean(0), [0.3, 0.5, 0.07, -0.2, 0.02], rtol=0.02, atol=1e-3)
+    # the stated variances are the frame-to-frame scatter (within the sampling error of 200 frames)
+    np.testing.assert_allclose(f.var(0) / var, 1.0, atol=0.35)
+    # a dark frame has an intensity but no position: its centroid weighs nothing
+    dark, dvar = beam_features(np.zeros(CAMERA.bins_x), np.zeros(CAMERA.bins_y), CAMERA, n_rays)
+    assert dark[0] == 0 and dvar[1] > 100 and np.all(np.isfinite(dark))
+
+
+def test_histogram_specs_rebin_and_describe_themselves():
+    from bluesky_offsets.twin import CAMERA
+    paper = HistogramSpec()
+    assert CAMERA.factors(paper) == (20, 24)
+    rng = np.random.default_rng(2)
+    x, y = rng.normal(0, 1, 5000), rng.normal(0, 0.5, 5000)
+    fx, fy = CAMERA.histograms(x, y, 5000)
+    cx, cy = CAMERA.rebin(fx, fy, paper)
+    px, py = paper.histograms(x, y, 5000)
+    np.testing.assert_allclose(cx, px, atol=1e-12)
+    np.testing.assert_allclose(cy, py, atol=1e-12)
+    assert HistogramSpec.from_centers(CAMERA.centers_x, CAMERA.centers_y) == CAMERA
+    assert HistogramSpec.from_fingerprint(CAMERA.fingerprint()) == CAMERA
+    with pytest.raises(ValueError, match="cannot be re-binned"):
+        paper.factors(CAMERA)
+    with pytest.raises(ValueError, match="not uniform"):
+        HistogramSpec.from_centers([0, 1, 3], [0, 1])

@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 
 from bluesky_offsets.parameters import METRIXS
-from bluesky_offsets.twin import HistogramSpec
+from bluesky_offsets.twin import CAMERA, HistogramSpec
 from sim_iocs.motor_record import trapezoid
 from sim_iocs.truth import Truth, default_start
 
@@ -272,6 +272,13 @@ def test_acquire_gives_a_consistent_frame_and_no_truth_on_pvs(metrixs_ioc, ca):
     assert np.all(f["image"].sum(axis=0) <= f["hx"] + 1e-12) and np.all(f["image"].sum(axis=1) <= f["hy"] + 1e-12)
     np.testing.assert_allclose(ca.get(P + "chamber:AxisX"), HIST.centers_x)
     np.testing.assert_allclose(ca.get(P + "chamber:AxisY"), HIST.centers_y)
+    # the same frame at the camera's resolution: its profiles sum up to the histograms
+    px, py = ca.get(P + "chamber:ProfileX"), ca.get(P + "chamber:ProfileY")
+    assert px.shape == (CAMERA.bins_x,) and py.shape == (CAMERA.bins_y,)
+    rx, ry = CAMERA.rebin(px, py, HIST)
+    np.testing.assert_allclose(rx, f["hx"], atol=1e-12)
+    np.testing.assert_allclose(ry, f["hy"], atol=1e-12)
+    assert HistogramSpec.from_centers(ca.get(P + "chamber:ProfileAxisX"), ca.get(P + "chamber:ProfileAxisY")) == CAMERA
     assert time.monotonic() - t0 < 30
     truth = Truth.from_mapping(metrixs_ioc.truth)
     assert ca.get(P + "chamber:TruthId", as_string=True) == truth.truth_id

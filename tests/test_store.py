@@ -152,3 +152,23 @@ def test_tiled_server_url(RE, chamber, tmp_path):
         except (ProcessLookupError, subprocess.TimeoutExpired):
             os.killpg(server.pid, signal.SIGKILL)
         log.close()
+
+
+def test_camera_profiles_are_kept_only_when_they_add_up_to_the_histograms():
+    """A detector backend without rays (the surrogate) publishes zero profiles: they are ignored."""
+    from bluesky_offsets.store import _profiles
+    from bluesky_offsets.twin import CAMERA, HistogramSpec
+    rng = np.random.default_rng(0)
+    px = np.stack([CAMERA.histograms(rng.normal(0, 0.1, 900), rng.normal(0, 0.02, 900), 3000)[0] for _ in range(2)])
+    py = np.stack([CAMERA.histograms(rng.normal(0, 0.1, 900), rng.normal(0, 0.02, 900), 3000)[1] for _ in range(2)])
+    hx, hy = CAMERA.rebin(px, py, HistogramSpec())
+    start = {"profile": CAMERA.fingerprint()}
+    keys = ["chamber-profile_x", "chamber-profile_y"]
+    got = _profiles({keys[0]: px, keys[1]: py}, keys, {}, start, hx, hy)
+    np.testing.assert_array_equal(got[0], px)
+    np.testing.assert_array_equal(got[1], py)
+    zeros = {keys[0]: np.zeros_like(px), keys[1]: np.zeros_like(py)}
+    assert _profiles(zeros, keys, {}, start, hx, hy) == (None, None)
+    assert _profiles({keys[0]: px, keys[1]: py}, keys, {}, {}, hx, hy) == (None, None)  # no binning recorded
+    m = Measurement(np.tile(METRIXS.reference, (2, 1)), hx, hy, profile_x=px, profile_y=py, metadata=start)
+    assert m.profile_spec == CAMERA

@@ -79,3 +79,15 @@ def test_bad_batch_input_is_refused_before_any_work():
         twin.trace_batch(bad)
     with pytest.raises(ValueError, match="3 seeds for 2"):
         twin.trace_batch(_configs(2), seed=[1, 2, 3])
+
+
+def test_with_hist_shares_the_tracer_and_bins_anew():
+    from bluesky_offsets.twin import CAMERA, HistogramSpec
+    twin = Twin(scheduler="inline", n_rays=2000)
+    fine = twin.with_hist(CAMERA)
+    assert twin.with_hist(HistogramSpec()) is twin and fine.hist == CAMERA and twin.hist == HistogramSpec()
+    a = twin.trace(METRIXS.reference, seed=4)
+    b = fine.trace(METRIXS.reference, seed=4)
+    np.testing.assert_allclose(CAMERA.rebin(b.hist_x, b.hist_y, twin.hist)[0], a.hist_x, atol=1e-12)
+    fine.close()  # a borrowed twin leaves its parent usable
+    assert twin.trace(METRIXS.reference, seed=4).n_hits == a.n_hits
