@@ -17,10 +17,10 @@ the misfit left:
    improvement over the better of the two.  Held out: each verified fit and the reference
    re-solved (one linear step on the features) without each of K folds of configurations,
    scored on the left-out ones.
-3. **Decide**: a candidate is significant when the model is beyond noise, its twin gain,
-   divided by the dispersion (the reference's χ² per degree of freedom when above 1: a model
-   beyond noise inflates every gain alike) and less a BIC price ``p ln N``, exceeds
-   ``n_sigma`` times the χ² noise ``sqrt(2 dof)``, and the held-out folds do not contradict it.
+3. **Decide**: a candidate is significant when the model is beyond noise (χ² above its
+   expectation by ``n_sigma`` times ``sqrt(2 dof)``), its twin gain divided by the dispersion
+   (the reference's χ² per degree of freedom when above 1: a model beyond noise inflates every
+   gain alike) exceeds a BIC price ``p ln N``, and the held-out folds do not contradict it.
 
 Each candidate also predicts a residual signature (centroid shift, width change, asymmetry,
 tails, lost intensity per axis) to set beside the observed one.
@@ -231,13 +231,19 @@ def diagnose(meas: Measurement, state: ModelState, twin, forward_model=None, *,
     scan_rays = int(scan_rays or anchor_rays)
     spec, n, P = meas.spec, meas.n, len(table)
     n_traces = 0
-    if reuse is not None:
-        if not np.array_equal(reuse.anchor.offsets, state.offsets):
-            raise ValueError("reuse: the local model was built for another state")
+    if reuse is not None and not np.array_equal(reuse.anchor.offsets, state.offsets):
+        raise ValueError("reuse: the local model was built for another state")
+    if reuse is not None and reuse.jac_at_anchor:
         lm = reuse
     else:
-        lm = build_local_model(meas, state, twin, None, anchor_rays=anchor_rays, seed=seed, table=table)
-        n_traces += n * (1 + P)
+        # a Jacobian carried over from an earlier anchor points the candidate fits' offset
+        # directions the wrong way (measured on a demo measurement with hidden chamber_z: reused,
+        # chamber_z fitted at -3 mm and ranked 2nd, nothing significant; traced at the state,
+        # z = 21.6 mm, first and significant)
+        same = reuse is not None and reuse.raw is not None and reuse.anchor_rays == anchor_rays
+        lm = build_local_model(meas, state, twin, None, anchor_rays=anchor_rays, seed=reuse.seed if same else seed,
+                               anchor_raw=reuse.raw if same else None, table=table)
+        n_traces += n * (P if same else 1 + P)
     base_mf = misfit(meas.hist_x, meas.hist_y, *lm.split(lm.t0), meas.n_rays, model_rays=lm.anchor_rays)
     within = not base_mf.total_beyond_noise(n_sigma)
     fold_idx = _folds(n, folds, seed)
@@ -291,7 +297,6 @@ def diagnose(meas: Measurement, state: ModelState, twin, forward_model=None, *,
     if not ref_mf.total_beyond_noise(n_sigma):
         within = True  # the offsets alone reach the noise once refitted
     dispersion = max(1.0, ref_mf.chi2_total / max(ref_mf.dof_total, 1.0))
-    threshold = n_sigma * math.sqrt(2 * max(ref_mf.dof_total, 1.0))
     ref_ho = _heldout(fx, ref_fit, fold_idx, everything)
     for c, mf_c, h in zip(top, mfs[2:], views[2:]):
         c.delta_chi2_twin = float(ref_mf.chi2_total - mf_c.chi2_total)
@@ -302,7 +307,12 @@ def diagnose(meas: Measurement, state: ModelState, twin, forward_model=None, *,
         tol = 1e-9 * np.maximum(ref_ho, 1.0)
         c.delta_chi2_heldout = float(gain.sum())
         c.folds_improved, c.folds_worse, c.folds_total = int((gain > tol).sum()), int((gain < -tol).sum()), folds
-        c.significant = bool(not within and c.score > threshold / dispersion and c.heldout_confirms)
+        # nested models scored on the same measurement and the same fresh rays: under "no such
+        # effect" the gain is ~ dispersion * chi2_p, which the BIC price p ln N already covers
+        # (the measurement's own noise, sqrt(2 dof), is common to both and cancels in the gain;
+        # requiring the gain to exceed it as well vetoed a hidden chamber_z of 20 mm found at
+        # z = 24 mm, twin gain 37 against 3 sqrt(2 dof) = 143)
+        c.significant = bool(not within and c.score > 0 and c.heldout_confirms)
     base_view = np.concatenate(detector_view(*ref_fit.raw, ref_fit.state, twin.hist), axis=1)
     for c in out:
         if not c.refined:

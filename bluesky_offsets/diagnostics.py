@@ -323,7 +323,7 @@ def plot_residual_maps(misfit_: Misfit, spec, path, title: str = "normalized res
     from .plotting import _plt, save_figure
     plt = _plt()
     fig, axes = plt.subplots(1, 2, figsize=(11, 0.35 * len(misfit_.chi2) + 2), constrained_layout=True)
-    lim = max(3.0, float(np.percentile(np.abs(np.concatenate([misfit_.pulls_x, misfit_.pulls_y])), 99)))
+    lim = max(3.0, float(np.percentile(np.abs(np.concatenate([misfit_.pulls_x.ravel(), misfit_.pulls_y.ravel()])), 99)))
     for ax, pulls, edges, lab in ((axes[0], misfit_.pulls_x, spec.edges_x, "x"),
                                   (axes[1], misfit_.pulls_y, spec.edges_y, "y")):
         # only the bins where any configuration has signal (a focus fills a few per cent of the window)

@@ -217,6 +217,7 @@ class LocalModel:
     raw: tuple[np.ndarray, np.ndarray] | None = None  # twin at the anchor before detector effects
     seed: int = 0
     bins_x: int = 50          # x bins, then y bins, along axis 1
+    jac_at_anchor: bool = True  # False: (part of) ``jac`` was traced at an earlier state
 
     def split(self, h: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         return h[..., :self.bins_x], h[..., self.bins_x:]
@@ -307,15 +308,18 @@ def build_local_model(meas: Measurement, state: ModelState, twin, forward_model,
         return np.concatenate(detector_view(*raw_h, st, twin.hist), axis=1)
 
     t0 = view(state, raw)
+    at_anchor = True
     if reuse is not None:
         jac = reuse.jac
         twin_columns = ()
+        at_anchor = reuse.jac_at_anchor
     elif offset_jacobian is not None:
         # a Jacobian from before; only the ``twin_columns`` named are differentiated afresh
         jac = np.array(offset_jacobian, dtype=float)
         if jac.shape != (n, t0.shape[1], len(table)):
             raise ValueError(f"offset_jacobian must be {(n, t0.shape[1], len(table))}, got {jac.shape}")
         twin_columns = () if twin_columns is None else twin_columns
+        at_anchor = len(set(twin_columns)) == len(table)
     elif forward_model is not None:
         jac = surrogate_jacobian(forward_model, meas.configurations, state.offsets, table)
         if jac.shape[1] != t0.shape[1]:
@@ -359,7 +363,7 @@ def build_local_model(meas: Measurement, state: ModelState, twin, forward_model,
         det = d1 * d2 * (d2 - d1)
         a[:, :, j] = ((h1 - t0) * d2 ** 2 - (h2 - t0) * d1 ** 2) / det
         b[:, :, j] = ((h2 - t0) * d1 - (h1 - t0) * d2) / det
-    return LocalModel(state, t0, jac, a, b, anchor_rays, raw, seed, nx)
+    return LocalModel(state, t0, jac, a, b, anchor_rays, raw, seed, nx, at_anchor)
 
 
 @dataclass
