@@ -268,8 +268,8 @@ def run_demo(out: Path, settings: DemoSettings | None = None, store_location: st
     truth = demo_truth(s)
     work = Path(tempfile.mkdtemp(prefix="bluesky-offsets-demo-"))
     load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
-    log(f"[1/6] starting the simulated METRIXS IOC (RAYX twin backend, hidden offsets and a hidden "
-        f"{s.effect[0]}); load average {load:.1f} on {os.cpu_count()} cores")
+    log(f"[1/6] starting the simulated METRIXS IOC (RAYX twin backend, hidden offsets and "
+        f"{'a hidden ' + s.effect[0] if s.effect[0] else 'no hidden effect'}); load average {load:.1f} on {os.cpu_count()} cores")
     # seeded frame noise: the same settings give the same demo, --seed another draw of it
     ioc = SimulatedBeamline(truth, s.n_rays, work, noise_seed=s.seed + 2)
     twin = None
@@ -315,8 +315,8 @@ def run_demo(out: Path, settings: DemoSettings | None = None, store_location: st
         hidden = {s.effect[0]: dict(s.effect[1])} if s.effect[0] else {}
         intro = [("What this is", paragraph(
             f"bluesky-offsets demo: a simulated METRIXS beamline (caproto IOC, RAYX twin at the hidden true state, "
-            f"{s.n_rays} rays per frame) with hidden offsets in all 34 parameters and a hidden "
-            f"{s.effect[0] or 'nothing'}; {len(m)} bright configurations measured through EPICS; offsets found "
+            f"{s.n_rays} rays per frame) with hidden offsets in all 34 parameters and "
+            f"{'a hidden ' + s.effect[0] if s.effect[0] else 'no hidden effect'}; {len(m)} bright configurations measured through EPICS; offsets found "
             f"with the shipped surrogate and refined through the twin; the missing effect diagnosed, added and "
             f"refitted. Every step is a run in the store {store.location}.")),
             ("Measurement", table_([{"configurations": len(m), "rays per frame": s.n_rays,

@@ -122,7 +122,10 @@ class Diagnosis:
             return (f"misfit beyond noise (chi2/dof = {self.base_misfit.chi2_reduced_total:.3g}) that no candidate "
                     "effect explains significantly")
         b = self.best
-        vals = ", ".join(f"{k} = {v:.4g} ± {b.sigma.get(k, float('nan')):.2g}" for k, v in b.values.items())
+        # the candidate fits on the features give no uncertainty; the refit after adding does
+        sig = {k: b.sigma.get(k, float("nan")) for k in b.values}
+        vals = ", ".join(f"{k} = {v:.4g}" + (f" ± {sig[k]:.2g}" if math.isfinite(sig[k]) else "")
+                         for k, v in b.values.items())
         return f"missing effect: {b.name} ({vals})"
 
     def as_dict(self) -> dict:
