@@ -7,7 +7,7 @@ through the IOC into the run store, the surrogate finder, then compare → refin
 (all 14 candidates, camera-resolution profiles) → add the winner → refit, every step a run in
 the store.  The checks read ``summary.json``.
 
-6-9 minutes per scenario on two cores.  ``BLUESKY_OFFSETS_SKIP_ACCEPTANCE=1`` skips them for a
+6-8.5 minutes per scenario on two cores (measured 366-503 s, docs/diagnosis.md).  ``BLUESKY_OFFSETS_SKIP_ACCEPTANCE=1`` skips them for a
 quick local run; the source/energy scenario is a known failure (measured reasons in
 docs/diagnosis.md) and runs only with ``BLUESKY_OFFSETS_RUN_KNOWN_FAILING=1``.
 """
@@ -35,8 +35,9 @@ SCENARIOS = {
     "source_divergence": ("source_size_divergence:divergence=0.5", "source_size_divergence", "divergence", 0.5),
 }
 KNOWN = {
-    "source_divergence": "a source or energy change acts on this design as a loss of transmission that the offsets "
-                         "and the other transmission-type candidates reproduce (docs/diagnosis.md)",
+    "source_divergence": "a source or energy change acts on this design (E1/E2 pitch and yaw scanned) as a loss of "
+                         "transmission that the slit offsets and the other transmission-type candidates reproduce; "
+                         "measured on twin-made data: thermal_bump_m1 ranked first (docs/diagnosis.md)",
 }
 
 
