@@ -7,7 +7,7 @@ through the IOC into the run store, the surrogate finder, then compare → refin
 (all 14 candidates, camera-resolution profiles) → add the winner → refit, every step a run in
 the store.  The checks read ``summary.json``.
 
-6-8.5 minutes per scenario on two cores (measured 366-503 s, docs/diagnosis.md).  ``BLUESKY_OFFSETS_SKIP_ACCEPTANCE=1`` skips them for a
+7-9 minutes per scenario on two cores (demo time measured 366-537 s, docs/diagnosis.md).  ``BLUESKY_OFFSETS_SKIP_ACCEPTANCE=1`` skips them for a
 quick local run; the source/energy scenario is a known failure (measured reasons in
 docs/diagnosis.md) and runs only with ``BLUESKY_OFFSETS_RUN_KNOWN_FAILING=1``.
 """
