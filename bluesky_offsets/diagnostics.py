@@ -291,7 +291,9 @@ def plot_overlays(meas_x, meas_y, model_x, model_y, spec, path, misfit_: Misfit 
     from .plotting import _plt, save_figure
     plt = _plt()
     n = min(len(meas_x), max_configurations)
-    fig, axes = plt.subplots(4, n, figsize=(2.6 * n, 7.5), squeeze=False, sharex="row",
+    # each configuration zoomed on its own spot: at the camera's resolution a spot fills a few
+    # per cent of the window, and the spots of a scan sit millimetres apart
+    fig, axes = plt.subplots(4, n, figsize=(2.6 * n, 7.5), squeeze=False,
                              gridspec_kw={"height_ratios": (3, 1, 3, 1)}, constrained_layout=True)
     for i in range(n):
         for row, (m, f, edges, lab) in enumerate(((meas_x, model_x, spec.edges_x, "x"),
@@ -299,17 +301,19 @@ def plot_overlays(meas_x, meas_y, model_x, model_y, spec, path, misfit_: Misfit 
             ax, axr = axes[2 * row, i], axes[2 * row + 1, i]
             ax.stairs(m[i], edges, color="C1", label="measured", lw=1.5)
             ax.stairs(f[i], edges, color="C0", label="model", lw=1.2)
-            nz = np.flatnonzero((m[i] > 0) | (f[i] > 0))
+            # a linearized model leaves faint values far out: they do not set the zoom
+            peak = max(float(np.max(m[i])), float(np.max(f[i])), 0.0)
+            nz = np.flatnonzero((m[i] > 1e-3 * peak) | (f[i] > 1e-3 * peak)) if peak > 0 else np.array([], int)
+            axr.stairs(m[i] - f[i], edges, color="C3", fill=True)
             if nz.size:
                 lo, hi = edges[max(nz.min() - 2, 0)], edges[min(nz.max() + 3, len(edges) - 1)]
                 ax.set_xlim(lo, hi)
-            axr.stairs(m[i] - f[i], edges, color="C3", fill=True)
+                axr.set_xlim(lo, hi)
             axr.axhline(0, color="k", lw=0.5)
             if i == 0:
                 ax.set_ylabel(f"{lab}: fraction/bin")
                 axr.set_ylabel("resid.")
-            if row == 1:
-                axr.set_xlabel(f"{lab} [mm]")
+            axr.set_xlabel(f"{lab} [mm]")
         t = f"config {i}"
         if misfit_ is not None:
             t += f"\nχ²/dof {misfit_.chi2_reduced[i]:.2f}"
