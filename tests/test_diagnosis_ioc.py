@@ -37,7 +37,7 @@ SCENARIOS = {
 KNOWN = {
     "source_divergence": "a source or energy change acts on this design (E1/E2 pitch and yaw scanned) as a loss of "
                          "transmission that the slit offsets and the other transmission-type candidates reproduce; "
-                         "measured on twin-made data: thermal_bump_m1 ranked first (docs/diagnosis.md)",
+                         "measured against the IOC: intensity_scale ranked first (-19 %), source 7th (docs/diagnosis.md)",
 }
 
 
