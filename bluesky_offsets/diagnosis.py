@@ -36,8 +36,8 @@ import numpy as np
 
 from . import effects as E
 from .diagnostics import Misfit, misfit, moments
-from .model import (FeatureFit, LocalModel, Measurement, ModelState, _Features, build_local_model, detector_view,
-                    fit_features_many, refine, simulate, simulate_raw_many)
+from .model import (FeatureFit, LocalModel, Measurement, ModelState, _Features, _twin_chi2, build_local_model,
+                    detector_view, fit_features_many, refine, simulate, simulate_raw_many)
 from .parameters import METRIXS, ParameterTable
 
 
@@ -247,7 +247,7 @@ def diagnose(meas: Measurement, state: ModelState, twin, forward_model=None, *,
         lm = build_local_model(meas, state, twin, None, anchor_rays=anchor_rays, seed=reuse.seed if same else seed,
                                anchor_raw=reuse.raw if same else None, table=table)
         n_traces += n * (P if same else 1 + P)
-    base_mf = misfit(meas.hist_x, meas.hist_y, *lm.split(lm.t0), meas.n_rays, model_rays=lm.anchor_rays)
+    base_mf = _twin_chi2(meas, lm)
     within = not base_mf.total_beyond_noise(n_sigma)
     fold_idx = _folds(n, folds, seed)
     everything = np.arange(n)

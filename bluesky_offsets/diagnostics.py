@@ -162,6 +162,15 @@ def misfit(meas_x, meas_y, model_x, model_y, n_rays: int | Sequence[int], *,
 # --------------------------------------------------------------------------- #
 # residual signatures
 # --------------------------------------------------------------------------- #
+def _centroid_variance(h: np.ndarray, centers: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Total, centroid and variance of histograms (..., bins); an empty one has centroid and
+    variance 0."""
+    tot = h.sum(-1)
+    safe = np.where(tot > 0, tot, 1.0)
+    mu = (h * centers).sum(-1) / safe
+    return tot, mu, (h * (centers - mu[..., None]) ** 2).sum(-1) / safe
+
+
 def moments(hist: np.ndarray, centers: np.ndarray) -> dict[str, np.ndarray]:
     """Intensity, centroid, width (std), skewness and tail fraction of histograms (n, bins).
 
@@ -169,10 +178,8 @@ def moments(hist: np.ndarray, centers: np.ndarray) -> dict[str, np.ndarray]:
     narrow foci that span only a few bins).
     """
     h = np.asarray(hist, dtype=float)
-    tot = h.sum(-1)
+    tot, mu, var = _centroid_variance(h, centers)
     safe = np.where(tot > 0, tot, 1.0)
-    mu = (h * centers).sum(-1) / safe
-    var = (h * (centers - mu[..., None]) ** 2).sum(-1) / safe
     sd = np.sqrt(var)
     skew = np.where(sd > 0, (h * (centers - mu[..., None]) ** 3).sum(-1) / safe / np.maximum(sd, 1e-12) ** 3, 0.0)
     peak = h.argmax(-1)
@@ -207,11 +214,8 @@ def beam_features(hist_x, hist_y, spec, n_rays) -> tuple[np.ndarray, np.ndarray]
     var.append(np.maximum(inten * (1 - inten), 1.0 / n) / n)
     for h, c in ((hx, spec.centers_x), (hy, spec.centers_y)):
         w = (c[-1] - c[0]) / (len(c) - 1)
-        tot = h.sum(-1)
+        tot, mu, v = _centroid_variance(h, c)
         dark = tot <= 0
-        tot = np.where(dark, 1.0, tot)
-        mu = (h * c).sum(-1) / tot
-        v = (h * (c - mu[..., None]) ** 2).sum(-1) / tot
         # a beam inside one bin still has the bin's own spread (w^2 / 12) as a floor
         v = np.maximum(v, w * w / 12)
         # no rays, no position: the whole window as the uncertainty

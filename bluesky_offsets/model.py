@@ -151,11 +151,15 @@ def _true_values(configurations, state: ModelState, table: ParameterTable) -> np
     return np.asarray(configurations) + table.offsets_to_physical(np.clip(state.offsets, -MAX_OFFSET, MAX_OFFSET))
 
 
+def _twin_overrides(state: ModelState) -> dict:
+    """RML overrides of the state's twin-level effects (detector-level ones act on histograms)."""
+    return E.twin_overrides({n: v for n, v in state.effects.items() if E.get(n).level == "twin"})
+
+
 def simulate_raw(twin, configurations: np.ndarray, state: ModelState, n_rays: int, seed=None,
                  table: ParameterTable = METRIXS) -> tuple[np.ndarray, np.ndarray]:
     """Twin histograms of ``state`` before detector-level effects."""
-    twin_fx = {n: v for n, v in state.effects.items() if E.get(n).level == "twin"}
-    res = twin.trace_batch(_true_values(configurations, state, table), overrides=E.twin_overrides(twin_fx),
+    res = twin.trace_batch(_true_values(configurations, state, table), overrides=_twin_overrides(state),
                            n_rays=n_rays, seed=seed, progress=False, raise_on_error=True)
     return res.hist_x, res.hist_y
 
@@ -168,8 +172,7 @@ def simulate_raw_many(twin, configurations: np.ndarray, states: Sequence[ModelSt
     if not states:
         return []
     vals = np.concatenate([_true_values(configurations, st, table) for st in states])
-    ovs = [E.twin_overrides({k: v for k, v in st.effects.items() if E.get(k).level == "twin"})
-           for st in states for _ in range(n)]
+    ovs = [_twin_overrides(st) for st in states for _ in range(n)]
     res = twin.trace_batch(vals, overrides=ovs, n_rays=n_rays, seed=list(seeds) * len(states), progress=False,
                            raise_on_error=True)
     hx, hy = res.hist_x, res.hist_y
@@ -261,8 +264,7 @@ def twin_jacobian(twin, configurations: np.ndarray, state: ModelState, raw0, n_r
         batch.append((j, h, ModelState(off, state.effects, state.label)))
     # one Dask batch for all columns
     vals = np.concatenate([_true_values(configurations, st, table) for _, _, st in batch])
-    twin_fx = {k: v for k, v in state.effects.items() if E.get(k).level == "twin"}
-    res = twin.trace_batch(vals, overrides=E.twin_overrides(twin_fx), n_rays=n_rays,
+    res = twin.trace_batch(vals, overrides=_twin_overrides(state), n_rays=n_rays,
                            seed=list(seeds) * len(batch), progress=False, raise_on_error=True)
     hs = np.concatenate([res.hist_x, res.hist_y], axis=1).reshape(len(batch), n, -1)
     for (j, h, _), hj in zip(batch, hs):
@@ -551,20 +553,30 @@ class _Features:
             out.append((d, ModelState(z[:self.P].copy(), st.set_effect_vector(z[self.P:]), st.label)))
         return out
 
-    def columns(self, st: ModelState, raw, f0, jac, probe_raws) -> np.ndarray:
-        """Feature Jacobian (n, 5, P + p) at ``st``: offsets through the bin Jacobian, effect
-        parameters from their probes (traced with the anchor's rays, or none for detector effects)."""
-        n, nx, h = self.meas.n, self.meas.bins_x, self.jacobian_step
-        params = st.effect_parameters()
-        G = np.zeros((n, self.fm.shape[1], self.P + len(params)))
+    def offset_columns(self, st: ModelState, raw, f0, jac) -> np.ndarray:
+        """Feature Jacobian in the offsets (n, 5, P), through the bin Jacobian ``jac``."""
+        nx, h = self.meas.bins_x, self.jacobian_step
+        G = np.zeros((*f0.shape, self.P))
         for j in range(self.P):
             if jac[:, :, j].any():
                 bumped = (raw[0] + h * jac[:, :nx, j], raw[1] + h * jac[:, nx:, j])
                 G[:, :, j] = (self.of(st, bumped)[0] - f0) / h
+        return G
+
+    def effect_columns(self, st: ModelState, raw, f0, probe_raws) -> np.ndarray:
+        """Feature Jacobian in the effect parameters (n, 5, p), from their probes (traced with
+        the anchor's rays, or none for detector effects)."""
+        params = st.effect_parameters()
+        G = np.zeros((*f0.shape, len(params)))
         for k, ((d, probe), (name, _)) in enumerate(zip(self.probes(st), params)):
             praw = raw if E.get(name).level == "detector" else probe_raws[k]
-            G[:, :, self.P + k] = (self.of(probe, praw)[0] - f0) / d
+            G[:, :, k] = (self.of(probe, praw)[0] - f0) / d
         return G
+
+    def columns(self, st: ModelState, raw, f0, jac, probe_raws) -> np.ndarray:
+        """Feature Jacobian (n, 5, P + p) at ``st``: offsets, then effect parameters."""
+        return np.concatenate([self.offset_columns(st, raw, f0, jac),
+                               self.effect_columns(st, raw, f0, probe_raws)], axis=2)
 
     def trace_probes(self, states: Sequence[ModelState], seeds) -> list[list]:
         """Raw traces of every twin-level probe of every state, in one batch."""
@@ -698,21 +710,13 @@ def fit_features_many(meas: Measurement, states: Sequence[ModelState], twin, off
     check_twin(meas, twin)
     rays = int(rays or meas.n_rays)
     fx = _Features(meas, twin, rays, jacobian_step, effect_step, table)
-    cfg, P, nx, h = meas.configurations, len(table), meas.bins_x, jacobian_step
+    cfg, P, h = meas.configurations, len(table), jacobian_step
     seeds = fx.seeds(seed)
     cur = list(states)
     raws = simulate_raw_many(twin, cfg, cur, rays, seeds, table)
     fs = [fx.of(st, r) for st, r in zip(cur, raws)]
 
-    def offset_columns(st, raw, f0):
-        G = np.zeros((*f0.shape, P))
-        for j in range(P):
-            if offset_jacobian[:, :, j].any():
-                bumped = (raw[0] + h * offset_jacobian[:, :nx, j], raw[1] + h * offset_jacobian[:, nx:, j])
-                G[:, :, j] = (fx.of(st, bumped)[0] - f0) / h
-        return G
-
-    G0 = offset_columns(cur[0], raws[0], fs[0][0])
+    G0 = fx.offset_columns(cur[0], raws[0], fs[0][0], offset_jacobian)
     sw = np.sqrt(1.0 / (fx.vm + fs[0][1])).reshape(-1)
     U = np.linalg.svd(G0.reshape(-1, P) * sw[:, None], full_matrices=False)[2][:directions].T  # (P, r)
     # derivatives along the directions, traced where each fit starts (one batch): the first
@@ -741,11 +745,7 @@ def fit_features_many(meas: Measurement, states: Sequence[ModelState], twin, off
         probe_raws = fx.trace_probes(cur, seeds)
         cands = []
         for i, st in enumerate(cur):
-            params = st.effect_parameters()
-            Ge = np.zeros((*fs[i][0].shape, len(params)))
-            for k, ((d, probe), (name, _)) in enumerate(zip(fx.probes(st), params)):
-                praw = raws[i] if E.get(name).level == "detector" else probe_raws[i][k]
-                Ge[:, :, k] = (fx.of(probe, praw)[0] - fs[i][0]) / d
+            Ge = fx.effect_columns(st, raws[i], fs[i][0], probe_raws[i])
             cols[i] = np.concatenate([Goff[i] @ U.T, Ge], axis=2)  # back in offset coordinates
             za = np.r_[np.zeros(r), st.effect_vector()]
             step = fx.step(np.concatenate([Goff[i], Ge], axis=2), fs[i][0], fs[i][1], za, lams[i], np.zeros_like(za))

@@ -192,13 +192,14 @@ def analysis_sections(analysis, spec, work: Path, *, truth: Mapping | None = Non
                      **{c.name: c.predicted_signature.get(k, float("nan")) for c in diag.candidates[:4]}}
                     for k in keys]
         mf = diag.base_misfit
-        body = (paragraph("Each candidate's parameters are scanned over a grid within their prior range through the "
-                          "twin, the offsets compensating each value on the beam features (intensity, centroids, "
-                          f"widths); held-out: the value and the compensation chosen without each of {diag.folds} "
-                          "folds of configurations. The best candidates are verified through the twin in the "
-                          "histogram bins against an offsets-only compensation; score = that χ² gain ÷ the "
-                          "reference's χ² per degree of freedom (when > 1) − p ln N. Significant: score above 3σ of "
-                          "the χ² noise, and the held-out folds do not contradict it. Base model: χ²/dof "
+        body = (paragraph("Each candidate is fitted with the offsets through the twin on the beam features "
+                          "(intensity, centroids, widths), from starting values spread over its prior range, beside "
+                          "an offsets-only fit; held-out: each fit re-solved without each of "
+                          f"{diag.folds} folds of configurations and scored on them. The best candidates are verified "
+                          "through the twin in the histogram bins with fresh rays against the offsets-only "
+                          "reference; score = that χ² gain ÷ the reference's χ² per degree of freedom (when > 1) − "
+                          "p ln N. Significant: score above zero, and the held-out folds do not contradict it. "
+                          "Base model: χ²/dof "
                           f"{mf.chi2_reduced_total:.3g} (noise: 1 ± {np.sqrt(2 / max(mf.dof_total, 1)):.2g}); "
                           f"{diag.n_traces} twin traces.")
                 + table_(rows) + image(fig, "candidate scores; predicted residual signature of the top candidates "
