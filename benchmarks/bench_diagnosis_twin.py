@@ -1,7 +1,7 @@
 """The diagnosis workflow on twin-made measurements (no IOC): how far each step gets, and when.
 
 A hidden truth (the demo's offsets and one effect) is traced by the twin at bright
-configurations of the demo's design, with fresh ray seeds — a measurement as the simulated
+configurations of the demo's design (and some of them with the slits open), with fresh ray seeds — a measurement as the simulated
 IOC would give it, at the camera's resolution or at the paper's.  Then the demo's analysis:
 surrogate finder on the paper's histograms, refinement of the offsets through the twin,
 diagnosis of all candidate effects, the winner added and refitted.  Printed per step: the
@@ -22,8 +22,8 @@ import numpy as np
 
 from bluesky_offsets import effects as E
 from bluesky_offsets.calibration import OffsetFinder
-from bluesky_offsets.demo import DEMO_OFFSETS, DemoSettings, candidate_configurations, parse_effect
-from bluesky_offsets.diagnosis import add_effect_result, diagnose, evaluate
+from bluesky_offsets.demo import DEMO_OFFSETS, DemoSettings, candidate_configurations, measurement_design, parse_effect
+from bluesky_offsets.diagnosis import add_effect_result, diagnose, evaluate, in_box
 from bluesky_offsets.finder import Budget, load_forward_model
 from bluesky_offsets.model import Measurement, ModelState, refine, simulate
 from bluesky_offsets.parameters import METRIXS
@@ -66,10 +66,13 @@ def main(argv=None):
     cand = candidate_configurations(s, default_start())
     hx, hy = simulate(base, cand, truth, args.rays, list(rng.integers(0, 2**31, len(cand))))
     bright = cand[enough_rays(hx, hy)][: s.configurations]
-    log(f"{len(bright)} bright of {len(cand)} candidates")
-    mx, my = simulate(twin, bright, truth, args.rays, list(rng.integers(0, 2**31, len(bright))))
-    meas = Measurement(bright, mx, my, args.rays, spec=spec)
-    coarse = meas if spec == paper else meas.rebinned(paper)
+    design, analysed = measurement_design(s, bright)
+    log(f"{len(bright)} bright of {len(cand)} candidates, {len(design) - len(bright)} of them with open slits; "
+        f"{len(analysed)} analysed")
+    mx, my = simulate(twin, design, truth, args.rays, list(rng.integers(0, 2**31, len(design))))
+    full = Measurement(design, mx, my, args.rays, spec=spec)
+    coarse = (full if spec == paper else full.rebinned(paper)).subset(in_box(design))  # the surrogate's box
+    meas = full.subset(analysed)
 
     fm = load_forward_model()
     finder = OffsetFinder(model=fm, budget=Budget(evaluations=s.finder_evaluations, seconds=s.finder_seconds),

@@ -7,7 +7,10 @@ the effect's chi-square signal, the share a fit of the offsets absorbs, its 1-si
 uncertainty alone and with the offsets free (prior ±0.2), and the rival effect that explains
 it best.  Numbers in docs/diagnosis.md.
 
-    python benchmarks/bench_effect_identifiability.py [--configs 12] [--rays 10000]
+    python benchmarks/bench_effect_identifiability.py [--configs 12] [--rays 10000] [--open 4]
+
+``--open K`` appends the first K configurations again with the slits open
+(``diagnosis.OPEN_APERTURE``: ASBL 4 x 4 mm, exit slit 100 µm), as the demo measures them.
 """
 
 from __future__ import annotations
@@ -18,7 +21,7 @@ import time
 import numpy as np
 
 from bluesky_offsets import effects as E
-from bluesky_offsets.diagnosis import diagnostic_configurations
+from bluesky_offsets.diagnosis import diagnostic_configurations, open_aperture
 from bluesky_offsets.model import ModelState, detector_view, simulate_raw
 from bluesky_offsets.parameters import METRIXS
 from bluesky_offsets.twin import Twin
@@ -27,7 +30,7 @@ from sim_iocs.truth import default_start
 HIDDEN = {"E1.rotationXerror": 0.04, "E2.rotationXerror": -0.04, "M1_Cylinder.rotationXerror": 0.02,
           "E1.longHalfAxisA": 0.02, "E2.shortHalfAxisB": -0.02}
 EFFECTS = [("chamber_z", "z", 20.0), ("thermal_bump_m1", "height", 300.0), ("photon_energy", "delta", 0.005),
-           ("source_size_divergence", "divergence", 0.2), ("source_size_divergence", "size", 0.2),
+           ("source_divergence", "divergence", 0.2), ("source_size", "size", 0.2),
            ("grating_line_density", "delta", 0.02), ("intensity_scale", "delta", 0.05),
            ("detector_blur", "sigma", 0.05), ("chamber_rotation", "angle", 10.0),
            ("slope_error_m1", "meridional", 2.0)]
@@ -39,9 +42,12 @@ def main(argv=None):
     ap.add_argument("--rays", type=int, default=10000, help="rays of the twin traces")
     ap.add_argument("--measured-rays", type=int, default=5000, help="ray budget of the measurement")
     ap.add_argument("--prior", type=float, default=0.2, help="offset prior (normalized)")
+    ap.add_argument("--open", type=int, default=0, help="configurations measured again with the slits open")
     args = ap.parse_args(argv)
     tw = Twin(scheduler="inline", n_rays=args.rays)
     cfg = diagnostic_configurations(default_start(), args.configs, seed=1)
+    if args.open:
+        cfg = np.vstack([cfg, open_aperture(cfg[:args.open])])
     off = np.zeros(len(METRIXS))
     for k, v in HIDDEN.items():
         off[METRIXS.index(k)] = v
@@ -70,7 +76,7 @@ def main(argv=None):
         r = s - M @ c
         return float((w * r * r).sum()), H
 
-    print(f"{len(cfg)} configurations, {args.rays} rays, {time.perf_counter() - t0:.0f} s of tracing")
+    print(f"{len(cfg)} configurations ({args.open} with open slits), {args.rays} rays, {time.perf_counter() - t0:.0f} s of tracing")
     print(f"{'effect':36s} {'signal':>8s} {'absorbed':>9s} {'σ alone':>8s} {'σ w/ offsets':>12s}  closest rival")
     for i, (name, par, val) in enumerate(EFFECTS):
         s = cols[i]

@@ -32,6 +32,7 @@ from pathlib import Path
 import numpy as np
 
 from . import effects as E
+from . import diagnosis as D
 from .diagnosis import RECIPE
 from .parameters import METRIXS
 
@@ -52,6 +53,13 @@ class DemoSettings:
     n_rays: int = 5000                # per measured frame
     anchor_rays: int = 10_000         # per model trace in the fits
     configurations: int = 16
+    # that many of the bright ones measured again with the slits open (diagnosis.OPEN_APERTURE):
+    # a source change shows there; the surrogate finder uses only the configurations in its box
+    open_configurations: int = 4
+    # configurations the analysis fits (the first bright ones and the open ones): every fit
+    # traces each ~40 times, an open one costs 1.6 bright ones (more rays survive), and 10 + 4
+    # keep the demo under 10 minutes on 2 cores (docs/diagnosis.md)
+    analysed_configurations: int = 14
     candidates: int = 40
     wide_spread: float = 0.3
     effect: tuple[str, dict] = DEMO_EFFECT
@@ -90,7 +98,6 @@ def demo_truth(s: DemoSettings) -> dict:
 
 def candidate_configurations(s: DemoSettings, start: np.ndarray) -> np.ndarray:
     """The start (an operator begins where the beam is), then a diagnostic design around it."""
-    from . import diagnosis as D
     design = getattr(D, "diagnostic_configurations", None)
     if design is not None:
         cand = design(start, s.candidates, seed=s.seed)
@@ -101,6 +108,17 @@ def candidate_configurations(s: DemoSettings, start: np.ndarray) -> np.ndarray:
             spread[METRIXS.index(n)] = s.wide_spread
         cand = sample_candidates(s.candidates, rng=s.seed, around=start, spread=spread)
     return np.vstack([start, cand])
+
+
+def measurement_design(s: DemoSettings, bright: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """What the demo measures and what it analyses: the ``bright`` configurations, then the first
+    ``s.open_configurations`` of them again with the slits open (:func:`diagnosis.open_aperture`);
+    the indices the fits use: the first bright ones and all open ones, ``s.analysed_configurations``
+    in all."""
+    n_open = min(s.open_configurations, len(bright))
+    design = np.vstack([bright, D.open_aperture(bright[:n_open])]) if n_open else np.asarray(bright)
+    n_bright = max(0, min(len(bright), s.analysed_configurations - n_open))
+    return design, np.r_[np.arange(n_bright), np.arange(len(bright), len(design))].astype(int)
 
 
 # --------------------------------------------------------------------------- #
@@ -213,25 +231,34 @@ def demo_plan(s: DemoSettings, beamline, chamber, twin, forward_model, store, lo
     t["search"] = time.perf_counter()
     if len(bright) < s.configurations:
         raise RuntimeError(f"only {len(bright)} of {len(cand)} candidates were bright; {s.configurations} needed")
-    log(f"[3/6] measuring {len(bright)} bright configurations at {s.n_rays} rays")
-    m = yield from measure_configurations(bright, beamline, chamber, md={"purpose": "demo measurement"})
+    design, analysed = measurement_design(s, bright)
+    n_open = len(design) - len(bright)
+    log(f"[3/6] measuring {len(bright)} bright configurations" +
+        (f" and {n_open} of them with the slits open (ASBL 4 x 4 mm, exit slit 100 µm)" if n_open else "") +
+        f" at {s.n_rays} rays")
+    m = yield from measure_configurations(design, beamline, chamber, md={"purpose": "demo measurement"})
     t["measure"] = time.perf_counter()
     meas = Measurement.from_store(m, resolution=s.resolution)
+    inside = D.in_box(m.configurations)
+    meas = meas.subset(analysed)
+    n_bright = len(analysed) - n_open
 
-    log(f"[4/6] finding the offsets with the surrogate ({s.finder_evaluations} evaluations, "
-        f"≤ {s.finder_seconds:.0f} s), then through the twin")
+    log(f"[4/6] finding the offsets with the surrogate on the {int(inside.sum())} configurations in its box "
+        f"({s.finder_evaluations} evaluations, ≤ {s.finder_seconds:.0f} s), then through the twin")
     finder = OffsetFinder(model=forward_model, budget=Budget(evaluations=s.finder_evaluations,
                                                             seconds=s.finder_seconds), seed=s.seed)
-    found = yield from find_offsets(finder, m)
+    found = yield from find_offsets(finder, m if inside.all() else m.subset(inside))
     t["finder"] = time.perf_counter()
     starts = [ModelState(label="twin"), ModelState(np.asarray(found.offsets, float), {}, "surrogate offsets")]
     fm = None if s.jacobian == "twin" else forward_model
-    log("[5/6] compare → refine offsets → diagnose → add the winning effect → refit")
+    log(f"[5/6] compare → refine offsets → diagnose → add the winning effect → refit "
+        f"({n_bright} bright + {n_open} open configurations)")
     analysis = yield from analyse_measurement(meas, twin, fm, starts=starts, refine_iterations=s.refine_iterations,
                                               candidates=s.candidates_effects, refit_iterations=s.refit_iterations,
                                               anchor_rays=s.anchor_rays, refine_kw=s.refine_kw, refit_kw=s.refit_kw,
                                               diagnose_kw=s.diagnose_kw,
-                                              seed=s.seed, md={"purpose": "bluesky-offsets demo"})
+                                              seed=s.seed, md={"purpose": "bluesky-offsets demo",
+                                                               "analysed_configurations": [int(i) for i in analysed]})
     t["analysis"] = time.perf_counter()
     return {"measurement": m, "offsets": found, "analysis": analysis, "times": t}
 
@@ -306,6 +333,7 @@ def run_demo(out: Path, settings: DemoSettings | None = None, store_location: st
         uids = list(result.run_start_uids)
         analysis = res["analysis"]
         m = res["measurement"]
+        n_open = int((~D.in_box(m.configurations)).sum())
         # the first three runs: the search, the measurement, the surrogate finder
         steps = {"search": uids[0], "measurement": m.uid, "find_offsets": uids[2],
                  **{k: v for k, v in analysis.uids.items() if v}}
@@ -316,10 +344,13 @@ def run_demo(out: Path, settings: DemoSettings | None = None, store_location: st
         intro = [("What this is", paragraph(
             f"bluesky-offsets demo: a simulated METRIXS beamline (caproto IOC, RAYX twin at the hidden true state, "
             f"{s.n_rays} rays per frame) with hidden offsets in all 34 parameters and "
-            f"{'a hidden ' + s.effect[0] if s.effect[0] else 'no hidden effect'}; {len(m)} bright configurations measured through EPICS; offsets found "
-            f"with the shipped surrogate and refined through the twin; the missing effect diagnosed, added and "
+            f"{'a hidden ' + s.effect[0] if s.effect[0] else 'no hidden effect'}; {len(m)} configurations measured through EPICS "
+            f"({len(m) - n_open} bright ones, {n_open} of them again with the slits open); offsets found "
+            f"with the shipped surrogate (on the configurations inside its box) and refined through the twin on "
+            f"{analysis.measurement.n}; the missing effect diagnosed, added and "
             f"refitted. Every step is a run in the store {store.location}.")),
-            ("Measurement", table_([{"configurations": len(m), "rays per frame": s.n_rays,
+            ("Measurement", table_([{"configurations": len(m), "with open slits": n_open,
+                                     "analysed": analysis.measurement.n, "rays per frame": s.n_rays,
                                      "measurement uid": m.uid, "truth id": m.truth_id or ""}]))]
         timing = {"IOC up + search": t["search"] - t0, "measure": t["measure"] - t["search"],
                   "surrogate finder": t["finder"] - t["measure"], "compare/refine/diagnose/refit":
@@ -331,6 +362,7 @@ def run_demo(out: Path, settings: DemoSettings | None = None, store_location: st
         summary = {
             "seconds": seconds, "load_average_start": load, "timing_s": timing, "store": store.location,
             "uids": steps, "all_run_uids": uids, "report": str(report), "n_configurations": len(m),
+            "n_open_configurations": n_open, "n_analysed_configurations": analysis.measurement.n,
             "n_rays": s.n_rays, "hidden_effect": hidden, "verdict": analysis.ranking.diagnosis.verdict,
             "ranking": [c.name for c in analysis.ranking.diagnosis.candidates],
             "history": [c.total_row() for c in analysis.comparisons],
@@ -379,6 +411,11 @@ def add_cli(sub) -> None:
     p.add_argument("--anchor-rays", type=int, default=10_000,
                    help="source rays per model trace in the fits (default %(default)s)")
     p.add_argument("--configurations", type=int, default=16, help="bright configurations to measure (>= 16)")
+    p.add_argument("--open-configurations", type=int, default=None,
+                   help="bright configurations measured again with the slits open, ASBL 4 x 4 mm and exit slit "
+                        "100 µm (default 4; 0 with --jacobian surrogate, which knows only its box)")
+    p.add_argument("--analysed-configurations", type=int, default=14,
+                   help="configurations the fits use: the open ones and the first bright ones (default %(default)s)")
     p.add_argument("--effect", default=f"{DEMO_EFFECT[0]}:" + ",".join(f"{k}={v}" for k, v in DEMO_EFFECT[1].items()),
                    help="hidden effect NAME:PARAM=VALUE,... or 'none' (default %(default)s)")
     p.add_argument("--candidates", default=None, help="effects to rank, comma separated (default: all)")
@@ -430,11 +467,20 @@ def _cmd_demo(args) -> int:
     from .cli import CliError
     if args.configurations < 2:
         raise CliError("--configurations must be at least 2 (the paper asks for 16)")
+    n_open = args.open_configurations if args.open_configurations is not None else (
+        0 if args.jacobian == "surrogate" else 4)
+    if not 0 <= n_open <= args.configurations:
+        raise CliError(f"--open-configurations must lie in [0, {args.configurations}] (the bright ones reopened)")
+    if n_open and args.jacobian == "surrogate":
+        raise CliError("--open-configurations: open slits lie outside the surrogate's box; use --jacobian twin")
+    if args.analysed_configurations < 2:
+        raise CliError("--analysed-configurations must be at least 2")
     if args.rays < 100:
         raise CliError("--rays must be at least 100")
     if args.jacobian == "surrogate" and args.resolution == "camera":
         raise CliError("--jacobian surrogate: the surrogate predicts the paper's 50 x 50 bins; add --resolution paper")
     s = DemoSettings(n_rays=args.rays, anchor_rays=args.anchor_rays, configurations=args.configurations,
+                     open_configurations=n_open, analysed_configurations=args.analysed_configurations,
                      effect=parse_effect(args.effect),
                      refine_iterations=args.refine_iterations, refit_iterations=args.refit_iterations,
                      jacobian=args.jacobian, seed=args.seed, resolution=args.resolution,

@@ -778,7 +778,8 @@ def refine(meas: Measurement, state: ModelState, twin, forward_model, *, iterati
            refresh_on_reject: bool = False, jacobian_rays: int | None = None, jacobian_step: float = 0.002,
            paired: bool = True, step_factors: Sequence[float] = (1.0, 0.25, 0.0625),
            feature_iterations: int = 0, feature_kw: Mapping | None = None, also_from: Sequence = (),
-           max_refreshes: int | None = None, table: ParameterTable = METRIXS) -> RefineResult:
+           also_from_beyond_noise: bool = False, max_refreshes: int | None = None,
+           table: ParameterTable = METRIXS) -> RefineResult:
     """Fit offsets and the state's effects to ``meas`` by re-anchored Gauss-Newton through the twin.
 
     Each iteration solves the local problem, traces the twin at the proposed
@@ -825,7 +826,8 @@ def refine(meas: Measurement, state: ModelState, twin, forward_model, *, iterati
     its first Jacobian; the one whose bins fit best at the end of it goes on (a solution of
     the surrogate on the paper's coarse histograms can sit in a basin of compensating offsets
     that the camera's resolution tells apart: measured, features from there ended at bins
-    χ²/dof 1.4, from the nominal twin at 1.0; docs/diagnosis.md).
+    χ²/dof 1.4, from the nominal twin at 1.0; docs/diagnosis.md).  ``also_from_beyond_noise``
+    tries them only when the first start's features did not reach the noise.
     """
     check_twin(meas, twin)
     anchor_rays = anchor_rays or int(meas.n_rays)
@@ -836,7 +838,9 @@ def refine(meas: Measurement, state: ModelState, twin, forward_model, *, iterati
         fkw = {"iterations": feature_iterations, "anchor_rays": anchor_rays, "seed": seed + 500_000,
                "progress": progress, "table": table, **dict(feature_kw or {})}
         ff = fit_features(meas, state, twin, offset_jacobian=offset_jacobian, **fkw)
-        for k, alt in enumerate(also_from):
+        last = ff.history[-1]
+        settled = last["chi2_features"] <= last["features"] + fkw.get("n_sigma", 3.0) * math.sqrt(2 * last["features"])
+        for k, alt in enumerate(() if also_from_beyond_noise and settled else also_from):
             off = np.asarray(getattr(alt, "offsets", alt), dtype=float)
             fa = fit_features(meas, ModelState(off, state.effects, state.label), twin,
                               offset_jacobian=ff.jacobian if offset_jacobian is None else offset_jacobian,

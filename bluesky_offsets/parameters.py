@@ -56,6 +56,11 @@ class Parameter:
         ``"<component>.<axis>"`` attribute path used by the ophyd devices.
     description : str
         Human-readable meaning.
+    travel : (float, float) or None
+        The motor's travel where it is wider than the box (the slit openings: real
+        measurements open the ASBL to 4 mm and the exit slit to 100 µm, see
+        ``../shared/reference/metrixs_2021_real_settings.csv``).  The IOC's soft limits;
+        a configuration outside the box is valid for the twin, not for the surrogate.
     """
 
     name: str
@@ -68,6 +73,12 @@ class Parameter:
     reference: float
     device: str
     description: str
+    travel: tuple[float, float] | None = None
+
+    @property
+    def limits(self) -> tuple[float, float]:
+        """Motor travel (soft limits): ``travel`` where given, else the box."""
+        return self.travel if self.travel is not None else (self.low, self.high)
 
     @property
     def component(self) -> str:
@@ -78,9 +89,9 @@ class Parameter:
         return self.high - self.low
 
 
-def _p(name, element, field, unit, low, high, reference, device, description, motorized=True):
+def _p(name, element, field, unit, low, high, reference, device, description, motorized=True, travel=None):
     return Parameter(name, element, field, unit, float(low), float(high), motorized, float(reference),
-                     device, description)
+                     device, description, None if travel is None else (float(travel[0]), float(travel[1])))
 
 
 _SRC, _ASBL, _M1, _SG, _XS, _E1, _E2 = (
@@ -96,9 +107,9 @@ METRIXS_PARAMETERS: tuple[Parameter, ...] = (
     _p("U41_318eV.rotationYerror", _SRC, "rotationYerror", "mrad", -0.05, 0.05, 0, "source.ry",
        "source horizontal pointing"),
     _p("ASBL.totalWidth", _ASBL, "openingWidth", "mm", 1.9, 2.1, 2.0, "asbl.width",
-       "aperture (ASBL) horizontal opening"),
+       "aperture (ASBL) horizontal opening", travel=(0.1, 5.0)),
     _p("ASBL.totalHeight", _ASBL, "openingHeight", "mm", 0.9, 1.1, 2.0, "asbl.height",
-       "aperture (ASBL) vertical opening"),
+       "aperture (ASBL) vertical opening", travel=(0.1, 5.0)),
     _p("ASBL.translationXerror", _ASBL, "translationXerror", "mm", -0.2, 0.2, 0, "asbl.tx",
        "aperture horizontal position"),
     _p("ASBL.translationYerror", _ASBL, "translationYerror", "mm", -0.2, 0.2, 0, "asbl.ty",
@@ -120,7 +131,7 @@ METRIXS_PARAMETERS: tuple[Parameter, ...] = (
     _p("SphericalGrating.rotationZerror", _SG, "rotationZerror", "mrad", -2.5, 2.5, 0, "grating.rz",
        "grating roll"),
     _p("ExitSlit.totalHeight", _XS, "openingHeight", "mm", 0.009, 0.011, 0.1, "exit_slit.height",
-       "exit slit opening (dispersive direction)"),
+       "exit slit opening (dispersive direction)", travel=(0.005, 0.2)),
     _p("ExitSlit.translationZerror", _XS, "translationZerror", "mm", -150, 150, 0, "exit_slit.tz",
        "exit slit position along the beam"),
     _p("ExitSlit.rotationZerror", _XS, "rotationZerror", "mrad", -0.3, 0.3, 0, "exit_slit.rz",

@@ -21,7 +21,7 @@ from __future__ import annotations
 import os
 import warnings
 from collections.abc import Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -97,6 +97,14 @@ class Measurement:
 
     def __len__(self) -> int:
         return len(self.configurations)
+
+    def subset(self, idx) -> Measurement:
+        """The configurations ``idx`` (index array or mask) with their histograms; same uid."""
+        def pick(a):
+            return None if a is None else np.asarray(a)[idx]
+        return replace(self, configurations=self.configurations[idx], hist_x=self.hist_x[idx],
+                       hist_y=self.hist_y[idx], total_counts=pick(self.total_counts), images=pick(self.images),
+                       profile_x=pick(self.profile_x), profile_y=pick(self.profile_y))
 
     @property
     def profile_spec(self):

@@ -5,7 +5,7 @@
 
 * one motor record per motorized parameter of the table (28):
   ``BL:<component>:<axis>`` after the parameter's ``device`` path
-  (``E1.rotationXerror`` -> ``BL:e1:rx``), limits from the table's box;
+  (``E1.rotationXerror`` -> ``BL:e1:rx``), soft limits = the motor travel (the table's box; wider for the slit openings);
 * the focus-chamber detector ``BL:chamber:*``: ``Acquire`` (put-completion
   when the frame is ready), ``NumRays`` (ray budget), ``AcquireTime``,
   ``HistX``/``HistY`` (50 bins each, fraction of source rays per bin),
@@ -61,11 +61,13 @@ def motor_pv(param, prefix: str = "") -> str:
 
 
 def axis_settings(param, start: float, *, move_time: float = 4.0, accel_time: float = 0.2) -> AxisSettings:
-    """Motor-record settings for one parameter: soft limits = the table's box, a full-range move
-    takes ``move_time`` seconds, resolution 1e-5 of the range's order of magnitude."""
-    span = param.high - param.low
-    resolution = 10.0 ** (math.floor(math.log10(span)) - 5)
-    return AxisSettings(description=f"{param.name}"[:40], egu=param.unit, low=param.low, high=param.high,
+    """Motor-record settings for one parameter: soft limits = its travel (the table's box except
+    for the slit openings), a full-travel move takes ``move_time`` seconds, resolution 1e-5 of the
+    box's order of magnitude."""
+    resolution = 10.0 ** (math.floor(math.log10(param.high - param.low)) - 5)
+    low, high = param.limits
+    span = high - low
+    return AxisSettings(description=f"{param.name}"[:40], egu=param.unit, low=low, high=high,
                         start=float(start), velocity=span / move_time, accel_time=accel_time,
                         resolution=resolution)
 

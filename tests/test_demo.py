@@ -1,7 +1,8 @@
-"""``bluesky-offsets demo`` end to end, small: 6 configurations at 2000 rays, one refinement
-and one refit iteration, two candidate effects, surrogate Jacobian.
+"""``bluesky-offsets demo`` end to end, small: 6 bright configurations at 2000 rays, 2 of them
+again with the slits open, 6 analysed, one refinement and one refit iteration, two candidate
+effects.
 
-The full-size demo (16 configurations, all 13 candidates, twin Jacobian) is measured by hand:
+The full-size demo (16 + 4 configurations, 10 + 4 analysed, all 15 candidates) is measured by hand:
 docs/diagnosis.md, "Workflow".
 """
 
@@ -18,10 +19,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from bluesky_offsets.parameters import METRIXS
 from bluesky_offsets.store import open_store
 from plans.diagnose import load_results
 
-ARGS = ["--rays", "2000", "--anchor-rays", "2000", "--configurations", "6", "--refine-iterations", "1",
+ARGS = ["--rays", "2000", "--anchor-rays", "2000", "--configurations", "6", "--open-configurations", "2",
+        "--analysed-configurations", "6", "--refine-iterations", "1",
         "--refit-iterations", "1", "--feature-iterations", "3", "--candidates", "chamber_z,intensity_scale"]
 
 
@@ -47,6 +50,7 @@ def test_demo_runs_the_workflow_and_its_runs_load_back_by_uid(tmp_path):
     assert _gone(summary["ioc"]["pid"])  # the simulated IOC is stopped
     uids = summary["uids"]
     assert {"search", "measurement", "find_offsets", "compare", "refine_offsets", "diagnose"} <= set(uids)
+    assert (summary["n_configurations"], summary["n_open_configurations"], summary["n_analysed_configurations"]) == (8, 2, 6)
     labels = [h["model"] for h in summary["history"]]
     assert labels[:3] == ["twin", "surrogate offsets", "+ offsets"]
     out = proc.stdout
@@ -55,10 +59,16 @@ def test_demo_runs_the_workflow_and_its_runs_load_back_by_uid(tmp_path):
     with open_store(tmp_path / "runs") as store:
         assert set(summary["all_run_uids"]) <= set(store.uids())
         m = store.load_measurement(uids["measurement"])
-        assert m.hist_x.shape == (6, 50) and m.truth_id == summary["truth_id"] and np.isfinite(m.hist_y).all()
+        assert m.hist_x.shape == (8, 50) and m.truth_id == summary["truth_id"] and np.isfinite(m.hist_y).all()
+        # the last two are the first two bright ones with the slits open (outside the surrogate's box)
+        assert np.allclose(m.configurations[-2:, 0], m.configurations[:2, 0])
+        assert np.allclose(m.configurations[-2:, METRIXS.index("ExitSlit.totalHeight")], 0.1, atol=1e-6)
+        offsets_run = store[uids["find_offsets"]]
+        assert offsets_run.metadata["start"]["n_configurations"] == 6  # the surrogate saw its box only
         for step in ("compare", "refine_offsets", "diagnose"):
             res = load_results(store, uids[step])
             assert res["start"]["measurement_uid"] == uids["measurement"], step
+            assert res["start"]["analysed_configurations"] == [0, 1, 2, 3, 6, 7], step  # 4 bright + 2 open
         ranking = load_results(store, uids["diagnose"])["ranking"]
         assert [r["effect"] for r in ranking] == summary["ranking"]
         last = uids.get("add_effect") or uids["error_history"]
@@ -70,7 +80,7 @@ def test_demo_runs_the_workflow_and_its_runs_load_back_by_uid(tmp_path):
     line = next(l for l in out.splitlines() if l.strip().startswith("python -c"))
     code = re.search(r'python -c "(.*)"\s*$', line).group(1)
     back = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
-    assert back.returncode == 0 and "(6, 50)" in back.stdout, back.stderr[-2000:]
+    assert back.returncode == 0 and "(8, 50)" in back.stdout, back.stderr[-2000:]
 
     html = (tmp_path / "out" / "report.html").read_text()
     assert html.count("data:image/png;base64,") >= 5
@@ -84,4 +94,6 @@ def test_demo_refuses_bad_options(tmp_path):
     assert proc.returncode == 2 and "unknown effect 'gravity'" in proc.stderr
     proc = _demo(tmp_path, "--effect", "chamber_z:z=500", timeout=120)
     assert proc.returncode == 2 and "chamber_z" in proc.stderr
+    proc = _demo(tmp_path, "--open-configurations", "9", timeout=120)
+    assert proc.returncode == 2 and "--open-configurations must lie in [0, 6]" in proc.stderr
     assert not (tmp_path / "runs").exists()  # refused before anything started

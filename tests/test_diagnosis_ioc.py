@@ -2,14 +2,14 @@
 
 Each scenario runs ``bluesky-offsets demo`` as a user does: the METRIXS IOC (twin backend,
 127.0.0.1, a free port, seeded frame noise) with the hidden offsets of ``demo.DEMO_OFFSETS``
-and a hidden effect (or none), the search, the measurement of 16 bright configurations
-through the IOC into the run store, the surrogate finder, then compare → refine → diagnose
-(all 14 candidates, camera-resolution profiles) → add the winner → refit, every step a run in
-the store.  The checks read ``summary.json``.
+and a hidden effect (or none), the search, the measurement of 16 bright configurations and 4
+of them again with the slits open through the IOC into the run store, the surrogate finder on
+the 16, then compare → refine → diagnose (all 15 candidates, camera-resolution profiles, 10
+bright + 4 open configurations) → add the winner → refit, every step a run in the store.  The
+checks read ``summary.json``.
 
-7-9 minutes per scenario on two cores (demo time measured 366-537 s, docs/diagnosis.md).  ``BLUESKY_OFFSETS_SKIP_ACCEPTANCE=1`` skips them for a
-quick local run; the source/energy scenario is a known failure (measured reasons in
-docs/diagnosis.md) and runs only with ``BLUESKY_OFFSETS_RUN_KNOWN_FAILING=1``.
+8-10 minutes per scenario on two cores (demo time measured in docs/diagnosis.md).
+``BLUESKY_OFFSETS_SKIP_ACCEPTANCE=1`` skips them for a quick local run.
 """
 
 from __future__ import annotations
@@ -24,7 +24,6 @@ from pathlib import Path
 import pytest
 
 SKIP = os.environ.get("BLUESKY_OFFSETS_SKIP_ACCEPTANCE") == "1"
-KNOWN_FAILING = os.environ.get("BLUESKY_OFFSETS_RUN_KNOWN_FAILING") == "1"
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(1200),
               pytest.mark.skipif(SKIP, reason="BLUESKY_OFFSETS_SKIP_ACCEPTANCE=1")]
 
@@ -32,12 +31,7 @@ pytestmark = [pytest.mark.slow, pytest.mark.timeout(1200),
 SCENARIOS = {
     "chamber_z": ("chamber_z:z=20", "chamber_z", "z", 20.0),
     "thermal_bump_m1": ("thermal_bump_m1:height=450", "thermal_bump_m1", "height", 450.0),
-    "source_divergence": ("source_size_divergence:divergence=0.5", "source_size_divergence", "divergence", 0.5),
-}
-KNOWN = {
-    "source_divergence": "a source or energy change acts on this design (E1/E2 pitch and yaw scanned) as a loss of "
-                         "transmission that the slit offsets and the other transmission-type candidates reproduce; "
-                         "measured against the IOC: intensity_scale ranked first (-19 %), source 7th (docs/diagnosis.md)",
+    "source_divergence": ("source_divergence:divergence=0.5", "source_divergence", "divergence", 0.5),
 }
 
 
@@ -52,15 +46,7 @@ def _demo(tmp_path: Path, effect: str) -> dict:
     return json.loads((tmp_path / "out" / "summary.json").read_text())
 
 
-def _scenario(k):
-    if k in KNOWN:
-        return pytest.param(k, marks=[pytest.mark.xfail(strict=False, reason=KNOWN[k]),
-                                      pytest.mark.skipif(not KNOWN_FAILING, reason="known failure: "
-                                                         "BLUESKY_OFFSETS_RUN_KNOWN_FAILING=1 runs it")])
-    return k
-
-
-@pytest.mark.parametrize("scenario", [_scenario(k) for k in SCENARIOS])
+@pytest.mark.parametrize("scenario", list(SCENARIOS))
 def test_hidden_effect_is_found_added_and_fitted(scenario, tmp_path):
     effect, name, param, hidden = SCENARIOS[scenario]
     s = _demo(tmp_path, effect)

@@ -7,7 +7,7 @@ from bluesky_offsets import effects as E
 from bluesky_offsets.parameters import METRIXS
 from bluesky_offsets.twin import HistogramSpec, Twin
 
-REQUIRED = {"chamber_x", "chamber_y", "chamber_z", "chamber_rotation", "source_size_divergence", "photon_energy",
+REQUIRED = {"chamber_x", "chamber_y", "chamber_z", "chamber_rotation", "source_size", "source_divergence", "photon_energy",
             "slope_error_m1", "slope_error_e1", "slope_error_e2", "thermal_bump_m1", "grating_line_density",
             "detector_blur", "background", "intensity_scale"}
 
@@ -44,7 +44,7 @@ def test_zero_is_absent(twin, name):
     ("chamber_z", {"z": 20.0}, lambda d: d["width_y"] > 0.015 and d["width_x"] < -0.01),
     ("chamber_x", {"x": 0.5}, lambda d: abs(d["centroid_x"] + 0.5) < 0.02 and abs(d["centroid_y"]) < 0.005),
     ("chamber_y", {"y": -0.3}, lambda d: abs(d["centroid_y"] - 0.3) < 0.02 and abs(d["centroid_x"]) < 0.005),
-    ("source_size_divergence", {"divergence": 1.0}, lambda d: d["transmission"] < -0.2),
+    ("source_divergence", {"divergence": 1.0}, lambda d: d["transmission"] < -0.2),
     ("photon_energy", {"delta": 0.03}, lambda d: d["transmission"] < -0.3),
     ("grating_line_density", {"delta": 0.2}, lambda d: d["transmission"] < -0.3),
     ("slope_error_e2", {"meridional": 5.0}, lambda d: d["width_y"] > 0.002 and abs(d["width_x"]) < 0.001),

@@ -496,11 +496,14 @@ def test_surrogate_backend_draws_finite_ray_noise(tmp_path):
 
 
 def test_motor_dynamics_follow_the_range(metrixs_ioc, ca):
-    """Every axis crosses its whole range in the configured move time (0.5 s in the tests)."""
+    """Every axis crosses its whole travel in the configured move time (0.5 s in the tests);
+    the travel is the box except for the slit openings."""
     for p in METRIXS:
         if p.motorized:
             rec = metrixs_ioc.prefix + p.device.replace(".", ":")
-            assert ca.get(rec + ".VELO") == pytest.approx(p.span / 0.5), p.name
+            lo, hi = p.limits
+            assert ca.get(rec + ".VELO") == pytest.approx((hi - lo) / 0.5), p.name
+            assert (ca.get(rec + ".LLM"), ca.get(rec + ".HLM")) == pytest.approx((lo, hi)), p.name
             assert ca.get(rec + ".VMAX") >= ca.get(rec + ".VELO")
             assert ca.get(rec + ".EGU", as_string=True) == p.unit
 

@@ -100,3 +100,23 @@ def test_version_and_diff():
     problems = METRIXS.diff(changed.fingerprint())
     assert len(problems) == 1 and "E1.rotationXerror" in problems[0]
     assert METRIXS.diff(METRIXS.fingerprint()) == []
+
+
+def test_motor_travel_is_the_box_except_for_the_slit_openings():
+    from bluesky_offsets.diagnosis import OPEN_APERTURE, in_box, open_aperture
+    from sim_iocs.metrixs import axis_settings
+
+    wider = {p.name for p in METRIXS if p.limits != (p.low, p.high)}
+    assert wider == {"ASBL.totalWidth", "ASBL.totalHeight", "ExitSlit.totalHeight"}
+    for p in METRIXS:
+        lo, hi = p.limits
+        assert lo <= p.low < p.high <= hi and lo > 0 if p.name in wider else (lo, hi) == (p.low, p.high)
+    s = axis_settings(METRIXS["ExitSlit.totalHeight"], 0.01)
+    assert (s.low, s.high) == (0.005, 0.2)  # the IOC's soft limits: real runs open it to 100 µm
+    mid = 0.5 * (METRIXS.low + METRIXS.high)
+    opened = open_aperture(np.stack([mid, mid]))
+    assert opened.shape == (2, len(METRIXS)) and in_box(mid).all() and not in_box(opened).any()
+    assert all((opened[:, METRIXS.index(n)] == v).all() for n, v in OPEN_APERTURE.items())
+    assert set(METRIXS.outside_box(opened[0])) == set(OPEN_APERTURE)
+    with pytest.raises(ValueError, match=r"outside the motor's travel \[0.005, 0.2\]"):
+        open_aperture(mid, {"ExitSlit.totalHeight": 0.5})
