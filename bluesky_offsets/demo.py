@@ -42,10 +42,6 @@ DEMO_OFFSETS = {"E1.rotationXerror": 0.015, "E2.rotationXerror": -0.015, "M1_Cyl
                 "E1.translationYerror": 0.01, "E2.translationYerror": -0.01, "ExitSlit.translationZerror": 0.02,
                 "E2.longHalfAxisA": 0.01}
 DEMO_EFFECT = ("chamber_z", {"z": 20.0})
-# Candidate configurations (when the diagnosis module does not design them): E1/E2 pitch and
-# yaw spread wide (they change the lever arm to the screen, which separates a chamber shift
-# along the beam from a focal-length change), the other motors stay where they are.
-WIDE = ("E1.rotationXerror", "E1.rotationYerror", "E2.rotationXerror", "E2.rotationYerror")
 
 
 @dataclass
@@ -61,7 +57,6 @@ class DemoSettings:
     # keep the demo under 10 minutes on 2 cores (docs/diagnosis.md)
     analysed_configurations: int = 14
     candidates: int = 40
-    wide_spread: float = 0.3
     effect: tuple[str, dict] = DEMO_EFFECT
     offsets: dict = field(default_factory=lambda: dict(DEMO_OFFSETS))
     background_offsets: float = 0.0   # ± this (normalized) on every other parameter
@@ -98,16 +93,7 @@ def demo_truth(s: DemoSettings) -> dict:
 
 def candidate_configurations(s: DemoSettings, start: np.ndarray) -> np.ndarray:
     """The start (an operator begins where the beam is), then a diagnostic design around it."""
-    design = getattr(D, "diagnostic_configurations", None)
-    if design is not None:
-        cand = design(start, s.candidates, seed=s.seed)
-    else:
-        from plans import sample_candidates
-        spread = np.zeros(len(METRIXS))
-        for n in WIDE:
-            spread[METRIXS.index(n)] = s.wide_spread
-        cand = sample_candidates(s.candidates, rng=s.seed, around=start, spread=spread)
-    return np.vstack([start, cand])
+    return np.vstack([start, D.diagnostic_configurations(start, s.candidates, seed=s.seed)])
 
 
 def measurement_design(s: DemoSettings, bright: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -260,7 +246,7 @@ def demo_plan(s: DemoSettings, beamline, chamber, twin, forward_model, store, lo
                                               seed=s.seed, md={"purpose": "bluesky-offsets demo",
                                                                "analysed_configurations": [int(i) for i in analysed]})
     t["analysis"] = time.perf_counter()
-    return {"measurement": m, "offsets": found, "analysis": analysis, "times": t}
+    return {"measurement": m, "offsets": found, "analysis": analysis, "times": t, "n_open": n_open}
 
 
 def _quiet_logs() -> None:
@@ -333,7 +319,7 @@ def run_demo(out: Path, settings: DemoSettings | None = None, store_location: st
         uids = list(result.run_start_uids)
         analysis = res["analysis"]
         m = res["measurement"]
-        n_open = int((~D.in_box(m.configurations)).sum())
+        n_open = res["n_open"]
         # the first three runs: the search, the measurement, the surrogate finder
         steps = {"search": uids[0], "measurement": m.uid, "find_offsets": uids[2],
                  **{k: v for k, v in analysis.uids.items() if v}}

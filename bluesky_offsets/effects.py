@@ -232,13 +232,8 @@ class SourceSizeDivergence(Effect):
                   EffectParameter("divergence", "rel", -0.5, 1.0, "relative change of the divergence"))
 
     def overrides(self, v):
-        src = _NOMINAL[SOURCE]
-        s, d = 1.0 + v["size"], 1.0 + v["divergence"]
-        if s <= 0 or d <= 0:
-            raise ValueError("source size and divergence must stay positive (relative change > -1)")
-        return {SOURCE: {"sourceWidth": src.get_float("sourceWidth") * s,
-                         "sourceHeight": src.get_float("sourceHeight") * s,
-                         "horDiv": src.get_float("horDiv") * d, "verDiv": src.get_float("verDiv") * d}}
+        size, div = SourceScale("size").overrides(v), SourceScale("divergence").overrides(v)
+        return {SOURCE: {**size[SOURCE], **div[SOURCE]}}
 
 
 class PhotonEnergyOffset(Effect):
