@@ -3,7 +3,7 @@
 A whole calibration and diagnosis session against the simulated beamline:
 
 1. start the simulated METRIXS IOC (RAYX twin backend, 127.0.0.1, a free port) with hidden
-   offsets *and* a hidden physical effect (default: the focus chamber 15 mm downstream);
+   offsets *and* a hidden physical effect (default: the focus chamber 20 mm downstream);
 2. in a RunEngine, with every run written to the embedded run store: find bright
    configurations on the beamline, measure them (>= 16), find the offsets (surrogate finder,
    then a fit through the twin), compare model and measurement, diagnose the missing effect,
@@ -250,8 +250,15 @@ def demo_plan(s: DemoSettings, beamline, chamber, twin, forward_model, store, lo
 
 
 def _quiet_logs() -> None:
-    """Dask's and tiled's INFO lines would drown the progress."""
+    """Dask's and tiled's INFO lines would drown the progress.  Their imports set their
+    loggers to INFO, so they are imported first."""
+    import importlib
     import logging
+    for module in ("distributed", "tiled.server.app"):
+        try:
+            importlib.import_module(module)
+        except ImportError:  # pragma: no cover - a client-only tiled
+            pass
     for name in list(logging.root.manager.loggerDict):
         if name.split(".")[0] in ("distributed", "tiled", "httpx", "bokeh"):
             logging.getLogger(name).setLevel(logging.WARNING)
@@ -297,11 +304,11 @@ def run_demo(out: Path, settings: DemoSettings | None = None, store_location: st
         from .store import open_store
         from .twin import Twin
 
+        _quiet_logs()
         store = open_store(store_location)
         forward_model = load_forward_model()
         twin = Twin(n_rays=s.n_rays, n_workers=s.workers)
         twin.client  # start the Dask workers while the IOC comes up
-        _quiet_logs()
         RE = RunEngine({}, call_returns_result=True)  # before the devices: they connect in its event loop
         ioc.wait_ready()
         with init_devices():
@@ -407,7 +414,9 @@ def add_cli(sub) -> None:
     p.add_argument("--candidates", default=None, help="effects to rank, comma separated (default: all)")
     p.add_argument("--refine-iterations", type=int, default=RECIPE["refine_iterations"],
                    help="Gauss-Newton iterations on the bins after the feature stage (default %(default)s)")
-    p.add_argument("--refit-iterations", type=int, default=RECIPE["refit_iterations"])
+    p.add_argument("--refit-iterations", type=int, default=RECIPE["refit_iterations"],
+                   help="Gauss-Newton iterations on the bins when the winning effect is refitted with the offsets "
+                        "(default %(default)s)")
     p.add_argument("--feature-iterations", type=int, default=None,
                    help="iterations on the beam features that start every fit (default: "
                         f"{RECIPE['refine_kw']['feature_iterations']} before the diagnosis, "
@@ -418,7 +427,8 @@ def add_cli(sub) -> None:
     p.add_argument("--resolution", choices=("camera", "paper"), default="camera",
                    help="histograms the diagnosis fits: the camera's profiles (20 µm x 5 µm bins, default) or the "
                         "paper's 50 x 50 bins")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=int, default=0,
+                   help="another draw of the demo: candidate design, frame noise, fit seeds (default %(default)s)")
     p.set_defaults(func=_cmd_demo)
 
 
