@@ -292,7 +292,7 @@ def run_demo(out: Path, settings: DemoSettings | None = None, store_location: st
         f"{'a hidden ' + s.effect[0] if s.effect[0] else 'no hidden effect'}); load average {load:.1f} on {os.cpu_count()} cores")
     # seeded frame noise: the same settings give the same demo, --seed another draw of it
     ioc = SimulatedBeamline(truth, s.n_rays, work, noise_seed=s.seed + 2)
-    twin = None
+    twin = RE = None
     try:
         from bluesky import RunEngine
         from bluesky.utils import RunEngineInterrupted
@@ -368,7 +368,25 @@ def run_demo(out: Path, settings: DemoSettings | None = None, store_location: st
     finally:
         if twin is not None:
             twin.close()
+        if RE is not None:
+            _close_channels(RE)
         ioc.stop()
+
+
+def _close_channels(RE) -> None:
+    """Close the devices' Channel Access channels before the IOC goes: otherwise libca prints
+    a "Virtual circuit disconnect" exception after the summary.  In the RunEngine's loop, whose
+    thread holds the CA context."""
+    import asyncio
+
+    async def purge():
+        from aioca import purge_channel_caches
+        purge_channel_caches()
+
+    try:
+        asyncio.run_coroutine_threadsafe(purge(), RE.loop).result(timeout=10)
+    except Exception:  # noqa: BLE001 - cosmetic; the IOC is stopped either way
+        pass
 
 
 def _print_summary(summary: dict, analysis, location: str) -> None:
