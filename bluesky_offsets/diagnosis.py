@@ -213,6 +213,20 @@ def _heldout(fx, fit: FeatureFit, folds: Sequence[np.ndarray], everything: np.nd
     return np.array(out)
 
 
+def _many_fit_traces(states: Sequence[ModelState], state: ModelState, n: int, iterations: int,
+                     directions: int) -> int:
+    """Traces of :func:`fit_features_many` over ``states`` (the first is the offsets-only fit),
+    each ``n`` configurations: per iteration the proposal and its twin-level effect probes;
+    the offset directions where a fit starts, except for states that differ from the first only
+    at the detector (they share its)."""
+    total = 0
+    for k, st in enumerate(states):
+        new = [e for e in st.effects if e not in state.effects]
+        p_twin = sum(len(E.get(e).parameters) for e in new if E.get(e).level == "twin")
+        total += n * (1 + iterations * (1 + p_twin) + (directions if p_twin or k == 0 else 0))
+    return total
+
+
 def diagnose(meas: Measurement, state: ModelState, twin, forward_model=None, *,
              candidates: Sequence[str] | None = None, folds: int = 4, anchor_rays: int | None = None,
              scan_rays: int | None = None, seed: int = 0, n_sigma: float = 3.0, reuse: LocalModel | None = None,
@@ -266,10 +280,7 @@ def diagnose(meas: Measurement, state: ModelState, twin, forward_model=None, *,
                                 for v in starting_values(E.get(name))]
     fits = fit_features_many(meas, [st for _, st in starts], twin, lm.jac, iterations=iterations, rays=scan_rays,
                              seed=seed + 7919, directions=directions, table=table)
-    for name, st in starts:
-        new = [k for k in st.effects if k not in state.effects]
-        p_twin = sum(len(E.get(k).parameters) for k in new if E.get(k).level == "twin")
-        n_traces += n * (1 + iterations * (1 + p_twin) + (directions if p_twin or name is None else 0))
+    n_traces += _many_fit_traces([st for _, st in starts], state, n, iterations, directions)
     ref_fit = fits[0]
     best: dict[str, FeatureFit] = {}
     for (name, _), fit in zip(starts[1:], fits[1:]):
@@ -299,9 +310,8 @@ def diagnose(meas: Measurement, state: ModelState, twin, forward_model=None, *,
         pol = fit_features_many(meas, [ref_fit.state] + [c.refined_state for c in top], twin, lm.jac,
                                 iterations=polish_iterations, rays=scan_rays, seed=seed + 7919,
                                 directions=directions, table=table)
-        for st in [ref_fit.state] + [c.refined_state for c in top]:
-            p_twin = sum(len(E.get(k).parameters) for k in st.effects if E.get(k).level == "twin")
-            n_traces += n * (1 + polish_iterations * (1 + p_twin) + directions)
+        n_traces += _many_fit_traces([ref_fit.state] + [c.refined_state for c in top], state, n,
+                                     polish_iterations, directions)
         ref_fit = pol[0]
         for c, fit in zip(top, pol[1:]):
             best[c.name] = fit

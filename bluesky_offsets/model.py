@@ -601,6 +601,11 @@ class _Features:
         return d if np.all(np.isfinite(d)) else np.zeros_like(z0)
 
 
+def _feature_noise_limit(n_features: int, n_sigma: float) -> float:
+    """Feature χ² a correct model stays below: its expectation plus ``n_sigma`` σ."""
+    return n_features + n_sigma * math.sqrt(2 * n_features)
+
+
 def fit_features(meas: Measurement, state: ModelState, twin, *, iterations: int = 8, anchor_rays: int | None = None,
                  seed: int = 0, jacobian_step: float = 0.005, effect_step: float = 0.05, damping: float = 1.0,
                  offset_jacobian: np.ndarray | None = None, progress=None, n_sigma: float = 3.0,
@@ -630,7 +635,7 @@ def fit_features(meas: Measurement, state: ModelState, twin, *, iterations: int 
     fx = _Features(meas, twin, rays, jacobian_step, effect_step, table)
     cfg, n, P = meas.configurations, meas.n, len(table)
     lo, hi = fx.bounds(state)
-    limit = fx.fm.size + n_sigma * math.sqrt(2 * fx.fm.size)
+    limit = _feature_noise_limit(fx.fm.size, n_sigma)
     ridge = np.r_[np.full(P, 0.0 if prior_sigma is None else prior_sigma ** -2.0),
                   np.zeros(len(state.effect_parameters()))]
 
@@ -839,7 +844,7 @@ def refine(meas: Measurement, state: ModelState, twin, forward_model, *, iterati
                "progress": progress, "table": table, **dict(feature_kw or {})}
         ff = fit_features(meas, state, twin, offset_jacobian=offset_jacobian, **fkw)
         last = ff.history[-1]
-        settled = last["chi2_features"] <= last["features"] + fkw.get("n_sigma", 3.0) * math.sqrt(2 * last["features"])
+        settled = last["chi2_features"] <= _feature_noise_limit(last["features"], fkw.get("n_sigma", 3.0))
         for k, alt in enumerate(() if also_from_beyond_noise and settled else also_from):
             off = np.asarray(getattr(alt, "offsets", alt), dtype=float)
             fa = fit_features(meas, ModelState(off, state.effects, state.label), twin,
