@@ -15,6 +15,10 @@ misalignment into those world vectors, so this module does the same:
 
 Orientation matrices have the element's x, y, z axes as columns
 (``worldXdirection``, ``worldYdirection``, ``worldZdirection`` in the RML).
+
+The functions take plain numbers (the RML writer, RAYX's input) or torch tensors of shape
+``(C,)``, one value per configuration (the differentiable twin, batched, with gradients):
+one piece of geometry for both engines.
 """
 
 from __future__ import annotations
@@ -29,20 +33,58 @@ MISALIGNMENT_KEYS = ("translationXerror", "translationYerror", "translationZerro
                      "rotationXerror", "rotationYerror", "rotationZerror")
 
 
-def rot_x(a: float) -> np.ndarray:
+def _torch_of(*values):
+    """The torch module if any value is a tensor, else None."""
+    for v in values:
+        if type(v).__module__.split(".")[0] == "torch":
+            import torch
+            return torch
+    return None
+
+
+def _cos_sin(a):
+    torch = _torch_of(a)
+    if torch is not None:
+        return torch.cos(a), torch.sin(a)
+    return math.cos(a), math.sin(a)
+
+
+def _matrix(rows, like):
+    """A 3x3 matrix (or a batch (..., 3, 3)) from entries that are numbers or arrays like ``like``."""
+    torch = _torch_of(like)
+    if torch is None:
+        return np.array(rows, dtype=float)
+    full = [[e if torch.is_tensor(e) else torch.full_like(like, float(e)) for e in row] for row in rows]
+    return torch.stack([torch.stack(row, -1) for row in full], -2)
+
+
+def _apply(m, v):
+    """Matrix (..., 3, 3) times vector (..., 3), batched alike for numpy and torch."""
+    return (m @ v[..., None])[..., 0]
+
+
+def as_array_like(x, like):
+    """``x`` (numbers or an array) in ``like``'s array type, dtype and device."""
+    torch = _torch_of(like)
+    if torch is None:
+        return np.asarray(x, dtype=float)
+    return torch.as_tensor(x, dtype=like.dtype, device=like.device)
+
+
+def rot_x(a) -> np.ndarray:
     """Right-handed active rotation by ``a`` rad about x."""
-    c, s = math.cos(a), math.sin(a)
-    return np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
+    c, s = _cos_sin(a)
+    return _matrix([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]], c)
 
 
-def rot_y(a: float) -> np.ndarray:
-    c, s = math.cos(a), math.sin(a)
-    return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
+def rot_y(a) -> np.ndarray:
+    c, s = _cos_sin(a)
+    return _matrix([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]], c)
 
 
-def rot_z(a: float) -> np.ndarray:
-    c, s = math.cos(a), math.sin(a)
-    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+def rot_z(a) -> np.ndarray:
+    c, s = _cos_sin(a)
+    return _matrix([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]], c)
 
 
 @dataclass(frozen=True)
@@ -62,14 +104,28 @@ class Misalignment:
         return cls(*t)
 
     @property
+    def _values(self) -> tuple:
+        return self.tx, self.ty, self.tz, self.rx, self.ry, self.rz
+
+    @property
     def translation(self) -> np.ndarray:
-        return np.array([self.tx, self.ty, self.tz])
+        torch = _torch_of(*self._values)
+        if torch is None:
+            return np.array([self.tx, self.ty, self.tz], dtype=float)
+        like = next(v for v in self._values if torch.is_tensor(v))
+        return torch.stack(torch.broadcast_tensors(*(as_array_like(v, like) for v in (self.tx, self.ty, self.tz))), -1)
 
     def rotation(self) -> np.ndarray:
-        return rot_z(self.rz * 1e-3) @ rot_y(self.ry * 1e-3) @ rot_x(self.rx * 1e-3)
+        rx, ry, rz = self.rx, self.ry, self.rz
+        torch = _torch_of(*self._values)
+        if torch is not None:
+            like = next(v for v in self._values if torch.is_tensor(v))
+            rx, ry, rz = (as_array_like(v, like) for v in (rx, ry, rz))
+        return rot_z(rz * 1e-3) @ rot_y(ry * 1e-3) @ rot_x(rx * 1e-3)
 
     def is_zero(self) -> bool:
-        return not any((self.tx, self.ty, self.tz, self.rx, self.ry, self.rz))
+        """True for an all-zero misalignment of numbers (tensors carry gradients: never zero)."""
+        return _torch_of(*self._values) is None and not any(self._values)
 
 
 @dataclass(frozen=True)
@@ -118,15 +174,16 @@ def misalign(nominal: Frame, mis: Misalignment, tau: float = 0.0) -> Frame:
     """
     if mis.is_zero():
         return nominal
-    o = nominal.orientation
-    if tau == 0.0:
-        o_w = o @ mis.rotation()
-        p_w = nominal.position + o_w @ mis.translation
+    rot, t = mis.rotation(), mis.translation
+    o, p = as_array_like(nominal.orientation, rot), as_array_like(nominal.position, rot)
+    if _torch_of(tau) is None and tau == 0.0:
+        o_w = o @ rot
+        p_w = p + _apply(o_w, t)
     else:
         e = o @ rot_x(tau)
-        o_w = e @ mis.rotation() @ rot_x(-tau)
+        o_w = e @ rot @ rot_x(-tau)
         # RAYX's description of the ellipsoid frame translates before rotating.
-        p_w = nominal.position + e @ mis.translation
+        p_w = p + _apply(e, t)
     return Frame(p_w, o_w)
 
 
@@ -150,21 +207,38 @@ def chain_frames(links: Sequence[ChainLink]) -> list[Frame]:
     return frames
 
 
-def ellipsoid_tangent_angle(a: float, b: float, design_grazing_rad: float,
-                            entrance_arm: float, exit_arm: float) -> float:
+def ellipsoid_pole(a, b, design_grazing_rad, entrance_arm, exit_arm):
+    """The pole ``(y0, z0)`` of a mirror on the ellipse with half-axes ``a > b`` (RAYX's
+    construction: ellipse-centred coordinates, y along the minor axis, z along the major one),
+    from the design grazing angle; ``z0 > 0`` when the entrance arm is the longer one.
+    Numbers or tensors; for a tensor the caller guarantees ``a > b`` and a positive angle."""
+    torch = _torch_of(a, b, design_grazing_rad)
+    if torch is None:
+        if a <= b or design_grazing_rad <= 0:
+            return (-b if a > b else 0.0), 0.0
+        y0 = -b * b / (math.tan(design_grazing_rad) * math.sqrt(a * a - b * b))
+        if y0 <= -b:
+            return y0, 0.0
+        z0 = a * math.sqrt(b * b - y0 * y0) / b
+    else:
+        like = a if torch.is_tensor(a) else b
+        tan = torch.tan(as_array_like(design_grazing_rad, like))
+        y0 = -b * b / (tan * torch.sqrt(a * a - b * b))
+        z0 = a * torch.sqrt(b * b - y0 * y0) / b
+    return y0, (-z0 if entrance_arm < exit_arm else z0)
+
+
+def ellipsoid_tangent_angle(a, b, design_grazing_rad, entrance_arm: float, exit_arm: float):
     """Tilt (rad) of the ellipse's major axis against the mirror surface at the pole.
 
     Follows RAYX's ellipsoid construction: the pole ``(y0, z0)`` on the ellipse
     from the half-axes and the design grazing angle, then the tangent slope
     there.  Positive when the entrance arm is the longer one.
     """
-    if a <= b or design_grazing_rad <= 0:
-        return 0.0
-    y0 = -b * b / (math.tan(design_grazing_rad) * math.sqrt(a * a - b * b))
-    if y0 <= -b:
-        return 0.0
-    z0 = a * math.sqrt(b * b - y0 * y0) / b
-    if entrance_arm < exit_arm:
-        z0 = -z0
-    mt = (b / a) ** 2 * z0 / y0
-    return -math.atan(mt)
+    y0, z0 = ellipsoid_pole(a, b, design_grazing_rad, entrance_arm, exit_arm)
+    torch = _torch_of(y0, z0)
+    if torch is None:
+        if z0 == 0.0:
+            return 0.0
+        return -math.atan((b / a) ** 2 * z0 / y0)
+    return -torch.atan((b / a) ** 2 * z0 / y0)

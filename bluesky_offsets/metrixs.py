@@ -13,6 +13,7 @@ whose world frames carry every misalignment.
 from __future__ import annotations
 
 from collections.abc import Mapping
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -106,6 +107,60 @@ def nominal_beamline() -> RmlBeamline:
 _NOMINAL = nominal_beamline()
 
 
+@dataclass
+class BeamlineState:
+    """What a parameter vector and overrides change in the nominal beamline.
+
+    ``types``: objects whose element type changes (M1 turned into a toroid); ``fields``:
+    ``{object: {RML field: value}}`` set by the parameters, then replaced by the overrides;
+    ``misalignment``: ``{object: {alignment key: value}}``, parameters and overrides added.
+    Values are numbers, or tensors with one entry per configuration when the parameters come
+    as a torch batch (the differentiable twin reads this, RAYX's RML is written from it).
+    """
+
+    types: dict[str, str] = field(default_factory=dict)
+    fields: dict[str, dict[str, object]] = field(default_factory=dict)
+    misalignment: dict[str, dict[str, object]] = field(default_factory=dict)
+
+
+def beamline_state(values, overrides: Mapping[str, Mapping[str, object]] | None = None,
+                   table: ParameterTable = METRIXS) -> BeamlineState:
+    """The changes of :func:`build_beamline`, without building it.
+
+    ``values`` is a parameter vector (numbers) or a torch tensor ``(..., 34)``; override values
+    may be tensors too.  Unknown objects and fields are refused as in :func:`build_beamline`.
+    """
+    state = BeamlineState()
+    for j, p in enumerate(table):
+        v = values[..., j]
+        if p.field in MISALIGNMENT_KEYS:
+            state.misalignment.setdefault(p.element, {})[p.field] = v
+        else:
+            state.fields.setdefault(p.element, {})[p.field] = v
+    for name, fields in (overrides or {}).items():
+        try:
+            obj = _NOMINAL[name]
+        except RmlError:
+            raise RmlError(f"override names unknown object {name!r}; objects: "
+                           f"{[o.name for o in _NOMINAL.objects]}") from None
+        new_type = fields.get("type")
+        if new_type is not None:
+            # a structural change (e.g. M1 becoming a toroid): the new type's fields may be added
+            state.types[name] = str(new_type)
+        for key, value in fields.items():
+            if key == "type":
+                continue
+            value = value if isinstance(value, str) or hasattr(value, "requires_grad") else float(value)
+            if key in MISALIGNMENT_KEYS:
+                mis = state.misalignment.setdefault(name, {})
+                mis[key] = mis.get(key, 0.0) + value
+            elif not obj.has(key) and new_type is None:
+                raise RmlError(f"override: {name!r} has no field {key!r}")
+            else:
+                state.fields.setdefault(name, {})[key] = value
+    return state
+
+
 def build_beamline(values, *, overrides: Mapping[str, Mapping[str, object]] | None = None,
                    table: ParameterTable = METRIXS, n_rays: int | None = None) -> RmlBeamline:
     """The METRIXS beamline at parameter vector ``values`` (physical units).
@@ -128,36 +183,16 @@ def build_beamline(values, *, overrides: Mapping[str, Mapping[str, object]] | No
     vec = table.validate(values)
     if vec.ndim != 1:
         raise ValueError("build_beamline takes one parameter vector; use the twin for batches")
+    state = beamline_state(vec, overrides, table)
     bl = _NOMINAL.copy()
-    mis: dict[str, dict[str, float]] = {}
-    for p, v in zip(table, vec):
-        obj = bl[p.element]
-        if p.field in MISALIGNMENT_KEYS:
-            mis.setdefault(p.element, {})[p.field] = float(v)
-        else:
-            obj.set(p.field, float(v))
-    for name, fields in (overrides or {}).items():
-        try:
-            obj = bl[name]
-        except RmlError:
-            raise RmlError(f"override names unknown object {name!r}; objects: "
-                           f"{[o.name for o in bl.objects]}") from None
-        new_type = fields.get("type")
-        if new_type is not None:
-            # a structural change (e.g. M1 becoming a toroid): the new type's fields may be added
-            obj.type = str(new_type)
+    for name, new_type in state.types.items():
+        bl[name].type = new_type
+    for name, fields in state.fields.items():
+        obj = bl[name]
         for key, value in fields.items():
-            if key == "type":
-                continue
-            if key in MISALIGNMENT_KEYS:
-                mis.setdefault(name, {})
-                mis[name][key] = mis[name].get(key, 0.0) + float(value)
-            elif not obj.has(key) and new_type is None:
-                raise RmlError(f"override: {name!r} has no field {key!r}")
-            else:
-                obj.set(key, value if isinstance(value, str) else float(value))
-    for name, fields in mis.items():
-        bl[name].set_misalignment(**fields)
+            obj.set(key, value if isinstance(value, str) else float(value))
+    for name, fields in state.misalignment.items():
+        bl[name].set_misalignment(**{k: float(v) for k, v in fields.items()})
     if n_rays is not None:
         bl[SOURCE].set("numberRays", int(n_rays))
     return bl

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import math
 import xml.etree.ElementTree as ET
-from collections.abc import Iterable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -111,29 +111,38 @@ class RmlObject:
 
     def chain_link(self) -> ChainLink:
         """How this object sits in the element chain."""
-        deg = math.radians
-        mis = self.misalignment
-        if self.is_source:
-            return ChainLink(misalignment=mis, is_source=True)
-        if self.type == "ImagePlane":
-            return ChainLink(distance=self.get_float("distanceImagePlane"), misalignment=mis)
-        distance = self.get_float("distancePreceding")
-        azimuth = deg(self.get_float("azimuthalAngle", 0.0))
-        if self.type in FLAT_TYPES:
-            return ChainLink(distance, azimuth, 0.0, 0.0, mis)
-        if self.type in GRATING_TYPES:
-            alpha, beta = self.get_float("alpha"), self.get_float("beta")
-            return ChainLink(distance, azimuth, deg(90.0 - alpha), deg(90.0 + beta), mis)
-        if self.type in MIRROR_TYPES:
-            theta = deg(self.get_float("grazingIncAngle"))
-            tau = 0.0
-            if self.type == "Ellipsoid" and self.comment("misalignmentCoordinateSystem") == "Ellipsoid":
-                tau = ellipsoid_tangent_angle(
-                    self.get_float("longHalfAxisA"), self.get_float("shortHalfAxisB"),
-                    deg(self.get_float("designGrazingIncAngle", self.get_float("grazingIncAngle"))),
-                    self.get_float("entranceArmLength"), self.get_float("exitArmLength"))
-            return ChainLink(distance, azimuth, theta, theta, mis, tau)
-        raise RmlError(f"object {self.name!r}: element type {self.type!r} is not supported")
+        return chain_link(self.type, self.get_float, self.comment, self.misalignment, self.name)
+
+
+def chain_link(type_: str, get: Callable, comment: Callable, mis: Misalignment, name: str = "") -> ChainLink:
+    """How an object of ``type_`` sits in the element chain.
+
+    ``get(field[, default])`` returns a field's value, ``comment(field)`` its switch text: the
+    RML objects give numbers, the differentiable twin tensors (the ellipsoid's misalignment
+    frame then follows its half-axes with gradients).
+    """
+    deg = math.radians
+    if "Source" in type_:
+        return ChainLink(misalignment=mis, is_source=True)
+    if type_ == "ImagePlane":
+        return ChainLink(distance=get("distanceImagePlane"), misalignment=mis)
+    distance = get("distancePreceding")
+    azimuth = deg(get("azimuthalAngle", 0.0))
+    if type_ in FLAT_TYPES:
+        return ChainLink(distance, azimuth, 0.0, 0.0, mis)
+    if type_ in GRATING_TYPES:
+        alpha, beta = get("alpha"), get("beta")
+        return ChainLink(distance, azimuth, deg(90.0 - alpha), deg(90.0 + beta), mis)
+    if type_ in MIRROR_TYPES:
+        theta = deg(get("grazingIncAngle"))
+        tau = 0.0
+        if type_ == "Ellipsoid" and comment("misalignmentCoordinateSystem") == "Ellipsoid":
+            tau = ellipsoid_tangent_angle(
+                get("longHalfAxisA"), get("shortHalfAxisB"),
+                deg(get("designGrazingIncAngle", get("grazingIncAngle"))),
+                get("entranceArmLength"), get("exitArmLength"))
+        return ChainLink(distance, azimuth, theta, theta, mis, tau)
+    raise RmlError(f"object {name!r}: element type {type_!r} is not supported")
 
 
 @dataclass
@@ -174,6 +183,8 @@ class RmlBeamline:
         bl = ET.SubElement(lab, "beamline")
         for obj, frame in zip(self.objects, frames):
             node = ET.SubElement(bl, "object", {"name": obj.name, "type": obj.type})
+            if obj.is_source:
+                frame = rayx_source_frame(frame)
             world = dict(zip(WORLD_KEYS, (frame.position, frame.x, frame.y, frame.z)))
             written_world = False
             for p in obj.params.values():
@@ -192,6 +203,18 @@ class RmlBeamline:
         path = Path(path)
         path.write_text(self.to_xml())
         return path
+
+
+def rayx_source_frame(frame: Frame) -> Frame:
+    """The world vectors that make RAYX emit from ``frame``.
+
+    RAYX moves a source's rays to the world with the source's *world-to-local* matrix
+    (RAYX-CONVENTIONS.md §2.3): written as it is, a source shifted +0.5 mm in x would emit
+    from -0.5 mm.  Writing the inverse frame, position ``-Oᵀp`` and axes the columns of
+    ``Oᵀ``, makes RAYX's inversion undo itself: the beam leaves from ``p`` along ``O``.
+    """
+    o = np.asarray(frame.orientation, dtype=float)
+    return Frame(-(o.T @ np.asarray(frame.position, dtype=float)), o.T.copy())
 
 
 def _fmt(v) -> str:

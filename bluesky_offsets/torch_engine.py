@@ -1,0 +1,885 @@
+"""The differentiable twin: the METRIXS beamline traced in PyTorch with RAYX's physics.
+
+RAYX (the reference engine, and the simulated IOC's "real beamline") has no gradients and
+no batch interface.  This engine traces the same beamline, element by element, in RAYX's
+conventions (``../shared/reference/RAYX-CONVENTIONS.md``; RAYX's source, hz-b/rayx), batched
+over configurations and rays, on CPU or CUDA, differentiable in every parameter:
+
+* **frames** come from the project's own geometry (:mod:`.geometry`, :func:`.metrixs.beamline_state`):
+  the same code writes RAYX's RML, here evaluated on tensors;
+* **surfaces**: planes (slits, plane mirror, image plane), RAYX's quadrics with its
+  dominant-axis root (cylinder, sphere/spherical grating, ellipsoid with ``figureRotation``),
+  the toroid by RAYX's Newton iteration; rectangular and elliptical outlines;
+* **behaviours**: reflection, RAYX's vector grating equation (with its ``cos δ`` factor),
+  slits (absorption, Fraunhofer kicks), the transparent image plane; slope errors as RAYX
+  perturbs the normal;
+* **random numbers**: ``sampling="rayx"`` draws RAYX's own stream (same source rays and slit
+  kicks for the same seed), ``"fast"`` torch's generator with the same distributions.
+
+What it does not do: the non-sequential search.  RAYX tests every element at every step;
+a ray counts for the focus only if it meets the elements in order (:func:`.twin.footprint`),
+so tracing them in order gives the same surviving rays and hit points.  One consequence:
+RAYX also draws slope errors for elements a ray *could* have hit next (RAYX-CONVENTIONS.md
+§7); here only the element hit draws, so with slope errors on the two streams part ways
+after the first such candidate (same distribution, other rays).
+
+Gradients: hit points, directions and the rays' screen positions are smooth functions of
+the parameters.  Survival is not: a ray inside or outside an outline, a slit opening or a
+histogram bin is a step.  ``edge > 0`` replaces the outline and opening steps by logistic
+weights over ``edge`` times the aperture (the "soft" beam), and the histograms and camera
+profiles by kernel binning, so that intensities and rms widths carry the rays crossing an
+edge in their derivatives.  Hard steps remain where no ray of a usable beam sits (a missed
+quadric, an evanescent grating order, a failed toroid iteration); RAYX's rejection-sampled
+slit kicks depend on the opening only through the accepted draw's scale, which is smooth.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from collections.abc import Mapping, Sequence
+from dataclasses import asdict, dataclass, field, fields
+from typing import Literal
+
+import numpy as np
+import torch
+
+from . import torch_random as rnd
+from .geometry import Misalignment, chain_frames
+from .metrixs import SOURCE, beamline_state, check_physical, nominal_beamline
+from .parameters import METRIXS, ParameterTable
+from .rml import FLAT_TYPES, GRATING_TYPES, MIRROR_TYPES, RmlError, chain_link
+from .twin import HistogramSpec, TraceRequest, TraceResult
+
+HC_EV_NM = 1239.841984332002622  # RAYX's h·c in eV·nm
+SEARCH_SHIFT = 1e-6  # mm: RAYX starts each search this far along the ray
+ARCSEC = math.pi / 180.0 / 3600.0
+FEATURES = ("intensity", "centroid_x", "centroid_y", "width_x", "width_y")
+_MIS_KEYS = {"translationXerror": "tx", "translationYerror": "ty", "translationZerror": "tz",
+             "rotationXerror": "rx", "rotationYerror": "ry", "rotationZerror": "rz"}
+
+
+# --------------------------------------------------------------------------- #
+# options
+# --------------------------------------------------------------------------- #
+@dataclass(frozen=True)
+class TorchOptions:
+    """How the torch engine traces.
+
+    dtype : "float64" (default; equal to RAYX ray for ray) or "float32" (faster, coarser:
+        docs/benchmarks.md gives its measured accuracy).
+    device : "cpu", "cuda", "cuda:1" ...
+    sampling : "fast" (torch's generator, inverse-CDF slit kicks) or "rayx" (RAYX's own
+        random stream, for ray-for-ray comparisons; slower: rejection loops).
+    common_rays : share the random numbers across the configurations of a batch (common
+        random numbers: differences between configurations carry no sampling noise of
+        their own); False draws each configuration from ``seed + i``.
+    max_batch : configurations × rays traced at once; larger batches are traced in chunks
+        of rays (memory: ~2 kB per ray and configuration with gradients).
+    edge : soft-edge width, relative to each aperture dimension, for the smooth (soft)
+        beam the gradients use; 0 = hard edges.
+    kernel : width (in bins) of the kernel that bins the soft histograms and profiles.
+    """
+
+    dtype: Literal["float64", "float32"] = "float64"
+    device: str = "cpu"
+    sampling: Literal["fast", "rayx"] = "fast"
+    common_rays: bool = True
+    max_batch: int = 1 << 19
+    edge: float = 0.002
+    kernel: float = 1.0
+
+    def __post_init__(self):
+        if self.dtype not in ("float64", "float32"):
+            raise ValueError(f"dtype must be 'float64' or 'float32', not {self.dtype!r}")
+        if self.sampling not in ("fast", "rayx"):
+            raise ValueError(f"sampling must be 'fast' or 'rayx', not {self.sampling!r}")
+        if int(self.max_batch) < 1:
+            raise ValueError("max_batch must be positive")
+        if not (self.edge >= 0 and math.isfinite(self.edge)):
+            raise ValueError("edge must be a finite number >= 0")
+        if not (self.kernel > 0 and math.isfinite(self.kernel)):
+            raise ValueError("kernel must be a finite number > 0")
+        torch.device(self.device)  # refuses a malformed device string
+
+    @classmethod
+    def from_mapping(cls, options: Mapping[str, object] | None) -> TorchOptions:
+        """Options from a mapping; an unknown key is refused, naming the known ones."""
+        options = dict(options or {})
+        known = {f.name for f in fields(cls)}
+        unknown = sorted(set(options) - known)
+        if unknown:
+            raise ValueError(f"unknown torch engine option(s) {unknown}; known: {sorted(known)}")
+        return cls(**options)
+
+    @property
+    def torch_dtype(self) -> torch.dtype:
+        return torch.float64 if self.dtype == "float64" else torch.float32
+
+
+# --------------------------------------------------------------------------- #
+# the compiled beamline
+# --------------------------------------------------------------------------- #
+@dataclass
+class Optic:
+    """One element as the tracer needs it; tensors have a leading configuration axis
+    (shape (C, 1) to broadcast over rays) or are plain numbers when constant."""
+
+    name: str
+    type: str
+    behaviour: str  # "slit", "mirror", "grating", "image"
+    surface: str  # "plane", "quadric", "toroid"
+    rot: torch.Tensor  # (C, 3, 3): previous local frame -> this local frame
+    shift: torch.Tensor  # (C, 3)
+    quadric: dict[str, object] = field(default_factory=dict)
+    cutout: tuple | None = None  # (shape, W, L): 0 rectangle, 1 ellipse; None unlimited
+    opening: tuple | None = None  # slits: (shape, w, h, stop shape, stop w, stop h)
+    slope: tuple | None = None  # (sagittal, meridional) rms in rad
+    grating: tuple | None = None  # (line density, order, (b1..b6))
+
+
+@dataclass
+class CompiledBeamline:
+    """Source and optics of a batch of configurations, ready to trace."""
+
+    n_configs: int
+    source: dict[str, object]  # width, height, depth, hor_div, ver_div (rad), energy, spread
+    source_rot: torch.Tensor  # (C, 3, 3) source frame -> first optic's local frame
+    source_shift: torch.Tensor  # (C, 3)
+    optics: list[Optic]
+    dtype: torch.dtype
+    device: torch.device
+
+    @property
+    def names(self) -> list[str]:
+        return [o.name for o in self.optics]
+
+
+def _col(v, c: int, dtype, device):
+    """A field value as a (C, 1) tensor (or a float when it is a plain constant)."""
+    if torch.is_tensor(v):
+        return v.to(dtype=dtype, device=device).reshape(-1, 1).expand(c, 1) if v.numel() in (1, c) \
+            else _bad_shape(v, c)
+    return float(v)
+
+
+def _bad_shape(v, c):
+    raise ValueError(f"a batched field has {v.numel()} values for {c} configurations")
+
+
+def compile_beamline(values, overrides: Mapping | Sequence[Mapping] | None = None, *,
+                     table: ParameterTable = METRIXS, dtype=torch.float64, device="cpu",
+                     beamline=None) -> CompiledBeamline:
+    """The METRIXS beamline at a batch of parameter vectors, as tensors.
+
+    Parameters
+    ----------
+    values : tensor or array (C, 34) or (34,)
+        Parameter vectors (physical units); a tensor that requires grad keeps its graph.
+    overrides : mapping or sequence of mappings
+        RML-level overrides ``{object: {field: value}}`` (effects, the chamber), shared by
+        all configurations (values may be tensors of shape () or (C,), with gradients) or one
+        mapping of numbers per configuration.  Structural changes (``"type"``) must agree.
+    beamline : RmlBeamline, optional
+        Another beamline than METRIXS (values then (C, 0) and overrides carry everything):
+        the RAY-UI reference files are traced this way.
+    """
+    device = torch.device(device)
+    vals = values if torch.is_tensor(values) else torch.as_tensor(np.asarray(values, dtype=float))
+    vals = vals.to(device=device, dtype=torch.float64)
+    if vals.ndim == 1:
+        vals = vals[None, :]
+    c = vals.shape[0]
+    per_config = overrides is not None and not isinstance(overrides, Mapping)
+    if beamline is None:
+        if vals.shape[1] != len(table):
+            raise ValueError(f"expected parameter vectors of {len(table)} values, got shape {tuple(vals.shape)}")
+        for row in vals.detach().cpu().numpy():
+            check_physical(row, table)
+        if per_config:
+            ovs = list(overrides)
+            if len(ovs) != c:
+                raise ValueError(f"{len(ovs)} overrides for {c} configurations")
+            state = _stack_states([beamline_state(vals[i], ov, table) for i, ov in enumerate(ovs)])
+        else:
+            state = beamline_state(vals, overrides, table)
+        base = nominal_beamline()
+    else:
+        base = beamline.copy()
+        state = beamline_state(vals[:, :0], None, ParameterTable([], name="none"))
+        for name, flds in (overrides or {}).items():
+            for k, v in flds.items():
+                (state.misalignment if k in _MIS_KEYS else state.fields).setdefault(name, {})[k] = v
+    for name, t in state.types.items():
+        base[name].type = t
+
+    def getter(obj):
+        mine = state.fields.get(obj.name, {})
+
+        def get(key, default=None):
+            if key in mine:
+                return mine[key]
+            return obj.get_float(key, default)
+        return get
+
+    links = []
+    for obj in base.objects:
+        mis = obj.misalignment
+        extra = state.misalignment.get(obj.name)
+        if extra:
+            mis = Misalignment(**{**asdict(mis), **{_MIS_KEYS[k]: v for k, v in extra.items()}})
+        links.append(chain_link(obj.type, getter(obj), obj.comment, mis, obj.name))
+    frames = chain_frames(links)
+
+    f64 = dict(dtype=torch.float64, device=device)
+
+    def frame_tensors(fr):
+        p = torch.as_tensor(fr.position, **f64) if not torch.is_tensor(fr.position) else fr.position.to(**f64)
+        o = torch.as_tensor(fr.orientation, **f64) if not torch.is_tensor(fr.orientation) \
+            else fr.orientation.to(**f64)
+        return p.expand(c, 3), o.expand(c, 3, 3)
+
+    src_obj = base.objects[0]
+    if not src_obj.is_source:
+        raise RmlError("the first object must be the source")
+    swap = torch.tensor([[1.0, 0, 0], [0, 0, 1.0], [0, 1.0, 0]], **f64)
+    prev_p, prev_o = frame_tensors(frames[0])  # physical source frame: world = p + O r
+    src_get = getter(src_obj)
+    source = {
+        "type": src_obj.type,
+        "width": src_get("sourceWidth"), "height": src_get("sourceHeight"), "depth": src_get("sourceDepth"),
+        "hor_div": src_get("horDiv") * 1e-3,
+        "ver_div": src_get("verDiv") * 1e-3,
+        "energy": src_get("photonEnergy"), "spread": src_get("energySpread", 0.0),
+        "dists": tuple(int(src_obj.get_float(k, 1.0)) for k in ("sourceWidthDistribution",
+                                                                 "sourceHeightDistribution",
+                                                                 "horDivDistribution", "verDivDistribution")),
+    }
+    source = {k: (_col(v, c, torch.float64, device) if k not in ("type", "dists") else v) for k, v in source.items()}
+
+    optics: list[Optic] = []
+    src_rot = src_shift = None
+    for obj, fr in zip(base.objects[1:], frames[1:]):
+        p, o = frame_tensors(fr)
+        s = swap if obj.type in FLAT_TYPES or obj.type == "ImagePlane" else torch.eye(3, **f64)
+        to_local = s @ o.transpose(-1, -2)  # world -> local (rows)
+        rot = to_local @ prev_o
+        shift = (to_local @ (prev_p - p)[..., None])[..., 0]
+        if src_rot is None:
+            src_rot, src_shift = rot, shift
+        prev_p, prev_o = p, o @ s  # local -> world: r = p + (O S) l
+        optics.append(_optic(obj, getter(obj), rot, shift, c, device))
+    for opt in optics:
+        opt.rot, opt.shift = opt.rot.to(dtype), opt.shift.to(dtype)
+    return CompiledBeamline(c, source, src_rot.to(dtype), src_shift.to(dtype), optics, dtype, device)
+
+
+def _stack_states(states):
+    """One state with (C,) tensors from per-configuration states of numbers."""
+    from .metrixs import BeamlineState
+    out = BeamlineState()
+    types = [s.types for s in states]
+    if any(t != types[0] for t in types):
+        raise ValueError("the configurations of one batch must not change element types differently")
+    out.types = dict(types[0])
+    for attr in ("fields", "misalignment"):
+        keys = {(o, k) for s in states for o, fl in getattr(s, attr).items() for k in fl}
+        target = getattr(out, attr)
+        for o, k in keys:
+            col = []
+            for s in states:
+                v = getattr(s, attr).get(o, {}).get(k)
+                if v is None:
+                    v = 0.0 if attr == "misalignment" else nominal_beamline()[o].get_float(k)
+                col.append(v if torch.is_tensor(v) else torch.tensor(float(v), dtype=torch.float64))
+            target.setdefault(o, {})[k] = torch.stack([torch.as_tensor(v, dtype=torch.float64).reshape(())
+                                                       for v in col])
+    return out
+
+
+def _optic(obj, get, rot, shift, c, device) -> Optic:
+    t = obj.type
+
+    def col(key, default=None):
+        return _col(get(key, default), c, torch.float64, device)
+
+    if t == "Slit":
+        behaviour, surface = "slit", "plane"
+    elif t == "ImagePlane":
+        behaviour, surface = "image", "plane"
+    elif t in GRATING_TYPES:
+        behaviour = "grating"
+        surface = "plane" if t == "Plane Grating" else "quadric"
+    elif t in MIRROR_TYPES:
+        behaviour = "mirror"
+        surface = "plane" if t == "Plane Mirror" else ("toroid" if t == "Toroid" else "quadric")
+    else:
+        raise RmlError(f"object {obj.name!r}: element type {t!r} is not traced by the torch engine")
+    opt = Optic(obj.name, t, behaviour, surface, rot, shift)
+    if surface == "quadric":
+        opt.quadric = _quadric(t, col, obj)
+    elif surface == "toroid":
+        opt.quadric = {"R": col("longRadius"), "rho": col("shortRadius")}
+    if t != "ImagePlane":
+        shape = int(obj.get_float("geometricalShape", 0))
+        if shape not in (0, 1):
+            raise RmlError(f"{obj.name!r}: outline shape {shape} (trapezoid) is not traced by the torch engine")
+        length = col("totalHeight") if t in FLAT_TYPES else col("totalLength")
+        opt.cutout = (shape, col("totalWidth"), length)
+    if behaviour == "slit":
+        shape, stop = int(obj.get_float("openingShape", 0)), int(obj.get_float("centralBeamstop", 0))
+        if shape != 0:
+            raise RmlError(f"{obj.name!r}: only rectangular slit openings are traced by the torch engine")
+        opt.opening = (shape, col("openingWidth"), col("openingHeight"), stop,
+                       col("stopWidth", 0.0), col("stopHeight", 0.0))
+    if obj.has("slopeError") and obj.comment("slopeError") == "Yes":
+        sag, mer = col("slopeErrorSag", 0.0), col("slopeErrorMer", 0.0)
+        if torch.is_tensor(sag) or torch.is_tensor(mer) or sag != 0.0 or mer != 0.0:
+            opt.slope = (sag * ARCSEC, mer * ARCSEC)
+    if behaviour == "grating":
+        vls = tuple(col(f"vlsParameter{i}", 0.0) for i in range(1, 7)) \
+            if obj.comment("lineSpacing") == "variable (VLS)" else (0.0,) * 6
+        opt.grating = (col("lineDensity"), int(obj.get_float("orderDiffraction")), vls)
+    return opt
+
+
+def _quadric(t, col, obj) -> dict:
+    """RAYX's quadric coefficients (RAYX-CONVENTIONS.md §5) of a curved element."""
+    q = dict(a11=0.0, a12=0.0, a13=0.0, a14=0.0, a22=0.0, a23=0.0, a24=0.0, a33=0.0, a34=0.0, a44=0.0)
+    if t == "Cylinder":
+        r = col("radius")
+        if int(obj.get_float("bendingRadius", 1)) == 1:  # "Short Radius rho": sagittal
+            q.update(a11=1.0, a22=1.0, a24=-r)
+        else:
+            q.update(a22=1.0, a33=1.0, a24=-r)
+        q["icurv"] = _sign_icurv(q["a24"])
+    elif t in ("Sphere", "Spherical Grating"):
+        q.update(a11=1.0, a22=1.0, a33=1.0, a24=-col("radius"), icurv=1.0)
+    elif t == "Ellipsoid":
+        from .geometry import ellipsoid_pole
+        a, b = col("longHalfAxisA"), col("shortHalfAxisB")
+        theta = math.radians(obj.get_float("designGrazingIncAngle"))
+        y0, z0 = ellipsoid_pole(a, b, theta, obj.get_float("entranceArmLength"), obj.get_float("exitArmLength"))
+        torch_ns = torch if torch.is_tensor(y0) or torch.is_tensor(z0) else math
+        m = (b / a) ** 2 * z0 / y0
+        alpha = torch_ns.atan(m)
+        k = (b / a) ** 2
+        ca, sa = torch_ns.cos(alpha), torch_ns.sin(alpha)
+        fr = int(obj.get_float("figureRotation", 0))
+        a11 = {0: 1.0, 1: 0.0}.get(fr, obj.get_float("parameter_a11", 1.0))
+        q.update(a11=a11, a22=ca * ca + k * sa * sa, a33=sa * sa + k * ca * ca, a23=-(1 - k) * sa * ca,
+                 a24=k * z0 * sa + y0 * ca, a34=k * z0 * ca - y0 * sa, a44=y0 * y0 + k * z0 * z0 - b * b,
+                 icurv=1.0)
+    else:
+        raise RmlError(f"{obj.name!r}: surface of type {t!r} is not traced by the torch engine")
+    return q
+
+
+def _sign_icurv(a24):
+    if torch.is_tensor(a24):
+        return torch.where(a24 <= 0, 1.0, -1.0).to(a24.dtype)
+    return 1.0 if a24 <= 0 else -1.0
+
+
+# --------------------------------------------------------------------------- #
+# rays
+# --------------------------------------------------------------------------- #
+@dataclass
+class Rays:
+    """Rays in some frame; tensors (C or 1, N)."""
+
+    x: torch.Tensor
+    y: torch.Tensor
+    z: torch.Tensor
+    dx: torch.Tensor
+    dy: torch.Tensor
+    dz: torch.Tensor
+    energy: torch.Tensor
+    ctr: torch.Tensor | None = None  # RAYX's counters (sampling="rayx")
+
+    def slice(self, a: int, b: int) -> Rays:
+        cut = (lambda t: None if t is None else t[..., a:b])
+        return Rays(*(cut(getattr(self, f.name)) for f in fields(self)))
+
+
+@dataclass
+class Draws:
+    """The fast stream's random numbers, drawn up front so that chunking changes nothing:
+    ``slits[name]`` (2, C|1, N) uniforms, ``slopes[name]`` (2, C|1, N) standard normals."""
+
+    slits: dict[str, torch.Tensor]
+    slopes: dict[str, torch.Tensor]
+
+    def slice(self, a: int, b: int) -> Draws:
+        return Draws({k: v[..., a:b] for k, v in self.slits.items()},
+                     {k: v[..., a:b] for k, v in self.slopes.items()})
+
+
+def _generator(seed: int | None, device) -> torch.Generator:
+    g = torch.Generator(device=device)
+    g.manual_seed(int(seed) if seed is not None else int.from_bytes(os.urandom(8), "little") >> 1)
+    return g
+
+
+def _streams(seed: int | None, n_configs: int, common: bool) -> list[int | None]:
+    if common:
+        return [seed]
+    if seed is None:
+        return [None] * n_configs
+    return [int(seed) + i for i in range(n_configs)]
+
+
+def sample_source(bl: CompiledBeamline, n_rays: int, seed: int | None, *, sampling: str = "fast",
+                  common: bool = True) -> tuple[Rays, Draws | None]:
+    """Source rays (source frame) and, for the fast stream, every later draw.
+
+    ``sampling="rayx"`` reproduces RAYX's point source for ``rayx::fixSeed(seed)``
+    (RAYX-CONVENTIONS.md §3–4): 14 draws per ray in RAYX's order, counters carried on.
+    """
+    src = bl.source
+    if src["type"] != "Point Source":
+        raise RmlError(f"the torch engine samples point sources only ({src['type']!r}: pass rays)")
+    dev, c = bl.device, bl.n_configs
+    seeds = _streams(seed, c, common)
+    dists = src["dists"]
+    if sampling == "rayx":
+        trace_seeds = [rnd.rayx_trace_seed(s if s is not None else int.from_bytes(os.urandom(4), "little"))
+                       for s in seeds]
+        ctr = torch.stack([rnd.rayx_counters(n_rays, ts, device=dev) for ts in trace_seeds])
+
+        def normal():
+            nonlocal ctr
+            z = rnd.squares_normal(ctr)
+            ctr = ctr + 3
+            return z
+
+        def uniform():
+            nonlocal ctr
+            u = rnd.squares_uniform(ctr)
+            ctr = ctr + 1
+            return u
+        coord = [None] * 6
+        coord[0] = normal() if dists[0] else uniform() - 0.5
+        coord[1] = normal() if dists[1] else uniform() - 0.5
+        coord[2] = uniform() - 0.5
+        coord[3] = uniform() - 0.5
+        coord[4] = normal() if dists[3] else uniform() - 0.5
+        coord[5] = normal() if dists[2] else uniform() - 0.5
+        draws = None
+    else:
+        cols = []
+        slits, slopes = {}, {}
+        gens = [_generator(s, dev) for s in seeds]
+        for g in gens:
+            n = torch.randn(4, n_rays, generator=g, device=dev, dtype=torch.float64)
+            u = torch.rand(2, n_rays, generator=g, device=dev, dtype=torch.float64)
+            cols.append((n, u))
+        nn = torch.stack([n for n, _ in cols], 1)  # (4, k, N)
+        uu = torch.stack([u for _, u in cols], 1)
+        coord = [nn[0] if dists[0] else torch.rand_like(nn[0]) - 0.5,
+                 nn[1] if dists[1] else torch.rand_like(nn[1]) - 0.5,
+                 uu[0] - 0.5, uu[1] - 0.5,
+                 nn[2] if dists[3] else torch.rand_like(nn[2]) - 0.5,
+                 nn[3] if dists[2] else torch.rand_like(nn[3]) - 0.5]
+        for opt in bl.optics:
+            if opt.behaviour == "slit":
+                slits[opt.name] = torch.stack([torch.rand(2, n_rays, generator=g, device=dev, dtype=torch.float64)
+                                               for g in gens], 1)
+            if opt.slope is not None:
+                slopes[opt.name] = torch.stack([torch.randn(2, n_rays, generator=g, device=dev,
+                                                            dtype=torch.float64) for g in gens], 1)
+        draws = Draws(slits, slopes)
+        ctr = None
+    x = coord[0] * src["width"]
+    y = coord[1] * src["height"]
+    z = coord[2] * src["depth"]
+    energy = src["energy"] + coord[3] * src["spread"]
+    psi = coord[4] * src["ver_div"]
+    phi = coord[5] * src["hor_div"]
+    dx, dy, dz = torch.cos(psi) * torch.sin(phi), -torch.sin(psi), torch.cos(psi) * torch.cos(phi)
+    dt = bl.dtype
+    energy = energy * torch.ones_like(x)
+    rays = Rays(x.to(dt), y.to(dt), z.to(dt), dx.to(dt), dy.to(dt), dz.to(dt), energy.to(torch.float64), ctr)
+    return rays, draws
+
+
+def rays_from_arrays(position: np.ndarray, direction: np.ndarray, energy: np.ndarray, *,
+                     dtype=torch.float64, device="cpu", counters=None) -> Rays:
+    """Rays given in the source frame (e.g. RAYX's own emitted rays), shape (N, 3)."""
+    p = torch.as_tensor(np.asarray(position, float), dtype=dtype, device=device)
+    d = torch.as_tensor(np.asarray(direction, float), dtype=dtype, device=device)
+    e = torch.as_tensor(np.asarray(energy, float), dtype=torch.float64, device=device)
+    ctr = None if counters is None else torch.as_tensor(counters, dtype=torch.int64, device=device)[None]
+    return Rays(p[None, :, 0], p[None, :, 1], p[None, :, 2], d[None, :, 0], d[None, :, 1], d[None, :, 2],
+                e[None], ctr)
+
+
+# --------------------------------------------------------------------------- #
+# tracing
+# --------------------------------------------------------------------------- #
+@dataclass
+class Beam:
+    """Rays at the screen of a batch: tensors (C, N)."""
+
+    x: torch.Tensor  # screen X (RAY-UI X), mm; arbitrary where not alive
+    y: torch.Tensor  # screen Y (vertical)
+    alive: torch.Tensor  # bool: the ray reached the screen the way light does
+    weight: torch.Tensor  # soft survival (equals alive where edge = 0)
+    n_rays: int
+    hits: dict[str, torch.Tensor] | None = None  # element -> (C, N, 3) local hit points
+    directions: dict[str, torch.Tensor] | None = None  # element -> (C, N, 3) local, after it
+
+
+def _where_safe(cond, value, safe=1.0):
+    return torch.where(cond, value, torch.as_tensor(safe, dtype=value.dtype, device=value.device))
+
+
+def _apply(rot, shift, x, y, z):
+    r = rot[:, :, :, None]  # (C, 3, 3, 1) broadcast over rays
+    nx = r[:, 0, 0] * x + r[:, 0, 1] * y + r[:, 0, 2] * z
+    ny = r[:, 1, 0] * x + r[:, 1, 1] * y + r[:, 1, 2] * z
+    nz = r[:, 2, 0] * x + r[:, 2, 1] * y + r[:, 2, 2] * z
+    if shift is None:
+        return nx, ny, nz
+    return nx + shift[:, 0, None], ny + shift[:, 1, None], nz + shift[:, 2, None]
+
+
+def _plane_hit(px, py, pz, dx, dy, dz):
+    dys = _where_safe(dy != 0, dy)
+    t = -py / dys
+    ok = (t >= 0) & (dy != 0)
+    hx, hz = px + t * dx, pz + t * dz
+    ny = -torch.sign(dy)
+    return (hx, torch.zeros_like(hx), hz), (torch.zeros_like(hx), ny, torch.zeros_like(hx)), ok
+
+
+# (u, i, j): the dominant axis u of the ray parametrises the line, i and j are the others
+# (RAYX's three cases, with its expressions term by term so that rounding agrees too)
+_CASES = {0: (0, 1, 2), 1: (1, 0, 2), 2: (2, 0, 1)}
+
+
+def _coef(q, a: int, b: int):
+    """Quadric coefficient a_(a+1)(b+1) (symmetric; index 3 is the constant column)."""
+    a, b = min(a, b), max(a, b)
+    return q[f"a{a + 1}{b + 1}"]
+
+
+def _quadric_case(q, case, p, d):
+    u, i, j = _CASES[case]
+    du = _where_safe(d[u] != 0, d[u])
+    ei, ej = d[i] / du, d[j] / du
+    ri, rj = p[i] - ei * p[u], p[j] - ej * p[u]
+    a_uu, a_ui, a_ii, a_uj = _coef(q, u, u), _coef(q, u, i), _coef(q, i, i), _coef(q, u, j)
+    a_ij, a_jj, a_u4, a_i4, a_j4 = _coef(q, i, j), _coef(q, j, j), _coef(q, u, 3), _coef(q, i, 3), _coef(q, j, 3)
+    a = a_uu + 2 * a_ui * ei + a_ii * ei * ei + 2 * a_uj * ej + 2 * a_ij * ei * ej + a_jj * ej * ej
+    b = a_u4 + a_i4 * ei + a_j4 * ej + (a_ui + a_ii * ei + a_ij * ej) * ri + (a_uj + a_ij * ei + a_jj * ej) * rj
+    c = q["a44"] + a_ii * ri * ri + 2 * a_j4 * rj + a_jj * rj * rj + 2 * ri * (a_i4 + a_ij * rj)
+    disc = b * b - a * c
+    ok = disc >= 0
+    root = torch.sqrt(_where_safe(ok, disc))
+    sign = torch.sign(d[u]) * q["icurv"]
+    quad = a.abs() > c.abs() * 1e-10
+    hu = torch.where(quad, (-b + sign * root) / _where_safe(quad, a), (-c / 2) / _where_safe(~quad & (b != 0), b))
+    h = [None, None, None]
+    h[u], h[i], h[j] = hu, ri + ei * hu, rj + ej * hu
+    return h, ok
+
+
+def _quadric_hit(q, px, py, pz, dx, dy, dz):
+    """RAYX's quadric intersection (RAYX-CONVENTIONS.md §5.2): one root, chosen by the sign
+    of the ray's dominant direction component and the surface's ``icurv``."""
+    p, d = (px, py, pz), (dx, dy, dz)
+    ax, ay, az = dx.abs(), dy.abs(), dz.abs()
+    use_y = (ay >= ax) & (ay >= az)
+    use_z = ~use_y & (az >= ax) & (az >= ay)
+    case = torch.where(use_y, 1, torch.where(use_z, 2, 0))
+    present = [k for k in (2, 1, 0) if bool((case == k).any())]
+    h, ok = _quadric_case(q, present[0], p, d)
+    for k in present[1:]:
+        hk, okk = _quadric_case(q, k, p, d)
+        sel = case == k
+        h = [torch.where(sel, a, b) for a, b in zip(hk, h)]
+        ok = torch.where(sel, okk, ok)
+    hx, hy, hz = h
+    # behind the start in any coordinate (RAYX: (h - p)/d < 0; 0/0 passes)
+    for hk, pk, dk in ((hx, px, dx), (hy, py, dy), (hz, pz, dz)):
+        ok = ok & ~((hk - pk) / _where_safe(dk != 0, dk) < 0)
+    fx = 2 * q["a14"] + 2 * q["a11"] * hx + 2 * q["a12"] * hy + 2 * q["a13"] * hz
+    fy = 2 * q["a24"] + 2 * q["a12"] * hx + 2 * q["a22"] * hy + 2 * q["a23"] * hz
+    fz = 2 * q["a34"] + 2 * q["a13"] * hx + 2 * q["a23"] * hy + 2 * q["a33"] * hz
+    norm = torch.sqrt(fx * fx + fy * fy + fz * fz)
+    norm = _where_safe(norm > 0, norm)
+    return (hx, hy, hz), (fx / norm, fy / norm, fz / norm), ok
+
+
+def _toroid_hit(q, px, py, pz, dx, dy, dz):
+    """RAYX's Newton iteration on z along the ray (tolerance 1e-4 mm, 50 evaluations)."""
+    big_r, rho = q["R"], q["rho"]
+    s = torch.sign(torch.as_tensor(rho)) if torch.is_tensor(rho) else math.copysign(1.0, rho)
+    dzs = _where_safe(dz != 0, dz)
+    ex, ey = dx / dzs, dy / dzs
+    zz = torch.zeros_like(px)
+    delta = torch.zeros_like(px)
+    active = torch.ones_like(px, dtype=torch.bool)
+    ok = torch.ones_like(px, dtype=torch.bool)
+    count = 0
+    hx = hy = hz = gx = gy = gz = None
+    while True:
+        zz = torch.where(active, zz + delta, zz)
+        x = px + ex * (zz - pz)
+        lim = 0.95 * abs(rho) if not torch.is_tensor(rho) else 0.95 * rho.abs()
+        over = x * x > (rho * rho)
+        x = torch.where(over, torch.sign(x) * lim, x)
+        y = py + ey * (zz - pz)
+        w = torch.sqrt(_where_safe(rho * rho - x * x > 0, rho * rho - x * x))
+        r = big_r - rho + s * w
+        g1, g2, g3 = -2 * x * s * r / w, -2 * (y - big_r), -2 * zz
+        f = -r * r + (y - big_r) ** 2 + zz * zz
+        denom = ex * g1 + ey * g2 + g3
+        new_delta = f / _where_safe(denom != 0, denom)
+        if hx is None:
+            hx, hy, hz, gx, gy, gz = x, y, zz, g1, g2, g3
+        else:
+            hx, hy, hz = (torch.where(active, a, b) for a, b in ((x, hx), (y, hy), (zz, hz)))
+            gx, gy, gz = (torch.where(active, a, b) for a, b in ((g1, gx), (g2, gy), (g3, gz)))
+        delta = torch.where(active, new_delta, delta)
+        count += 1
+        if count >= 50:
+            ok = ok & ~(active & (delta.abs() > 1e-4))
+            break
+        active = active & (delta.abs() > 1e-4)
+        if not bool(active.any()):
+            break
+    ok = ok & ((hx - px) * dx + (hy - py) * dy + (hz - pz) * dz > 0)
+    norm = torch.sqrt(gx * gx + gy * gy + gz * gz)
+    norm = _where_safe(norm > 0, norm)
+    return (hx, hy, hz), (gx / norm, gy / norm, gz / norm), ok
+
+
+def _sigmoid_inside(half, coord, edge):
+    """Logistic weight of |coord| < half over ``edge * 2 half``; 1/0 when edge = 0."""
+    if edge <= 0:
+        return None
+    scale = edge * 2 * half
+    return torch.sigmoid((half - coord.abs()) / scale)
+
+
+def _inside_rect(x, z, w, length, edge):
+    hard = (x > -w / 2) & (x < w / 2) & (z > -length / 2) & (z < length / 2)
+    if edge <= 0:
+        return hard, None
+    return hard, _sigmoid_inside(w / 2, x, edge) * _sigmoid_inside(length / 2, z, edge)
+
+
+def trace_rays(bl: CompiledBeamline, rays: Rays, draws: Draws | None = None, *, edge: float = 0.0,
+               keep_hits: bool = False) -> Beam:
+    """Trace source-frame rays through the optics in order (see the module doc).
+
+    ``edge > 0`` makes the beam soft (weights, for gradients); the hard ``alive`` mask is
+    RAYX's survival either way.
+    """
+    n = rays.x.shape[-1]
+    c = bl.n_configs
+    dt = bl.dtype
+    x, y, z = _apply(bl.source_rot, bl.source_shift, rays.x, rays.y, rays.z)
+    dx, dy, dz = _apply(bl.source_rot, None, rays.dx, rays.dy, rays.dz)
+    energy = rays.energy
+    ctr = rays.ctr
+    alive = torch.ones((c, n), dtype=torch.bool, device=bl.device)
+    weight = torch.ones((c, n), dtype=dt, device=bl.device) if edge > 0 else None
+    hits: dict[str, torch.Tensor] = {}
+    dirs: dict[str, torch.Tensor] = {}
+    wavelength = HC_EV_NM / energy  # nm
+    for i, opt in enumerate(bl.optics):
+        if i:
+            x, y, z = _apply(opt.rot, opt.shift, x, y, z)
+            dx, dy, dz = _apply(opt.rot, None, dx, dy, dz)
+        sx, sy, sz = x + SEARCH_SHIFT * dx, y + SEARCH_SHIFT * dy, z + SEARCH_SHIFT * dz
+        if opt.surface == "plane":
+            (hx, hy, hz), (nx, ny, nz), ok = _plane_hit(sx, sy, sz, dx, dy, dz)
+        elif opt.surface == "quadric":
+            (hx, hy, hz), (nx, ny, nz), ok = _quadric_hit(opt.quadric, sx, sy, sz, dx, dy, dz)
+        else:
+            (hx, hy, hz), (nx, ny, nz), ok = _toroid_hit(opt.quadric, sx, sy, sz, dx, dy, dz)
+        if opt.cutout is not None:
+            shape, w, length = opt.cutout
+            if shape == 0:
+                inside, soft = _inside_rect(hx, hz, w, length, edge)
+            else:
+                rr = (hx / (w / 2)) ** 2 + (hz / (length / 2)) ** 2
+                inside = rr <= 1
+                soft = torch.sigmoid((1 - rr) / (4 * edge)) if edge > 0 else None
+            ok = ok & inside
+            if soft is not None:
+                weight = weight * soft
+        # orient the normal against the ray
+        flip = (nx * dx + ny * dy + nz * dz) > 0
+        sgn = torch.where(flip, -1.0, 1.0).to(dt)
+        nx, ny, nz = nx * sgn, ny * sgn, nz * sgn
+        if opt.slope is not None:
+            sag, mer = opt.slope
+            if ctr is not None:
+                ga, gb = rnd.squares_normal(ctr, dt), rnd.squares_normal(ctr + 3, dt)
+                ctr = torch.where(ok, ctr + 6, ctr)  # only rays that hit draw
+            else:
+                ga, gb = draws.slopes[opt.name][0].to(dt), draws.slopes[opt.name][1].to(dt)
+            a, b = ga * sag, gb * mer
+            cb, sb, ca, sa = torch.cos(b), torch.sin(b), torch.cos(a), torch.sin(a)
+            ny1 = ny * cb + nz * sb
+            nz = nz * cb - ny * sb
+            nx, ny = nx * ca + ny1 * sa, ny1 * ca - nx * sa
+        if opt.behaviour == "mirror":
+            dot = nx * dx + ny * dy + nz * dz
+            dx, dy, dz = dx - 2 * dot * nx, dy - 2 * dot * ny, dz - 2 * dot * nz
+        elif opt.behaviour == "grating":
+            dx, dy, dz, ok_g = _grating(opt, hz, nx, ny, nz, dx, dy, dz, wavelength)
+            ok = ok & ok_g
+        elif opt.behaviour == "slit":
+            _, w, h, stop, sw, sh = opt.opening
+            inside, soft = _inside_rect(hx, hz, w, h, edge)
+            if stop == 1:
+                inside = inside & ~((hx.abs() < sw / 2) & (hz.abs() < sh / 2))
+            elif stop == 2:
+                inside = inside & ~((hx / (sw / 2)) ** 2 + (hz / (sh / 2)) ** 2 <= 1)
+            ok = ok & inside
+            if soft is not None:
+                weight = weight * soft
+            if ctr is not None:
+                u_w, ctr_w = rnd.fraunhofer_uniform_rayx(ctr, _detach(w), wavelength)
+                u_h, ctr_h = rnd.fraunhofer_uniform_rayx(ctr_w, _detach(h), wavelength)
+                ctr = torch.where(ok, ctr_h, ctr)
+            else:
+                pair = draws.slits[opt.name]
+                u_w, u_h = rnd.fraunhofer_uniform_fast(pair[0]), rnd.fraunhofer_uniform_fast(pair[1])
+                if not torch.is_tensor(w) and w == 0:
+                    u_w = torch.full_like(u_w, 0.5)
+                if not torch.is_tensor(h) and h == 0:
+                    u_h = torch.full_like(u_h, 0.5)
+            dphi, dpsi = _kick(u_w, wavelength, w, dt), _kick(u_h, wavelength, h, dt)
+            phi = torch.atan2(dx, dy) + dphi
+            psi = -torch.asin(dz.clamp(-1.0, 1.0)) + dpsi
+            dx, dy, dz = torch.cos(psi) * torch.sin(phi), torch.cos(psi) * torch.cos(phi), -torch.sin(psi)
+        alive = alive & ok
+        # dead rays continue from a harmless place: no inf/NaN enters any later derivative
+        x, y, z = (torch.where(alive, v, torch.zeros_like(v)) for v in (hx, hy, hz))
+        dx, dy, dz = (torch.where(alive, v, d0) for v, d0 in
+                      ((dx, torch.zeros_like(dx)), (dy, torch.zeros_like(dy)), (dz, torch.ones_like(dz))))
+        if keep_hits:
+            hits[opt.name] = torch.stack(torch.broadcast_tensors(hx, hy, hz), -1)
+            dirs[opt.name] = torch.stack(torch.broadcast_tensors(dx, dy, dz), -1)
+    w_final = alive.to(dt) if weight is None else weight * alive.to(dt)
+    return Beam(x.expand(c, n), z.expand(c, n), alive, w_final, n, hits if keep_hits else None,
+                dirs if keep_hits else None)
+
+
+def _detach(v):
+    return v.detach() if torch.is_tensor(v) else v
+
+
+def _kick(u, wavelength, dim, dt):
+    """Fraunhofer kick (rad) of the accepted draw ``u`` for an opening ``dim`` mm (RAYX:
+    ``(u - 0.5) * 10 λ / b``, b in nm); none for a closed dimension, which draws nothing."""
+    if not torch.is_tensor(dim):
+        if dim == 0:
+            return torch.zeros_like(u, dtype=dt)
+        return (u.to(dt) - 0.5) * (10.0 * wavelength.to(dt) / (dim * 1e06))
+    b = _where_safe(dim != 0, dim) * 1e06
+    return torch.where(dim != 0, (u.to(dt) - 0.5) * (10.0 * wavelength.to(dt) / b), 0.0)
+
+
+def _grating(opt, hz, nx, ny, nz, dx, dy, dz, wavelength):
+    """RAYX's vector grating equation (RAYX-CONVENTIONS.md §8.2)."""
+    density, order, vls = opt.grating
+    zpow = 1.0
+    poly = 1.0
+    for k, b in enumerate(vls, start=1):
+        zpow = zpow * hz
+        if torch.is_tensor(b) or b != 0.0:
+            poly = poly + (k + 1) * b * zpow
+    delta = torch.asin(nz.clamp(-1.0, 1.0))
+    cd, sd = torch.cos(delta), torch.sin(delta)
+    g = order * density * poly * cd * wavelength.to(hz.dtype) * 1e-6
+    eps = -torch.atan(nx / _where_safe(ny != 0, ny))
+    ce, se = torch.cos(eps), torch.sin(eps)
+    # k = A(δ) B(ε) d
+    bx = ce * dx + se * dy
+    by = -se * dx + ce * dy
+    bz = dz
+    kx = bx
+    ky = cd * by + sd * bz
+    kz = -sd * by + cd * bz
+    kz = kz - g
+    qq = 1 - kx * kx - kz * kz
+    ok = qq > 0
+    ky = torch.sqrt(_where_safe(ok, qq))
+    # back: Tᵀ = B(ε)ᵀ A(δ)ᵀ
+    ay = cd * ky - sd * kz
+    az = sd * ky + cd * kz
+    ox = ce * kx - se * ay
+    oy = se * kx + ce * ay
+    return ox, oy, az, ok
+
+
+# --------------------------------------------------------------------------- #
+# beam products: histograms, profiles, features
+# --------------------------------------------------------------------------- #
+def histograms(beam: Beam, spec: HistogramSpec, *, soft: bool = False, kernel: float = 1.0):
+    """x and y histograms (C, bins) as fraction of source rays (RAYX's bin convention).
+
+    ``soft``: every ray spreads its weight over the bins with a Gaussian kernel of ``kernel``
+    bins rms (differentiable in the ray positions)."""
+    w = beam.weight if soft else beam.alive.to(beam.x.dtype)
+    hx = _hist(beam.x, w, spec.bins_x, spec.range_x, soft, kernel)
+    hy = _hist(beam.y, w, spec.bins_y, spec.range_y, soft, kernel)
+    return hx / beam.n_rays, hy / beam.n_rays
+
+
+def _hist(v, w, bins, rng, soft, kernel):
+    lo, hi = rng
+    c = v.shape[0]
+    scale = bins / (hi - lo)
+    pos = (v - lo) * scale
+    if not soft:
+        inside = (v >= lo) & (v <= hi) & (w > 0)
+        idx = torch.clamp(pos.detach(), 0, bins - 1).long().clamp(max=bins - 1)
+        idx = idx + torch.arange(c, device=v.device)[:, None] * bins
+        out = torch.zeros(c * bins, dtype=v.dtype, device=v.device)
+        out.index_add_(0, idx[inside], w[inside])
+        return out.reshape(c, bins)
+    reach = int(math.ceil(4 * kernel)) + 1
+    centre = pos.detach().floor().long()
+    out = torch.zeros(c, bins + 2 * reach, dtype=v.dtype, device=v.device)
+    root2 = math.sqrt(2.0) * kernel
+    near = (centre > -reach) & (centre < bins + reach - 1)
+    centre = centre.clamp(-reach, bins + reach - 1)
+    rows = torch.arange(c, device=v.device)[:, None].expand_as(centre)
+    for k in range(-reach, reach + 1):
+        j = centre + k
+        left = torch.erf((j - pos) / root2)
+        right = torch.erf((j + 1 - pos) / root2)
+        part = 0.5 * (right - left) * w * near
+        idx = (j + reach).clamp(0, bins + 2 * reach - 1)
+        out = out.index_put((rows.reshape(-1), idx.reshape(-1)), part.reshape(-1), accumulate=True)
+    return out[:, reach:reach + bins]
+
+
+def moments(beam: Beam, *, soft: bool = True) -> torch.Tensor:
+    """Sufficient statistics (C, 5) of the beam: Σw, Σwx, Σwy, Σwx², Σwy² (w the soft weight
+    or the hard survival); sums over rays, so chunks of rays add up."""
+    w = beam.weight if soft else beam.alive.to(beam.x.dtype)
+    x, y = beam.x, beam.y
+    return torch.stack([w.sum(-1), (w * x).sum(-1), (w * y).sum(-1), (w * x * x).sum(-1), (w * y * y).sum(-1)], -1)
+
+
+def features_from_moments(m: torch.Tensor, n_rays: int) -> torch.Tensor:
+    """Beam features (C, 5): intensity (fraction of source rays), centroid x, y, rms width
+    x, y (mm); centroid and width are NaN where no ray arrives."""
+    s0 = m[..., 0]
+    s0s = torch.where(s0 > 0, s0, torch.ones_like(s0))
+    cx, cy = m[..., 1] / s0s, m[..., 2] / s0s
+    vx = (m[..., 3] / s0s - cx * cx).clamp(min=1e-30)
+    vy = (m[..., 4] / s0s - cy * cy).clamp(min=1e-30)
+    out = torch.stack([s0 / n_rays, cx, cy, torch.sqrt(vx), torch.sqrt(vy)], -1)
+    nan = torch.full_like(out, float("nan"))
+    keep = torch.stack([torch.ones_like(s0, dtype=torch.bool)] + [s0 > 0] * 4, -1)
+    return torch.where(keep, out, nan)
