@@ -73,46 +73,85 @@ def _sparkline(h: np.ndarray) -> str:
     return "".join(blocks[int(round(v / m * 8))] for v in h)
 
 
+def _engine(name: str, sampling: str):
+    from .twin import make_engine
+    return make_engine(name, **({"options": {"sampling": sampling}} if name == "torch" else {}))
+
+
 def _cmd_simulate(args) -> int:
     from .twin import Twin
 
+    if args.rays < 1:
+        raise CliError(f"--rays must be positive, got {args.rays}")
     values = METRIXS.from_mapping(_parse_sets(args.set))
     overrides = {}
     if args.chamber:
         tx, ty, tz = args.chamber
         overrides["ImagePlane"] = {"translationXerror": tx, "translationYerror": ty, "translationZerror": tz}
     outside = METRIXS.outside_box(values)
-    twin = Twin(scheduler="inline", n_rays=args.rays)
-    result = twin.trace(values, overrides=overrides, keep_rays=True)
-    summary = result.summary()
-    hist = twin.hist
+    names = ("rayx", "torch") if args.engine == "both" else (args.engine,)
+    runs = []
+    for name in names:
+        twin = Twin(_engine(name, args.sampling), scheduler="inline", n_rays=args.rays)
+        try:
+            runs.append((twin, twin.trace(values, overrides=overrides, keep_rays=True, seed=args.seed)))
+        except ValueError as exc:
+            raise CliError(str(exc)) from None
+    hist = runs[0][0].hist
+    comparison = _compare_engines(runs[0][1], runs[1][1], args.rays) if len(runs) == 2 else None
     if args.json:
-        out = {"engine": twin.engine.version, "parameters": METRIXS.to_mapping(values),
-               "chamber_translation": list(args.chamber) if args.chamber else [0.0, 0.0, 0.0],
-               "outside_sampling_box": outside, **summary,
-               "hist_x": result.hist_x.tolist(), "hist_y": result.hist_y.tolist(),
-               "edges_x": hist.edges_x.tolist(), "edges_y": hist.edges_y.tolist()}
-        print(json.dumps(out, indent=2))
+        outs = []
+        for twin, result in runs:
+            outs.append({"engine": twin.engine.version, "parameters": METRIXS.to_mapping(values),
+                         "chamber_translation": list(args.chamber) if args.chamber else [0.0, 0.0, 0.0],
+                         "outside_sampling_box": outside, "seed": args.seed, **result.summary(),
+                         "hist_x": result.hist_x.tolist(), "hist_y": result.hist_y.tolist(),
+                         "edges_x": hist.edges_x.tolist(), "edges_y": hist.edges_y.tolist()})
+        print(json.dumps(outs[0] if len(outs) == 1 else {"runs": outs, "comparison": comparison}, indent=2))
     else:
-        print(f"engine: {twin.engine.version}; {args.rays} source rays")
         changed = {k: v for k, v in _parse_sets(args.set).items()}
         print(f"configuration: reference RML{' with ' + str(changed) if changed else ''}")
         if outside:
             print(f"note: outside the surrogate's sampling box (a model would extrapolate): {', '.join(outside)}")
-        print(f"transmission: {summary['transmission']:.4f}  ({summary['n_hits']} rays on the screen)")
-        if "centroid_x" in summary:
-            print(f"centroid: x = {summary['centroid_x']:+.4f} mm, y = {summary['centroid_y']:+.4f} mm")
-            print(f"width (std): x = {summary['width_x']:.4f} mm, y = {summary['width_y']:.4f} mm")
-        print(f"x histogram [{hist.range_x[0]:g}, {hist.range_x[1]:g}] mm, sum {result.hist_x.sum():.4f}:")
-        print(f"  |{_sparkline(result.hist_x)}|")
-        print(f"y histogram [{hist.range_y[0]:g}, {hist.range_y[1]:g}] mm, sum {result.hist_y.sum():.4f}:")
-        print(f"  |{_sparkline(result.hist_y)}|")
+        for twin, result in runs:
+            summary = result.summary()
+            print(f"engine: {twin.engine.version}; {args.rays} source rays")
+            print(f"  transmission: {summary['transmission']:.4f}  ({summary['n_hits']} rays on the screen)")
+            if "centroid_x" in summary:
+                print(f"  centroid: x = {summary['centroid_x']:+.4f} mm, y = {summary['centroid_y']:+.4f} mm")
+                print(f"  width (std): x = {summary['width_x']:.4f} mm, y = {summary['width_y']:.4f} mm")
+            print(f"  x histogram [{hist.range_x[0]:g}, {hist.range_x[1]:g}] mm, sum {result.hist_x.sum():.4f}:")
+            print(f"    |{_sparkline(result.hist_x)}|")
+            print(f"  y histogram [{hist.range_y[0]:g}, {hist.range_y[1]:g}] mm, sum {result.hist_y.sum():.4f}:")
+            print(f"    |{_sparkline(result.hist_y)}|")
+        if comparison:
+            print(f"rayx vs torch: histogram chi2/dof {comparison['chi2_per_dof']:.2f} over {comparison['dof']} "
+                  f"bins (1 ± {comparison['sigma']:.2f} when they agree within counting noise)")
     if args.plot:
         from .plotting import plot_footprint
-        plot_footprint(result, hist, args.plot, title=f"METRIXS twin, {args.rays} rays")
-        if not args.json:
-            print(f"plot written to {args.plot}")
+        for twin, result in runs:
+            path = args.plot if len(runs) == 1 else _suffixed(args.plot, twin.engine.version.split()[0])
+            plot_footprint(result, hist, path, title=f"METRIXS twin ({twin.engine.version.split()[0]}), "
+                                                     f"{args.rays} rays")
+            if not args.json:
+                print(f"plot written to {path}")
     return 0
+
+
+def _suffixed(path: str, tag: str) -> str:
+    from pathlib import Path
+    p = Path(path)
+    return str(p.with_name(f"{p.stem}-{tag}{p.suffix}"))
+
+
+def _compare_engines(a, b, n_rays: int) -> dict:
+    """Pearson chi-square between two traces' histograms (counts, independent rays)."""
+    ca = np.concatenate([a.hist_x, a.hist_y]) * n_rays
+    cb = np.concatenate([b.hist_x, b.hist_y]) * n_rays
+    used = (ca + cb) > 0
+    chi2 = float((((ca - cb) ** 2)[used] / (ca + cb)[used]).sum())
+    dof = int(used.sum())
+    return {"chi2_per_dof": chi2 / max(dof, 1), "dof": dof, "sigma": float(np.sqrt(2.0 / max(dof, 1)))}
 
 
 # --------------------------------------------------------------------------- #
@@ -128,12 +167,20 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--json", action="store_true", help="machine-readable output")
     p.set_defaults(func=_cmd_params)
 
-    p = sub.add_parser("simulate", help="trace one configuration with the RAYX twin")
+    p = sub.add_parser("simulate", help="trace one configuration with the twin (RAYX, or the torch engine)")
     p.add_argument("--set", action="append", metavar="NAME=VALUE",
                    help="change a parameter from the reference RML value (repeatable)")
     p.add_argument("--rays", type=int, default=20000, help="source rays (default 20000)")
     p.add_argument("--chamber", type=float, nargs=3, metavar=("TX", "TY", "TZ"),
                    help="focus-chamber translation in mm (detector property, not one of the 34)")
+    p.add_argument("--engine", choices=("rayx", "torch", "both"), default="rayx",
+                   help="rayx: the reference (default); torch: the differentiable twin; both: trace with "
+                        "each and compare their histograms within counting noise")
+    p.add_argument("--seed", type=int, default=None,
+                   help="random seed (the same seed gives the same trace; with --engine both each engine "
+                        "draws its own rays unless --sampling rayx)")
+    p.add_argument("--sampling", choices=("fast", "rayx"), default="fast",
+                   help="torch engine's random stream: fast, or rayx (RAYX's own rays for the same seed)")
     p.add_argument("--json", action="store_true", help="machine-readable output")
     p.add_argument("--plot", metavar="FILE.png", help="footprint scatter with both histograms")
     p.set_defaults(func=_cmd_simulate)

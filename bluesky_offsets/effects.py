@@ -79,9 +79,10 @@ class Effect:
             if len(seq) != len(names):
                 raise ValueError(f"effect {self.name!r} takes {len(names)} values ({names}), got {len(seq)}")
             out = dict(zip(names, seq))
-        full = {n: float(out.get(n, 0.0)) for n in names}
+        # tensors stay tensors (the differentiable twin takes gradients through the effects)
+        full = {n: (v if _is_tensor(v) else float(v)) for n, v in ((n, out.get(n, 0.0)) for n in names)}
         for n, v in full.items():
-            if not math.isfinite(v):
+            if not (bool(v.isfinite().all()) if _is_tensor(v) else math.isfinite(v)):
                 raise ValueError(f"effect {self.name!r}: {n} = {v} is not finite")
         return full
 
@@ -103,6 +104,19 @@ class Effect:
 
 
 EFFECTS: dict[str, Effect] = {}
+
+
+def _is_tensor(v) -> bool:
+    return type(v).__module__.split(".")[0] == "torch"
+
+
+def _any(cond) -> bool:
+    """``cond`` for a number, "any element" for a tensor of one value per configuration."""
+    return bool(cond.any()) if _is_tensor(cond) else bool(cond)
+
+
+def _all(cond) -> bool:
+    return bool(cond.all()) if _is_tensor(cond) else bool(cond)
 
 
 def register(effect: Effect) -> Effect:
@@ -131,8 +145,8 @@ def twin_overrides(effects: Mapping[str, Mapping[str, float]]) -> dict[str, dict
             target = merged.setdefault(obj, {})
             for key, val in fields.items():
                 if key.endswith("error") and key in target:
-                    target[key] = float(target[key]) + float(val)
-                elif key in target and target[key] != val:
+                    target[key] = target[key] + val
+                elif key in target and (_is_tensor(val) or _is_tensor(target[key]) or target[key] != val):
                     raise ValueError(f"effects disagree on {obj}.{key}")
                 else:
                     target[key] = val
@@ -216,7 +230,7 @@ class SourceScale(Effect):
 
     def overrides(self, v):
         f = 1.0 + v[self.what]
-        if f <= 0:
+        if _any(f <= 0):
             raise ValueError(f"the source {self.what} must stay positive (relative change > -1)")
         src = _NOMINAL[SOURCE]
         return {SOURCE: {k: src.get_float(k) * f for k in self._keys}}
@@ -262,8 +276,9 @@ class SlopeError(Effect):
     def overrides(self, v):
         obj = _NOMINAL[self.element]
         urad_to_arcsec = 1e-6 * 180 / math.pi * 3600  # RAYX takes arcsec
-        mer = math.hypot(obj.get_float("slopeErrorMer"), v["meridional"] * urad_to_arcsec)
-        sag = math.hypot(obj.get_float("slopeErrorSag"), v["sagittal"] * urad_to_arcsec)
+        # in quadrature, written out so that a tensor of magnitudes keeps its gradient
+        mer = (obj.get_float("slopeErrorMer") ** 2 + (v["meridional"] * urad_to_arcsec) ** 2) ** 0.5
+        sag = (obj.get_float("slopeErrorSag") ** 2 + (v["sagittal"] * urad_to_arcsec) ** 2) ** 0.5
         return {self.element: {"slopeErrorMer": mer, "slopeErrorSag": sag}}
 
 
@@ -280,10 +295,13 @@ class ThermalBump(Effect):
 
     def overrides(self, v):
         h = v["height"]
-        if h < 0:
+        if _any(h < 0):
             raise ValueError("thermal bump height must be >= 0 (a bulge)")
-        if h < self.min_height_nm:
+        if _all(h < self.min_height_nm):
             return {}
+        if _any(h < self.min_height_nm):
+            raise ValueError(f"thermal bump heights below and above {self.min_height_nm} nm change M1's type "
+                             "and cannot share one batch")
         radius = -(self.sigma_mm ** 2) / (h * 1e-6)
         m1 = _NOMINAL["M1-Cylinder"]
         return {"M1-Cylinder": {"type": "Toroid", "longRadius": radius,

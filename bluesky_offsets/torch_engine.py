@@ -421,7 +421,14 @@ def _generator(seed: int | None, device) -> torch.Generator:
     return g
 
 
-def _streams(seed: int | None, n_configs: int, common: bool) -> list[int | None]:
+def _streams(seed, n_configs: int, common: bool) -> list[int | None]:
+    """One seed per random stream: a sequence gives one per configuration as it is; else
+    one shared stream (common) or ``seed + i`` for configuration ``i``."""
+    if isinstance(seed, Sequence):
+        seeds = [None if s is None else int(s) for s in seed]
+        if len(seeds) != n_configs:
+            raise ValueError(f"{len(seeds)} seeds for {n_configs} configurations")
+        return seeds
     if common:
         return [seed]
     if seed is None:
@@ -429,7 +436,7 @@ def _streams(seed: int | None, n_configs: int, common: bool) -> list[int | None]
     return [int(seed) + i for i in range(n_configs)]
 
 
-def sample_source(bl: CompiledBeamline, n_rays: int, seed: int | None, *, sampling: str = "fast",
+def sample_source(bl: CompiledBeamline, n_rays: int, seed, *, sampling: str = "fast",
                   common: bool = True) -> tuple[Rays, Draws | None]:
     """Source rays (source frame) and, for the fast stream, every later draw.
 
@@ -686,6 +693,7 @@ def trace_rays(bl: CompiledBeamline, rays: Rays, draws: Draws | None = None, *, 
     energy = rays.energy
     ctr = rays.ctr
     alive = torch.ones((c, n), dtype=torch.bool, device=bl.device)
+    valid = alive
     weight = torch.ones((c, n), dtype=dt, device=bl.device) if edge > 0 else None
     hits: dict[str, torch.Tensor] = {}
     dirs: dict[str, torch.Tensor] = {}
@@ -701,6 +709,7 @@ def trace_rays(bl: CompiledBeamline, rays: Rays, draws: Draws | None = None, *, 
             (hx, hy, hz), (nx, ny, nz), ok = _quadric_hit(opt.quadric, sx, sy, sz, dx, dy, dz)
         else:
             (hx, hy, hz), (nx, ny, nz), ok = _toroid_hit(opt.quadric, sx, sy, sz, dx, dy, dz)
+        inside = None
         if opt.cutout is not None:
             shape, w, length = opt.cutout
             if shape == 0:
@@ -709,7 +718,6 @@ def trace_rays(bl: CompiledBeamline, rays: Rays, draws: Draws | None = None, *, 
                 rr = (hx / (w / 2)) ** 2 + (hz / (length / 2)) ** 2
                 inside = rr <= 1
                 soft = torch.sigmoid((1 - rr) / (4 * edge)) if edge > 0 else None
-            ok = ok & inside
             if soft is not None:
                 weight = weight * soft
         # orient the normal against the ray
@@ -720,7 +728,8 @@ def trace_rays(bl: CompiledBeamline, rays: Rays, draws: Draws | None = None, *, 
             sag, mer = opt.slope
             if ctr is not None:
                 ga, gb = rnd.squares_normal(ctr, dt), rnd.squares_normal(ctr + 3, dt)
-                ctr = torch.where(ok, ctr + 6, ctr)  # only rays that hit draw
+                # only candidates draw: a forward hit inside the outline
+                ctr = torch.where(ok & (True if inside is None else inside), ctr + 6, ctr)
             else:
                 ga, gb = draws.slopes[opt.name][0].to(dt), draws.slopes[opt.name][1].to(dt)
             a, b = ga * sag, gb * mer
@@ -736,18 +745,18 @@ def trace_rays(bl: CompiledBeamline, rays: Rays, draws: Draws | None = None, *, 
             ok = ok & ok_g
         elif opt.behaviour == "slit":
             _, w, h, stop, sw, sh = opt.opening
-            inside, soft = _inside_rect(hx, hz, w, h, edge)
+            opening, soft = _inside_rect(hx, hz, w, h, edge)
             if stop == 1:
-                inside = inside & ~((hx.abs() < sw / 2) & (hz.abs() < sh / 2))
+                opening = opening & ~((hx.abs() < sw / 2) & (hz.abs() < sh / 2))
             elif stop == 2:
-                inside = inside & ~((hx / (sw / 2)) ** 2 + (hz / (sh / 2)) ** 2 <= 1)
-            ok = ok & inside
+                opening = opening & ~((hx / (sw / 2)) ** 2 + (hz / (sh / 2)) ** 2 <= 1)
+            inside = opening if inside is None else inside & opening
             if soft is not None:
                 weight = weight * soft
             if ctr is not None:
                 u_w, ctr_w = rnd.fraunhofer_uniform_rayx(ctr, _detach(w), wavelength)
                 u_h, ctr_h = rnd.fraunhofer_uniform_rayx(ctr_w, _detach(h), wavelength)
-                ctr = torch.where(ok, ctr_h, ctr)
+                ctr = torch.where(ok & inside, ctr_h, ctr)  # absorbed rays draw no kick
             else:
                 pair = draws.slits[opt.name]
                 u_w, u_h = rnd.fraunhofer_uniform_fast(pair[0]), rnd.fraunhofer_uniform_fast(pair[1])
@@ -759,15 +768,19 @@ def trace_rays(bl: CompiledBeamline, rays: Rays, draws: Draws | None = None, *, 
             phi = torch.atan2(dx, dy) + dphi
             psi = -torch.asin(dz.clamp(-1.0, 1.0)) + dpsi
             dx, dy, dz = torch.cos(psi) * torch.sin(phi), torch.cos(psi) * torch.cos(phi), -torch.sin(psi)
-        alive = alive & ok
-        # dead rays continue from a harmless place: no inf/NaN enters any later derivative
-        x, y, z = (torch.where(alive, v, torch.zeros_like(v)) for v in (hx, hy, hz))
-        dx, dy, dz = (torch.where(alive, v, d0) for v, d0 in
+        # RAYX's survival; the soft beam goes on past outlines and openings (its weights
+        # carry them), stopped only where the geometry has no continuation
+        valid = valid & ok
+        alive = alive & ok & (True if inside is None else inside)
+        carry = valid if edge > 0 else alive
+        # stopped rays continue from a harmless place: no inf/NaN enters any later derivative
+        x, y, z = (torch.where(carry, v, torch.zeros_like(v)) for v in (hx, hy, hz))
+        dx, dy, dz = (torch.where(carry, v, d0) for v, d0 in
                       ((dx, torch.zeros_like(dx)), (dy, torch.zeros_like(dy)), (dz, torch.ones_like(dz))))
         if keep_hits:
             hits[opt.name] = torch.stack(torch.broadcast_tensors(hx, hy, hz), -1)
             dirs[opt.name] = torch.stack(torch.broadcast_tensors(dx, dy, dz), -1)
-    w_final = alive.to(dt) if weight is None else weight * alive.to(dt)
+    w_final = alive.to(dt) if weight is None else weight * valid.to(dt)
     return Beam(x.expand(c, n), z.expand(c, n), alive, w_final, n, hits if keep_hits else None,
                 dirs if keep_hits else None)
 
@@ -883,3 +896,236 @@ def features_from_moments(m: torch.Tensor, n_rays: int) -> torch.Tensor:
     nan = torch.full_like(out, float("nan"))
     keep = torch.stack([torch.ones_like(s0, dtype=torch.bool)] + [s0 > 0] * 4, -1)
     return torch.where(keep, out, nan)
+
+
+# --------------------------------------------------------------------------- #
+# the engine
+# --------------------------------------------------------------------------- #
+class TorchEngine:
+    """The differentiable twin behind the :class:`~bluesky_offsets.twin.TraceEngine` interface.
+
+    ``Twin(engine="torch")`` uses it; RAYX stays the reference engine.  Besides ``trace``
+    (one request) it traces batches in one call (:meth:`trace_many`, :meth:`beam`) and gives
+    beam features, soft histograms and camera profiles with their Jacobians
+    (:meth:`jacobian`).
+
+    Parameters
+    ----------
+    table, hist : as for :class:`~bluesky_offsets.twin.RayxEngine`.
+    options : TorchOptions or a mapping of its fields (unknown keys are refused).
+    """
+
+    def __init__(self, table: ParameterTable = METRIXS, hist: HistogramSpec | None = None,
+                 options: TorchOptions | Mapping | None = None):
+        self.table = table
+        self.hist = hist or HistogramSpec()
+        self.options = options if isinstance(options, TorchOptions) else TorchOptions.from_mapping(options)
+
+    @property
+    def version(self) -> str:
+        o = self.options
+        return f"torch {torch.__version__} (bluesky-offsets tracer, {o.sampling} sampling, {o.dtype}, {o.device})"
+
+    # -- batches ----------------------------------------------------------------
+    def compile(self, values, overrides=None) -> CompiledBeamline:
+        o = self.options
+        return compile_beamline(values, overrides, table=self.table, dtype=o.torch_dtype, device=o.device)
+
+    def _chunks(self, bl: CompiledBeamline, n_rays: int, seed, edge: float, keep_hits: bool = False):
+        """Trace ``n_rays`` per configuration in memory-bounded chunks of rays."""
+        o = self.options
+        rays, draws = sample_source(bl, n_rays, seed, sampling=o.sampling, common=o.common_rays)
+        step = max(1, o.max_batch // max(bl.n_configs, 1))
+        for a in range(0, n_rays, step):
+            b = min(n_rays, a + step)
+            yield a, trace_rays(bl, rays.slice(a, b), None if draws is None else draws.slice(a, b),
+                                edge=edge, keep_hits=keep_hits)
+
+    def beam(self, values, overrides=None, *, n_rays: int, seed=None, edge: float = 0.0,
+             keep_hits: bool = False) -> Beam:
+        """All rays of a batch at the screen (one chunk per call: mind ``max_batch``)."""
+        bl = self.compile(values, overrides)
+        parts = list(self._chunks(bl, n_rays, seed, edge, keep_hits))
+        if len(parts) == 1:
+            return parts[0][1]
+        cat = (lambda name: torch.cat([getattr(b, name) for _, b in parts], -1))
+        hits = None if not keep_hits else {k: torch.cat([b.hits[k] for _, b in parts], 1) for k in parts[0][1].hits}
+        dirs = None if not keep_hits else {k: torch.cat([b.directions[k] for _, b in parts], 1)
+                                           for k in parts[0][1].directions}
+        return Beam(cat("x"), cat("y"), cat("alive"), cat("weight"), n_rays, hits, dirs)
+
+    def trace_many(self, requests: Sequence[TraceRequest], n_rays: int, keep_rays: bool = False) -> list[TraceResult]:
+        """Trace requests as one batch (groups of equal element types), results in order.
+
+        Requests that share one seed share their rays (common random numbers, when the
+        options say so); different seeds give each request its own stream."""
+        if n_rays < 1:
+            raise ValueError(f"n_rays must be positive, got {n_rays}")
+        out: list[TraceResult | None] = [None] * len(requests)
+        groups: dict[tuple, list[int]] = {}
+        for i, r in enumerate(requests):
+            key = tuple(sorted((k, str(f.get("type"))) for k, f in r.overrides.items() if "type" in f))
+            groups.setdefault(key, []).append(i)
+        for idx in groups.values():
+            reqs = [requests[i] for i in idx]
+            values = np.stack([self.table.validate(r.values) for r in reqs])
+            seeds = [r.seed for r in reqs]
+            seed = seeds[0] if len(set(seeds)) == 1 and seeds[0] is not None else seeds
+            if all(not r.overrides for r in reqs):
+                overrides = None
+            else:
+                overrides = [dict(r.overrides) for r in reqs]
+            for i, res in zip(idx, self._trace_group(values, overrides, n_rays, seed, keep_rays)):
+                out[i] = res
+        return out  # type: ignore[return-value]
+
+    def _trace_group(self, values, overrides, n_rays, seed, keep_rays) -> list[TraceResult]:
+        bl = self.compile(values, overrides)
+        c = bl.n_configs
+        hx = hy = None
+        n_hits = torch.zeros(c, dtype=torch.int64)
+        kept: list[list[np.ndarray]] = [[] for _ in range(c)]
+        with torch.no_grad():
+            for _, beam in self._chunks(bl, n_rays, seed, 0.0):
+                bx, by = histograms(beam, self.hist)
+                hx = bx if hx is None else hx + bx
+                hy = by if hy is None else hy + by
+                n_hits += beam.alive.sum(-1).cpu()
+                if keep_rays:
+                    for k in range(c):
+                        a = beam.alive[k]
+                        kept[k].append(torch.stack([beam.x[k][a], beam.y[k][a]], -1).cpu().numpy().astype(float))
+        hx, hy = hx.cpu().numpy().astype(float), hy.cpu().numpy().astype(float)
+        return [TraceResult(hx[k], hy[k], int(n_hits[k]), int(n_rays), np.asarray(values[k], float),
+                            np.concatenate(kept[k]) if keep_rays else None) for k in range(c)]
+
+    def trace(self, request: TraceRequest, n_rays: int, keep_rays: bool = False) -> TraceResult:
+        return self.trace_many([request], n_rays, keep_rays)[0]
+
+    # -- differentiable products --------------------------------------------------
+    def inputs(self, values, effects: Mapping[str, Mapping[str, float]] | None = None):
+        """Leaf tensors for a Jacobian: parameters (C, 34) and one (C,) tensor per effect
+        parameter (so that every configuration gets its own derivative), with names."""
+        vals = torch.as_tensor(np.atleast_2d(self.table.validate(values)), dtype=torch.float64,
+                               device=self.options.device)
+        c = vals.shape[0]
+        eff_leaves: dict[str, dict[str, torch.Tensor]] = {}
+        names = list(self.table.names)
+        from . import effects as fx
+        for name, vals_e in (effects or {}).items():
+            eff = fx.get(name)
+            if eff.level != "twin":
+                raise ValueError(f"effect {name!r} acts on histograms, not in the twin: it has no twin Jacobian")
+            full = eff.values(vals_e)
+            eff_leaves[name] = {p: torch.full((c,), float(v), dtype=torch.float64, device=vals.device)
+                                for p, v in full.items()}
+            names += [f"{name}.{p}" for p in full]
+        return vals, eff_leaves, names
+
+    def _overrides(self, eff_leaves, extra=None):
+        from . import effects as fx
+        ov = fx.twin_overrides(eff_leaves) if eff_leaves else {}
+        for obj, flds in (extra or {}).items():
+            tgt = ov.setdefault(obj, {})
+            for k, v in flds.items():
+                tgt[k] = tgt[k] + v if (k in _MIS_KEYS and k in tgt) else v
+        return ov
+
+    def products(self, what: str, values, effects=None, *, n_rays: int, seed=0, overrides=None,
+                 spec: HistogramSpec | None = None) -> torch.Tensor:
+        """Soft beam products (C, m) at fixed rays: ``"features"`` (intensity, centroid x/y,
+        rms width x/y), ``"histograms"`` (x then y, fraction of source rays) or
+        ``"profiles"`` (the same at the camera's resolution)."""
+        vals, leaves, _ = self.inputs(values, effects)
+        return self._products(what, vals, leaves, n_rays, seed, overrides, spec)
+
+    def _products(self, what, vals, leaves, n_rays, seed, extra, spec) -> torch.Tensor:
+        bl = self.compile(vals, self._overrides(leaves, extra))
+        edge, total = self.options.edge, None
+        for _, beam in self._chunks(bl, n_rays, seed, edge):
+            part = self._product(what, beam, spec)
+            total = part if total is None else total + part
+        if what == "features":
+            return features_from_moments(total, n_rays)
+        return total
+
+    def _product(self, what, beam, spec):
+        if what == "features":
+            return moments(beam, soft=self.options.edge > 0)
+        if what in ("histograms", "profiles"):
+            from .twin import CAMERA
+            sp = spec or (self.hist if what == "histograms" else CAMERA)
+            hx, hy = histograms(beam, sp, soft=True, kernel=self.options.kernel)
+            return torch.cat([hx, hy], -1)
+        raise ValueError(f"unknown product {what!r}: features, histograms or profiles")
+
+    def jacobian(self, what: str, values, effects=None, *, n_rays: int, seed=0, overrides=None,
+                 spec: HistogramSpec | None = None, mode: Literal["auto", "forward", "reverse"] = "auto"):
+        """Products (C, m) and their Jacobian (C, m, 34 + effect parameters), with the names
+        of the columns, for a whole batch of configurations at fixed rays.
+
+        ``mode``: "reverse" takes one backward pass per product component per chunk of rays
+        (cheap for the five features), "forward" one forward-mode pass per input (cheaper for
+        histograms); "auto" picks by the counts.
+        """
+        vals, leaves, names = self.inputs(values, effects)
+        flat = [(None, vals)] + [((e, p), t) for e, d in leaves.items() for p, t in d.items()]
+        n_in = vals.shape[1] + sum(len(d) for d in leaves.values())
+        if mode == "auto":
+            mode = "reverse" if what == "features" else "forward"
+        if mode == "forward":
+            return self._jacobian_forward(what, vals, leaves, flat, n_in, n_rays, seed, overrides, spec, names)
+        return self._jacobian_reverse(what, vals, leaves, flat, n_in, n_rays, seed, overrides, spec, names)
+
+    def _jacobian_forward(self, what, vals, leaves, flat, n_in, n_rays, seed, extra, spec, names):
+        import torch.autograd.forward_ad as fwd
+        cols, out = [], None
+        c = vals.shape[0]
+        for j in range(n_in):
+            with fwd.dual_level():
+                k = 0
+                dual_vals, dual_leaves = None, {e: {} for e in leaves}
+                for key, t in flat:
+                    width = t.shape[1] if key is None else 1
+                    tangent = torch.zeros_like(t)
+                    if k <= j < k + width:
+                        if key is None:
+                            tangent[:, j - k] = 1.0
+                        else:
+                            tangent[:] = 1.0
+                    dual = fwd.make_dual(t, tangent)
+                    if key is None:
+                        dual_vals = dual
+                    else:
+                        dual_leaves[key[0]][key[1]] = dual
+                    k += width
+                prod = self._products(what, dual_vals, dual_leaves, n_rays, seed, extra, spec)
+                primal, tangent = fwd.unpack_dual(prod)
+                out = primal.detach() if out is None else out
+                cols.append(tangent.detach() if tangent is not None else torch.zeros_like(primal))
+        return out, torch.stack(cols, -1).reshape(c, -1, n_in), names
+
+    def _jacobian_reverse(self, what, vals, leaves, flat, n_in, n_rays, seed, extra, spec, names):
+        leaves_req = {e: {p: t.clone().requires_grad_(True) for p, t in d.items()} for e, d in leaves.items()}
+        vals_req = vals.clone().requires_grad_(True)
+        inputs = [vals_req] + [t for d in leaves_req.values() for t in d.values()]
+        bl = self.compile(vals_req, self._overrides(leaves_req, extra))
+        edge = self.options.edge
+        total, jac = None, None
+        for _, beam in self._chunks(bl, n_rays, seed, edge):
+            part = self._product(what, beam, spec)  # (C, m): sums over this chunk's rays
+            rows = []
+            for m in range(part.shape[1]):
+                grads = torch.autograd.grad(part[:, m].sum(), inputs, retain_graph=True, allow_unused=True)
+                rows.append(torch.cat([(g if g is not None else torch.zeros_like(t)).reshape(t.shape[0], -1)
+                                       for g, t in zip(grads, inputs)], 1))
+            j_part = torch.stack(rows, 1)  # (C, m, n_in)
+            total = part.detach() if total is None else total + part.detach()
+            jac = j_part if jac is None else jac + j_part
+        if what != "features":
+            return total, jac, names
+        s = total.clone().requires_grad_(True)
+        feats = features_from_moments(s, n_rays)
+        d_fs = torch.stack([torch.autograd.grad(feats[:, k].sum(), s, retain_graph=True)[0]
+                            for k in range(feats.shape[1])], 1)  # (C, 5 features, 5 moments)
+        return feats.detach(), torch.einsum("cfm,cmp->cfp", d_fs, jac), names

@@ -90,9 +90,10 @@ def fraunhofer_uniform_rayx(ctr: torch.Tensor, dim_mm, wavelength_nm) -> tuple[t
     and get ``u = 0.5`` (no kick).  No gradients flow through the choice of ``u``.
     """
     with torch.no_grad():
+        dim = torch.as_tensor(dim_mm, dtype=torch.float64, device=ctr.device)
+        wl = torch.as_tensor(wavelength_nm, dtype=torch.float64, device=ctr.device)
+        ctr, dim, wl = torch.broadcast_tensors(ctr, dim, wl)
         ctr = ctr.clone()
-        dim = torch.as_tensor(dim_mm, dtype=torch.float64, device=ctr.device).expand_as(ctr)
-        wl = torch.as_tensor(wavelength_nm, dtype=torch.float64, device=ctr.device).expand_as(ctr)
         u_acc = torch.full(ctr.shape, 0.5, dtype=torch.float64, device=ctr.device)
         pending = (dim != 0).reshape(-1)
         flat_ctr, flat_u = ctr.reshape(-1), u_acc.reshape(-1)

@@ -350,6 +350,12 @@ class RayxEngine:
 # --------------------------------------------------------------------------- #
 def _trace_chunk(engine: TraceEngine, requests: Sequence[TraceRequest], n_rays: int,
                  keep_rays: bool) -> list[TraceResult]:
+    many = getattr(engine, "trace_many", None)
+    if many is not None and len(requests) > 1:
+        try:  # a batched engine traces the chunk at once; on failure, row by row for the message
+            return many(requests, n_rays, keep_rays)
+        except Exception:
+            pass
     out = []
     for req in requests:
         try:
@@ -402,26 +408,43 @@ class BatchResult:
         return self.results[i]
 
 
+ENGINES = ("rayx", "torch")
+
+
+def make_engine(engine: TraceEngine | str | None = None, **options) -> TraceEngine:
+    """An engine by name (``"rayx"``, the reference, or ``"torch"``) or the engine given."""
+    if engine is None or engine == "rayx":
+        return RayxEngine(**options)
+    if engine == "torch":
+        from .torch_engine import TorchEngine
+        return TorchEngine(**options)
+    if isinstance(engine, str):
+        raise ValueError(f"unknown engine {engine!r}; known: {', '.join(ENGINES)}")
+    return engine
+
+
 class Twin:
     """The METRIXS digital twin: parameter vectors in, focus-chamber histograms out.
 
     Parameters
     ----------
-    engine : TraceEngine, optional
-        Defaults to :class:`RayxEngine`.
+    engine : TraceEngine or str, optional
+        ``"rayx"`` (the default, :class:`RayxEngine`: the reference), ``"torch"`` (the
+        differentiable twin, :class:`~bluesky_offsets.torch_engine.TorchEngine`) or an engine.
     n_rays : int
         Source rays per simulation (the paper: 1e5).
     scheduler : str, optional
         Dask scheduler address (``tcp://host:8786``) to scale out; ``None``
-        starts a LocalCluster on first use; ``"inline"`` runs batches in this
+        starts a LocalCluster on first use (a batched engine such as the torch one
+        traces in this process instead); ``"inline"`` runs batches in this
         process (no Dask).
     n_workers : int, optional
         Workers of the LocalCluster (default: all cores), one thread each.
     """
 
-    def __init__(self, engine: TraceEngine | None = None, *, n_rays: int = 10_000,
+    def __init__(self, engine: TraceEngine | str | None = None, *, n_rays: int = 10_000,
                  scheduler: str | None = None, n_workers: int | None = None, client=None):
-        self.engine = engine or RayxEngine()
+        self.engine = make_engine(engine)
         self.n_rays = int(n_rays)
         self.scheduler = scheduler
         self.n_workers = n_workers
@@ -532,7 +555,8 @@ class Twin:
                 raise ValueError(f"{len(seeds)} seeds for {len(vals)} configurations")
         requests = [TraceRequest(v, o, s) for v, o, s in zip(vals, ovs, seeds)]
         n = n_rays or self.n_rays
-        if self.scheduler == "inline":
+        if self.scheduler == "inline" or (self.scheduler is None and self._client is None
+                                          and hasattr(self.engine, "trace_many")):
             results = self._run_inline(requests, n, keep_rays, progress)
         else:
             results = self._run_dask(requests, n, keep_rays, progress, chunk_size)
@@ -546,9 +570,13 @@ class Twin:
 
     def _run_inline(self, requests, n, keep_rays, progress) -> list[TraceResult]:
         from tqdm.auto import tqdm
+        # a batched engine takes many configurations per call
+        step = 64 if hasattr(self.engine, "trace_many") else 1
         out = []
-        for req in tqdm(requests, desc="tracing", unit="sim", disable=not progress):
-            out.extend(_trace_chunk(self.engine, [req], n, keep_rays))
+        with tqdm(total=len(requests), desc="tracing", unit="sim", disable=not progress) as bar:
+            for i in range(0, len(requests), step):
+                out.extend(_trace_chunk(self.engine, requests[i:i + step], n, keep_rays))
+                bar.update(len(requests[i:i + step]))
         return out
 
     def _run_dask(self, requests, n, keep_rays, progress, chunk_size) -> list[TraceResult]:
