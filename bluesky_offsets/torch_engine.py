@@ -244,18 +244,15 @@ def compile_beamline(values, overrides: Mapping | Sequence[Mapping] | None = Non
         raise RmlError("the first object must be the source")
     swap = torch.tensor([[1.0, 0, 0], [0, 0, 1.0], [0, 1.0, 0]], **f64)
     prev_p, prev_o = frame_tensors(frames[0])  # physical source frame: world = p + O r
-    src_get = getter(src_obj)
-    source = {
-        "type": src_obj.type,
-        "width": src_get("sourceWidth"), "height": src_get("sourceHeight"), "depth": src_get("sourceDepth"),
-        "hor_div": src_get("horDiv") * 1e-3,
-        "ver_div": src_get("verDiv") * 1e-3,
-        "energy": src_get("photonEnergy"), "spread": src_get("energySpread", 0.0),
-        "dists": tuple(int(src_obj.get_float(k, 1.0)) for k in ("sourceWidthDistribution",
-                                                                 "sourceHeightDistribution",
-                                                                 "horDivDistribution", "verDivDistribution")),
-    }
-    source = {k: (_col(v, c, torch.float64, device) if k not in ("type", "dists") else v) for k, v in source.items()}
+    source = {"type": src_obj.type}
+    if src_obj.type == "Point Source":  # other sources are traced from given rays
+        get = getter(src_obj)
+        source.update(width=get("sourceWidth"), height=get("sourceHeight"), depth=get("sourceDepth"),
+                      hor_div=get("horDiv") * 1e-3, ver_div=get("verDiv") * 1e-3,
+                      energy=get("photonEnergy"), spread=get("energySpread", 0.0))
+        source = {k: (v if k == "type" else _col(v, c, torch.float64, device)) for k, v in source.items()}
+        source["dists"] = tuple(int(src_obj.get_float(k, 1.0)) for k in (
+            "sourceWidthDistribution", "sourceHeightDistribution", "horDivDistribution", "verDivDistribution"))
 
     optics: list[Optic] = []
     src_rot = src_shift = None
@@ -1064,15 +1061,16 @@ class TorchEngine:
         """Products (C, m) and their Jacobian (C, m, 34 + effect parameters), with the names
         of the columns, for a whole batch of configurations at fixed rays.
 
-        ``mode``: "reverse" takes one backward pass per product component per chunk of rays
-        (cheap for the five features), "forward" one forward-mode pass per input (cheaper for
-        histograms); "auto" picks by the counts.
+        ``mode``: "reverse" (the default) takes one batched backward pass per chunk of rays
+        for all product components; "forward" one forward-mode pass per input column.
         """
         vals, leaves, names = self.inputs(values, effects)
         flat = [(None, vals)] + [((e, p), t) for e, d in leaves.items() for p, t in d.items()]
         n_in = vals.shape[1] + sum(len(d) for d in leaves.values())
         if mode == "auto":
-            mode = "reverse" if what == "features" else "forward"
+            # measured (docs/benchmarks.md): eager forward-mode AD runs several of these ops
+            # through Python decompositions and loses to one batched backward pass
+            mode = "reverse"
         if mode == "forward":
             return self._jacobian_forward(what, vals, leaves, flat, n_in, n_rays, seed, overrides, spec, names)
         return self._jacobian_reverse(what, vals, leaves, flat, n_in, n_rays, seed, overrides, spec, names)
@@ -1114,12 +1112,7 @@ class TorchEngine:
         total, jac = None, None
         for _, beam in self._chunks(bl, n_rays, seed, edge):
             part = self._product(what, beam, spec)  # (C, m): sums over this chunk's rays
-            rows = []
-            for m in range(part.shape[1]):
-                grads = torch.autograd.grad(part[:, m].sum(), inputs, retain_graph=True, allow_unused=True)
-                rows.append(torch.cat([(g if g is not None else torch.zeros_like(t)).reshape(t.shape[0], -1)
-                                       for g, t in zip(grads, inputs)], 1))
-            j_part = torch.stack(rows, 1)  # (C, m, n_in)
+            j_part = _batched_grad(part, inputs)
             total = part.detach() if total is None else total + part.detach()
             jac = j_part if jac is None else jac + j_part
         if what != "features":
@@ -1129,3 +1122,21 @@ class TorchEngine:
         d_fs = torch.stack([torch.autograd.grad(feats[:, k].sum(), s, retain_graph=True)[0]
                             for k in range(feats.shape[1])], 1)  # (C, 5 features, 5 moments)
         return feats.detach(), torch.einsum("cfm,cmp->cfp", d_fs, jac), names
+
+
+def _batched_grad(part: torch.Tensor, inputs: list[torch.Tensor]) -> torch.Tensor:
+    """d part[c, k] / d inputs[c, ...] for every k in one batched backward pass (the
+    configurations are independent, so summing over them separates nothing), as (C, m, n_in)."""
+    c, m = part.shape
+    eye = torch.eye(m, dtype=part.dtype, device=part.device)[:, None, :].expand(m, c, m)
+    try:
+        grads = torch.autograd.grad(part, inputs, grad_outputs=eye, retain_graph=True, allow_unused=True,
+                                    is_grads_batched=True)
+    except RuntimeError:  # an op without a batching rule: one pass per component
+        per = [torch.autograd.grad(part[:, k].sum(), inputs, retain_graph=True, allow_unused=True)
+               for k in range(m)]
+        grads = tuple(torch.stack([g[i] if g[i] is not None else torch.zeros_like(t) for g in per])
+                      for i, t in enumerate(inputs))
+    cols = [(g if g is not None else torch.zeros((m, *t.shape), dtype=t.dtype, device=t.device)).reshape(m, c, -1)
+            for g, t in zip(grads, inputs)]
+    return torch.cat(cols, 2).permute(1, 0, 2)
