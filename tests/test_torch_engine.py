@@ -359,3 +359,18 @@ def test_simulate_compares_both_engines(capsys):
     t = [r["transmission"] for r in out["runs"]]
     assert abs(t[0] - t[1]) < 5 * math.sqrt(2 * 0.79 * 0.21 / 4000)
     assert out["comparison"]["chi2_per_dof"] < 1 + 5 * out["comparison"]["sigma"]
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device here")
+def test_cuda_traces_the_same_rays_as_the_cpu():
+    values = METRIXS.reference + 0.005 * METRIXS.span * np.random.default_rng(8).uniform(-1, 1, (4, 34))
+    values[:, [METRIXS.index("E1.rotationZerror"), METRIXS.index("E2.rotationZerror")]] = 0.0
+    beams = []
+    for device in ("cpu", "cuda"):
+        with torch.no_grad():
+            beams.append(TorchEngine(options={"device": device, "sampling": "rayx"}).beam(values, n_rays=20_000,
+                                                                                         seed=3))
+    a, b = beams
+    assert torch.equal(a.alive, b.alive.cpu())
+    both = a.alive
+    assert (a.x - b.x.cpu())[both].abs().max() < 1e-9 and (a.y - b.y.cpu())[both].abs().max() < 1e-9

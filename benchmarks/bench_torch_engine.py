@@ -1,0 +1,223 @@
+"""The torch engine against RAYX: trace throughput and feature Jacobians.
+
+    python benchmarks/bench_torch_engine.py [--quick] [--device cuda] [--json out.json]
+
+Measures, on this machine:
+
+* trace time per source ray, 1e4 and 1e5 rays x 1 and 16 configurations, 1 and 2 threads:
+  RAYX as the twin calls it (RML written and imported, footprint extracted) and RAYX's bare
+  ``trace()``; the torch engine (fast and RAYX sampling, float64 and float32);
+* the Jacobian of the five beam features for 16 configurations x (34 parameters + the
+  chamber's z) at 1e4 rays: torch reverse mode against one-sided finite differences through
+  RAYX (35 extra traces per configuration, common seed), as the fits do today;
+* how many rays a torch feature Jacobian needs to be accurate to 1 % (relative error of the
+  entries above noise against a 2e5-ray reference, median over entries and configurations).
+
+Numbers go to docs/benchmarks.md with machine, command and date.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _machine import machine  # noqa: E402
+
+from bluesky_offsets.parameters import METRIXS  # noqa: E402
+from bluesky_offsets.torch_engine import TorchEngine  # noqa: E402
+from bluesky_offsets.twin import RayxEngine, TraceRequest, _rayx_fix_seed  # noqa: E402
+
+
+def configurations(n, seed=0):
+    rng = np.random.default_rng(seed)
+    vals = METRIXS.reference + 0.01 * METRIXS.span * rng.uniform(-1, 1, (n, 34))
+    vals[:, [METRIXS.index("E1.rotationZerror"), METRIXS.index("E2.rotationZerror")]] = 0.0
+    return vals
+
+
+def best(fn, repeat):
+    times = []
+    for _ in range(repeat):
+        t = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t)
+    return min(times)
+
+
+def bench_trace(sizes, threads, device, repeat):
+    import rayx
+    rows = []
+    for nthreads in threads:
+        torch.set_num_threads(nthreads)
+        for n_rays, n_cfg in sizes:
+            vals = configurations(n_cfg)
+            reqs = [TraceRequest(v, {}, 1) for v in vals]
+            rx = RayxEngine()
+            t_rx = best(lambda: [rx.trace(r, n_rays) for r in reqs], repeat)
+            path = Path("/tmp/bench_torch_engine.rml")
+            rx.build(reqs[0], n_rays).write(path)
+            bl = rayx.import_beamline(str(path))
+            _rayx_fix_seed(1)
+            t_bare = best(lambda: [bl.trace() for _ in reqs], repeat)
+            row = {"threads": nthreads, "rays": n_rays, "configs": n_cfg,
+                   "rayx_engine_us_per_ray": 1e6 * t_rx / (n_rays * n_cfg),
+                   "rayx_bare_us_per_ray": 1e6 * t_bare / (n_rays * n_cfg)}
+            for sampling in ("fast", "rayx"):
+                for dtype in ("float64", "float32"):
+                    if sampling == "rayx" and dtype == "float32":
+                        continue
+                    eng = TorchEngine(options={"sampling": sampling, "dtype": dtype, "device": device})
+                    eng.trace_many(reqs[:1], 1000)  # warm up
+                    t = best(lambda: eng.trace_many(reqs, n_rays), repeat)
+                    row[f"torch_{sampling}_{dtype}_us_per_ray"] = 1e6 * t / (n_rays * n_cfg)
+            row["speedup_fast_float64_vs_rayx_engine"] = row["rayx_engine_us_per_ray"] / row["torch_fast_float64_us_per_ray"]
+            row["speedup_fast_float64_vs_rayx_bare"] = row["rayx_bare_us_per_ray"] / row["torch_fast_float64_us_per_ray"]
+            print(json.dumps(row), flush=True)
+            rows.append(row)
+    return rows
+
+
+def bench_jacobian(n_cfg, n_rays, device, fd_configs):
+    torch.set_num_threads(1)
+    vals = configurations(n_cfg, 1)
+    eng = TorchEngine(options={"device": device})
+    effects = {"chamber_z": {"z": 5.0}}
+    eng.jacobian("features", vals[:1], effects, n_rays=1000, seed=1)
+    t = time.perf_counter()
+    eng.jacobian("features", vals, effects, n_rays=n_rays, seed=1)
+    t_torch = time.perf_counter() - t
+    # finite differences through RAYX, one-sided, common seed: 36 traces per configuration
+    rx = RayxEngine()
+    t = time.perf_counter()
+    for v in vals[:fd_configs]:
+        for j in range(36):
+            vv = v.copy()
+            if j < 34:
+                vv[j] += 1e-3 * METRIXS.span[j]
+            ov = {"ImagePlane": {"translationZerror": 5.0 + (1e-2 if j == 34 else 0.0)}}
+            rx.trace(TraceRequest(vv, ov, 1), n_rays, keep_rays=True)
+    t_fd = (time.perf_counter() - t) * n_cfg / fd_configs
+    return {"configs": n_cfg, "rays": n_rays, "parameters": 35, "threads": 1, "torch_reverse_s": t_torch,
+            "rayx_finite_differences_s": t_fd, "fd_measured_on_configs": fd_configs, "speedup": t_fd / t_torch}
+
+
+def bench_rays_for_one_percent(n_cfg, device, ladder, reference_rays):
+    torch.set_num_threads(2)
+    vals = configurations(n_cfg, 2)
+    eng = TorchEngine(options={"device": device})
+    effects = {"chamber_z": {"z": 5.0}}
+    _, ref, _ = eng.jacobian("features", vals, effects, n_rays=reference_rays, seed=777)
+    big = ref.abs() > 1e-2 * ref.abs().amax(dim=2, keepdim=True)
+    out = []
+    for n in ladder:
+        _, jac, _ = eng.jacobian("features", vals, effects, n_rays=n, seed=11)
+        rel = ((jac - ref).abs() / ref.abs())[big]
+        out.append({"rays": n, "median_relative_error": float(rel.median()),
+                    "p90_relative_error": float(rel.quantile(0.9))})
+        print(json.dumps(out[-1]), flush=True)
+    return {"reference_rays": reference_rays, "configs": n_cfg, "ladder": out}
+
+
+def float32_accuracy(n_rays=20_000):
+    """Screen positions of the same rays in float32 against float64 (fast sampling)."""
+    vals = configurations(16, 3)
+    reqs = [TraceRequest(v, {}, 1) for v in vals]
+    a = TorchEngine().trace_many(reqs, n_rays, keep_rays=True)
+    b = TorchEngine(options={"dtype": "float32"}).trace_many(reqs, n_rays, keep_rays=True)
+    hits = [abs(x.n_hits - y.n_hits) for x, y in zip(a, b)]
+    cen = [float(np.abs(x.rays.mean(0) - y.rays.mean(0)).max()) for x, y in zip(a, b)]
+    wid = [float(np.abs(x.rays.std(0) / y.rays.std(0) - 1).max()) for x, y in zip(a, b)]
+    return {"rays": n_rays, "configs": 16, "max_hit_count_difference": int(max(hits)),
+            "max_centroid_difference_mm": max(cen), "max_relative_width_difference": max(wid)}
+
+
+def device_agreement(device, n_rays=100_000):
+    """The same RAYX-stream rays traced on ``device`` and on the CPU (float64)."""
+    vals = configurations(16, 4)
+    out = {}
+    beams = {}
+    for dev in ("cpu", device):
+        eng = TorchEngine(options={"device": dev, "sampling": "rayx"})
+        with torch.no_grad():
+            beams[dev] = eng.beam(vals, n_rays=n_rays, seed=3)
+    a, b = beams["cpu"], beams[device]
+    alive_a, alive_b = a.alive.cpu(), b.alive.cpu()
+    both = alive_a & alive_b
+    out["survivors_differ"] = int((alive_a ^ alive_b).sum())
+    out["max_screen_difference_mm"] = float(max((a.x.cpu() - b.x.cpu())[both].abs().max(),
+                                                (a.y.cpu() - b.y.cpu())[both].abs().max()))
+    return out
+
+
+def bench_device(device, repeat=3):
+    """Throughput and Jacobian time on an accelerator (no RAYX there)."""
+    rows = []
+    for n_rays, n_cfg in [(10_000, 16), (100_000, 16), (1_000_000, 16)]:
+        vals = configurations(n_cfg)
+        reqs = [TraceRequest(v, {}, 1) for v in vals]
+        for dtype in ("float64", "float32"):
+            eng = TorchEngine(options={"device": device, "dtype": dtype, "max_batch": 1 << 23})
+            eng.trace_many(reqs, 1000)
+            torch.cuda.synchronize()
+            t = best(lambda: (eng.trace_many(reqs, n_rays), torch.cuda.synchronize()), repeat)
+            rows.append({"rays": n_rays, "configs": n_cfg, "dtype": dtype, "us_per_ray": 1e6 * t / (n_rays * n_cfg),
+                         "s": t})
+            print(json.dumps(rows[-1]), flush=True)
+    jac = []
+    for n_rays in (10_000, 100_000):
+        eng = TorchEngine(options={"device": device, "max_batch": 1 << 22})
+        vals = configurations(16, 1)
+        eng.jacobian("features", vals[:2], {"chamber_z": {"z": 5.0}}, n_rays=1000, seed=1)
+        torch.cuda.synchronize()
+        t = time.perf_counter()
+        eng.jacobian("features", vals, {"chamber_z": {"z": 5.0}}, n_rays=n_rays, seed=1)
+        torch.cuda.synchronize()
+        jac.append({"rays": n_rays, "configs": 16, "parameters": 35, "s": time.perf_counter() - t})
+        print(json.dumps(jac[-1]), flush=True)
+    return {"trace": rows, "jacobian": jac}
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--quick", action="store_true", help="small sizes (a smoke run)")
+    ap.add_argument("--device", default="cpu")
+    ap.add_argument("--json", help="write the results here")
+    args = ap.parse_args(argv)
+    if args.quick:
+        sizes, threads, repeat = [(10_000, 1), (10_000, 16)], [1], 1
+        jac = (4, 2000, 1)
+        ladder, ref = [1000, 3000], 20_000
+    else:
+        sizes, threads, repeat = [(10_000, 1), (10_000, 16), (100_000, 1), (100_000, 16)], [1, 2], 2
+        jac = (16, 10_000, 2)
+        ladder, ref = [1000, 3000, 10_000, 30_000, 100_000], 200_000
+    result = {"machine": machine(), "device": args.device, "torch": torch.__version__,
+              "date": time.strftime("%Y-%m-%d")}
+    if args.device != "cpu":
+        result["gpu"] = torch.cuda.get_device_name(args.device)
+        result["agreement_with_cpu"] = device_agreement(args.device)
+        print(json.dumps(result["agreement_with_cpu"]), flush=True)
+        result.update(bench_device(args.device))
+        if args.json:
+            Path(args.json).write_text(json.dumps(result, indent=2))
+        return 0
+    result["float32_accuracy"] = float32_accuracy()
+    print(json.dumps(result["float32_accuracy"]), flush=True)
+    result["trace"] = bench_trace(sizes, threads, args.device, repeat)
+    result["jacobian"] = bench_jacobian(jac[0], jac[1], args.device, jac[2])
+    print(json.dumps(result["jacobian"]), flush=True)
+    result["rays_for_jacobian"] = bench_rays_for_one_percent(4, args.device, ladder, ref)
+    if args.json:
+        Path(args.json).write_text(json.dumps(result, indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
