@@ -46,7 +46,7 @@ import torch
 
 from . import torch_random as rnd
 from .geometry import Misalignment, chain_frames
-from .metrixs import SOURCE, beamline_state, check_physical, nominal_beamline
+from .metrixs import beamline_state, check_physical, nominal_beamline
 from .parameters import METRIXS, ParameterTable
 from .rml import FLAT_TYPES, GRATING_TYPES, MIRROR_TYPES, RmlError, chain_link
 from .twin import HistogramSpec, TraceRequest, TraceResult
@@ -155,16 +155,16 @@ class CompiledBeamline:
         return [o.name for o in self.optics]
 
 
+_NOMINAL = nominal_beamline()
+
+
 def _col(v, c: int, dtype, device):
     """A field value as a (C, 1) tensor (or a float when it is a plain constant)."""
-    if torch.is_tensor(v):
-        return v.to(dtype=dtype, device=device).reshape(-1, 1).expand(c, 1) if v.numel() in (1, c) \
-            else _bad_shape(v, c)
-    return float(v)
-
-
-def _bad_shape(v, c):
-    raise ValueError(f"a batched field has {v.numel()} values for {c} configurations")
+    if not torch.is_tensor(v):
+        return float(v)
+    if v.numel() not in (1, c):
+        raise ValueError(f"a batched field has {v.numel()} values for {c} configurations")
+    return v.to(dtype=dtype, device=device).reshape(-1, 1).expand(c, 1)
 
 
 def compile_beamline(values, overrides: Mapping | Sequence[Mapping] | None = None, *,
@@ -200,10 +200,10 @@ def compile_beamline(values, overrides: Mapping | Sequence[Mapping] | None = Non
             ovs = list(overrides)
             if len(ovs) != c:
                 raise ValueError(f"{len(ovs)} overrides for {c} configurations")
-            state = _stack_states([beamline_state(vals[i], ov, table) for i, ov in enumerate(ovs)])
+            state = _stack_states([beamline_state(vals[i], ov, table) for i, ov in enumerate(ovs)], device)
         else:
             state = beamline_state(vals, overrides, table)
-        base = nominal_beamline()
+        base = _NOMINAL.copy()
     else:
         base = beamline.copy()
         state = beamline_state(vals[:, :0], None, ParameterTable([], name="none"))
@@ -271,7 +271,7 @@ def compile_beamline(values, overrides: Mapping | Sequence[Mapping] | None = Non
     return CompiledBeamline(c, source, src_rot.to(dtype), src_shift.to(dtype), optics, dtype, device)
 
 
-def _stack_states(states):
+def _stack_states(states, device):
     """One state with (C,) tensors from per-configuration states of numbers."""
     from .metrixs import BeamlineState
     out = BeamlineState()
@@ -286,11 +286,10 @@ def _stack_states(states):
             col = []
             for s in states:
                 v = getattr(s, attr).get(o, {}).get(k)
-                if v is None:
-                    v = 0.0 if attr == "misalignment" else nominal_beamline()[o].get_float(k)
-                col.append(v if torch.is_tensor(v) else torch.tensor(float(v), dtype=torch.float64))
-            target.setdefault(o, {})[k] = torch.stack([torch.as_tensor(v, dtype=torch.float64).reshape(())
-                                                       for v in col])
+                if v is None:  # not set for this configuration: no misalignment, the nominal field
+                    v = 0.0 if attr == "misalignment" else _NOMINAL[o].get_float(k)
+                col.append(torch.as_tensor(v, dtype=torch.float64, device=device).reshape(()))
+            target.setdefault(o, {})[k] = torch.stack(col)
     return out
 
 
@@ -402,7 +401,8 @@ class Rays:
 @dataclass
 class Draws:
     """The fast stream's random numbers, drawn up front so that chunking changes nothing:
-    ``slits[name]`` (2, C|1, N) uniforms, ``slopes[name]`` (2, C|1, N) standard normals."""
+    ``slits[name]`` (2, C|1, N) the kicks' accepted draws (width, height), ``slopes[name]``
+    (2, C|1, N) standard normals."""
 
     slits: dict[str, torch.Tensor]
     slopes: dict[str, torch.Tensor]
@@ -486,9 +486,9 @@ def sample_source(bl: CompiledBeamline, n_rays: int, seed, *, sampling: str = "f
                  nn[2] if dists[3] else torch.rand_like(nn[2]) - 0.5,
                  nn[3] if dists[2] else torch.rand_like(nn[3]) - 0.5]
         for opt in bl.optics:
-            if opt.behaviour == "slit":
-                slits[opt.name] = torch.stack([torch.rand(2, n_rays, generator=g, device=dev, dtype=torch.float64)
-                                               for g in gens], 1)
+            if opt.behaviour == "slit":  # the kicks' accepted draws, by inverse CDF, once for all configurations
+                slits[opt.name] = rnd.fraunhofer_uniform_fast(torch.stack(
+                    [torch.rand(2, n_rays, generator=g, device=dev, dtype=torch.float64) for g in gens], 1))
             if opt.slope is not None:
                 slopes[opt.name] = torch.stack([torch.randn(2, n_rays, generator=g, device=dev,
                                                             dtype=torch.float64) for g in gens], 1)
@@ -534,18 +534,36 @@ class Beam:
     directions: dict[str, torch.Tensor] | None = None  # element -> (C, N, 3) local, after it
 
 
+def _zero(v) -> bool:
+    """An exact number 0: a term it multiplies is left out (adding an exact zero changes no
+    rounding, and plane hits, normals and most quadric coefficients are exactly zero)."""
+    return not torch.is_tensor(v) and v == 0.0
+
+
+def _poly(*terms):
+    """Sum of products, each term a tuple of factors multiplied left to right, terms added
+    left to right; terms with an exact-zero factor are skipped."""
+    out = None
+    for term in terms:
+        if any(_zero(f) for f in term):
+            continue
+        t = term[0]
+        for f in term[1:]:
+            t = t * f
+        out = t if out is None else out + t
+    return 0.0 if out is None else out
+
+
 def _where_safe(cond, value, safe=1.0):
     return torch.where(cond, value, torch.as_tensor(safe, dtype=value.dtype, device=value.device))
 
 
 def _apply(rot, shift, x, y, z):
     r = rot[:, :, :, None]  # (C, 3, 3, 1) broadcast over rays
-    nx = r[:, 0, 0] * x + r[:, 0, 1] * y + r[:, 0, 2] * z
-    ny = r[:, 1, 0] * x + r[:, 1, 1] * y + r[:, 1, 2] * z
-    nz = r[:, 2, 0] * x + r[:, 2, 1] * y + r[:, 2, 2] * z
+    out = [_poly((r[:, k, 0], x), (r[:, k, 1], y), (r[:, k, 2], z)) for k in range(3)]
     if shift is None:
-        return nx, ny, nz
-    return nx + shift[:, 0, None], ny + shift[:, 1, None], nz + shift[:, 2, None]
+        return tuple(out)
+    return tuple(o + shift[:, k, None] for k, o in enumerate(out))
 
 
 def _plane_hit(px, py, pz, dx, dy, dz):
@@ -554,7 +572,7 @@ def _plane_hit(px, py, pz, dx, dy, dz):
     ok = (t >= 0) & (dy != 0)
     hx, hz = px + t * dx, pz + t * dz
     ny = -torch.sign(dy)
-    return (hx, torch.zeros_like(hx), hz), (torch.zeros_like(hx), ny, torch.zeros_like(hx)), ok
+    return (hx, 0.0, hz), (0.0, ny, 0.0), ok
 
 
 # (u, i, j): the dominant axis u of the ray parametrises the line, i and j are the others
@@ -575,9 +593,10 @@ def _quadric_case(q, case, p, d):
     ri, rj = p[i] - ei * p[u], p[j] - ej * p[u]
     a_uu, a_ui, a_ii, a_uj = _coef(q, u, u), _coef(q, u, i), _coef(q, i, i), _coef(q, u, j)
     a_ij, a_jj, a_u4, a_i4, a_j4 = _coef(q, i, j), _coef(q, j, j), _coef(q, u, 3), _coef(q, i, 3), _coef(q, j, 3)
-    a = a_uu + 2 * a_ui * ei + a_ii * ei * ei + 2 * a_uj * ej + 2 * a_ij * ei * ej + a_jj * ej * ej
-    b = a_u4 + a_i4 * ei + a_j4 * ej + (a_ui + a_ii * ei + a_ij * ej) * ri + (a_uj + a_ij * ei + a_jj * ej) * rj
-    c = q["a44"] + a_ii * ri * ri + 2 * a_j4 * rj + a_jj * rj * rj + 2 * ri * (a_i4 + a_ij * rj)
+    a = _poly((a_uu,), (2, a_ui, ei), (a_ii, ei, ei), (2, a_uj, ej), (2, a_ij, ei, ej), (a_jj, ej, ej))
+    b = _poly((a_u4,), (a_i4, ei), (a_j4, ej), (_poly((a_ui,), (a_ii, ei), (a_ij, ej)), ri),
+              (_poly((a_uj,), (a_ij, ei), (a_jj, ej)), rj))
+    c = _poly((q["a44"],), (a_ii, ri, ri), (2, a_j4, rj), (a_jj, rj, rj), (2, ri, _poly((a_i4,), (a_ij, rj))))
     disc = b * b - a * c
     ok = disc >= 0
     root = torch.sqrt(_where_safe(ok, disc))
@@ -608,12 +627,12 @@ def _quadric_hit(q, px, py, pz, dx, dy, dz):
     # behind the start in any coordinate (RAYX: (h - p)/d < 0; 0/0 passes)
     for hk, pk, dk in ((hx, px, dx), (hy, py, dy), (hz, pz, dz)):
         ok = ok & ~((hk - pk) / _where_safe(dk != 0, dk) < 0)
-    fx = 2 * q["a14"] + 2 * q["a11"] * hx + 2 * q["a12"] * hy + 2 * q["a13"] * hz
-    fy = 2 * q["a24"] + 2 * q["a12"] * hx + 2 * q["a22"] * hy + 2 * q["a23"] * hz
-    fz = 2 * q["a34"] + 2 * q["a13"] * hx + 2 * q["a23"] * hy + 2 * q["a33"] * hz
-    norm = torch.sqrt(fx * fx + fy * fy + fz * fz)
+    fx = _poly((2, q["a14"]), (2, q["a11"], hx), (2, q["a12"], hy), (2, q["a13"], hz))
+    fy = _poly((2, q["a24"]), (2, q["a12"], hx), (2, q["a22"], hy), (2, q["a23"], hz))
+    fz = _poly((2, q["a34"]), (2, q["a13"], hx), (2, q["a23"], hy), (2, q["a33"], hz))
+    norm = torch.sqrt(_poly((fx, fx), (fy, fy), (fz, fz)))
     norm = _where_safe(norm > 0, norm)
-    return (hx, hy, hz), (fx / norm, fy / norm, fz / norm), ok
+    return (hx, hy, hz), tuple(f if _zero(f) else f / norm for f in (fx, fy, fz)), ok
 
 
 def _toroid_hit(q, px, py, pz, dx, dy, dz):
@@ -718,9 +737,9 @@ def trace_rays(bl: CompiledBeamline, rays: Rays, draws: Draws | None = None, *, 
             if soft is not None:
                 weight = weight * soft
         # orient the normal against the ray
-        flip = (nx * dx + ny * dy + nz * dz) > 0
+        flip = _poly((nx, dx), (ny, dy), (nz, dz)) > 0
         sgn = torch.where(flip, -1.0, 1.0).to(dt)
-        nx, ny, nz = nx * sgn, ny * sgn, nz * sgn
+        nx, ny, nz = (n if _zero(n) else n * sgn for n in (nx, ny, nz))
         if opt.slope is not None:
             sag, mer = opt.slope
             if ctr is not None:
@@ -731,12 +750,12 @@ def trace_rays(bl: CompiledBeamline, rays: Rays, draws: Draws | None = None, *, 
                 ga, gb = draws.slopes[opt.name][0].to(dt), draws.slopes[opt.name][1].to(dt)
             a, b = ga * sag, gb * mer
             cb, sb, ca, sa = torch.cos(b), torch.sin(b), torch.cos(a), torch.sin(a)
-            ny1 = ny * cb + nz * sb
-            nz = nz * cb - ny * sb
-            nx, ny = nx * ca + ny1 * sa, ny1 * ca - nx * sa
+            ny1 = _poly((ny, cb), (nz, sb))
+            nz = _poly((nz, cb), (-1.0, ny, sb))
+            nx, ny = _poly((nx, ca), (ny1, sa)), _poly((ny1, ca), (-1.0, nx, sa))
         if opt.behaviour == "mirror":
-            dot = nx * dx + ny * dy + nz * dz
-            dx, dy, dz = dx - 2 * dot * nx, dy - 2 * dot * ny, dz - 2 * dot * nz
+            dot = _poly((nx, dx), (ny, dy), (nz, dz))
+            dx, dy, dz = (d if _zero(n) else d - 2 * dot * n for d, n in ((dx, nx), (dy, ny), (dz, nz)))
         elif opt.behaviour == "grating":
             dx, dy, dz, ok_g = _grating(opt, hz, nx, ny, nz, dx, dy, dz, wavelength)
             ok = ok & ok_g
@@ -755,8 +774,7 @@ def trace_rays(bl: CompiledBeamline, rays: Rays, draws: Draws | None = None, *, 
                 u_h, ctr_h = rnd.fraunhofer_uniform_rayx(ctr_w, _detach(h), wavelength)
                 ctr = torch.where(ok & inside, ctr_h, ctr)  # absorbed rays draw no kick
             else:
-                pair = draws.slits[opt.name]
-                u_w, u_h = rnd.fraunhofer_uniform_fast(pair[0]), rnd.fraunhofer_uniform_fast(pair[1])
+                u_w, u_h = draws.slits[opt.name]
                 if not torch.is_tensor(w) and w == 0:
                     u_w = torch.full_like(u_w, 0.5)
                 if not torch.is_tensor(h) and h == 0:
@@ -771,11 +789,12 @@ def trace_rays(bl: CompiledBeamline, rays: Rays, draws: Draws | None = None, *, 
         alive = alive & ok & (True if inside is None else inside)
         carry = valid if edge > 0 else alive
         # stopped rays continue from a harmless place: no inf/NaN enters any later derivative
-        x, y, z = (torch.where(carry, v, torch.zeros_like(v)) for v in (hx, hy, hz))
+        x, y, z = (v if _zero(v) else torch.where(carry, v, 0.0) for v in (hx, hy, hz))
         dx, dy, dz = (torch.where(carry, v, d0) for v, d0 in
                       ((dx, torch.zeros_like(dx)), (dy, torch.zeros_like(dy)), (dz, torch.ones_like(dz))))
         if keep_hits:
-            hits[opt.name] = torch.stack(torch.broadcast_tensors(hx, hy, hz), -1)
+            hits[opt.name] = torch.stack(torch.broadcast_tensors(*(torch.zeros_like(hx) if _zero(v) else v
+                                                                   for v in (hx, hy, hz))), -1)
             dirs[opt.name] = torch.stack(torch.broadcast_tensors(dx, dy, dz), -1)
     w_final = alive.to(dt) if weight is None else weight * valid.to(dt)
     return Beam(x.expand(c, n), z.expand(c, n), alive, w_final, n, hits if keep_hits else None,
@@ -799,6 +818,7 @@ def _kick(u, wavelength, dim, dt):
 
 def _grating(opt, hz, nx, ny, nz, dx, dy, dz, wavelength):
     """RAYX's vector grating equation (RAYX-CONVENTIONS.md §8.2)."""
+    nx, ny, nz = (torch.zeros_like(dx) if _zero(n) else n for n in (nx, ny, nz))
     density, order, vls = opt.grating
     zpow = 1.0
     poly = 1.0

@@ -33,9 +33,16 @@ def _measure(twin, effect=None):
     return Measurement(cfgs, hx, hy, N_RAYS), truth
 
 
+# A quarter of the flux lost.  At -15 % the diagnosis' offsets-only refit (all 34 offsets,
+# slit openings among them) reached chi2/dof 0.90 in the twin's bins on this design once the
+# source frame was written the way RAYX reads it (the measurement's draw changed): a loss that
+# size is within the offsets' reach here, and "within noise" is then the right verdict.
+GAIN_LOSS = -0.25
+
+
 @pytest.fixture(scope="module")
 def with_gain_loss(twin):
-    meas, truth = _measure(twin, ("intensity_scale", {"delta": -0.15}))
+    meas, truth = _measure(twin, ("intensity_scale", {"delta": GAIN_LOSS}))
     fit = refine(meas, ModelState(), twin, None, iterations=3, twin_columns=COLS, anchor_rays=4 * N_RAYS)
     return meas, truth, fit
 
@@ -74,7 +81,7 @@ def test_hidden_effect_ranked_first_and_fitted(twin, with_gain_loss, tmp_path):
     state, sigma = add_effect(meas, fit.state, "intensity_scale", twin, None, iterations=2,
                               anchor_rays=4 * N_RAYS)
     fitted = state.effects["intensity_scale"]["delta"]
-    assert fitted == pytest.approx(-0.15, rel=0.25) and 0 < sigma["intensity_scale"]["delta"] < 0.05
+    assert fitted == pytest.approx(GAIN_LOSS, rel=0.25) and 0 < sigma["intensity_scale"]["delta"] < 0.05
     versions = [Version("twin", ModelState(), evaluate(meas, ModelState(), twin)),
                 Version("+ offsets", fit.state, evaluate(meas, fit.state, twin)),
                 Version("+ intensity_scale", state, evaluate(meas, state, twin), sigma)]
