@@ -20,7 +20,6 @@ from __future__ import annotations
 import logging
 import os
 import tempfile
-import threading
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -264,7 +263,6 @@ class TraceEngine(Protocol):
         """Trace one beamline state with ``n_rays`` source rays."""
 
 
-_tls = threading.local()
 _seeded_pids: set[int] = set()
 
 
@@ -294,13 +292,36 @@ def _ensure_random_stream() -> None:
         _seeded_pids.add(pid)
 
 
-def _rml_path() -> Path:
-    # One scratch RML per process and thread: RAYX imports from a path only.
-    path = getattr(_tls, "rml_path", None)
-    if path is None:
-        d = Path(tempfile.mkdtemp(prefix="bluesky-offsets-"))
-        path = _tls.rml_path = d / "beamline.rml"
-    return path
+SCRATCH_ENV = "BLUESKY_OFFSETS_SCRATCH"
+_scratch: Path | None = None
+
+
+def _scratch_dir() -> Path:
+    """Where RAYX's input files are written for the moment of their import: the folder named
+    by ``$BLUESKY_OFFSETS_SCRATCH`` (its owner removes it), else one per process, removed at exit."""
+    global _scratch
+    named = os.environ.get(SCRATCH_ENV)
+    if named:
+        return Path(named)
+    if _scratch is None:
+        import atexit
+        import shutil
+        _scratch = Path(tempfile.mkdtemp(prefix="bluesky-offsets-"))
+        atexit.register(shutil.rmtree, _scratch, ignore_errors=True)
+    return _scratch
+
+
+def _import_rml(beamline):
+    """RAYX's beamline from ours.  RAYX imports from a path only; the file (which holds the
+    state traced, a simulated beamline's hidden truth included) lives only for the import."""
+    import rayx
+    fd, name = tempfile.mkstemp(suffix=".rml", dir=_scratch_dir())
+    try:
+        with os.fdopen(fd, "w") as f:
+            f.write(beamline.to_xml())
+        return rayx.import_beamline(name)
+    finally:
+        os.unlink(name)
 
 
 class RayxEngine:
@@ -324,15 +345,11 @@ class RayxEngine:
         return build_beamline(request.values, overrides=request.overrides, table=self.table, n_rays=n_rays)
 
     def trace(self, request: TraceRequest, n_rays: int, keep_rays: bool = False) -> TraceResult:
-        import rayx
 
         values = self.table.validate(request.values)
         if n_rays < 1:
             raise ValueError(f"n_rays must be positive, got {n_rays}")
-        beamline = self.build(request, n_rays)
-        path = _rml_path()
-        beamline.write(path)
-        bl = rayx.import_beamline(str(path))
+        bl = _import_rml(self.build(request, n_rays))
         if request.seed is None:
             _ensure_random_stream()
         else:

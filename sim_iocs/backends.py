@@ -9,6 +9,8 @@ frame.  It must not block the IOC's event loop: :meth:`submit` returns a
   the GIL for the whole trace, so a thread would freeze the IOC), with a
   fresh random seed per frame: the finite ray budget is the measurement
   noise.  Its frames carry the footprint's profiles at the camera's resolution too.
+  An abort stops the worker; a state no beamline can be in (a slit driven past
+  closed) is traced closed, so that the truth shows only as light or no light.
 * :class:`SurrogateBackend` evaluates a trained surrogate checkpoint
   (:mod:`bluesky_offsets.surrogate`) and draws the finite-ray noise itself
   (multinomial counts for the ray budget); it has no image, no camera-resolution
@@ -24,6 +26,9 @@ import concurrent.futures as cf
 import importlib
 import multiprocessing
 import os
+import shutil
+import tempfile
+import threading
 import time
 from collections.abc import Mapping
 from dataclasses import dataclass
@@ -31,7 +36,7 @@ from typing import Protocol, runtime_checkable
 
 import numpy as np
 
-from bluesky_offsets.twin import CAMERA, HistogramSpec
+from bluesky_offsets.twin import CAMERA, SCRATCH_ENV, HistogramSpec
 
 
 @dataclass
@@ -77,10 +82,40 @@ class FootprintBackend(Protocol):
 _worker_twin = None
 
 
+class FrameAborted(Exception):
+    """The frame was aborted: its worker was stopped mid-trace."""
+
+
+def physical_state(values: np.ndarray, table=None) -> tuple[np.ndarray, str | None]:
+    """The state a real beamline would be in: a slit driven past closed is closed.
+
+    Returns the state to trace and, when it had to be changed or cannot be traced at all,
+    a note for the simulation's operator (never for its clients: it names true values).
+    """
+    from bluesky_offsets.metrixs import check_physical
+    from bluesky_offsets.parameters import METRIXS
+    table = table or METRIXS
+    v = np.array(values, float)
+    note = None
+    for i, p in enumerate(table):
+        if p.field in ("openingWidth", "openingHeight") and v[i] < 0:
+            note = f"{p.name} = {v[i]:.6g} {p.unit}: closed (traced at 0)"
+            v[i] = 0.0
+    try:
+        check_physical(v, table)
+    except ValueError as exc:
+        return v, f"impossible state ({exc}): dark frame"
+    return v, note
+
+
 def _twin_frame(values: np.ndarray, overrides: Mapping, n_rays: int, seed: int | None,
-                hist: HistogramSpec) -> Frame:
+                hist: HistogramSpec) -> tuple[Frame, str | None]:
     global _worker_twin
     t0 = time.perf_counter()
+    values, note = physical_state(values)
+    if note is not None and note.startswith("impossible"):
+        # no beamline can be in this state: no light, as in any dark frame
+        return Frame.dark(hist, n_rays), note
     if _worker_twin is None:
         from bluesky_offsets.twin import RayxEngine, Twin
         _worker_twin = Twin(RayxEngine(hist=hist), scheduler="inline")
@@ -89,11 +124,68 @@ def _twin_frame(values: np.ndarray, overrides: Mapping, n_rays: int, seed: int |
     image = hist.image(x, y, n_rays)
     px, py = CAMERA.histograms(x, y, n_rays)
     return Frame(np.nan_to_num(r.hist_x), np.nan_to_num(r.hist_y), np.nan_to_num(image), int(r.n_hits),
-                 int(n_rays), time.perf_counter() - t0, px, py)
+                 int(n_rays), time.perf_counter() - t0, px, py), note
+
+
+def _worker_loop(conn, scratch: str) -> None:
+    """A frame worker: jobs in, ``("ok", (frame, note))`` or ``("error", text)`` out."""
+    import signal
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the IOC stops its workers itself
+    os.environ[SCRATCH_ENV] = scratch
+    while True:
+        try:
+            job = conn.recv()
+        except (EOFError, OSError):
+            return
+        if job is None:
+            return
+        try:
+            conn.send(("ok", _twin_frame(*job)))
+        except Exception as exc:  # reported to the IOC, which decides what its clients see
+            conn.send(("error", f"{type(exc).__name__}: {exc}"))
+
+
+class _Worker:
+    """One frame-worker process; :meth:`kill` stops a trace at once."""
+
+    def __init__(self, ctx, scratch: str):
+        self.conn, child = ctx.Pipe()
+        self.proc = ctx.Process(target=_worker_loop, args=(child, scratch), daemon=True,
+                                name="metrixs-frame-worker")
+        self.proc.start()
+        child.close()
+        self.lock = threading.Lock()
+        self.killed = False
+
+    def run(self, job):
+        with self.lock:
+            if self.killed:
+                raise FrameAborted()
+            try:
+                self.conn.send(job)
+                return self.conn.recv()
+            except (EOFError, OSError, BrokenPipeError):
+                if self.killed:
+                    raise FrameAborted() from None
+                raise RuntimeError("the frame worker died") from None
+
+    def alive(self) -> bool:
+        return not self.killed and self.proc.is_alive()
+
+    def kill(self) -> None:
+        self.killed = True
+        if self.proc.is_alive():
+            self.proc.kill()
+        self.proc.join(5)
+        self.conn.close()
 
 
 class TwinBackend:
-    """The RAYX digital twin, one worker process, a fresh seed for every frame.
+    """The RAYX digital twin in a worker process, a fresh seed for every frame.
+
+    An abort stops the worker at once and the next frame goes to a spare worker that is
+    already warm; a worker that died is replaced before the next frame.  RAYX's input files
+    live in a scratch folder of the backend's own, removed on close.
 
     Parameters
     ----------
@@ -117,35 +209,79 @@ class TwinBackend:
             self.name = f"twin (rayx {version('rayx')})"
         except PackageNotFoundError:  # pragma: no cover
             self.name = "twin (rayx)"
-        self._pool: cf.ProcessPoolExecutor | None = None
+        # spawn: no copy of the IOC's event loop and sockets in the workers
+        self._ctx = multiprocessing.get_context("spawn")
+        self._scratch = tempfile.mkdtemp(prefix="metrixs-ioc-")
+        self._active: _Worker | None = None
+        self._spare: _Worker | None = None
+        self._swap = threading.Lock()
+        self._frames = cf.ThreadPoolExecutor(max_workers=1, thread_name_prefix="frames")
+        self.notes: list[str] = []  # for the operator's log only (they name true values)
 
-    def _executor(self) -> cf.ProcessPoolExecutor:
-        if self._pool is None:
-            # spawn: no copy of the IOC's event loop and sockets in the worker
-            self._pool = cf.ProcessPoolExecutor(max_workers=1, mp_context=multiprocessing.get_context("spawn"))
-        return self._pool
+    def _new_worker(self, warm: bool) -> _Worker:
+        w = _Worker(self._ctx, self._scratch)
+        if warm:  # imports and a first trace, in the background, so that it takes over at once
+            job = (self._warm_state(), self.overrides, 100, 0, self.hist)
+            threading.Thread(target=self._try, args=(w, job), daemon=True).start()
+        return w
+
+    @staticmethod
+    def _warm_state() -> np.ndarray:
+        from bluesky_offsets.parameters import METRIXS
+        return METRIXS.reference.copy()
+
+    @staticmethod
+    def _try(worker: _Worker, job) -> None:
+        try:
+            worker.run(job)
+        except Exception:
+            pass
+
+    def _worker(self) -> _Worker:
+        with self._swap:
+            if self._active is None or not self._active.alive():
+                if self._active is not None:
+                    self._active.kill()
+                spare, self._spare = self._spare, None
+                self._active = spare if spare is not None and spare.alive() else self._new_worker(False)
+            if self._spare is None or not self._spare.alive():
+                self._spare = self._new_worker(True)
+            return self._active
+
+    def _frame(self, values: np.ndarray, n_rays: int, seed: int) -> Frame:
+        worker = self._worker()
+        status, payload = worker.run((np.asarray(values, float), self.overrides, int(n_rays), seed, self.hist))
+        if status != "ok":
+            raise RuntimeError(payload)
+        frame, note = payload
+        if note:
+            self.notes.append(note)
+        return frame
 
     def submit(self, values: np.ndarray, n_rays: int) -> cf.Future:
         # fresh noise for every frame
         seed = int(self._noise.integers(2 ** 32)) if self._noise is not None else int.from_bytes(os.urandom(4), "little")
-        try:
-            return self._executor().submit(_twin_frame, np.asarray(values, float), self.overrides, int(n_rays),
-                                           seed, self.hist)
-        except cf.process.BrokenProcessPool:
-            self._pool = None  # the worker died (crash in the tracer): start a new one
-            return self._executor().submit(_twin_frame, np.asarray(values, float), self.overrides, int(n_rays),
-                                           seed, self.hist)
+        return self._frames.submit(self._frame, np.asarray(values, float), int(n_rays), seed)
+
+    def abort(self) -> None:
+        """Stop the frame being traced now (its future raises :class:`FrameAborted`)."""
+        with self._swap:
+            if self._active is not None:
+                self._active.kill()
+                self._active = None
 
     def reset(self) -> None:
-        """Drop a broken worker; the next frame starts a fresh one."""
-        if self._pool is not None:
-            self._pool.shutdown(wait=False, cancel_futures=True)
-            self._pool = None
+        """Drop the worker; the next frame starts on the spare."""
+        self.abort()
 
     def close(self) -> None:
-        if self._pool is not None:
-            self._pool.shutdown(wait=True, cancel_futures=True)
-            self._pool = None
+        with self._swap:
+            for w in (self._active, self._spare):
+                if w is not None:
+                    w.kill()
+            self._active = self._spare = None
+        self._frames.shutdown(wait=False, cancel_futures=True)
+        shutil.rmtree(self._scratch, ignore_errors=True)
 
 
 # --------------------------------------------------------------------------- #

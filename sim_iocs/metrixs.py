@@ -19,7 +19,13 @@ offsets, the hidden true values of the six fixed parameters, and hidden
 physical effects (:mod:`sim_iocs.truth`), by a backend (:mod:`sim_iocs.backends`,
 the RAYX twin by default) in a worker process, with a fresh random seed per
 frame.  Ports and interfaces follow the usual EPICS environment variables
-(``EPICS_CAS_SERVER_PORT``, ``EPICS_CA_SERVER_PORT``, ``EPICS_CAS_INTF_ADDR_LIST``).
+(``EPICS_CAS_SERVER_PORT``, ``EPICS_CA_SERVER_PORT``; ``EPICS_CAS_INTF_ADDR_LIST`` unless
+``--interfaces`` is given; loopback when neither is); beacons go to the served loopback
+interface unless ``EPICS_CAS_BEACON_ADDR_LIST`` says otherwise.
+
+The hidden truth stays hidden from the IOC's clients: no PV, message or file tells it (a
+state no beamline can be in, such as a slit driven past closed, gives a dark frame like any
+other), and what the operator of the simulation may read goes to ``--truth-log FILE`` only.
 """
 
 from __future__ import annotations
@@ -29,6 +35,7 @@ import asyncio
 import json
 import logging
 import math
+import os
 import signal
 import socket
 import sys
@@ -43,7 +50,7 @@ from caproto._data import SkipWrite
 from bluesky_offsets.parameters import METRIXS, ParameterError, ParameterTable
 from bluesky_offsets.twin import CAMERA, HistogramSpec
 
-from .backends import FootprintBackend, Frame, make_backend
+from .backends import FootprintBackend, Frame, FrameAborted, make_backend
 from .motor_record import AxisSettings, MotorRecord
 from .truth import Truth
 
@@ -51,6 +58,8 @@ log = logging.getLogger("sim_iocs.metrixs")
 
 HIST = HistogramSpec()
 DEFAULT_PREFIX = "SIM:METRIXS:"
+MAX_RAYS = 1_000_000  # per frame: RAYX's worker holds ~4 kB per ray (≈4 GB at the bound)
+MAX_ACQUIRE_TIME = 3600.0  # s
 CHAMBER = "chamber:"
 STATUS = ("Idle", "Acquiring", "Error", "Aborted")
 
@@ -134,13 +143,19 @@ class FocusChamber(PVGroup):
                               read_only=True)
 
     def __init__(self, *args, state: Callable[[], np.ndarray], backend: FootprintBackend, truth_id: str,
-                 table: ParameterTable = METRIXS, n_rays: int = 10000, **kwargs):
+                 table: ParameterTable = METRIXS, n_rays: int = 10000, max_rays: int = MAX_RAYS,
+                 truth_log: Callable[[str], None] | None = None, **kwargs):
         super().__init__(*args, **kwargs)
         self._state = state
         self.backend = backend
         self._truth_id = truth_id
         self._table = table
+        self._max_rays = int(max_rays)
+        if not 0 <= int(n_rays) <= self._max_rays:
+            raise ValueError(f"the ray budget must lie in [0, {self._max_rays}], got {n_rays}")
         self._n_rays = int(n_rays)
+        # what only the simulation's operator may read (true values); default: nowhere
+        self._truth_log = truth_log or (lambda text: None)
         self._frame: asyncio.Task | None = None
         self._abort = asyncio.Event()
 
@@ -149,32 +164,44 @@ class FocusChamber(PVGroup):
         await self.truth_id.write(self._truth_id)
         await self.table_version.write(self._table.version)
         await self.backend_name.write(self.backend.name)
+        await self.num_rays.write_metadata(lower_ctrl_limit=0, upper_ctrl_limit=self._max_rays)
+        await self.acquire_time.write_metadata(lower_ctrl_limit=0.0, upper_ctrl_limit=MAX_ACQUIRE_TIME)
         await self.num_rays.write(self._n_rays)
         await self.message.write("warming up the backend")
         try:  # warm the worker (imports, first trace) so the first real frame is quick
             await asyncio.wrap_future(self.backend.submit(self._state(), 100))
             await self.message.write("ready")
         except Exception as exc:  # reported, the IOC keeps serving
+            self._truth_log(f"backend failed to start: {exc}")
             await self.status.write("Error")
-            await self.message.write(f"backend failed to start: {exc}"[:255])
+            await self.message.write("backend failed to start (see the IOC's log)")
+        self._drain_notes()
 
     @num_rays.putter
     async def num_rays(self, instance, value):
-        if value < 0:
-            raise ValueError("NumRays must be >= 0")
+        if not 0 <= value <= self._max_rays:
+            raise ValueError(f"NumRays must lie in [0, {self._max_rays}], got {value}")
         return value
 
     @acquire_time.putter
     async def acquire_time(self, instance, value):
-        if not value >= 0:
-            raise ValueError("AcquireTime must be >= 0")
+        if not (math.isfinite(value) and 0 <= value <= MAX_ACQUIRE_TIME):
+            raise ValueError(f"AcquireTime must lie in [0, {MAX_ACQUIRE_TIME:g}] s, got {value}")
         return value
+
+    def _drain_notes(self) -> None:
+        notes = getattr(self.backend, "notes", None)
+        while notes:
+            self._truth_log(notes.pop(0))
 
     @acquire.putter
     async def acquire(self, instance, value):
         if value == "Done":
             if self._frame is not None and not self._frame.done():
                 self._abort.set()
+                abort = getattr(self.backend, "abort", None)
+                if abort is not None:  # stop the tracing itself, not only the wait for it
+                    abort()
             return SkipWrite
         if self._frame is None or self._frame.done():
             self._abort.clear()
@@ -183,7 +210,7 @@ class FocusChamber(PVGroup):
         # A second Acquire during a frame completes with that frame.  The frame task
         # owns the outcome, so a client that goes away does not cancel it.
         ok, msg = await asyncio.shield(self._frame)
-        if not ok and msg != "aborted":
+        if not ok:
             raise RuntimeError(msg)
         return SkipWrite
 
@@ -201,9 +228,12 @@ class FocusChamber(PVGroup):
                 done, _ = await asyncio.wait({fut, abort}, return_when=asyncio.FIRST_COMPLETED)
                 abort.cancel()
                 if fut not in done:
-                    fut.cancel()  # the worker finishes its trace; the result is dropped
+                    fut.cancel()  # a queued frame never starts; a running one was stopped by abort()
                     raise _Aborted()
-                frame = fut.result()
+                try:
+                    frame = fut.result()
+                except FrameAborted:
+                    raise _Aborted() from None
             rest = self.acquire_time.value - (time.monotonic() - t0)
             if rest > 0:
                 try:
@@ -217,17 +247,21 @@ class FocusChamber(PVGroup):
             await self.status.write("Aborted")
             await self.message.write("acquisition aborted")
             await self.acquire.write("Done", verify_value=False)
-            return False, "aborted"
+            return False, "acquisition aborted"
         except Exception as exc:
             reset = getattr(self.backend, "reset", None)
-            if reset is not None and "BrokenProcessPool" in type(exc).__name__:
-                reset()
-            msg = f"acquisition failed: {type(exc).__name__}: {exc}"
-            log.error(msg)
+            if reset is not None:
+                reset()  # a fresh worker for the next frame
+            # the cause may name true values: it goes to the operator's log only
+            self._truth_log(f"frame failed: {type(exc).__name__}: {exc}")
+            log.error("acquisition failed (details in the truth log, if one was chosen)")
+            msg = "acquisition failed: the beamline model raised an error"
             await self.status.write("Error")
-            await self.message.write(msg[:255])
+            await self.message.write(msg)
             await self.acquire.write("Done", verify_value=False)
             return False, msg
+        finally:
+            self._drain_notes()
 
     async def _publish(self, frame: Frame, seconds: float):
         ts = time.time()  # one timestamp for the whole frame
@@ -277,12 +311,17 @@ class MetrixsIOC:
         A full-range move takes ``move_time`` s; ``ACCL``; readback update period.
     noise_seed : int, optional
         Seeds the frames' ray noise (a backend named by string); default: fresh from the OS.
+    max_rays : int
+        Upper bound of ``NumRays`` (memory: RAYX holds ~4 kB per ray).
+    truth_log : callable, optional
+        Receives the notes that name true values (impossible states, model errors).
     """
 
     def __init__(self, prefix: str = DEFAULT_PREFIX, truth: Truth | None = None,
                  backend: FootprintBackend | str = "twin", *, table: ParameterTable = METRIXS,
                  n_rays: int = 10000, move_time: float = 4.0, accel_time: float = 0.2, tick: float = 0.05,
-                 noise_seed: int | None = None):
+                 noise_seed: int | None = None, max_rays: int = MAX_RAYS,
+                 truth_log: Callable[[str], None] | None = None):
         self.prefix = prefix
         self.table = table
         self.truth = truth or Truth.from_seed(None, table)
@@ -296,7 +335,8 @@ class MetrixsIOC:
                 self.motors[p.name] = MotorRecord(prefix=motor_pv(p, prefix), settings=settings, tick=tick,
                                                   name=p.name)
         self.chamber = FocusChamber(prefix=prefix + CHAMBER, state=self.true_state, backend=backend,
-                                    truth_id=self.truth.truth_id, table=table, n_rays=n_rays, name="chamber")
+                                    truth_id=self.truth.truth_id, table=table, n_rays=n_rays, max_rays=max_rays,
+                                  truth_log=truth_log, name="chamber")
         self.pvdb = {}
         for group in (*self.motors.values(), self.chamber):
             self.pvdb.update(group.pvdb)
@@ -346,36 +386,72 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--backend", default="twin",
                         help="footprint model: 'twin' (default), 'surrogate[:CHECKPOINT]' or module:factory")
     parser.add_argument("--rays", type=int, default=10000, help="initial ray budget per frame (NumRays)")
+    parser.add_argument("--max-rays", type=int, default=MAX_RAYS,
+                        help=f"upper bound of NumRays (default {MAX_RAYS:,}; RAYX holds ~4 kB per ray)")
+    parser.add_argument("--truth-log", metavar="FILE",
+                        help="append what only the simulation's operator may read (impossible true states, "
+                             "model errors, with true values) to FILE; default: nowhere")
     parser.add_argument("--noise-seed", type=int, default=None,
                         help="seed of the frames' ray noise: the same acquisitions give the same frames "
                              "(default: fresh noise from the OS for every frame)")
     parser.add_argument("--move-time", type=float, default=4.0, help="seconds for a full-range move (VELO)")
     parser.add_argument("--accel-time", type=float, default=0.2, help="motor acceleration time ACCL (s)")
     parser.add_argument("--tick", type=float, default=0.05, help="readback update period while moving (s)")
-    parser.add_argument("--interfaces", nargs="+", default=["127.0.0.1"],
-                        help="interfaces to serve on (default: loopback only)")
+    parser.add_argument("--interfaces", nargs="+", default=None,
+                        help="interfaces to serve on (default: $EPICS_CAS_INTF_ADDR_LIST, else loopback only)")
     parser.add_argument("-v", "--verbose", action="store_true", help="log more")
 
 
 def _build(args) -> MetrixsIOC:
     truth = Truth.from_file(args.truth) if args.truth else Truth.from_seed(args.seed, limit=args.max_offset)
-    if args.rays < 0 or args.move_time <= 0 or args.accel_time <= 0 or args.tick <= 0:
-        raise ParameterError("--rays must be >= 0; --move-time, --accel-time, --tick must be positive")
+    if not 0 <= args.rays <= args.max_rays or args.move_time <= 0 or args.accel_time <= 0 or args.tick <= 0:
+        raise ParameterError("--rays must lie in [0, --max-rays]; --move-time, --accel-time, --tick must be positive")
     if args.dump_truth:
         with open(args.dump_truth, "w") as f:
             json.dump(truth.to_dict(), f, indent=2)
     try:
         return MetrixsIOC(args.prefix, truth, args.backend, n_rays=args.rays, move_time=args.move_time,
-                          accel_time=args.accel_time, tick=args.tick, noise_seed=args.noise_seed)
+                          accel_time=args.accel_time, tick=args.tick, noise_seed=args.noise_seed,
+                          max_rays=args.max_rays, truth_log=_truth_logger(args.truth_log))
     except ValueError as exc:
         raise ParameterError(str(exc)) from None
+
+
+def _truth_logger(path: str | None) -> Callable[[str], None] | None:
+    if not path:
+        return None
+
+    def write(text: str) -> None:
+        with open(path, "a") as f:
+            f.write(f"{time.strftime('%Y-%m-%d %H:%M:%S')} {text}\n")
+    return write
+
+
+def _interfaces(given: list[str] | None) -> list[str]:
+    if given:
+        return list(given)
+    env = os.environ.get("EPICS_CAS_INTF_ADDR_LIST", "").split()
+    return env or ["127.0.0.1"]
+
+
+def _beacon_environment(interfaces: list[str]) -> None:
+    """Beacons to the served loopback interface, not caproto's default 255.255.255.255,
+    unless the caller chose their addresses (``EPICS_CAS_BEACON_ADDR_LIST``)."""
+    if os.environ.get("EPICS_CAS_BEACON_ADDR_LIST"):
+        return
+    loop = [i for i in interfaces if i.startswith("127.")]
+    if loop and len(loop) == len(interfaces):
+        os.environ["EPICS_CAS_BEACON_ADDR_LIST"] = " ".join(loop)
+        os.environ["EPICS_CAS_AUTO_BEACON_ADDR_LIST"] = "NO"
 
 
 def serve(args) -> int:
     """Run the IOC until interrupted (SIGINT or SIGTERM)."""
     ioc = _build(args)
+    origin = "from a file" if args.truth else "drawn from a seed"
+    # the truth's source (a seed) is the truth: only its salted id is shown
     print(f"METRIXS simulation IOC, prefix {args.prefix!r}, backend {ioc.backend.name}, "
-          f"truth id {ioc.truth.truth_id} ({ioc.truth.source or 'file'})", flush=True)
+          f"truth id {ioc.truth.truth_id} ({origin})", flush=True)
     if args.list_pvs:
         print(ioc.describe(), flush=True)
 
@@ -383,8 +459,10 @@ def serve(args) -> int:
         raise KeyboardInterrupt
 
     signal.signal(signal.SIGTERM, _terminate)
+    interfaces = _interfaces(args.interfaces)
+    _beacon_environment(interfaces)
     try:
-        asyncio.run(_serve(ioc.pvdb, args.interfaces))
+        asyncio.run(_serve(ioc.pvdb, interfaces))
     except KeyboardInterrupt:
         pass
     finally:
@@ -392,8 +470,26 @@ def serve(args) -> int:
     return 0
 
 
+def _completed(command):
+    """A failed put-with-completion answered the way an EPICS IOC answers it: a
+    WriteNotifyResponse with ECA_PUTFAIL.  caproto's server sends an ErrorResponse instead,
+    which caproto's own clients (ophyd's control layer among them) never match to the put:
+    it would wait until its timeout."""
+    import caproto as ca
+    if isinstance(command, ca.ErrorResponse):
+        req = command.original_request
+        if req.command == ca.WriteNotifyRequest.ID:
+            return ca.WriteNotifyResponse(data_type=req.data_type, data_count=req.data_count,
+                                          status=ca.CAStatus.ECA_PUTFAIL, ioid=req.parameter2)
+    return command
+
+
 def _nodelay_context():
-    from caproto.asyncio.server import Context
+    from caproto.asyncio.server import Context, VirtualCircuit
+
+    class Circuit(VirtualCircuit):
+        async def send(self, *commands):
+            await super().send(*(_completed(c) for c in commands))
 
     class NoDelayContext(Context):
         """caproto's asyncio server with TCP_NODELAY on client circuits, as EPICS IOCs have.
@@ -402,6 +498,8 @@ def _nodelay_context():
         several fields of a motor at once) wait for the client's delayed ACK:
         ~45 ms instead of ~1 ms per round trip.
         """
+
+        CircuitClass = Circuit
 
         async def tcp_handler(self, client, addr):
             sock = client.writer.get_extra_info("socket")

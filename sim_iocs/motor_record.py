@@ -28,6 +28,7 @@ after the dial has been redefined in ``SET``/``Frozen`` mode.
 from __future__ import annotations
 
 import asyncio
+import logging
 import math
 import time
 from dataclasses import dataclass
@@ -35,6 +36,23 @@ from dataclasses import dataclass
 from caproto import ChannelType
 from caproto.server import PVGroup, PvpropertyDouble, pvproperty
 from caproto._data import SkipWrite
+
+MAX_ACCEL_TIME = 10.0  # s: longer ACCL is clamped (a 0.2 mm move would otherwise take minutes)
+
+
+def _finite(value, field: str) -> float:
+    """``value`` as a finite float, or ValueError naming the field: NaN and infinities never
+    reach a published value or the motion."""
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        raise ValueError(f"{field} must be a number, got {value!r}") from None
+    if not math.isfinite(v):
+        raise ValueError(f"{field} must be finite, got {v}")
+    return v
+
+
+log = logging.getLogger("sim_iocs.motor_record")
 
 # MSTA bits of the motor record (motor record documentation, "MSTA").
 MSTA_DIRECTION, MSTA_DONE, MSTA_PLUS_LS, MSTA_HOME_LS = 1 << 0, 1 << 1, 1 << 2, 1 << 3
@@ -324,7 +342,7 @@ class MotorRecord(PVGroup):
         if self.lvio.value:
             await self.lvio.write(0)
         if self.spmg.value == "Stop":
-            return False
+            raise ValueError("SPMG is Stop: motion is disabled (set SPMG to Go or Move)")
         self._target_dial = dial_target
         await self._publish_position(setpoint=True)
         if self.spmg.value == "Pause":
@@ -375,6 +393,10 @@ class MotorRecord(PVGroup):
             # Stopped, paused or retargeted: the axis stays where it is.
             await self._publish_position()
             raise
+        except Exception:  # never leave DMOV at 0 and a put waiting: end the move where it stands
+            log.exception("%s: motion failed; stopped", self.prefix)
+            await self._finish_motion(generation, stopped=True)
+            return
         await self._finish_motion(generation, limit_hit)
 
     async def _finish_motion(self, generation: int, limit_hit: str | None = None, *, stopped: bool = False):
@@ -434,24 +456,26 @@ class MotorRecord(PVGroup):
     # --------------------------------------------------------------- putters
     @val.putter
     async def val(self, instance, value):
+        value = _finite(value, "VAL")
         if self.set_.value == "Set":
-            await self._redefine_user(float(value))
+            await self._redefine_user(value)
             return SkipWrite
-        await self._move_and_wait(self._dial_from_user(float(value)))
+        await self._move_and_wait(self._dial_from_user(value))
         # VAL was published by the move (or kept, when refused): nothing left to write.
         return SkipWrite
 
     @dval.putter
     async def dval(self, instance, value):
+        value = _finite(value, "DVAL")
         if self.set_.value == "Set":
-            await self._redefine_user(self._user_from_dial(float(value)))
+            await self._redefine_user(self._user_from_dial(value))
             return SkipWrite
-        await self._move_and_wait(float(value))
+        await self._move_and_wait(value)
         return SkipWrite
 
     @rlv.putter
     async def rlv(self, instance, value):
-        target_user = self._user_from_dial(self._target_dial) + float(value)
+        target_user = self._user_from_dial(self._target_dial) + _finite(value, "RLV")
         await self._move_and_wait(self._dial_from_user(target_user))
         return 0.0
 
@@ -506,6 +530,10 @@ class MotorRecord(PVGroup):
             if await self._cancel_motion():
                 self._motion = None
                 self._paused = True
+                # like the record: the axis stands (MOVN 0), the move is not done (DMOV stays 0)
+                await self.movn.write(0)
+                await self.mip.write(0)
+                await self.msta.write(self._msta())
         elif self._paused:  # Move or Go resume a paused move
             self._paused = False
             self._start_motion()
@@ -529,10 +557,14 @@ class MotorRecord(PVGroup):
 
     @off.putter
     async def off(self, instance, value):
-        self._offset = float(value)
+        self._offset = _finite(value, "OFF")
         await self._publish_limits()
         await self._publish_position(setpoint=True)
-        return float(value)
+        return self._offset
+
+    @twv.putter
+    async def twv(self, instance, value):
+        return _finite(value, "TWV")
 
     @dir.putter
     async def dir(self, instance, value):
@@ -544,12 +576,12 @@ class MotorRecord(PVGroup):
 
     @hlm.putter
     async def hlm(self, instance, value):
-        await self._set_user_limit(float(value), high=True)
+        await self._set_user_limit(_finite(value, "HLM"), high=True)
         return SkipWrite
 
     @llm.putter
     async def llm(self, instance, value):
-        await self._set_user_limit(float(value), high=False)
+        await self._set_user_limit(_finite(value, "LLM"), high=False)
         return SkipWrite
 
     async def _set_user_limit(self, user_value: float, *, high: bool):
@@ -561,41 +593,84 @@ class MotorRecord(PVGroup):
 
     @dhlm.putter
     async def dhlm(self, instance, value):
-        await self.dhlm.write(float(value), verify_value=False)
+        await self.dhlm.write(_finite(value, "DHLM"), verify_value=False)
         await self._publish_limits()
         return SkipWrite
 
     @dllm.putter
     async def dllm(self, instance, value):
-        await self.dllm.write(float(value), verify_value=False)
+        await self.dllm.write(_finite(value, "DLLM"), verify_value=False)
         await self._publish_limits()
         return SkipWrite
 
     @velo.putter
     async def velo(self, instance, value):
-        v = abs(float(value))
+        v = abs(_finite(value, "VELO"))
         vmax = self.vmax.value
         if vmax > 0:
             v = min(v, vmax)
         v = max(v, self.vbas.value)
         if v <= 0:
-            raise ValueError("velocity must be positive")
+            raise ValueError("VELO must be positive")
+        return v
+
+    @vmax.putter
+    async def vmax(self, instance, value):
+        v = _finite(value, "VMAX")
+        if v < 0:
+            raise ValueError("VMAX must be >= 0 (0: no maximum)")
+        return v
+
+    @vbas.putter
+    async def vbas(self, instance, value):
+        v = _finite(value, "VBAS")
+        if v < 0:
+            raise ValueError("VBAS must be >= 0")
+        return v
+
+    @hvel.putter
+    async def hvel(self, instance, value):
+        v = abs(_finite(value, "HVEL"))
+        if v <= 0:
+            raise ValueError("HVEL must be positive")
         return v
 
     @accl.putter
     async def accl(self, instance, value):
-        return max(float(value), 1e-3)
+        # the record's ACCL is seconds to velocity: kept within [1 ms, MAX_ACCEL_TIME]
+        return min(max(_finite(value, "ACCL"), 1e-3), MAX_ACCEL_TIME)
 
     @mres.putter
     async def mres(self, instance, value):
-        if float(value) <= 0:
+        v = _finite(value, "MRES")
+        if v <= 0:
             raise ValueError("MRES must be positive")
-        return float(value)
+        return v
+
+    @eres.putter
+    async def eres(self, instance, value):
+        return _finite(value, "ERES")
+
+    @rres.putter
+    async def rres(self, instance, value):
+        return _finite(value, "RRES")
+
+    @rdbd.putter
+    async def rdbd(self, instance, value):
+        v = _finite(value, "RDBD")
+        if v < 0:
+            raise ValueError("RDBD must be >= 0")
+        return v
+
+    @urev.putter
+    async def urev(self, instance, value):
+        return _finite(value, "UREV")
 
     @prec.putter
     async def prec(self, instance, value):
+        value = min(max(int(value), 0), 15)
         for pv in (self.val, self.rbv, self.dval, self.drbv, self.hlm, self.llm, self.dhlm, self.dllm):
-            await pv.write_metadata(precision=int(value))
+            await pv.write_metadata(precision=value)
         return value
 
     @egu.putter

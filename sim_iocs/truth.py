@@ -6,7 +6,8 @@ radius, grating radius, ellipse half-axes) differ from their design values.
 Hidden physical effects (RML-level overrides such as a focus-chamber
 translation along the beam) can be added on top.  None of this is published
 on any PV; only :attr:`Truth.truth_id`, a hash, is, so that stored runs say
-which truth produced them.
+which truth produced them.  A truth drawn from a seed is hashed with a random secret salt
+(written with it by ``--dump-truth``): else a small seed could be found by hashing every seed.
 
 Truth file (JSON), every key optional::
 
@@ -14,7 +15,8 @@ Truth file (JSON), every key optional::
       "offsets": {"E1.rotationXerror": 0.08, "M1_Cylinder.radius": -0.05},
       "offsets_physical": {"E2.rotationXerror": -0.05},
       "overrides": {"ImagePlane": {"translationZerror": 5.0}},
-      "start": {"E1.rotationZerror": 10.0}
+      "start": {"E1.rotationZerror": 10.0},
+      "salt": "…"
     }
 
 ``offsets`` are normalized (fractions of each parameter's range, at most
@@ -27,6 +29,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -67,6 +70,7 @@ class Truth:
     start: np.ndarray | None = None
     table: ParameterTable = METRIXS
     source: str = ""
+    salt: str = ""  # a random secret for a truth drawn from a seed (see the module text)
 
     def __post_init__(self):
         self.offsets = self.table.validate(self.offsets, "hidden offsets").astype(float)
@@ -88,12 +92,12 @@ class Truth:
         if not 0 <= limit <= 0.2:
             raise ParameterError(f"offset limit must lie in [0, 0.2], got {limit}")
         rng = np.random.default_rng(seed)
-        return cls(table.sample_offsets(rng, limit=limit), table=table,
+        return cls(table.sample_offsets(rng, limit=limit), table=table, salt=os.urandom(16).hex(),
                    source=f"seed {seed}, ±{limit:g}" if seed is not None else f"random seed, ±{limit:g}")
 
     @classmethod
     def from_mapping(cls, spec: Mapping, table: ParameterTable = METRIXS, source: str = "") -> Truth:
-        known = {"offsets", "offsets_physical", "overrides", "start", "comment"}
+        known = {"offsets", "offsets_physical", "overrides", "start", "comment", "salt"}
         unknown = set(spec) - known
         if unknown:
             raise ParameterError(f"truth: unknown keys {sorted(unknown)}; expected some of {sorted(known)}")
@@ -109,7 +113,8 @@ class Truth:
             if not table.motorized[i]:
                 raise ParameterError(f"truth: start position given for {name!r}, which is not a motor")
             start[i] = float(v)
-        return cls(off, dict(spec.get("overrides", {})), start, table=table, source=source)
+        return cls(off, dict(spec.get("overrides", {})), start, table=table, source=source,
+                   salt=str(spec.get("salt", "")))
 
     @classmethod
     def from_file(cls, path: str | Path, table: ParameterTable = METRIXS) -> Truth:
@@ -128,7 +133,8 @@ class Truth:
         """Everything, normalized offsets for all parameters (for writing a truth file)."""
         return {"offsets": {n: float(v) for n, v in zip(self.table.names, self.offsets)},
                 "overrides": self.overrides,
-                "start": {n: float(v) for n, v, m in zip(self.table.names, self.start, self.table.motorized) if m}}
+                "start": {n: float(v) for n, v, m in zip(self.table.names, self.start, self.table.motorized) if m},
+                "salt": self.salt}
 
     # -- use ------------------------------------------------------------------
     @property
@@ -145,7 +151,9 @@ class Truth:
     @property
     def truth_id(self) -> str:
         """Short hash of offsets, effects and parameter-table version (safe to publish)."""
-        blob = json.dumps({"table": self.table.version,
-                           "offsets": [float(f"{v:.12g}") for v in self.offsets],
-                           "overrides": self.overrides}, sort_keys=True).encode()
+        spec = {"table": self.table.version, "offsets": [float(f"{v:.12g}") for v in self.offsets],
+                "overrides": self.overrides}
+        if self.salt:
+            spec["salt"] = self.salt
+        blob = json.dumps(spec, sort_keys=True).encode()
         return hashlib.sha256(blob).hexdigest()[:12]
