@@ -33,6 +33,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .geometry import is_tensor
 from .metrixs import IMAGE_PLANE, SOURCE, nominal_beamline
 
 _NOMINAL = nominal_beamline()
@@ -80,9 +81,9 @@ class Effect:
                 raise ValueError(f"effect {self.name!r} takes {len(names)} values ({names}), got {len(seq)}")
             out = dict(zip(names, seq))
         # tensors stay tensors (the differentiable twin takes gradients through the effects)
-        full = {n: (v if _is_tensor(v) else float(v)) for n, v in ((n, out.get(n, 0.0)) for n in names)}
+        full = {n: (v if is_tensor(v) else float(v)) for n, v in ((n, out.get(n, 0.0)) for n in names)}
         for n, v in full.items():
-            if not (bool(v.isfinite().all()) if _is_tensor(v) else math.isfinite(v)):
+            if not (bool(v.isfinite().all()) if is_tensor(v) else math.isfinite(v)):
                 raise ValueError(f"effect {self.name!r}: {n} = {v} is not finite")
         return full
 
@@ -106,17 +107,13 @@ class Effect:
 EFFECTS: dict[str, Effect] = {}
 
 
-def _is_tensor(v) -> bool:
-    return type(v).__module__.split(".")[0] == "torch"
-
-
 def _any(cond) -> bool:
     """``cond`` for a number, "any element" for a tensor of one value per configuration."""
-    return bool(cond.any()) if _is_tensor(cond) else bool(cond)
+    return bool(cond.any()) if is_tensor(cond) else bool(cond)
 
 
 def _all(cond) -> bool:
-    return bool(cond.all()) if _is_tensor(cond) else bool(cond)
+    return bool(cond.all()) if is_tensor(cond) else bool(cond)
 
 
 def register(effect: Effect) -> Effect:
@@ -146,7 +143,7 @@ def twin_overrides(effects: Mapping[str, Mapping[str, float]]) -> dict[str, dict
             for key, val in fields.items():
                 if key.endswith("error") and key in target:
                     target[key] = target[key] + val
-                elif key in target and (_is_tensor(val) or _is_tensor(target[key]) or target[key] != val):
+                elif key in target and (is_tensor(val) or is_tensor(target[key]) or target[key] != val):
                     raise ValueError(f"effects disagree on {obj}.{key}")
                 else:
                     target[key] = val

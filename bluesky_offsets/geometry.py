@@ -33,13 +33,23 @@ MISALIGNMENT_KEYS = ("translationXerror", "translationYerror", "translationZerro
                      "rotationXerror", "rotationYerror", "rotationZerror")
 
 
+def is_tensor(value) -> bool:
+    """A torch tensor (checked without importing torch)."""
+    return type(value).__module__.split(".")[0] == "torch"
+
+
 def _torch_of(*values):
     """The torch module if any value is a tensor, else None."""
-    for v in values:
-        if type(v).__module__.split(".")[0] == "torch":
-            import torch
-            return torch
+    if any(is_tensor(v) for v in values):
+        import torch
+        return torch
     return None
+
+
+def _tensors_like(*values):
+    """``values`` as tensors like the first tensor among them (numbers become 0-d tensors)."""
+    like = next(v for v in values if is_tensor(v))
+    return tuple(as_array_like(v, like) for v in values)
 
 
 def _cos_sin(a):
@@ -112,15 +122,12 @@ class Misalignment:
         torch = _torch_of(*self._values)
         if torch is None:
             return np.array([self.tx, self.ty, self.tz], dtype=float)
-        like = next(v for v in self._values if torch.is_tensor(v))
-        return torch.stack(torch.broadcast_tensors(*(as_array_like(v, like) for v in (self.tx, self.ty, self.tz))), -1)
+        return torch.stack(torch.broadcast_tensors(*_tensors_like(*self._values)[:3]), -1)
 
     def rotation(self) -> np.ndarray:
         rx, ry, rz = self.rx, self.ry, self.rz
-        torch = _torch_of(*self._values)
-        if torch is not None:
-            like = next(v for v in self._values if torch.is_tensor(v))
-            rx, ry, rz = (as_array_like(v, like) for v in (rx, ry, rz))
+        if _torch_of(*self._values) is not None:
+            rx, ry, rz = _tensors_like(*self._values)[3:]
         return rot_z(rz * 1e-3) @ rot_y(ry * 1e-3) @ rot_x(rx * 1e-3)
 
     def is_zero(self) -> bool:

@@ -17,7 +17,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .geometry import MISALIGNMENT_KEYS
+from .geometry import MISALIGNMENT_KEYS, is_tensor
 from .parameters import METRIXS, ParameterTable
 from .rml import RmlBeamline, RmlError, RmlObject, make_object
 
@@ -150,7 +150,7 @@ def beamline_state(values, overrides: Mapping[str, Mapping[str, object]] | None 
         for key, value in fields.items():
             if key == "type":
                 continue
-            value = value if isinstance(value, str) or hasattr(value, "requires_grad") else float(value)
+            value = value if isinstance(value, str) or is_tensor(value) else float(value)
             if key in MISALIGNMENT_KEYS:
                 mis = state.misalignment.setdefault(name, {})
                 mis[key] = mis.get(key, 0.0) + value
