@@ -471,20 +471,15 @@ def sample_source(bl: CompiledBeamline, n_rays: int, seed, *, sampling: str = "f
         coord[5] = normal() if dists[2] else uniform() - 0.5
         draws = None
     else:
-        cols = []
         slits, slopes = {}, {}
         gens = [_generator(s, dev) for s in seeds]
-        for g in gens:
-            n = torch.randn(4, n_rays, generator=g, device=dev, dtype=torch.float64)
-            u = torch.rand(2, n_rays, generator=g, device=dev, dtype=torch.float64)
-            cols.append((n, u))
-        nn = torch.stack([n for n, _ in cols], 1)  # (4, k, N)
-        uu = torch.stack([u for _, u in cols], 1)
-        coord = [nn[0] if dists[0] else torch.rand_like(nn[0]) - 0.5,
-                 nn[1] if dists[1] else torch.rand_like(nn[1]) - 0.5,
+        # per stream: four normals (width, height, divergences) and six uniforms (depth,
+        # energy, and the four coordinates again for hard-edged distributions)
+        nn = torch.stack([torch.randn(4, n_rays, generator=g, device=dev, dtype=torch.float64) for g in gens], 1)
+        uu = torch.stack([torch.rand(6, n_rays, generator=g, device=dev, dtype=torch.float64) for g in gens], 1)
+        coord = [nn[0] if dists[0] else uu[2] - 0.5, nn[1] if dists[1] else uu[3] - 0.5,
                  uu[0] - 0.5, uu[1] - 0.5,
-                 nn[2] if dists[3] else torch.rand_like(nn[2]) - 0.5,
-                 nn[3] if dists[2] else torch.rand_like(nn[3]) - 0.5]
+                 nn[2] if dists[3] else uu[4] - 0.5, nn[3] if dists[2] else uu[5] - 0.5]
         for opt in bl.optics:
             if opt.behaviour == "slit":  # the kicks' accepted draws, by inverse CDF, once for all configurations
                 slits[opt.name] = rnd.fraunhofer_uniform_fast(torch.stack(
@@ -739,7 +734,7 @@ def trace_rays(bl: CompiledBeamline, rays: Rays, draws: Draws | None = None, *, 
         # orient the normal against the ray
         flip = _poly((nx, dx), (ny, dy), (nz, dz)) > 0
         sgn = torch.where(flip, -1.0, 1.0).to(dt)
-        nx, ny, nz = (n if _zero(n) else n * sgn for n in (nx, ny, nz))
+        nx, ny, nz = (v if _zero(v) else v * sgn for v in (nx, ny, nz))
         if opt.slope is not None:
             sag, mer = opt.slope
             if ctr is not None:
@@ -755,7 +750,7 @@ def trace_rays(bl: CompiledBeamline, rays: Rays, draws: Draws | None = None, *, 
             nx, ny = _poly((nx, ca), (ny1, sa)), _poly((ny1, ca), (-1.0, nx, sa))
         if opt.behaviour == "mirror":
             dot = _poly((nx, dx), (ny, dy), (nz, dz))
-            dx, dy, dz = (d if _zero(n) else d - 2 * dot * n for d, n in ((dx, nx), (dy, ny), (dz, nz)))
+            dx, dy, dz = (d if _zero(m) else d - 2 * dot * m for d, m in ((dx, nx), (dy, ny), (dz, nz)))
         elif opt.behaviour == "grating":
             dx, dy, dz, ok_g = _grating(opt, hz, nx, ny, nz, dx, dy, dz, wavelength)
             ok = ok & ok_g
