@@ -40,15 +40,19 @@ from caproto._data import SkipWrite
 MAX_ACCEL_TIME = 10.0  # s: longer ACCL is clamped (a 0.2 mm move would otherwise take minutes)
 
 
-def _finite(value, field: str) -> float:
-    """``value`` as a finite float, or ValueError naming the field: NaN and infinities never
-    reach a published value or the motion."""
+def _finite(value, field: str, *, above: float | None = None, at_least: float | None = None) -> float:
+    """``value`` as a finite float (optionally ``> above`` or ``>= at_least``), or ValueError
+    naming the field: NaN and infinities never reach a published value or the motion."""
     try:
         v = float(value)
     except (TypeError, ValueError):
         raise ValueError(f"{field} must be a number, got {value!r}") from None
     if not math.isfinite(v):
         raise ValueError(f"{field} must be finite, got {v}")
+    if above is not None and not v > above:
+        raise ValueError(f"{field} must be > {above:g}, got {v}")
+    if at_least is not None and not v >= at_least:
+        raise ValueError(f"{field} must be >= {at_least:g}, got {v}")
     return v
 
 
@@ -616,24 +620,15 @@ class MotorRecord(PVGroup):
 
     @vmax.putter
     async def vmax(self, instance, value):
-        v = _finite(value, "VMAX")
-        if v < 0:
-            raise ValueError("VMAX must be >= 0 (0: no maximum)")
-        return v
+        return _finite(value, "VMAX", at_least=0.0)  # 0: no maximum
 
     @vbas.putter
     async def vbas(self, instance, value):
-        v = _finite(value, "VBAS")
-        if v < 0:
-            raise ValueError("VBAS must be >= 0")
-        return v
+        return _finite(value, "VBAS", at_least=0.0)
 
     @hvel.putter
     async def hvel(self, instance, value):
-        v = abs(_finite(value, "HVEL"))
-        if v <= 0:
-            raise ValueError("HVEL must be positive")
-        return v
+        return _finite(abs(_finite(value, "HVEL")), "HVEL", above=0.0)  # a speed: its sign is dropped
 
     @accl.putter
     async def accl(self, instance, value):
@@ -642,10 +637,7 @@ class MotorRecord(PVGroup):
 
     @mres.putter
     async def mres(self, instance, value):
-        v = _finite(value, "MRES")
-        if v <= 0:
-            raise ValueError("MRES must be positive")
-        return v
+        return _finite(value, "MRES", above=0.0)
 
     @eres.putter
     async def eres(self, instance, value):
@@ -657,10 +649,7 @@ class MotorRecord(PVGroup):
 
     @rdbd.putter
     async def rdbd(self, instance, value):
-        v = _finite(value, "RDBD")
-        if v < 0:
-            raise ValueError("RDBD must be >= 0")
-        return v
+        return _finite(value, "RDBD", at_least=0.0)
 
     @urev.putter
     async def urev(self, instance, value):
