@@ -217,8 +217,10 @@ class FocusChamber(StandardReadable):
     async def trigger(self):
         try:
             await self.acquire.set(True, timeout=self.acquire_timeout)
-        except Exception as exc:
+        except Exception as exc:  # the put failed: an error or an abort, the chamber says which
             status = await self.status.get_value()
+            if status == ChamberStatus.ABORTED:
+                raise ChamberError(f"{self.name}: acquisition aborted: {await self.message.get_value()}") from exc
             detail = await self.message.get_value() if status == ChamberStatus.ERROR else f"{type(exc).__name__}: {exc}"
             raise ChamberError(f"{self.name}: acquisition failed: {detail}") from exc
         status = await self.status.get_value()
@@ -340,8 +342,10 @@ class FocusChamberV1(DeviceV1):
                                        f"{self.message.get(use_monitor=False)}")
             except ChamberError as exc:
                 result.set_exception(exc)
-            except Exception as exc:
-                result.set_exception(ChamberError(f"{self.name}: acquisition failed: {exc}"))
+            except Exception as exc:  # the put failed: an abort is reported as one
+                status = self.status.get(use_monitor=False)
+                what = "aborted" if status == "Aborted" else "failed"
+                result.set_exception(ChamberError(f"{self.name}: acquisition {what}: {exc}"))
             else:
                 result.set_finished()
 
