@@ -48,7 +48,7 @@ from pathlib import Path
 import numpy as np
 
 from .parameters import METRIXS, ParameterTable
-from .twin import HistogramSpec, TraceRequest, Twin
+from .twin import SOURCE_FRAME, HistogramSpec, TraceRequest, Twin
 
 log = logging.getLogger(__name__)
 
@@ -336,7 +336,7 @@ class DatasetStore:
             raw.create_array(name, shape=(0, *shape), chunks=(_ROW_CHUNK, *shape), dtype=dtype)
         g.require_group("draws").create_array("screen_hits", shape=(0,), chunks=(65536,), dtype="i4",
                                               fill_value=-1)
-        prog = {"identity": ident, "engine": twin.engine.version, "rows": 0, "blocks": {},
+        prog = {"identity": ident, "engine": twin.engine.version, "source_frame": SOURCE_FRAME, "rows": 0, "blocks": {},
                 "complete": False, "created": _now()}
         _write_json_atomic(self.progress_path, prog)
         return prog
@@ -587,7 +587,8 @@ def load(path: str | os.PathLike, *, allow_partial: bool = False,
     g = store._group("r")
     settings = GenerationSettings.from_dict(ident["settings"])
     meta = {"path": str(path), "settings": settings.to_dict(), "scheme": settings.scheme.describe(),
-            "engine": prog["engine"], "table_version": ident["table_version"], "histogram": ident["histogram"]}
+            "engine": prog["engine"], "source_frame": prog.get("source_frame", "mirrored"),
+            "table_version": ident["table_version"], "histogram": ident["histogram"]}
     try:
         if prog.get("complete"):
             data = {k: g[k][:] for k in _ROW_FIELDS}

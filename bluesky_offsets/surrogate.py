@@ -29,7 +29,7 @@ import torch
 from torch import nn
 
 from .parameters import METRIXS, ParameterTable
-from .twin import HistogramSpec
+from .twin import SOURCE_FRAME, HistogramSpec
 
 FORMAT = "bluesky-offsets-surrogate/1"
 DEFAULT_CHECKPOINT = "surrogate.pt"
@@ -304,6 +304,7 @@ class Surrogate:
         in_low, in_span, out_low, out_span = self._norm_tensors(dev, dtype)
         if not normalized:
             x = (x - in_low) / in_span
+        x = self._as_trained(x)
         outs = []
         with torch.no_grad() if as_numpy else contextlib.nullcontext():
             for i in range(0, max(x.shape[0], 1), chunk_size):
@@ -312,6 +313,24 @@ class Surrogate:
         y = torch.cat(outs) if outs else x.new_zeros((0, self.arch.n_outputs))
         y = y.reshape(*lead, self.arch.n_outputs)
         return y.detach().cpu().numpy() if as_numpy else y
+
+    @property
+    def source_mirrored(self) -> bool:
+        """Trained on data traced with RAYX's mirrored source frame (see twin.SOURCE_FRAME)."""
+        return self.provenance.get("source_frame") == "mirrored"
+
+    def _as_trained(self, x):
+        """Normalized inputs as the network saw them in training.  A network trained with the
+        mirrored source frame saw a source offset +t as -t: its four source inputs are
+        reflected in their (symmetric) boxes, so that it answers for the twin as it is now."""
+        if not self.source_mirrored:
+            return x
+        cols = [i for i, n in enumerate(self.table["names"]) if n.startswith("U41_318eV.")]
+        if not cols:
+            return x
+        x = x.clone()
+        x[:, cols] = 1.0 - x[:, cols]
+        return x
 
     def split(self, hist):
         """(..., 100) -> x part (..., bins_x), y part (..., bins_y)."""
@@ -324,7 +343,9 @@ class Surrogate:
         return {"format": FORMAT, "arch": self.arch.__dict__, "n_weights": int(n_par),
                 "table": self.table, "table_version": _table_version(self.table),
                 "histogram": self.histogram, "normalization": self.norm.to_dict(),
-                "provenance": self.provenance, "metrics": self.metrics, "training": self.training}
+                # a model that does not say otherwise was made with the twin as it is now
+                "provenance": {"source_frame": SOURCE_FRAME, **self.provenance},
+                "metrics": self.metrics, "training": self.training}
 
     def save(self, path: str | os.PathLike, *, metadata_json: bool = True) -> Path:
         """Write the checkpoint atomically (and ``<name>.json`` with the metadata)."""
@@ -417,7 +438,10 @@ def load(path: str | os.PathLike | None = None, *, table: ParameterTable = METRI
     except Exception as exc:
         raise SurrogateError(f"surrogate checkpoint {path} is inconsistent ({type(exc).__name__}: {exc})") from None
     net.eval()
-    model = Surrogate(net, arch, norm, meta["table"], meta["histogram"], meta.get("provenance", {}),
+    provenance = dict(meta.get("provenance", {}))
+    # checkpoints from before the source-frame fix say nothing: their data was traced mirrored
+    provenance.setdefault("source_frame", "mirrored")
+    model = Surrogate(net, arch, norm, meta["table"], meta["histogram"], provenance,
                       meta.get("metrics", {}), meta.get("training", {}))
     if device is not None:
         model.to(device)

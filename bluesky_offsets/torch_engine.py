@@ -955,7 +955,7 @@ class TorchEngine:
 
     def beam(self, values, overrides=None, *, n_rays: int, seed=None, edge: float = 0.0,
              keep_hits: bool = False) -> Beam:
-        """All rays of a batch at the screen (one chunk per call: mind ``max_batch``)."""
+        """All rays of a batch at the screen, its chunks joined (all rays held at once)."""
         bl = self.compile(values, overrides)
         parts = list(self._chunks(bl, n_rays, seed, edge, keep_hits))
         if len(parts) == 1:

@@ -303,7 +303,8 @@ def train(data: Dataset, run_dir: str | os.PathLike, config: TrainConfig | None 
                   "n_nonempty": int((data.n_hits > 0).sum()),
                   "n_rays": data.meta["settings"]["n_rays"], "scheme": data.meta["settings"]["scheme"],
                   "scheme_text": data.meta.get("scheme"), "dataset_seed": data.meta["settings"]["seed"],
-                  "twin": data.meta.get("engine"), "table_version": data.meta.get("table_version"),
+                  "twin": data.meta.get("engine"), "source_frame": data.meta.get("source_frame", "mirrored"),
+                  "table_version": data.meta.get("table_version"),
                   "dataset_complete": data.meta.get("complete"),
                   "generation_cpu_s": data.meta.get("stats", {}).get("cpu_s")}
     torch.manual_seed(config.seed)

@@ -33,6 +33,11 @@ log = logging.getLogger(__name__)
 
 EMITTED, HIT_ELEMENT = 1, 2  # rayx.EventType values
 
+# How the twin places a misaligned source: "physical" since RAYX is handed the inverse source
+# frame (rml.rayx_source_frame).  Data and models made before record nothing and were traced
+# "mirrored": a source shifted by +t emitted from -t (the four U41 parameters' signs flipped).
+SOURCE_FRAME = "physical"
+
 
 # --------------------------------------------------------------------------- #
 # histograms
@@ -292,30 +297,12 @@ def _ensure_random_stream() -> None:
         _seeded_pids.add(pid)
 
 
-SCRATCH_ENV = "BLUESKY_OFFSETS_SCRATCH"
-_scratch: Path | None = None
-
-
-def _scratch_dir() -> Path:
-    """Where RAYX's input files are written for the moment of their import: the folder named
-    by ``$BLUESKY_OFFSETS_SCRATCH`` (its owner removes it), else one per process, removed at exit."""
-    global _scratch
-    named = os.environ.get(SCRATCH_ENV)
-    if named:
-        return Path(named)
-    if _scratch is None:
-        import atexit
-        import shutil
-        _scratch = Path(tempfile.mkdtemp(prefix="bluesky-offsets-"))
-        atexit.register(shutil.rmtree, _scratch, ignore_errors=True)
-    return _scratch
-
-
 def _import_rml(beamline):
     """RAYX's beamline from ours.  RAYX imports from a path only; the file (which holds the
-    state traced, a simulated beamline's hidden truth included) lives only for the import."""
+    state traced, a simulated beamline's hidden truth included) lives only for the import, in
+    the system's temporary folder (no folder of ours is left behind, even by a killed worker)."""
     import rayx
-    fd, name = tempfile.mkstemp(suffix=".rml", dir=_scratch_dir())
+    fd, name = tempfile.mkstemp(prefix="bluesky-offsets-", suffix=".rml")
     try:
         with os.fdopen(fd, "w") as f:
             f.write(beamline.to_xml())

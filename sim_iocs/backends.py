@@ -26,8 +26,6 @@ import concurrent.futures as cf
 import importlib
 import multiprocessing
 import os
-import shutil
-import tempfile
 import threading
 import time
 from collections.abc import Mapping
@@ -36,7 +34,7 @@ from typing import Protocol, runtime_checkable
 
 import numpy as np
 
-from bluesky_offsets.twin import CAMERA, SCRATCH_ENV, HistogramSpec
+from bluesky_offsets.twin import CAMERA, HistogramSpec
 
 
 @dataclass
@@ -127,11 +125,10 @@ def _twin_frame(values: np.ndarray, overrides: Mapping, n_rays: int, seed: int |
                  int(n_rays), time.perf_counter() - t0, px, py), note
 
 
-def _worker_loop(conn, scratch: str) -> None:
+def _worker_loop(conn) -> None:
     """A frame worker: jobs in, ``("ok", (frame, note))`` or ``("error", text)`` out."""
     import signal
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the IOC stops its workers itself
-    os.environ[SCRATCH_ENV] = scratch
     while True:
         try:
             job = conn.recv()
@@ -148,9 +145,9 @@ def _worker_loop(conn, scratch: str) -> None:
 class _Worker:
     """One frame-worker process; :meth:`kill` stops a trace at once."""
 
-    def __init__(self, ctx, scratch: str):
+    def __init__(self, ctx):
         self.conn, child = ctx.Pipe()
-        self.proc = ctx.Process(target=_worker_loop, args=(child, scratch), daemon=True,
+        self.proc = ctx.Process(target=_worker_loop, args=(child,), daemon=True,
                                 name="metrixs-frame-worker")
         self.proc.start()
         child.close()
@@ -185,7 +182,7 @@ class TwinBackend:
 
     An abort stops the worker at once and the next frame goes to a spare worker that is
     already warm; a worker that died is replaced before the next frame.  RAYX's input files
-    live in a scratch folder of the backend's own, removed on close.
+    live only for their import (:func:`bluesky_offsets.twin._import_rml`).
 
     Parameters
     ----------
@@ -211,7 +208,6 @@ class TwinBackend:
             self.name = "twin (rayx)"
         # spawn: no copy of the IOC's event loop and sockets in the workers
         self._ctx = multiprocessing.get_context("spawn")
-        self._scratch = tempfile.mkdtemp(prefix="metrixs-ioc-")
         self._active: _Worker | None = None
         self._spare: _Worker | None = None
         self._swap = threading.Lock()
@@ -219,7 +215,7 @@ class TwinBackend:
         self.notes: list[str] = []  # for the operator's log only (they name true values)
 
     def _new_worker(self, warm: bool) -> _Worker:
-        w = _Worker(self._ctx, self._scratch)
+        w = _Worker(self._ctx)
         if warm:  # imports and a first trace, in the background, so that it takes over at once
             job = (self._warm_state(), self.overrides, 100, 0, self.hist)
             threading.Thread(target=self._try, args=(w, job), daemon=True).start()
@@ -281,7 +277,6 @@ class TwinBackend:
                     w.kill()
             self._active = self._spare = None
         self._frames.shutdown(wait=False, cancel_futures=True)
-        shutil.rmtree(self._scratch, ignore_errors=True)
 
 
 # --------------------------------------------------------------------------- #
