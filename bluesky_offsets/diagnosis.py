@@ -38,7 +38,7 @@ import numpy as np
 
 from . import effects as E
 from .diagnostics import Misfit, misfit, moments
-from .model import (FeatureFit, LocalModel, Measurement, ModelState, _Features, _twin_chi2, build_local_model,
+from .model import (FeatureFit, LocalModel, solve_normal, Measurement, ModelState, _Features, _twin_chi2, build_local_model,
                     detector_view, fit_features_many, refine, simulate, simulate_raw_many)
 from .parameters import METRIXS, ParameterTable
 
@@ -194,15 +194,6 @@ def starting_values(effect: E.Effect) -> list[dict[str, float]]:
     return out or [{}]  # nothing worth a start away from zero: one fit from zero
 
 
-def _solve(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """``a x = b``; least squares where ``a`` is singular (a fold whose features carry no
-    information on some direction: measured as a 'Singular matrix' failure of the command)."""
-    try:
-        return np.linalg.solve(a, b)
-    except np.linalg.LinAlgError:
-        return np.linalg.lstsq(a, b, rcond=None)[0]
-
-
 def _heldout(fx, fit: FeatureFit, folds: Sequence[np.ndarray], everything: np.ndarray) -> np.ndarray:
     """Held-out feature χ² per fold: the fit re-solved without the fold (one Levenberg-Marquardt
     step from the all-data solution, on its final feature Jacobian), scored on the fold."""
@@ -216,7 +207,7 @@ def _heldout(fx, fit: FeatureFit, folds: Sequence[np.ndarray], everything: np.nd
         wt = w[train].reshape(-1)
         A = Gt.T @ (Gt * wt[:, None])
         A = A + np.diag(np.diag(A)) * 1e-2 + 1e-9 * np.trace(A) / len(A) * np.eye(len(A))
-        d = _solve(A, Gt.T @ (wt * (fx.fm - f)[train].reshape(-1)))
+        d = solve_normal(A, Gt.T @ (wt * (fx.fm - f)[train].reshape(-1)))
         r = (fx.fm - f - np.einsum("nkp,p->nk", G, d))[fold]
         out.append(float((w[fold] * r * r).sum()))
     return np.array(out)

@@ -147,6 +147,16 @@ class ModelState:
         return [(name, p) for name in self.effects for p in E.get(name).parameters]
 
 
+
+def solve_normal(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``a x = b`` for the fits' normal equations; least squares where ``a`` is singular (a
+    Jacobian with no information on some direction, e.g. all zero: measured as a 'Singular
+    matrix' failure of the diagnose command)."""
+    try:
+        return np.linalg.solve(a, b)
+    except np.linalg.LinAlgError:
+        return np.linalg.lstsq(a, b, rcond=None)[0]
+
 def _true_values(configurations, state: ModelState, table: ParameterTable) -> np.ndarray:
     return np.asarray(configurations) + table.offsets_to_physical(np.clip(state.offsets, -MAX_OFFSET, MAX_OFFSET))
 
@@ -597,7 +607,7 @@ class _Features:
         A = Gf.T @ (Gf * w[:, None]) + np.diag(ridge)
         g = Gf.T @ (w * (self.fm - f0).reshape(-1)) - ridge * z0
         # the small ridge keeps parameters the features do not see in place
-        d = np.linalg.solve(A + lam * np.diag(np.diag(A)) + 1e-9 * np.trace(A) / len(A) * np.eye(len(A)), g)
+        d = solve_normal(A + lam * np.diag(np.diag(A)) + 1e-9 * np.trace(A) / len(A) * np.eye(len(A)), g)
         return d if np.all(np.isfinite(d)) else np.zeros_like(z0)
 
 
