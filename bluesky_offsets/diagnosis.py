@@ -38,8 +38,8 @@ import numpy as np
 
 from . import effects as E
 from .diagnostics import Misfit, misfit, moments
-from .model import (FeatureFit, LocalModel, solve_normal, Measurement, ModelState, _Features, _twin_chi2, build_local_model,
-                    detector_view, fit_features_many, refine, simulate, simulate_raw_many)
+from .model import (FeatureFit, LocalModel, Measurement, ModelState, _Features, _twin_chi2, build_local_model,
+                    detector_view, fit_features_many, refine, simulate, simulate_raw_many, solve_normal)
 from .parameters import METRIXS, ParameterTable
 
 

@@ -147,7 +147,6 @@ class ModelState:
         return [(name, p) for name in self.effects for p in E.get(name).parameters]
 
 
-
 def solve_normal(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """``a x = b`` for the fits' normal equations; least squares where ``a`` is singular (a
     Jacobian with no information on some direction, e.g. all zero: measured as a 'Singular
@@ -156,6 +155,7 @@ def solve_normal(a: np.ndarray, b: np.ndarray) -> np.ndarray:
         return np.linalg.solve(a, b)
     except np.linalg.LinAlgError:
         return np.linalg.lstsq(a, b, rcond=None)[0]
+
 
 def _true_values(configurations, state: ModelState, table: ParameterTable) -> np.ndarray:
     return np.asarray(configurations) + table.offsets_to_physical(np.clip(state.offsets, -MAX_OFFSET, MAX_OFFSET))
