@@ -5,8 +5,8 @@
   histograms in, a :class:`Calibration` (offsets, uncertainties,
   determined-or-not, loss curve) out.  It runs a global method (default
   multi-start gradient through the surrogate) and, when a twin is given,
-  polishes the result against the twin itself (:func:`twin_polish`), since
-  the surrogate's own error is far above a 1e5-ray measurement's noise.
+  polishes the result against the twin itself (:func:`twin_polish`: the one fit
+  engine), since the surrogate's own error is far above a 1e5-ray measurement's noise.
 * :func:`find_offsets_run` - a plan: opens a run, runs the finder in a
   worker thread and streams its progress live as ``finder`` events
   (evaluations, seconds, best MSE; plot them with :class:`LossPlot` or
@@ -106,108 +106,53 @@ class Calibration:
 # --------------------------------------------------------------------------- #
 # twin polish
 # --------------------------------------------------------------------------- #
-def twin_jacobian(problem: F.OffsetProblem, twin, offsets, *, step: float = 0.01, n_rays: int = 10_000,
-                  seed: int = 0, parameters=None, progress: bool = False) -> np.ndarray:
-    """Forward-difference Jacobian of the *twin's* histograms in the offsets, ``(n, 100, P)``.
-
-    Common random numbers: every shifted batch re-uses the seeds of the
-    unshifted one, so the difference is the footprint's response, not the
-    sampling noise.  Histograms of narrow spots are step-like in the spot
-    position, so ``step`` is a secant (default 1 % of each range), not an
-    infinitesimal.  ``parameters`` (indices) limits the columns computed; the
-    others are zero.  Costs ``(len(parameters) + 1) x n`` traces.
-    """
-    P, n = problem.n_parameters, problem.n
-    cols = np.arange(P) if parameters is None else np.asarray(parameters)
-    o = np.asarray(offsets, dtype=float)
-    shifts = [np.zeros(P)] + [np.eye(P)[j] * step for j in cols]
-    vals = np.concatenate([problem.physical_configurations(o + d) for d in shifts])
-    seeds = [int(seed) + i for _ in shifts for i in range(n)]
-    res = twin.trace_batch(vals, n_rays=n_rays, seed=seeds, progress=progress)
-    h = np.concatenate([res.hist_x, res.hist_y], axis=1).reshape(len(shifts), n, -1)
-    J = np.zeros((n, h.shape[-1], P))
-    J[:, :, cols] = np.moveaxis((h[1:] - h[0]) / step, 0, -1)
-    return J
-
-
-def twin_polish(problem: F.OffsetProblem, model, twin, offsets, *, iterations: int = 4, n_rays: int | None = None,
-                damping: float = 1e-3, seed: int = 0, progress: bool = False, jacobian: str = "surrogate",
-                fd_step: float = 0.01, fd_rays: int = 10_000, oversample: float = 2.0,
+def twin_polish(problem: F.OffsetProblem, twin, offsets, *, iterations: int = 4, n_rays: int | None = None,
+                seed: int = 0, oversample: float = 2.0,
                 callback: Callable[[dict], None] | None = None) -> tuple[np.ndarray, list[float]]:
-    """Levenberg-Marquardt steps on the *twin's* residuals, from the surrogate's solution.
+    """The surrogate's solution fitted on through the twin itself: the one fit engine
+    (:func:`bluesky_offsets.fit.fit`, the differentiable twin, exact Jacobians) on the
+    problem's 50 + 50 bins, ``iterations`` Levenberg-Marquardt steps at ``oversample`` x the
+    measurement's rays (one set of rays, so that a step near the optimum is judged without
+    sampling noise).
 
-    The surrogate finds the right valley but its own error (~1e-6 per bin)
-    is far above the counting noise of a 1e5-ray measurement (~4e-8): the
-    twin at the surrogate's optimum is off by the surrogate's error.  Each
-    step traces the configurations at the current offsets with the twin,
-    takes the residual to the observations, and solves the noise-weighted,
-    Levenberg-damped normal equations with the surrogate's Jacobian there
-    (``jacobian="surrogate"``) or the twin's own, by common-random-number
-    finite differences (``jacobian="twin"``, :func:`twin_jacobian`: exact
-    where the surrogate is wrong, ``(P + 1) n`` traces at ``fd_rays`` per
-    iteration), or the surrogate's until its steps stop paying (rejected, or
-    < 2 % gain) and then the twin's (``jacobian="auto"``: the cheap steps
-    where they work, the exact ones where they are needed).  A step is kept
-    only if the twin's MSE falls.
-
-    The twin is traced with ``oversample`` x the measurement's rays and the
-    same seed at every step (common random numbers): near the optimum the
-    steps change the MSE by less than a fresh trace's noise would, so fresh
-    seeds at the measurement's ray count would make the accept test a coin
-    toss.  Returns the offsets and the twin MSE after each accepted step
-    (first entry: at the start).
+    The surrogate finds the right valley, but its own error (~1e-6 per bin) is far above the
+    counting noise of a 1e5-ray measurement (~4e-8).  Returns the offsets and the twin's MSE
+    to the observations at the start and at the end (the fit's rays).
     """
-    if jacobian not in ("surrogate", "twin", "auto"):
-        raise F.FinderError(f"jacobian must be 'surrogate', 'twin' or 'auto', got {jacobian!r}")
+    from .fit import FitOptions, fit
+    from .model import Measurement, ModelState
+    from .torch_engine import TorchEngine
+    from .twin import HistogramSpec
     N = int(n_rays or problem.n_rays or 100_000)
-    n_twin = max(int(round(N * oversample)), 1)
-    lim = problem.limit
+    spec = HistogramSpec()
     obs = problem.observations
-    var = I.bin_variance(obs, N) * (1.0 + N / n_twin)  # observation and twin trace are both noisy
+    cfg = problem.physical_configurations()
+    meas = Measurement(cfg, obs[:, :spec.bins_x], obs[:, spec.bins_x:], N, problem.table.version, spec=spec)
+    engine = TorchEngine(table=problem.table, hist=spec)
+    opts = FitOptions(rays=max(int(round(N * oversample)), 1), seed=seed, stages=(("bins", int(iterations)),),
+                      offset_bound=problem.limit)
 
-    def trace(o, s):
-        res = twin.trace_batch(problem.physical_configurations(o), n_rays=n_twin, seed=s, progress=progress)
-        return np.concatenate([res.hist_x, res.hist_y], axis=1)
+    def mse(o) -> float:
+        res = _twin_histograms(engine, cfg + problem.table.offsets_to_physical(o), opts.rays, seed)
+        return float(np.mean((res - obs) ** 2))
 
-    o = np.asarray(offsets, dtype=float).copy()
-    h = trace(o, seed)
-    mse = [float(np.mean((h - obs) ** 2))]
-    lam = damping
-    use_twin = jacobian == "twin"
-    for it in range(iterations):
-        if use_twin:
-            J = twin_jacobian(problem, twin, o, step=fd_step, n_rays=fd_rays, seed=seed + 7919 * (it + 1),
-                              progress=progress).reshape(-1, problem.n_parameters)
-        else:
-            J = I.jacobian(model, problem.configurations, o).reshape(-1, problem.n_parameters)
-        r = (h - obs).reshape(-1)
-        w = 1.0 / var.reshape(-1)
-        A = J.T @ (J * w[:, None])
-        g = J.T @ (w * r)
-        scale = np.sqrt(np.clip(np.diag(A), 1e-30, None))
-        accepted = False
-        for _ in range(4):  # Levenberg: raise the damping until the twin agrees the step helps
-            step = -np.linalg.solve(A + lam * np.diag(scale ** 2) + 1e-12 * np.eye(len(A)), g)
-            cand = np.clip(o + step, -lim, lim)
-            hc = trace(cand, seed)
-            m = float(np.mean((hc - obs) ** 2))
-            if m < mse[-1]:
-                gain = 1.0 - m / mse[-1]
-                o, h = cand, hc
-                mse.append(m)
-                lam = max(lam / 3, 1e-6)
-                accepted = True
-                break
-            lam *= 10
-        if callback:
-            callback({"iteration": it + 1, "twin_mse": mse[-1], "jacobian": "twin" if use_twin else "surrogate"})
-        if jacobian == "auto" and not use_twin and (not accepted or gain < 0.02):
-            # the surrogate's Jacobian has done what its accuracy allows: finish with the twin's own
-            use_twin, lam = True, damping
-            continue
-        if not accepted:
-            break
-    return o, mse
+    o = np.clip(np.asarray(offsets, dtype=float), -problem.limit, problem.limit)
+    mses = [mse(o)]
+    if iterations:
+        def cb(d):
+            if callback and d["iteration"]:
+                callback({"iteration": d["iteration"], "chi2_reduced": d["chi2_reduced"], "accepted": d["accepted"]})
+        res = fit(meas, ModelState(o), engine, opts, progress=cb, table=problem.table)
+        o = np.clip(res.state.offsets, -problem.limit, problem.limit)
+        mses.append(mse(o))
+    return o, mses
+
+
+def _twin_histograms(engine, values: np.ndarray, n_rays: int, seed: int) -> np.ndarray:
+    """Histograms (n, 100) of the torch twin at ``values`` (one set of rays)."""
+    from .twin import Twin
+    res = Twin(engine).trace_batch(values, n_rays=n_rays, seed=seed, progress=False, raise_on_error=True)
+    return np.concatenate([res.hist_x, res.hist_y], axis=1)
 
 
 # --------------------------------------------------------------------------- #
@@ -234,7 +179,6 @@ class OffsetFinder:
     settings: dict = field(default_factory=dict)
     twin: object = None
     polish_iterations: int = 4
-    polish_jacobian: str = "surrogate"
     seed: int = 0
     limit: float = MAX_OFFSET
     threads: int | None = 1
@@ -256,10 +200,10 @@ class OffsetFinder:
         if self.twin is not None and self.polish_iterations:
             def cb(d):
                 if callback:
-                    callback({"evaluations": res.evaluations, "seconds": res.seconds, "loss": d["twin_mse"],
+                    callback({"evaluations": res.evaluations, "seconds": res.seconds, "loss": d["chi2_reduced"],
                               "stage": "twin polish"})
-            offsets, mses = twin_polish(problem, self.model, self.twin, offsets, iterations=self.polish_iterations,
-                                        n_rays=n_rays, seed=self.seed, jacobian=self.polish_jacobian, callback=cb)
+            offsets, mses = twin_polish(problem, self.twin, offsets, iterations=self.polish_iterations,
+                                        n_rays=n_rays, seed=self.seed, callback=cb)
             twin_mse = mses[-1]
             from .noise import expected_repeat_mse
             repeat = float(expected_repeat_mse(problem.observations, int(n_rays or 100_000)).mean())

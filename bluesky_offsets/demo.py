@@ -17,7 +17,6 @@ The IOC is always stopped, also after an error or Ctrl-C.
 
 from __future__ import annotations
 
-import copy
 import json
 import os
 import socket
@@ -31,13 +30,14 @@ from pathlib import Path
 
 import numpy as np
 
-from . import effects as E
 from . import diagnosis as D
-from .diagnosis import RECIPE
+from . import effects as E
+from .fit import FitOptions
 from .parameters import METRIXS
 
 # Hidden truth: offsets of a few per cent of each range in the motors that steer the focus and
-# in one focal length (a fixed-but-unknown parameter), and one physical effect.
+# in one focal length (a fixed-but-unknown parameter), and one physical effect.  With
+# ``offsets_fraction`` the offsets are drawn in all 34 parameters instead.
 DEMO_OFFSETS = {"E1.rotationXerror": 0.015, "E2.rotationXerror": -0.015, "M1_Cylinder.rotationXerror": 0.01,
                 "E1.translationYerror": 0.01, "E2.translationYerror": -0.01, "ExitSlit.translationZerror": 0.02,
                 "E2.longHalfAxisA": 0.01}
@@ -47,48 +47,53 @@ DEMO_EFFECT = ("chamber_z", {"z": 20.0})
 @dataclass
 class DemoSettings:
     n_rays: int = 5000                # per measured frame
-    anchor_rays: int = 10_000         # per model trace in the fits
     configurations: int = 16
     # that many of the bright ones measured again with the slits open (diagnosis.OPEN_APERTURE):
     # a source change shows there; the surrogate finder uses only the configurations in its box
     open_configurations: int = 4
-    # configurations the analysis fits (the first bright ones and the open ones): every fit
-    # traces each ~40 times, an open one costs 1.6 bright ones (more rays survive), and 10 + 4
-    # keep the demo under 10 minutes on 2 cores (docs/diagnosis.md)
+    # configurations the analysis fits (the first bright ones and the open ones)
     analysed_configurations: int = 14
     candidates: int = 40
-    effect: tuple[str, dict] = DEMO_EFFECT
+    # hidden effects, ((name, values), ...): found one after the other
+    effects: tuple = (DEMO_EFFECT,)
     offsets: dict = field(default_factory=lambda: dict(DEMO_OFFSETS))
-    background_offsets: float = 0.0   # ± this (normalized) on every other parameter
+    # > 0: offsets in all 34 parameters, uniform within ± this fraction of each range (seeded by
+    # ``seed``), instead of ``offsets``
+    offsets_fraction: float = 0.0
     finder_evaluations: int = 3000
     finder_seconds: float = 30.0
-    # the fitting recipe (diagnosis.RECIPE: features first, then bins; see docs/diagnosis.md)
-    refine_iterations: int = RECIPE["refine_iterations"]
-    refit_iterations: int = RECIPE["refit_iterations"]
-    jacobian: str = "twin"            # offset Jacobian of the fits: "twin" (finite differences) or "surrogate"
-    refine_kw: dict = field(default_factory=lambda: copy.deepcopy(RECIPE["refine_kw"]))
-    refit_kw: dict = field(default_factory=lambda: copy.deepcopy(RECIPE["refit_kw"]))
-    diagnose_kw: dict = field(default_factory=lambda: copy.deepcopy(RECIPE["diagnose_kw"]))
+    fit: FitOptions = D.FIT           # the offsets fit and the refits
+    scan: FitOptions = D.SCAN         # the diagnosis's candidate fits
+    rounds: int = 2                   # diagnoses at most (one per hidden effect)
     # the diagnosis reads the camera-resolution profiles ("camera") or the paper's histograms ("paper")
     resolution: str = "camera"
     candidates_effects: Sequence[str] | None = None
     seed: int = 0
     workers: int | None = None
 
+    @property
+    def hidden(self) -> dict[str, dict[str, float]]:
+        return {name: dict(values) for name, values in self.effects if name}
+
+
+def demo_offsets(s: DemoSettings) -> dict[str, float]:
+    """The hidden normalized offsets: all 34 drawn (``offsets_fraction``) or ``s.offsets``."""
+    if s.offsets_fraction > 0:
+        rng = np.random.default_rng(s.seed + 1)
+        return {n: float(v) for n, v in zip(METRIXS.names, rng.uniform(-s.offsets_fraction, s.offsets_fraction,
+                                                                      len(METRIXS)))}
+    return dict(s.offsets)
+
 
 def demo_truth(s: DemoSettings) -> dict:
-    """The IOC's truth file: normalized offsets and the effect's RML overrides."""
-    rng = np.random.default_rng(s.seed + 1)
-    off = {n: float(rng.uniform(-s.background_offsets, s.background_offsets))
-           for n in METRIXS.names} if s.background_offsets else {}
-    off.update(s.offsets)
-    name, values = s.effect
+    """The IOC's truth file: normalized offsets and the effects' RML overrides."""
     from sim_iocs.truth import Truth
+    hidden = s.hidden
     # the IOC's own reading of the overrides (numbers, or words such as an element type),
     # refused here with its message rather than in the IOC's subprocess
-    overrides = Truth.from_mapping({"overrides": E.twin_overrides({name: values}) if name else {}}).overrides
-    return {"offsets": off, "overrides": overrides,
-            "comment": f"bluesky-offsets demo: hidden effect {name or 'none'} {values}"}
+    overrides = Truth.from_mapping({"overrides": E.twin_overrides(hidden) if hidden else {}}).overrides
+    return {"offsets": demo_offsets(s), "overrides": overrides,
+            "comment": f"bluesky-offsets demo: hidden effects {hidden or 'none'}"}
 
 
 def candidate_configurations(s: DemoSettings, start: np.ndarray) -> np.ndarray:
@@ -206,7 +211,12 @@ def demo_plan(s: DemoSettings, beamline, chamber, twin, forward_model, store, lo
     from bluesky_offsets.calibration import OffsetFinder
     from bluesky_offsets.finder import Budget
     from bluesky_offsets.model import Measurement, ModelState
-    from plans import current_configuration, find_high_ray_configurations, find_offsets, measure_configurations
+    from plans import (
+        current_configuration,
+        find_high_ray_configurations,
+        find_offsets,
+        measure_configurations,
+    )
     from plans.diagnose import analyse_measurement
 
     t = {"start": time.perf_counter()}
@@ -236,15 +246,12 @@ def demo_plan(s: DemoSettings, beamline, chamber, twin, forward_model, store, lo
     found = yield from find_offsets(finder, m if inside.all() else m.subset(inside))
     t["finder"] = time.perf_counter()
     starts = [ModelState(label="twin"), ModelState(np.asarray(found.offsets, float), {}, "surrogate offsets")]
-    fm = None if s.jacobian == "twin" else forward_model
-    log(f"[5/6] compare → refine offsets → diagnose → add the winning effect → refit "
-        f"({n_bright} bright + {n_open} open configurations)")
-    analysis = yield from analyse_measurement(meas, twin, fm, starts=starts, refine_iterations=s.refine_iterations,
-                                              candidates=s.candidates_effects, refit_iterations=s.refit_iterations,
-                                              anchor_rays=s.anchor_rays, refine_kw=s.refine_kw, refit_kw=s.refit_kw,
-                                              diagnose_kw=s.diagnose_kw,
-                                              seed=s.seed, md={"purpose": "bluesky-offsets demo",
-                                                               "analysed_configurations": [int(i) for i in analysed]})
+    log(f"[5/6] compare → fit offsets (differentiable twin, exact Jacobians) → diagnose → add the winning effect "
+        f"→ refit → diagnose again ({n_bright} bright + {n_open} open configurations)")
+    analysis = yield from analyse_measurement(meas, twin, starts=starts, candidates=s.candidates_effects,
+                                              rounds=s.rounds, fit_options=s.fit, scan_options=s.scan, seed=s.seed,
+                                              md={"purpose": "bluesky-offsets demo",
+                                                  "analysed_configurations": [int(i) for i in analysed]})
     t["analysis"] = time.perf_counter()
     return {"measurement": m, "offsets": found, "analysis": analysis, "times": t, "n_open": n_open}
 
@@ -288,8 +295,11 @@ def run_demo(out: Path, settings: DemoSettings | None = None, store_location: st
     truth = demo_truth(s)
     work = Path(tempfile.mkdtemp(prefix="bluesky-offsets-demo-"))
     load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
-    log(f"[1/6] starting the simulated METRIXS IOC (RAYX twin backend, hidden offsets and "
-        f"{'a hidden ' + s.effect[0] if s.effect[0] else 'no hidden effect'}); load average {load:.1f} on {os.cpu_count()} cores")
+    hidden = s.hidden
+    offsets = truth["offsets"]
+    log(f"[1/6] starting the simulated METRIXS IOC (RAYX twin backend; hidden offsets in {len(offsets)} of "
+        f"{len(METRIXS)} parameters, hidden effects: {', '.join(hidden) or 'none'}); load average {load:.1f} on "
+        f"{os.cpu_count()} cores")
     # seeded frame noise: the same settings give the same demo, --seed another draw of it
     ioc = SimulatedBeamline(truth, s.n_rays, work, noise_seed=s.seed + 2)
     twin = RE = None
@@ -333,20 +343,22 @@ def run_demo(out: Path, settings: DemoSettings | None = None, store_location: st
         t = res["times"]
 
         log("[6/6] writing the report")
-        hidden = {s.effect[0]: dict(s.effect[1])} if s.effect[0] else {}
+        what = (f"hidden offsets in all {len(METRIXS)} parameters (uniform within ±{s.offsets_fraction:g} of each "
+                f"range)" if s.offsets_fraction > 0 else
+                f"hidden offsets in {len(offsets)} of the {len(METRIXS)} parameters ({', '.join(offsets)})")
         intro = [("What this is", paragraph(
             f"bluesky-offsets demo: a simulated METRIXS beamline (caproto IOC, RAYX twin at the hidden true state, "
-            f"{s.n_rays} rays per frame) with hidden offsets in all 34 parameters and "
-            f"{'a hidden ' + s.effect[0] if s.effect[0] else 'no hidden effect'}; {len(m)} configurations measured through EPICS "
+            f"{s.n_rays} rays per frame) with {what} and hidden effects: "
+            f"{', '.join(f'{k} {v}' for k, v in hidden.items()) or 'none'}; {len(m)} configurations measured through EPICS "
             f"({len(m) - n_open} bright ones, {n_open} of them again with the slits open); offsets found "
-            f"with the shipped surrogate (on the configurations inside its box) and refined through the twin on "
-            f"{analysis.measurement.n}; the missing effect diagnosed, added and "
-            f"refitted. Every step is a run in the store {store.location}.")),
+            f"with the shipped surrogate (on the configurations inside its box) and fitted through the differentiable "
+            f"twin on {analysis.measurement.n}; the missing effects diagnosed, added and refitted one after the "
+            f"other. Every step is a run in the store {store.location}.")),
             ("Measurement", table_([{"configurations": len(m), "with open slits": n_open,
                                      "analysed": analysis.measurement.n, "rays per frame": s.n_rays,
                                      "measurement uid": m.uid, "truth id": m.truth_id or ""}]))]
         timing = {"IOC up + search": t["search"] - t0, "measure": t["measure"] - t["search"],
-                  "surrogate finder": t["finder"] - t["measure"], "compare/refine/diagnose/refit":
+                  "surrogate finder": t["finder"] - t["measure"], "compare/fit/diagnose/refit":
                   t["analysis"] - t["finder"]}
         report = write_analysis_report(out / "report.html", analysis, analysis.measurement.spec, title="bluesky-offsets demo",
                                        intro=intro, truth=hidden, uids=steps, store_location=store.location,
@@ -356,10 +368,11 @@ def run_demo(out: Path, settings: DemoSettings | None = None, store_location: st
             "seconds": seconds, "load_average_start": load, "timing_s": timing, "store": store.location,
             "uids": steps, "all_run_uids": uids, "report": str(report), "n_configurations": len(m),
             "n_open_configurations": n_open, "n_analysed_configurations": analysis.measurement.n,
-            "n_rays": s.n_rays, "hidden_effect": hidden, "verdict": analysis.ranking.diagnosis.verdict,
-            "ranking": [c.name for c in analysis.ranking.diagnosis.candidates],
+            "n_rays": s.n_rays, "hidden_offsets": offsets, "offsets_fraction": s.offsets_fraction,
+            "hidden_effects": hidden, "verdict": analysis.verdict,
+            "rankings": [[c.name for c in r.diagnosis.candidates] for r in analysis.rankings],
             "history": [c.total_row() for c in analysis.comparisons],
-            "fitted_effect": ({analysis.refit.effect: analysis.refit.magnitude()} if analysis.refit else {}),
+            "fitted_effects": {r.effect: r.magnitude() for r in analysis.refits},
             "truth_id": m.truth_id, "ioc": {"prefix": ioc.prefix, "port": ioc.port, "pid": ioc.proc.pid}}
         (out / "summary.json").write_text(json.dumps(summary, indent=1, default=float))
         _print_summary(summary, analysis, store.location)
@@ -392,9 +405,11 @@ def _close_channels(RE) -> None:
 def _print_summary(summary: dict, analysis, location: str) -> None:
     print()
     print(f"verdict: {summary['verdict']}")
-    print("ranking: " + ", ".join(summary["ranking"][:5]) + (" ..." if len(summary["ranking"]) > 5 else ""))
-    for name, vals in summary["fitted_effect"].items():
-        hidden = summary["hidden_effect"].get(name, {})
+    for k, ranking in enumerate(summary["rankings"], 1):
+        print(f"ranking {k}: " + ", ".join(ranking[:5]) + (" ..." if len(ranking) > 5 else ""))
+    print("hidden: " + (", ".join(f"{k} {v}" for k, v in summary["hidden_effects"].items()) or "no effect"))
+    for name, vals in summary["fitted_effects"].items():
+        hidden = summary["hidden_effects"].get(name, {})
         print(f"fitted {name}: " + ", ".join(
             f"{k} = {v:.3g} ± {sg:.2g}" + (f" (hidden {hidden[k]:.3g})" if k in hidden else "")
             for k, (v, sg) in vals.items()))
@@ -419,29 +434,23 @@ def add_cli(sub) -> None:
     p.add_argument("--out", default="bluesky-offsets-demo", help="output folder (default ./bluesky-offsets-demo)")
     p.add_argument("--store", default=None, help="run store (default: the embedded store, $BLUESKY_OFFSETS_STORE)")
     p.add_argument("--rays", type=int, default=5000, help="source rays per measured frame (default %(default)s)")
-    p.add_argument("--anchor-rays", type=int, default=10_000,
-                   help="source rays per model trace in the fits (default %(default)s)")
     p.add_argument("--configurations", type=int, default=16, help="bright configurations to measure (>= 16)")
     p.add_argument("--open-configurations", type=int, default=None,
                    help="bright configurations measured again with the slits open, ASBL 4 x 4 mm and exit slit "
-                        "100 µm (default 4; 0 with --jacobian surrogate, which knows only its box)")
+                        "100 µm (default 4)")
     p.add_argument("--analysed-configurations", type=int, default=14,
                    help="configurations the fits use: the open ones and the first bright ones (default %(default)s)")
-    p.add_argument("--effect", default=f"{DEMO_EFFECT[0]}:" + ",".join(f"{k}={v}" for k, v in DEMO_EFFECT[1].items()),
-                   help="hidden effect NAME:PARAM=VALUE,... or 'none' (default %(default)s)")
+    p.add_argument("--effect", action="append", default=None,
+                   help="hidden effect NAME:PARAM=VALUE,... (repeat for several) or 'none' (default "
+                        f"{DEMO_EFFECT[0]}:" + ",".join(f"{k}={v:g}" for k, v in DEMO_EFFECT[1].items()) + ")")
+    p.add_argument("--offsets-fraction", type=float, default=0.0,
+                   help="hide offsets in all 34 parameters, uniform within ± this fraction of each range (the "
+                        "paper's is 0.2; default: the demo's 7 offsets of 1-2 %%)")
     p.add_argument("--candidates", default=None, help="effects to rank, comma separated (default: all)")
-    p.add_argument("--refine-iterations", type=int, default=RECIPE["refine_iterations"],
-                   help="Gauss-Newton iterations on the bins after the feature stage (default %(default)s)")
-    p.add_argument("--refit-iterations", type=int, default=RECIPE["refit_iterations"],
-                   help="Gauss-Newton iterations on the bins when the winning effect is refitted with the offsets "
-                        "(default %(default)s)")
-    p.add_argument("--feature-iterations", type=int, default=None,
-                   help="iterations on the beam features that start every fit (default: "
-                        f"{RECIPE['refine_kw']['feature_iterations']} before the diagnosis, "
-                        f"{RECIPE['refit_kw']['feature_iterations']} in the refit)")
-    p.add_argument("--jacobian", choices=("twin", "surrogate"), default="twin",
-                   help="offset Jacobian of the fits through the twin (default: the twin's own; the surrogate's "
-                        "needs --resolution paper)")
+    p.add_argument("--rounds", type=int, default=2, help="diagnoses at most, one per effect found (default %(default)s)")
+    p.add_argument("--fit-rays", type=int, default=D.FIT.rays,
+                   help="model rays per configuration in the fits (default %(default)s; the diagnosis's candidate "
+                        f"fits use at most {D.SCAN.rays})")
     p.add_argument("--resolution", choices=("camera", "paper"), default="camera",
                    help="histograms the diagnosis fits: the camera's profiles (20 µm x 5 µm bins, default) or the "
                         "paper's 50 x 50 bins")
@@ -481,28 +490,37 @@ def _cmd_demo(args) -> int:
     from .cli import CliError
     if args.configurations < 2:
         raise CliError("--configurations must be at least 2 (the paper asks for 16)")
-    n_open = args.open_configurations if args.open_configurations is not None else (
-        0 if args.jacobian == "surrogate" else 4)
+    n_open = args.open_configurations if args.open_configurations is not None else 4
     if not 0 <= n_open <= args.configurations:
         raise CliError(f"--open-configurations must lie in [0, {args.configurations}] (the bright ones reopened)")
-    if n_open and args.jacobian == "surrogate":
-        raise CliError("--open-configurations: open slits lie outside the surrogate's box; use --jacobian twin")
     if args.analysed_configurations < 2:
         raise CliError("--analysed-configurations must be at least 2")
     if args.rays < 100:
         raise CliError("--rays must be at least 100")
-    if args.jacobian == "surrogate" and args.resolution == "camera":
-        raise CliError("--jacobian surrogate: the surrogate predicts the paper's 50 x 50 bins; add --resolution paper")
-    s = DemoSettings(n_rays=args.rays, anchor_rays=args.anchor_rays, configurations=args.configurations,
-                     open_configurations=n_open, analysed_configurations=args.analysed_configurations,
-                     effect=parse_effect(args.effect),
-                     refine_iterations=args.refine_iterations, refit_iterations=args.refit_iterations,
-                     jacobian=args.jacobian, seed=args.seed, resolution=args.resolution,
+    if not 0 <= args.offsets_fraction <= 0.2:
+        raise CliError("--offsets-fraction must lie in [0, 0.2] (offsets beyond 20 % of a range are outside the model)")
+    if args.rounds < 1:
+        raise CliError("--rounds must be at least 1")
+    if args.fit_rays < 100:
+        raise CliError("--fit-rays must be at least 100")
+    effects = tuple(parse_effect(e) for e in (args.effect or [f"{DEMO_EFFECT[0]}:z={DEMO_EFFECT[1]['z']}"]))
+    effects = tuple(e for e in effects if e[0])
+    names = [e[0] for e in effects]
+    if len(set(names)) != len(names):
+        raise CliError(f"--effect: each effect once ({', '.join(names)})")
+    try:
+        E.twin_overrides({n: v for n, v in effects if E.get(n).level == "twin"})
+    except ValueError as exc:
+        raise CliError(f"--effect: {exc}") from None
+    if any(E.get(n).level == "detector" for n in names):
+        raise CliError("--effect: the simulated IOC hides twin-level effects only (detector-level ones: "
+                       + ", ".join(n for n in names if E.get(n).level == "detector") + ")")
+    s = DemoSettings(n_rays=args.rays, configurations=args.configurations, open_configurations=n_open,
+                     analysed_configurations=args.analysed_configurations, effects=effects,
+                     offsets_fraction=args.offsets_fraction, rounds=args.rounds, seed=args.seed,
+                     fit=D.FIT.replace(rays=args.fit_rays), scan=D.SCAN.replace(rays=min(args.fit_rays, D.SCAN.rays)),
+                     resolution=args.resolution,
                      candidates_effects=[c.strip() for c in args.candidates.split(",")] if args.candidates else None)
-    if args.feature_iterations is not None:
-        if args.feature_iterations < 0:
-            raise CliError("--feature-iterations must be >= 0")
-        s.refine_kw["feature_iterations"] = s.refit_kw["feature_iterations"] = args.feature_iterations
     for n in s.candidates_effects or ():
         try:
             E.get(n)

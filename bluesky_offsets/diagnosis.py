@@ -31,16 +31,17 @@ tails, lost intensity per axis) to set beside the observed one.
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from . import effects as E
 from .diagnostics import Misfit, misfit, moments
-from .model import (FeatureFit, LocalModel, Measurement, ModelState, _Features, _twin_chi2, build_local_model,
-                    detector_view, fit_features_many, refine, simulate, simulate_raw_many, solve_normal)
+from .fit import FitOptions, FitResult, fit
+from .model import Measurement, ModelState, refine, simulate, solve_normal
 from .parameters import METRIXS, ParameterTable
+from .twin import Twin
 
 
 @dataclass
@@ -155,25 +156,15 @@ def _folds(n: int, k: int, seed: int) -> list[np.ndarray]:
     return [np.sort(order[i::k]) for i in range(k)]
 
 
-# The fitting recipe of ``bluesky-offsets demo`` and ``bluesky-offsets diagnose`` (measured:
-# docs/diagnosis.md).  Every fit starts on the beam features, whose wide basin a fit on the
-# bins of a focus a few camera pixels wide lacks (from the surrogate's offsets and from the
-# nominal twin: model.refine's also_from), at 5000 rays with Jacobians at 2000 (features are
-# robust to ray noise, and a Jacobian costs 34 n traces); then Gauss-Newton on the bins with
-# that Jacobian, traced afresh once when the twin refuses a step.  The refit after adding an
-# effect traces a Jacobian of its own: an effect such as a defocus changes how the beam
-# responds to the offsets, and a fit on the old one stalls.  The candidates' fits trace 2000
-# rays (~22 fits side by side).
-RECIPE = {
-    "refine_iterations": 4,
-    "refit_iterations": 4,
-    "refine_kw": {"feature_iterations": 10, "feature_kw": {"anchor_rays": 5000, "jacobian_rays": 2000},
-                  "reuse_jacobian": True, "refresh_on_reject": True, "max_refreshes": 1, "jacobian_rays": 5000},
-    "refit_kw": {"feature_iterations": 10, "feature_kw": {"anchor_rays": 5000, "jacobian_rays": 2000},
-                 "effect_step": 0.05, "refresh_on_reject": True, "max_refreshes": 1, "jacobian_rays": 5000,
-                 "offset_jacobian": None},
-    "diagnose_kw": {"scan_rays": 2000},
-}
+# The fit options of ``bluesky-offsets demo`` and ``bluesky-offsets diagnose`` (measured:
+# docs/diagnosis.md).  The offsets fit starts on the beam features, whose wide basin a fit on
+# the bins of a focus a few camera pixels wide lacks, then the profiles, then the bins.  The
+# candidate fits of a diagnosis start from the offsets fit with the candidate switched on:
+# a few iterations on the features let the offsets give back what they had absorbed, then
+# the bins.  All fits of one diagnosis share their rays (one seed), so their χ² compare
+# without sampling noise.
+FIT = FitOptions(rays=5000, stages=(("features", 15), ("profiles", 8), ("bins", 10)))
+SCAN = FitOptions(rays=3000, stages=(("features", 6), ("bins", 6)))
 
 
 def starting_values(effect: E.Effect) -> list[dict[str, float]]:
@@ -194,177 +185,124 @@ def starting_values(effect: E.Effect) -> list[dict[str, float]]:
     return out or [{}]  # nothing worth a start away from zero: one fit from zero
 
 
-def _heldout(fx, fit: FeatureFit, folds: Sequence[np.ndarray], everything: np.ndarray) -> np.ndarray:
-    """Held-out feature χ² per fold: the fit re-solved without the fold (one Levenberg-Marquardt
-    step from the all-data solution, on its final feature Jacobian), scored on the fold."""
-    f, v = fx.of(fit.state, fit.raw)
-    G = fit.columns
-    w = 1.0 / (fx.vm + v)
+def _heldout(fit: FitResult, folds: Sequence[np.ndarray]) -> np.ndarray:
+    """Held-out χ² per fold: the fit re-solved without the fold's configurations (one
+    Gauss-Newton step from the all-data solution on its exact Jacobian), scored on the fold."""
+    G, r, rows = fit.jacobian, fit.residuals, fit.rows
     out = []
     for fold in folds:
-        train = np.setdiff1d(everything, fold)
-        Gt = G[train].reshape(-1, G.shape[2])
-        wt = w[train].reshape(-1)
-        A = Gt.T @ (Gt * wt[:, None])
+        test = np.isin(rows, fold)
+        Gt, rt = G[~test], r[~test]
+        A = Gt.T @ Gt
         A = A + np.diag(np.diag(A)) * 1e-2 + 1e-9 * np.trace(A) / len(A) * np.eye(len(A))
-        d = solve_normal(A, Gt.T @ (wt * (fx.fm - f)[train].reshape(-1)))
-        r = (fx.fm - f - np.einsum("nkp,p->nk", G, d))[fold]
-        out.append(float((w[fold] * r * r).sum()))
+        d = solve_normal(A, Gt.T @ rt)
+        res = r[test] - G[test] @ d
+        out.append(float(res @ res))
     return np.array(out)
 
 
-def _many_fit_traces(states: Sequence[ModelState], state: ModelState, n: int, iterations: int,
-                     directions: int) -> int:
-    """Traces of :func:`fit_features_many` over ``states`` (the first is the offsets-only fit),
-    each ``n`` configurations: per iteration the proposal and its twin-level effect probes;
-    the offset directions where a fit starts, except for states that differ from the first only
-    at the detector (they share its)."""
-    total = 0
-    for k, st in enumerate(states):
-        new = [e for e in st.effects if e not in state.effects]
-        p_twin = sum(len(E.get(e).parameters) for e in new if E.get(e).level == "twin")
-        total += n * (1 + iterations * (1 + p_twin) + (directions if p_twin or k == 0 else 0))
-    return total
-
-
-def diagnose(meas: Measurement, state: ModelState, twin, forward_model=None, *,
-             candidates: Sequence[str] | None = None, folds: int = 4, anchor_rays: int | None = None,
-             scan_rays: int | None = None, seed: int = 0, n_sigma: float = 3.0, reuse: LocalModel | None = None,
-             iterations: int = 4, directions: int = 12, verify_top: int = 3, polish_iterations: int = 4,
-             table: ParameterTable = METRIXS) -> Diagnosis:
+def diagnose(meas: Measurement, state: ModelState, twin=None, forward_model=None, *,
+             candidates: Sequence[str] | None = None, folds: int = 4, seed: int = 0, n_sigma: float = 3.0,
+             options: FitOptions | Mapping | None = None, verify_rays: int | None = None, verify_top: int = 3,
+             progress=None, table: ParameterTable = METRIXS) -> Diagnosis:
     """Rank candidate effects for the misfit of ``state`` against ``meas`` (see the module text).
 
     ``state`` should already carry fitted offsets (:func:`bluesky_offsets.model.refine`).
-    Candidates default to every registered effect the state does not include yet.  ``reuse``
-    takes the refinement's final local model (same state), whose twin Jacobian is then not
-    traced again (``34 n`` traces otherwise).  The candidate fits trace ``scan_rays`` per
-    configuration (default ``anchor_rays``): ``iterations * n * (1 + p)`` traces per start
-    (see :func:`starting_values`; ``p`` twin-level parameters, none for detector-level
-    effects).  The ``verify_top`` best of them and the offsets-only fit then go on for
-    ``polish_iterations`` more, and the verification traces ``anchor_rays``, ``2 + verify_top``
-    states.
-    ``forward_model`` is accepted for symmetry with the fits and not used.
+    Candidates default to every registered effect the state does not include yet.  Every fit
+    (the offsets-only reference and each candidate from each of its :func:`starting_values`)
+    runs :func:`bluesky_offsets.fit.fit` with ``options`` (default :data:`SCAN`) on one set of
+    rays.  The ``verify_top`` best are traced again with fresh rays (``verify_rays``, default
+    4x the measurement's) beside the reference.  ``twin`` names the parameter table and
+    ``forward_model`` is not used (both kept for symmetry with the other steps).
     """
+    from .torch_engine import TorchEngine
     names = [n_ for n_ in (candidates or list(E.EFFECTS)) if n_ not in state.effects]
     for n_ in names:
         E.get(n_)
-    anchor_rays = int(anchor_rays or (reuse.anchor_rays if reuse is not None else meas.n_rays))
-    scan_rays = int(scan_rays or anchor_rays)
-    spec, n, P = meas.spec, meas.n, len(table)
-    n_traces = 0
-    if reuse is not None and not np.array_equal(reuse.anchor.offsets, state.offsets):
-        raise ValueError("reuse: the local model was built for another state")
-    if reuse is not None and reuse.jac_at_anchor:
-        lm = reuse
-    else:
-        # a Jacobian carried over from an earlier anchor points the candidate fits' offset
-        # directions the wrong way (measured on a demo measurement with hidden chamber_z: reused,
-        # chamber_z fitted at -3 mm and ranked 2nd, nothing significant; traced at the state,
-        # z = 21.6 mm, first and significant)
-        same = reuse is not None and reuse.raw is not None and reuse.anchor_rays == anchor_rays
-        lm = build_local_model(meas, state, twin, None, anchor_rays=anchor_rays, seed=reuse.seed if same else seed,
-                               anchor_raw=reuse.raw if same else None, table=table)
-        n_traces += n * (P if same else 1 + P)
-    base_mf = _twin_chi2(meas, lm)
-    within = not base_mf.total_beyond_noise(n_sigma)
-    fold_idx = _folds(n, folds, seed)
-    everything = np.arange(n)
-    if within:
-        # nothing to explain: no candidate is fitted (their fits would cost ~n * 100 traces each)
-        return Diagnosis(base_mf, True, [], _signature(meas.histograms(), lm.t0, spec), folds, n_traces,
-                         [f"the base model is within noise (chi2/dof = {base_mf.chi2_reduced_total:.2f}): "
-                          "no candidate fitted"], state, base_mf)
+    o = options if isinstance(options, FitOptions) else (SCAN if options is None else SCAN.replace(**options))
+    o = o.replace(seed=seed + 7919)
+    spec, n = meas.spec, meas.n
+    engine = TorchEngine(table=table, hist=spec, options=dict(o.engine or {}))
+    verifier = Twin(TorchEngine(table=table, hist=spec, options=dict(o.engine or {})))
+    verify_rays = int(verify_rays or 4 * meas.n_rays)
+    vseeds = [seed + 104729 + i for i in range(n)]
 
-    # 1. every candidate fitted with the offsets from its starts, beside an offsets-only fit
-    starts = [(None, state)] + [(name, state.with_effect(name, v)) for name in names
-                                for v in starting_values(E.get(name))]
-    fits = fit_features_many(meas, [st for _, st in starts], twin, lm.jac, iterations=iterations, rays=scan_rays,
-                             seed=seed + 7919, directions=directions, table=table)
-    n_traces += _many_fit_traces([st for _, st in starts], state, n, iterations, directions)
-    ref_fit = fits[0]
-    best: dict[str, FeatureFit] = {}
-    for (name, _), fit in zip(starts[1:], fits[1:]):
-        if name not in best or fit.chi2_features < best[name].chi2_features:
-            best[name] = fit
+    def verify(st: ModelState) -> tuple[Misfit, np.ndarray]:
+        hx, hy = simulate(verifier, meas.configurations, st, verify_rays, vseeds, table)
+        return misfit(meas.hist_x, meas.hist_y, hx, hy, meas.n_rays, model_rays=verify_rays), np.c_[hx, hy]
+
+    base_mf, base_view = verify(state)
+    n_traces = n
+    fold_idx = _folds(n, folds, seed)
+    if not base_mf.total_beyond_noise(n_sigma):
+        # nothing to explain: no candidate is fitted
+        return Diagnosis(base_mf, True, [], _signature(meas.histograms(), base_view, spec), folds, n_traces,
+                         [(f"the base model is within noise (chi2/dof = {base_mf.chi2_reduced_total:.2f}): "
+                          "no candidate fitted")], state, base_mf)
+
+    def report(label):
+        def inner(h):
+            if progress:
+                progress({"fit": label, **h})
+        return inner
+
+    # 1. the offsets-only reference and every candidate with the offsets, on one set of rays
+    ref = fit(meas, state, engine, o, progress=report("offsets only"), table=table)
+    n_traces += ref.n_traces
+    best: dict[str, FitResult] = {}
+    for name in names:
+        for v in starting_values(E.get(name)):
+            f = fit(meas, ref.state.with_effect(name, v), engine, o, progress=report(name), table=table)
+            n_traces += f.n_traces
+            if name not in best or f.chi2 < best[name].chi2:
+                best[name] = f
+    dispersion_fit = max(1.0, ref.chi2_reduced)
     n_signal = int(base_mf.dof_total)
-    fx = _Features(meas, twin, scan_rays, 0.005, 0.1, table)
-    n_features = fx.fm.size
-    feature_disp = max(1.0, ref_fit.chi2_features / n_features)
     out = []
     for name in names:
-        eff, fit = E.get(name), best[name]
+        eff, f = E.get(name), best[name]
         p = len(eff.parameters)
-        values = {k: float(v) for k, v in fit.state.effects[name].items()}
-        out.append(Candidate(name, p, values, {k: float("nan") for k in values}, 0.0,
-                             ref_fit.chi2_features - fit.chi2_features, p * math.log(max(n_signal, 2)), False, {},
-                             refined_state=fit.state, feature_penalty=p * math.log(n_features),
-                             feature_dispersion=feature_disp))
+        values = {k: float(v) for k, v in f.state.effects[name].items()}
+        sigma = f.effect_sigma().get(name, {})
+        out.append(Candidate(name, p, values, {k: float(sigma.get(k, float("nan"))) for k in values}, 0.0,
+                             ref.chi2 - f.chi2, p * math.log(max(n_signal, 2)), False, {},
+                             refined_state=f.state, feature_penalty=p * math.log(max(n_signal, 2)),
+                             feature_dispersion=dispersion_fit))
     out.sort(key=lambda c: -c.score)
 
-    # 2. the best few go on fitting, beside the offsets-only fit so that neither side is credited
-    # with convergence the other lacked: four iterations rank, they do not converge (measured:
-    # a hidden divergence +50 % stopped at +0.20 with size +0.38 and lost the bins verification
-    # to a gain change, 341 to 402, where the refit reached χ²/dof 1.35 from 3.1)
+    # 2. the best few verified with fresh rays beside the reference; held-out folds
     top = [c for c in out if c.score > 0][:verify_top]
-    if top and polish_iterations:
-        pol = fit_features_many(meas, [ref_fit.state] + [c.refined_state for c in top], twin, lm.jac,
-                                iterations=polish_iterations, rays=scan_rays, seed=seed + 7919,
-                                directions=directions, table=table)
-        n_traces += _many_fit_traces([ref_fit.state] + [c.refined_state for c in top], state, n,
-                                     polish_iterations, directions)
-        ref_fit = pol[0]
-        for c, fit in zip(top, pol[1:]):
-            best[c.name] = fit
-            c.values = {k: float(v) for k, v in fit.state.effects[c.name].items()}
-            c.refined_state = fit.state
-            c.delta_chi2_all = ref_fit.chi2_features - fit.chi2_features
-
-    # 3. verification in bins with fresh rays; held-out folds on the features
-    reference = ModelState(ref_fit.state.offsets, state.effects, f"{state.label} (offsets refitted)")
-    ver_states = [state, reference] + [c.refined_state for c in top]
-    ver = simulate_raw_many(twin, meas.configurations, ver_states, anchor_rays, [seed + 104729 + i for i in range(n)],
-                            table)
-    n_traces += n * len(ver_states)
-    views = [np.concatenate(detector_view(*r, st, twin.hist), axis=1) for r, st in zip(ver, ver_states)]
-    mfs = [misfit(meas.hist_x, meas.hist_y, *lm.split(h), meas.n_rays, model_rays=anchor_rays) for h in views]
-    k_ref = int(np.argmin([mfs[0].chi2_total, mfs[1].chi2_total]))
-    ref_mf, ref_view = mfs[k_ref], views[k_ref]
-    if not ref_mf.total_beyond_noise(n_sigma):
-        within = True  # the offsets alone reach the noise once refitted
+    ref_state = ModelState(ref.state.offsets, state.effects, f"{state.label} (offsets refitted)")
+    ref_mf, ref_view = verify(ref_state)
+    n_traces += n * (1 + len(top))
+    within = not ref_mf.total_beyond_noise(n_sigma)
     dispersion = max(1.0, ref_mf.chi2_total / max(ref_mf.dof_total, 1.0))
-    ref_ho = _heldout(fx, ref_fit, fold_idx, everything)
-    for c, mf_c, h in zip(top, mfs[2:], views[2:]):
+    ref_ho = _heldout(ref, fold_idx)
+    for c in top:
+        mf_c, h = verify(c.refined_state)
         c.delta_chi2_twin = float(ref_mf.chi2_total - mf_c.chi2_total)
         c.dispersion = dispersion
         c.predicted_signature = _signature(h, ref_view, spec)
-        ho = _heldout(fx, best[c.name], fold_idx, everything)
-        gain = ref_ho - ho
+        gain = ref_ho - _heldout(best[c.name], fold_idx)
         tol = 1e-9 * np.maximum(ref_ho, 1.0)
         c.delta_chi2_heldout = float(gain.sum())
         c.folds_improved, c.folds_worse, c.folds_total = int((gain > tol).sum()), int((gain < -tol).sum()), folds
         # nested models scored on the same measurement and the same fresh rays: under "no such
-        # effect" the gain is ~ dispersion * chi2_p, which the BIC price p ln N already covers
-        # (the measurement's own noise, sqrt(2 dof), is common to both and cancels in the gain;
-        # requiring the gain to exceed it as well vetoed a hidden chamber_z of 20 mm found at
-        # z = 24 mm, twin gain 37 against 3 sqrt(2 dof) = 143)
+        # effect" the gain is ~ dispersion * chi2_p, which the BIC price p ln N covers
         c.significant = bool(not within and c.score > 0 and c.heldout_confirms)
-    base_view = np.concatenate(detector_view(*ref_fit.raw, ref_fit.state, twin.hist), axis=1)
     for c in out:
-        if not c.refined:
-            fit = best[c.name]
-            c.predicted_signature = _signature(np.concatenate(detector_view(*fit.raw, fit.state, twin.hist), axis=1),
-                                               base_view, spec)
+        if not c.refined:  # what the others would add, for the ranking plot
+            c.predicted_signature = _signature(verify(c.refined_state)[1], ref_view, spec)
+            n_traces += n
     observed = _signature(meas.histograms(), ref_view, spec)
     out.sort(key=lambda c: (not c.refined, -c.score))
-    notes = [f"{len(starts) - 1} fits of {len(names)} candidates with the offsets ({iterations} iterations on the "
-             f"beam features, {scan_rays} rays; {polish_iterations} more for the best {len(top)} and the offsets "
-             f"alone); offsets-only refit: feature χ² {ref_fit.chi2_features:.4g} for "
-             f"{n_features} features; verified through "
-             f"the twin: {', '.join(c.name for c in top) or 'none'}; offsets-only reference chi2/dof = "
-             f"{ref_mf.chi2_reduced_total:.3g} ({'refitted' if k_ref else 'the state as is'})"]
+    notes = [(f"{sum(len(starting_values(E.get(n_))) for n_ in names)} fits of {len(names)} candidates with the "
+             f"offsets ({', '.join(f'{s} {k}' for s, k in o.stages)} iterations, {o.rays} rays, exact Jacobians); "
+             f"offsets-only refit: chi2/dof {ref.chi2_reduced:.3g} on the fit's rays, {ref_mf.chi2_reduced_total:.3g} "
+             f"with fresh rays; verified: {', '.join(c.name for c in top) or 'none'}")]
     if within:
-        notes.append(f"the base model is within noise (chi2/dof = {ref_mf.chi2_reduced_total:.2f})")
-    return Diagnosis(base_mf, within, out, observed, folds, n_traces, notes, reference if k_ref else state, ref_mf)
+        notes.append(f"the offsets alone reach the noise once refitted (chi2/dof = {ref_mf.chi2_reduced_total:.2f})")
+    return Diagnosis(base_mf, within, out, observed, folds, n_traces, notes, ref_state, ref_mf)
 
 
 # Lever arms that separate a screen translation from focal-length (half-axis) offsets: tilting
@@ -456,31 +394,27 @@ def evaluate(meas: Measurement, state: ModelState, twin, *, model_rays: int | No
     return misfit(meas.hist_x, meas.hist_y, hx, hy, meas.n_rays, model_rays=model_rays)
 
 
-def add_effect(meas: Measurement, state: ModelState, name: str, twin, forward_model, *, iterations: int = 3,
-               anchor_rays: int | None = None, seed: int = 0, progress=None, values=None,
-               table: ParameterTable = METRIXS, **refine_kw) -> tuple[ModelState, dict[str, dict[str, float]]]:
-    """``model.with_effect(name, values)`` and refit offsets + effect through the twin.
-
-    ``values`` starts the effect where the diagnosis found it (a :class:`Candidate`'s
-    ``values``), which saves iterations and keeps the fit in the right basin of effects whose
-    response is symmetric about zero (a defocus).  Further keywords go to
-    :func:`bluesky_offsets.model.refine` (``twin_columns``, ``reuse_jacobian``, ``effect_step``,
-    ``offset_prior`` ...).  See :func:`add_effect_result` for the whole refinement.
-    """
-    res = add_effect_result(meas, state, name, twin, forward_model, iterations=iterations, anchor_rays=anchor_rays,
-                            seed=seed, progress=progress, values=values, table=table, **refine_kw)
+def add_effect(meas: Measurement, state: ModelState, name: str, twin=None, forward_model=None, *,
+               values=None, options: FitOptions | Mapping | None = None, progress=None,
+               table: ParameterTable = METRIXS) -> tuple[ModelState, dict[str, dict[str, float]]]:
+    """``state.with_effect(name, values)`` with offsets and effect refitted (:func:`add_effect_result`)."""
+    res = add_effect_result(meas, state, name, twin, forward_model, values=values, options=options,
+                            progress=progress, table=table)
     return res.state, res.effect_sigma
 
 
-def add_effect_result(meas: Measurement, state: ModelState, name: str, twin, forward_model, *,
-                      iterations: int = 3, anchor_rays: int | None = None, seed: int = 0, progress=None,
-                      values=None, table: ParameterTable = METRIXS, **refine_kw):
-    """As :func:`add_effect`, returning the :class:`~bluesky_offsets.model.RefineResult`
-    (state, effect uncertainties, iteration history, last local model)."""
+def add_effect_result(meas: Measurement, state: ModelState, name: str, twin=None, forward_model=None, *,
+                      values=None, options: FitOptions | Mapping | None = None, progress=None,
+                      table: ParameterTable = METRIXS):
+    """``state.with_effect(name, values)``, offsets and effect refitted with the one fit engine
+    (:func:`bluesky_offsets.model.refine`, options default :data:`FIT`); returns its
+    :class:`~bluesky_offsets.model.RefineResult`.  ``values`` starts the effect where the
+    diagnosis found it (a :class:`Candidate` or its ``values``)."""
     if values is not None and not isinstance(values, dict):
         values = getattr(values, "values", values)  # a Candidate
-    return refine(meas, state.with_effect(name, values), twin, forward_model, iterations=iterations,
-                  anchor_rays=anchor_rays, seed=seed, progress=progress, table=table, **refine_kw)
+    o = options if isinstance(options, FitOptions) else (FIT if options is None else FIT.replace(**options))
+    return refine(meas, state.with_effect(name, values), twin, forward_model, options=o, progress=progress,
+                  table=table)
 
 
 def plot_error_history(versions: Sequence[Version], path, title: str = "model error across versions"):

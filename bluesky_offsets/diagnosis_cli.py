@@ -15,7 +15,6 @@ from pathlib import Path
 import numpy as np
 
 from .cli import CliError
-from .diagnosis import RECIPE
 
 
 def _load(store, uid: str, n_rays: int | None, resolution: str = "camera"):
@@ -66,16 +65,14 @@ def _effects(text: str | None) -> list[str] | None:
 
 
 def summary_dict(analysis) -> dict:
-    d = analysis.ranking.diagnosis if analysis.ranking else None
     return {
         "measurement_uid": analysis.measurement.uid,
-        "verdict": d.verdict if d else None,
-        "ranking": [{"effect": c.name, "score": c.score, "significant": c.significant, "values": c.values,
-                     "sigma": c.sigma} for c in d.candidates] if d else [],
+        "verdict": analysis.verdict,
+        "rankings": [[{"effect": c.name, "score": c.score, "significant": c.significant, "values": c.values,
+                       "sigma": c.sigma} for c in r.diagnosis.candidates] for r in analysis.rankings],
         "history": [c.total_row() for c in analysis.comparisons],
-        "fitted_effect": ({analysis.refit.effect: {k: {"value": v, "sigma": s}
-                                                   for k, (v, s) in analysis.refit.magnitude().items()}}
-                          if analysis.refit else {}),
+        "fitted_effects": {r.effect: {k: {"value": v, "sigma": s} for k, (v, s) in r.magnitude().items()}
+                           for r in analysis.refits},
         "uids": dict(analysis.uids),
     }
 
@@ -83,18 +80,19 @@ def summary_dict(analysis) -> dict:
 def _cmd_diagnose(args) -> int:
     from .store import open_store
     candidates = _effects(args.effects)
-    if args.refine_iterations < 0 or args.refit_iterations < 1:
-        raise CliError("--refine-iterations must be >= 0 and --refit-iterations >= 1")
+    if args.rounds < 1:
+        raise CliError("--rounds must be at least 1")
+    fit_options = None
+    if args.fit_rays is not None:
+        if args.fit_rays < 100:
+            raise CliError("--fit-rays must be at least 100")
+        fit_options = {"rays": args.fit_rays}
     try:
         store = open_store(args.store)
     except OSError as exc:
         raise CliError(str(exc)) from None
     try:
         stored, meas = _load(store, args.uid, args.rays, args.resolution)
-        from .twin import HistogramSpec
-        if args.jacobian == "surrogate" and meas.spec != HistogramSpec():
-            raise CliError("--jacobian surrogate: the surrogate predicts the paper's 50 x 50 bins and this run has "
-                           "camera-resolution profiles; add --resolution paper")
         from .model import ModelState
         starts = [ModelState(label="twin")]
         if args.offsets_uid:
@@ -105,10 +103,6 @@ def _cmd_diagnose(args) -> int:
         from plans.diagnose import analyse_measurement
 
         from .twin import Twin
-        fm = None
-        if args.jacobian == "surrogate":
-            from .finder import load_forward_model
-            fm = load_forward_model()
         RE = RunEngine({}, call_returns_result=True)
         store.subscribe(RE)
         log = sys.stderr if args.json else sys.stdout
@@ -120,11 +114,9 @@ def _cmd_diagnose(args) -> int:
                 twin.client
                 _quiet_logs()
             analysis = RE(analyse_measurement(
-                stored, twin, fm, starts=starts, refine_iterations=args.refine_iterations,
-                candidates=candidates, add_best=not args.no_add, refit_iterations=args.refit_iterations,
-                anchor_rays=args.anchor_rays, seed=args.seed, resolution=args.resolution,
-                refine_kw=RECIPE["refine_kw"], refit_kw=RECIPE["refit_kw"], diagnose_kw=RECIPE["diagnose_kw"],
-                md={"purpose": "bluesky-offsets diagnose"})).plan_result
+                stored, twin, starts=starts, refine=not args.no_refine, candidates=candidates,
+                add_best=not args.no_add, rounds=args.rounds, fit_options=fit_options, seed=args.seed,
+                resolution=args.resolution, md={"purpose": "bluesky-offsets diagnose"})).plan_result
             if args.report:
                 from .report import write_analysis_report
                 path = write_analysis_report(args.report, analysis, analysis.measurement.spec,
@@ -155,19 +147,16 @@ def add_cli(sub) -> None:
     p.add_argument("--effects", default=None, help="candidate effects, comma separated (default: all registered)")
     p.add_argument("--offsets-uid", default=None,
                    help="also start from the offsets of this run (find_offsets / refine_offsets)")
-    p.add_argument("--refine-iterations", type=int, default=RECIPE["refine_iterations"],
-                   help="Gauss-Newton iterations on the bins after the feature stage (0: no refinement)")
-    p.add_argument("--refit-iterations", type=int, default=RECIPE["refit_iterations"],
-                   help="the same after adding the effect")
+    p.add_argument("--no-refine", action="store_true", help="diagnose the start as it is (no offsets fit first)")
     p.add_argument("--no-add", action="store_true", help="rank only; do not add the best effect")
-    p.add_argument("--jacobian", choices=("twin", "surrogate"), default="twin",
-                   help="offset Jacobian of the fits (default: the twin's finite differences; the surrogate's "
-                        "needs --resolution paper)")
+    p.add_argument("--rounds", type=int, default=2,
+                   help="diagnoses at most: after an effect is added the model is diagnosed again (default %(default)s)")
+    p.add_argument("--fit-rays", type=int, default=None, help="model rays per configuration in the fits "
+                                                               "(default: bluesky_offsets.diagnosis.FIT's)")
     p.add_argument("--resolution", choices=("camera", "paper"), default="camera",
                    help="histograms to fit: the camera's profiles where the run has them (default) or the "
                         "paper's 50 x 50 bins")
     p.add_argument("--rays", type=int, default=None, help="ray budget of the measurement when the run lacks it")
-    p.add_argument("--anchor-rays", type=int, default=None, help="rays per model trace in the fits")
     p.add_argument("--scheduler", default=None, help="Dask scheduler address, or 'inline' (default: local cluster)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--report", type=Path, default=None, help="write a self-contained HTML report here")

@@ -110,6 +110,19 @@ def expected_pull2(meas: np.ndarray, model: np.ndarray, n_rays) -> np.ndarray:
     return np.where(meas > 0, 1.0, np.clip(model * n, 0.0, 1.0))
 
 
+def bin_variance(meas, model, n_rays, model_rays: int | None = None, model_var: float = 0.0) -> np.ndarray:
+    """The variance of a bin's measured − model fraction: ``p (1 - p) / N`` for the measurement
+    and ``p (1 - p) / N_model`` for a traced model (a mean model, e.g. a surrogate: its error
+    variance ``model_var`` instead), ``p`` the mean of both floored at one ray in ``N``.  The
+    one noise model of every misfit and fit."""
+    n = np.asarray(n_rays, dtype=float)
+    p = np.maximum(0.5 * (np.asarray(meas, float) + np.asarray(model, float)), 1.0 / n)
+    var = p * (1 - p) / n + model_var
+    if model_rays:
+        var = var + p * (1 - p) / model_rays
+    return var
+
+
 def misfit(meas_x, meas_y, model_x, model_y, n_rays: int | Sequence[int], *,
            model_rays: int | None = None, model_var: float = 0.0) -> Misfit:
     """Chi-square and MSE of model histograms against measured ones.
@@ -139,9 +152,7 @@ def misfit(meas_x, meas_y, model_x, model_y, n_rays: int | Sequence[int], *,
 
     def _pulls(m, f):
         p = np.maximum(0.5 * (m + f), 1.0 / n)
-        var = p * (1 - p) / n + model_var
-        if model_rays:
-            var = var + p * (1 - p) / model_rays
+        var = bin_variance(m, f, n, model_rays, model_var)
         signal = (m > 0) | (f > 0)
         pull = np.where(signal, (m - f) / np.sqrt(var), 0.0)
         return pull, signal, p

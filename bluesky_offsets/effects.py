@@ -318,7 +318,19 @@ class LineDensityError(Effect):
 # --------------------------------------------------------------------------- #
 # detector-level effects (histograms; twin and surrogate alike)
 # --------------------------------------------------------------------------- #
-def _gauss_blur(h: np.ndarray, sigma_bins: float) -> np.ndarray:
+def _gauss_blur(h, sigma_bins):
+    """Gaussian blur of histograms (..., bins) by ``sigma_bins``; numpy or torch alike (a torch
+    ``sigma_bins`` keeps its gradient)."""
+    if is_tensor(h) or is_tensor(sigma_bins):
+        import torch
+        h = torch.as_tensor(h, dtype=torch.float64)
+        s = torch.as_tensor(sigma_bins, dtype=torch.float64)
+        if not s.requires_grad and float(s) <= 0:
+            return h
+        idx = torch.arange(h.shape[-1], dtype=torch.float64)
+        kernel = torch.exp(-0.5 * ((idx[:, None] - idx[None, :]) / torch.clamp(s, min=1e-6)) ** 2)
+        kernel = kernel / kernel.sum(0, keepdim=True)
+        return h @ kernel
     if sigma_bins <= 0:
         return h
     n = h.shape[-1]
@@ -326,6 +338,10 @@ def _gauss_blur(h: np.ndarray, sigma_bins: float) -> np.ndarray:
     kernel = np.exp(-0.5 * ((idx[:, None] - idx[None, :]) / sigma_bins) ** 2)
     kernel /= kernel.sum(axis=0, keepdims=True)  # keeps the total inside the window
     return h @ kernel
+
+
+def _array(h):
+    return h if is_tensor(h) else np.asarray(h)
 
 
 class DetectorBlur(Effect):
@@ -337,7 +353,7 @@ class DetectorBlur(Effect):
     def apply_histograms(self, hx, hy, v, spec):
         wx = (spec.range_x[1] - spec.range_x[0]) / spec.bins_x
         wy = (spec.range_y[1] - spec.range_y[0]) / spec.bins_y
-        return _gauss_blur(np.asarray(hx), v["sigma"] / wx), _gauss_blur(np.asarray(hy), v["sigma"] / wy)
+        return _gauss_blur(_array(hx), v["sigma"] / wx), _gauss_blur(_array(hy), v["sigma"] / wy)
 
 
 class Background(Effect):
@@ -348,7 +364,7 @@ class Background(Effect):
     parameters = (EffectParameter("level", "fraction/bin", 0.0, 2e-3, "background per bin"),)
 
     def apply_histograms(self, hx, hy, v, spec):
-        return np.asarray(hx) + v["level"], np.asarray(hy) + v["level"]
+        return _array(hx) + v["level"], _array(hy) + v["level"]
 
 
 class IntensityScale(Effect):
@@ -359,7 +375,7 @@ class IntensityScale(Effect):
     parameters = (EffectParameter("delta", "rel", -0.3, 0.3, "relative intensity change"),)
 
     def apply_histograms(self, hx, hy, v, spec):
-        return np.asarray(hx) * (1 + v["delta"]), np.asarray(hy) * (1 + v["delta"])
+        return _array(hx) * (1 + v["delta"]), _array(hy) * (1 + v["delta"])
 
 
 for _eff in (ChamberShift("x"), ChamberShift("y"), ChamberTranslationZ(), ChamberRotation(), SourceScale("size"),

@@ -123,8 +123,8 @@ def analysis_sections(analysis, spec, work: Path, *, truth: Mapping | None = Non
     ``truth`` (simulations only) adds the hidden effect beside the fitted one.
     """
     from .diagnosis import plot_error_history, plot_ranking
-    from .effects import get as get_effect
     from .diagnostics import plot_overlays, plot_residual_maps
+    from .effects import get as get_effect
     from .parameters import METRIXS
     table = table or METRIXS
     work = Path(work)
@@ -134,11 +134,10 @@ def analysis_sections(analysis, spec, work: Path, *, truth: Mapping | None = Non
     secs: list[tuple[str, str]] = []
 
     # verdict and the error history first: what people come for
-    ranking = analysis.ranking
-    diag = ranking.diagnosis if ranking is not None else None
+    last = analysis.rankings[-1].diagnosis if analysis.rankings else None
     head = []
-    if diag is not None:
-        head.append(verdict(diag.verdict, warn=diag.best is None and not diag.within_noise))
+    if last is not None:
+        head.append(verdict(analysis.verdict, warn=not analysis.refits and last.best is None and not last.within_noise))
     rows = []
     for i, c in enumerate(comps):
         r = c.total_row()
@@ -155,35 +154,36 @@ def analysis_sections(analysis, spec, work: Path, *, truth: Mapping | None = Non
     head.append(image(fig, "error history: χ²/dof and MSE relative to the noise expectation, per model version"))
     secs.append(("Error history across model versions", "".join(head)))
 
-    # the added effect
-    if analysis.refit is not None:
-        rf = analysis.refit
-        mag = rf.magnitude()
-        units = {p.name: p.unit for p in get_effect(rf.effect).parameters}
+    # the added effects
+    if analysis.refits:
         rows = []
-        for k, (v, s) in mag.items():
-            row = {"effect": rf.effect, "parameter": k, "fitted": v, "± (1σ)": s, "unit": units.get(k, "")}
-            if truth is not None and rf.effect in truth:
-                hv = truth[rf.effect].get(k)
-                if hv is not None:
-                    row["hidden (simulation)"] = float(hv)
-                    row["error"] = f"{(v - hv) / hv * 100:+.1f} %" if hv else "—"
-            rows.append(row)
+        for rf in analysis.refits:
+            units = {p.name: p.unit for p in get_effect(rf.effect).parameters}
+            for k, (v, s_) in rf.magnitude().items():
+                row = {"effect": rf.effect, "parameter": k, "fitted": v, "± (1σ)": s_, "unit": units.get(k, "")}
+                if truth is not None and rf.effect in truth:
+                    hv = truth[rf.effect].get(k)
+                    if hv is not None:
+                        row["hidden (simulation)"] = float(hv)
+                        row["error"] = f"{(v - hv) / hv * 100:+.1f} %" if hv else "—"
+                        row["error / σ"] = (v - hv) / s_ if s_ > 0 else float("nan")
+                rows.append(row)
         body = table_(rows)
         if truth is not None:
             body += paragraph("Hidden effects of the simulation (revealed for the demo only): "
                               + (", ".join(f"{e}: {_fmt_values(v)}" for e, v in truth.items()) or "none"))
-        secs.append(("Fitted effect magnitude", body))
+        secs.append(("Fitted effect magnitudes", body))
 
-    # ranking
-    if diag is not None:
-        fig = plot_ranking(diag, work / "ranking.png")
+    # rankings, one per diagnosis
+    for k_rank, rk in enumerate(analysis.rankings, 1):
+        diag = rk.diagnosis
+        fig = plot_ranking(diag, work / f"ranking_{k_rank}.png")
         rows = []
         for i, c in enumerate(diag.candidates, 1):
             rows.append({"rank": i, "effect": c.name, "score": c.score,
                          "twin Δχ² (bins)": c.delta_chi2_twin if c.refined else "—",
                          "÷ dispersion": c.dispersion if c.refined else "—", "price p ln N": c.penalty,
-                         "feature Δχ²": c.delta_chi2_all, "held-out feature Δχ²": c.delta_chi2_heldout,
+                         "fit Δχ²": c.delta_chi2_all, "held-out Δχ²": c.delta_chi2_heldout,
                          "held-out folds better / worse": f"{c.folds_improved} / {c.folds_worse} of {c.folds_total}",
                          "significant": "yes" if c.significant else "no",
                          "value (diagnosis)": _fmt_values(c.values, c.sigma)})
@@ -192,16 +192,16 @@ def analysis_sections(analysis, spec, work: Path, *, truth: Mapping | None = Non
                      **{c.name: c.predicted_signature.get(k, float("nan")) for c in diag.candidates[:4]}}
                     for k in keys]
         mf = diag.base_misfit
-        body = (paragraph("Each candidate is fitted with the offsets through the twin on the beam features "
-                          "(intensity, centroids, widths), from starting values spread over its prior range, beside "
-                          "an offsets-only fit; held-out: each fit re-solved without each of "
+        body = (paragraph("Each candidate is fitted with the offsets through the differentiable twin (exact "
+                          "Jacobians; beam features, then bins), from starting values spread over its prior range, "
+                          "beside an offsets-only fit on the same rays; held-out: each fit re-solved without each of "
                           f"{diag.folds} folds of configurations and scored on them. The best candidates are verified "
-                          "through the twin in the histogram bins with fresh rays against the offsets-only "
+                          "in the histogram bins with fresh rays against the offsets-only "
                           "reference; score = that χ² gain ÷ the reference's χ² per degree of freedom (when > 1) − "
                           "p ln N. Significant: score above zero, and the held-out folds do not contradict it. "
                           "Base model: χ²/dof "
                           f"{mf.chi2_reduced_total:.3g} (noise: 1 ± {np.sqrt(2 / max(mf.dof_total, 1)):.2g}); "
-                          f"{diag.n_traces} twin traces.")
+                          f"{diag.n_traces} traces.")
                 + table_(rows) + image(fig, "candidate scores; predicted residual signature of the top candidates "
                                             "beside the observed one (what the data lack)")
                 + paragraph("Residual signature (model − measurement, mean over configurations) observed after the "
@@ -209,7 +209,9 @@ def analysis_sections(analysis, spec, work: Path, *, truth: Mapping | None = Non
                 + table_(sig_rows))
         if diag.notes:
             body += paragraph("; ".join(diag.notes))
-        secs.append(("Which effect is missing: ranking", body))
+        title = "Which effect is missing: ranking" + (f" (diagnosis {k_rank}, model '{diag_label(analysis, k_rank)}')"
+                                                      if len(analysis.rankings) > 1 else "")
+        secs.append((title, body))
 
     # where the model fails
     body = []
@@ -248,11 +250,13 @@ def analysis_sections(analysis, spec, work: Path, *, truth: Mapping | None = Non
     runs = []
     if analysis.refinement is not None:
         runs.append(("offsets", analysis.refinement.result.history))
-    if analysis.refit is not None and analysis.refit.history:
-        runs.append((f"+ {analysis.refit.effect}", analysis.refit.history))
+    for rf in analysis.refits:
+        if rf.history:
+            runs.append((f"+ {rf.effect}", rf.history))
     if runs:
         fig = _plot_progress(runs, work / "fit_progress.png")
-        secs.append(("Fits through the twin", image(fig, "χ²/dof of the twin at each iteration")))
+        secs.append(("Fits through the differentiable twin",
+                     image(fig, "χ²/dof at each iteration (features, profiles, bins: each on its own scale)")))
 
     # offsets of the final model
     st = comps[-1].state
@@ -290,3 +294,10 @@ def write_analysis_report(path: str | Path, analysis, spec, *, title: str = "mod
         secs = [*intro, *analysis_sections(analysis, spec, Path(tmp), truth=truth), *extra]
         secs.append(("Runs in the store", uid_section(uids if uids is not None else analysis.uids, store_location)))
         return write_report(path, title=title, sections=secs)
+
+
+def diag_label(analysis, k: int) -> str:
+    """The model version diagnosis ``k`` (1-based) looked at: the offsets fit, then each refit."""
+    if k == 1:
+        return analysis.refinement.comparison.label if analysis.refinement else analysis.comparisons[0].label
+    return analysis.refits[k - 2].comparison.label

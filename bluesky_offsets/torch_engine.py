@@ -169,7 +169,7 @@ def _col(v, c: int, dtype, device):
 
 def compile_beamline(values, overrides: Mapping | Sequence[Mapping] | None = None, *,
                      table: ParameterTable = METRIXS, dtype=torch.float64, device="cpu",
-                     beamline=None) -> CompiledBeamline:
+                     beamline=None, check: bool = True) -> CompiledBeamline:
     """The METRIXS beamline at a batch of parameter vectors, as tensors.
 
     Parameters
@@ -183,6 +183,9 @@ def compile_beamline(values, overrides: Mapping | Sequence[Mapping] | None = Non
     beamline : RmlBeamline, optional
         Another beamline than METRIXS (values then (C, 0) and overrides carry everything):
         the RAY-UI reference files are traced this way.
+    check : bool
+        Refuse unphysical parameter vectors (one Python call per row: the per-ray batches of
+        :meth:`TorchEngine.ray_jacobian` check their configurations once instead).
     """
     device = torch.device(device)
     vals = values if torch.is_tensor(values) else torch.as_tensor(np.asarray(values, dtype=float))
@@ -194,7 +197,7 @@ def compile_beamline(values, overrides: Mapping | Sequence[Mapping] | None = Non
     if beamline is None:
         if vals.shape[1] != len(table):
             raise ValueError(f"expected parameter vectors of {len(table)} values, got shape {tuple(vals.shape)}")
-        for row in vals.detach().cpu().numpy():
+        for row in (vals.detach().cpu().numpy() if check else ()):
             check_physical(row, table)
         if per_config:
             ovs = list(overrides)
@@ -440,6 +443,33 @@ def sample_source(bl: CompiledBeamline, n_rays: int, seed, *, sampling: str = "f
     ``sampling="rayx"`` reproduces RAYX's point source for ``rayx::fixSeed(seed)``
     (RAYX-CONVENTIONS.md §3–4): 14 draws per ray in RAYX's order, counters carried on.
     """
+    units = source_units(bl, n_rays, seed, sampling=sampling, common=common)
+    return source_rays(bl, units), units.draws
+
+
+@dataclass
+class SourceUnits:
+    """The source's unit draws (6 coordinates, each (C|1, N)) before the source's sizes scale
+    them, the later draws of the fast stream and RAYX's counters: what a trace's randomness is,
+    apart from the beamline it meets."""
+
+    coord: list[torch.Tensor]
+    draws: Draws | None
+    ctr: torch.Tensor | None = None
+
+    def per_ray(self, c: int) -> SourceUnits:
+        """Every ray its own configuration: (C|1, N) -> (C N, 1), configuration-major."""
+        def flat(t):
+            return t.expand(*t.shape[:-2], c, t.shape[-1]).reshape(*t.shape[:-2], -1, 1)
+        d = self.draws
+        draws = None if d is None else Draws({k: flat(v) for k, v in d.slits.items()},
+                                             {k: flat(v) for k, v in d.slopes.items()})
+        return SourceUnits([flat(t) for t in self.coord], draws, None if self.ctr is None else flat(self.ctr))
+
+
+def source_units(bl: CompiledBeamline, n_rays: int, seed, *, sampling: str = "fast",
+                 common: bool = True) -> SourceUnits:
+    """The random part of :func:`sample_source`."""
     src = bl.source
     if src["type"] != "Point Source":
         raise RmlError(f"the torch engine samples point sources only ({src['type']!r}: pass rays)")
@@ -469,26 +499,29 @@ def sample_source(bl: CompiledBeamline, n_rays: int, seed, *, sampling: str = "f
         coord[3] = uniform() - 0.5
         coord[4] = normal() if dists[3] else uniform() - 0.5
         coord[5] = normal() if dists[2] else uniform() - 0.5
-        draws = None
-    else:
-        slits, slopes = {}, {}
-        gens = [_generator(s, dev) for s in seeds]
-        # per stream: four normals (width, height, divergences) and six uniforms (depth,
-        # energy, and the four coordinates again for hard-edged distributions)
-        nn = torch.stack([torch.randn(4, n_rays, generator=g, device=dev, dtype=torch.float64) for g in gens], 1)
-        uu = torch.stack([torch.rand(6, n_rays, generator=g, device=dev, dtype=torch.float64) for g in gens], 1)
-        coord = [nn[0] if dists[0] else uu[2] - 0.5, nn[1] if dists[1] else uu[3] - 0.5,
-                 uu[0] - 0.5, uu[1] - 0.5,
-                 nn[2] if dists[3] else uu[4] - 0.5, nn[3] if dists[2] else uu[5] - 0.5]
-        for opt in bl.optics:
-            if opt.behaviour == "slit":  # the kicks' accepted draws, by inverse CDF, once for all configurations
-                slits[opt.name] = rnd.fraunhofer_uniform_fast(torch.stack(
-                    [torch.rand(2, n_rays, generator=g, device=dev, dtype=torch.float64) for g in gens], 1))
-            if opt.slope is not None:
-                slopes[opt.name] = torch.stack([torch.randn(2, n_rays, generator=g, device=dev,
-                                                            dtype=torch.float64) for g in gens], 1)
-        draws = Draws(slits, slopes)
-        ctr = None
+        return SourceUnits(coord, None, ctr)
+    slits, slopes = {}, {}
+    gens = [_generator(s, dev) for s in seeds]
+    # per stream: four normals (width, height, divergences) and six uniforms (depth,
+    # energy, and the four coordinates again for hard-edged distributions)
+    nn = torch.stack([torch.randn(4, n_rays, generator=g, device=dev, dtype=torch.float64) for g in gens], 1)
+    uu = torch.stack([torch.rand(6, n_rays, generator=g, device=dev, dtype=torch.float64) for g in gens], 1)
+    coord = [nn[0] if dists[0] else uu[2] - 0.5, nn[1] if dists[1] else uu[3] - 0.5,
+             uu[0] - 0.5, uu[1] - 0.5,
+             nn[2] if dists[3] else uu[4] - 0.5, nn[3] if dists[2] else uu[5] - 0.5]
+    for opt in bl.optics:
+        if opt.behaviour == "slit":  # the kicks' accepted draws, by inverse CDF, once for all configurations
+            slits[opt.name] = rnd.fraunhofer_uniform_fast(torch.stack(
+                [torch.rand(2, n_rays, generator=g, device=dev, dtype=torch.float64) for g in gens], 1))
+        if opt.slope is not None:
+            slopes[opt.name] = torch.stack([torch.randn(2, n_rays, generator=g, device=dev,
+                                                        dtype=torch.float64) for g in gens], 1)
+    return SourceUnits(coord, Draws(slits, slopes))
+
+
+def source_rays(bl: CompiledBeamline, units: SourceUnits) -> Rays:
+    """The source's unit draws scaled by its sizes, divergences and energy (differentiable in them)."""
+    src, coord = bl.source, units.coord
     x = coord[0] * src["width"]
     y = coord[1] * src["height"]
     z = coord[2] * src["depth"]
@@ -498,8 +531,7 @@ def sample_source(bl: CompiledBeamline, n_rays: int, seed, *, sampling: str = "f
     dx, dy, dz = torch.cos(psi) * torch.sin(phi), -torch.sin(psi), torch.cos(psi) * torch.cos(phi)
     dt = bl.dtype
     energy = energy * torch.ones_like(x)
-    rays = Rays(x.to(dt), y.to(dt), z.to(dt), dx.to(dt), dy.to(dt), dz.to(dt), energy.to(torch.float64), ctr)
-    return rays, draws
+    return Rays(x.to(dt), y.to(dt), z.to(dt), dx.to(dt), dy.to(dt), dz.to(dt), energy.to(torch.float64), units.ctr)
 
 
 def rays_from_arrays(position: np.ndarray, direction: np.ndarray, energy: np.ndarray, *,
@@ -1137,6 +1169,105 @@ class TorchEngine:
         d_fs = torch.stack([torch.autograd.grad(feats[:, k].sum(), s, retain_graph=True)[0]
                             for k in range(feats.shape[1])], 1)  # (C, 5 features, 5 moments)
         return feats.detach(), torch.einsum("cfm,cmp->cfp", d_fs, jac), names
+
+
+    # -- per-ray derivatives ---------------------------------------------------------
+    def ray_jacobian(self, values, effects=None, *, n_rays: int, seed=0, overrides=None,
+                     chunk: int = 1 << 16) -> RayJacobian:
+        """Every ray's screen position and soft weight with their derivatives in the inputs.
+
+        The inputs are the 34 parameters and the twin-level effect parameters of ``effects``
+        (as :meth:`jacobian`).  Each ray is traced as a configuration of its own (its own copy
+        of its configuration's inputs), so that three backward passes (x, y, weight) give the
+        derivative of every ray in every input; any product of the rays (histograms at any
+        binning, camera profiles, moments) then gets its exact Jacobian by the chain rule at
+        the cost of binning (:class:`RayJacobian`).  ``chunk`` bounds the rays × configurations
+        traced at once (memory ~5 kB each).
+        """
+        o = self.options
+        vals, leaves, names = self.inputs(values, effects)
+        c = vals.shape[0]
+        bl = self.compile(vals, self._overrides(leaves, overrides))
+        units = source_units(bl, n_rays, seed, sampling=o.sampling, common=o.common_rays)
+        step = max(1, int(chunk) // c)
+        parts = []
+        for a in range(0, n_rays, step):
+            b = min(n_rays, a + step)
+            r = b - a
+            cut = SourceUnits([t[..., a:b] for t in units.coord],
+                              None if units.draws is None else units.draws.slice(a, b),
+                              None if units.ctr is None else units.ctr[..., a:b]).per_ray(c)
+            v_rep = vals.repeat_interleave(r, 0).requires_grad_(True)
+            l_rep = {e: {p: t.repeat_interleave(r, 0).requires_grad_(True) for p, t in d.items()}
+                     for e, d in leaves.items()}
+            inputs = [v_rep] + [t for d in l_rep.values() for t in d.values()]
+            bl_rep = compile_beamline(v_rep, self._overrides(l_rep, overrides), table=self.table,
+                                      dtype=o.torch_dtype, device=o.device, check=False)
+            beam = trace_rays(bl_rep, source_rays(bl_rep, cut), cut.draws, edge=o.edge)
+            grads = []
+            for k, out in enumerate((beam.x, beam.y, beam.weight)):
+                g = torch.autograd.grad(out.sum(), inputs, retain_graph=k < 2, allow_unused=True)
+                grads.append(torch.cat([(gi if gi is not None else torch.zeros_like(t)).reshape(c * r, -1)
+                                        for gi, t in zip(g, inputs)], 1).reshape(c, r, -1))
+            parts.append((beam.x.detach().reshape(c, r), beam.y.detach().reshape(c, r),
+                          beam.alive.reshape(c, r), beam.weight.detach().reshape(c, r), *grads))
+        cat = [torch.cat([p[k] for p in parts], 1) for k in range(7)]
+        return RayJacobian(*cat, n_rays=n_rays, names=names)
+
+
+@dataclass
+class RayJacobian:
+    """Rays at the screen (C, N) with their derivatives (C, N, P) in the P inputs ``names``.
+
+    Values are RAYX's (hard survival ``alive``); the derivatives are those of the soft beam
+    (weights that fall off over ``edge`` of each aperture), the smooth version of the same
+    rays whose expectation the hard beam's counts follow."""
+
+    x: torch.Tensor
+    y: torch.Tensor
+    alive: torch.Tensor
+    weight: torch.Tensor
+    jx: torch.Tensor
+    jy: torch.Tensor
+    jw: torch.Tensor
+    n_rays: int
+    names: list[str]
+
+    def histograms(self, spec: HistogramSpec, kernel: float = 1.0) -> tuple[torch.Tensor, torch.Tensor]:
+        """x then y histograms (C, bins_x + bins_y) as fractions of source rays (hard counts,
+        RAYX's binning) and their Jacobian (C, bins_x + bins_y, P) from the soft beam binned
+        with a Gaussian kernel of ``kernel`` bins rms."""
+        hx = _hist(self.x, self.alive.to(self.x.dtype), spec.bins_x, spec.range_x, False, kernel)
+        hy = _hist(self.y, self.alive.to(self.y.dtype), spec.bins_y, spec.range_y, False, kernel)
+        jx = _hist_jacobian(self.x, self.weight, self.jx, self.jw, spec.bins_x, spec.range_x, kernel)
+        jy = _hist_jacobian(self.y, self.weight, self.jy, self.jw, spec.bins_y, spec.range_y, kernel)
+        return torch.cat([hx, hy], 1) / self.n_rays, torch.cat([jx, jy], 1) / self.n_rays
+
+
+def _hist_jacobian(v, w, jv, jw, bins, rng, kernel):
+    """d/dθ of Σ_i w_i K_b(v_i) for Gaussian-kernel bins K_b: Σ_i (K_b jw_i + w_i K_b' jv_i)."""
+    lo, hi = rng
+    c, n, p = jv.shape
+    scale = bins / (hi - lo)
+    pos = (v - lo) * scale
+    reach = int(math.ceil(4 * kernel)) + 1
+    centre = pos.floor().long()
+    near = (centre > -reach) & (centre < bins + reach - 1) & (w > 0)
+    ci, ri = torch.nonzero(near, as_tuple=True)
+    pos, centre, w = pos[ci, ri], centre[ci, ri], w[ci, ri]
+    jv, jw = jv[ci, ri] * scale, jw[ci, ri]
+    out = torch.zeros(c * (bins + 2 * reach), p, dtype=jv.dtype, device=jv.device)
+    root2 = math.sqrt(2.0) * kernel
+    norm = 1.0 / (math.sqrt(2.0 * math.pi) * kernel)
+    for k in range(-reach, reach + 1):
+        j = centre + k
+        left, right = (j - pos) / root2, (j + 1 - pos) / root2
+        mass = 0.5 * (torch.erf(right) - torch.erf(left))
+        # d mass / d pos = pdf(left edge) - pdf(right edge)
+        dmass = norm * (torch.exp(-left * left) - torch.exp(-right * right))
+        idx = ci * (bins + 2 * reach) + (j + reach).clamp(0, bins + 2 * reach - 1)
+        out.index_add_(0, idx, mass[:, None] * jw + (w * dmass)[:, None] * jv)
+    return out.reshape(c, bins + 2 * reach, p)[:, reach:reach + bins]
 
 
 def _batched_grad(part: torch.Tensor, inputs: list[torch.Tensor]) -> torch.Tensor:

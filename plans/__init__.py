@@ -10,7 +10,13 @@
 """
 
 from .measure import measure_configurations, scan_configurations
-from .motion import MotionError, MotorLimitError, as_configurations, current_configuration, resolve_motors
+from .motion import (
+    MotionError,
+    MotorLimitError,
+    as_configurations,
+    current_configuration,
+    resolve_motors,
+)
 from .offsets import OffsetResult, find_offsets
 from .search import (
     HIGH_RAY_THRESHOLD,

@@ -34,7 +34,7 @@ import queue
 import threading
 import time
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from typing import Any
 
 import bluesky.plan_stubs as bps
@@ -52,7 +52,14 @@ from bluesky_offsets.diagnostics import (
     misfit,
     residual_signature,
 )
-from bluesky_offsets.model import Measurement, ModelState, RefineResult, refine, simulate
+from bluesky_offsets.fit import FitOptions
+from bluesky_offsets.model import (
+    Measurement,
+    ModelState,
+    RefineResult,
+    refine,
+    simulate,
+)
 from bluesky_offsets.parameters import METRIXS, ParameterTable
 
 MODEL_SEED = 777
@@ -132,10 +139,31 @@ class Analysis:
 
     measurement: Measurement
     comparisons: list[Comparison]
-    ranking: Ranking | None = None
+    rankings: list[Ranking] = field(default_factory=list)
     refinement: Refinement | None = None
-    refit: Refit | None = None
+    refits: list[Refit] = field(default_factory=list)
     uids: dict[str, str] = field(default_factory=dict)
+
+    @property
+    def ranking(self) -> Ranking | None:
+        """The first diagnosis (of the offsets-only model)."""
+        return self.rankings[0] if self.rankings else None
+
+    @property
+    def refit(self) -> Refit | None:
+        """The first effect added."""
+        return self.refits[0] if self.refits else None
+
+    @property
+    def verdict(self) -> str:
+        """What the diagnoses found, in order: the effects added, or why none was."""
+        found = [f"{r.effect} ({', '.join(f'{k} = {v:.4g} ± {s:.2g}' for k, (v, s) in r.magnitude().items())})"
+                 for r in self.refits]
+        last = self.rankings[-1].diagnosis if self.rankings else None
+        if not found:
+            return last.verdict if last else "not diagnosed"
+        tail = "" if last is None or last.best is not None else f"; then {last.verdict}"
+        return "missing effect" + ("s" if len(found) > 1 else "") + ": " + "; ".join(found) + tail
 
     @property
     def versions(self) -> list[Version]:
@@ -420,16 +448,17 @@ def _offsets_row(state: ModelState, table: ParameterTable) -> dict:
     return row
 
 
-def refine_offsets(measurement, state: ModelState, twin, forward_model, *, store=None, iterations: int = 4,
-                   anchor_rays: int | None = None, twin_columns: Sequence[int] | None = None, seed: int = 0,
-                   label: str = "+ offsets", open_run: bool = True, md: Mapping | None = None, show: bool = True,
-                   table: ParameterTable = METRIXS, **refine_kw) -> MsgGenerator[Refinement]:
-    """Fit the offsets (and the state's effects) through the twin, starting from ``state``.
+def refine_offsets(measurement, state: ModelState, twin, forward_model=None, *, store=None,
+                   options: FitOptions | Mapping | None = None, label: str = "+ offsets", open_run: bool = True,
+                   md: Mapping | None = None, show: bool = True,
+                   table: ParameterTable = METRIXS) -> MsgGenerator[Refinement]:
+    """Fit the offsets (and the state's effects), starting from ``state``.
 
-    :func:`bluesky_offsets.model.refine`: Gauss-Newton on a twin-anchored local model,
-    re-anchored each iteration and kept only where the twin's chi-square falls.  Offset
-    Jacobian from ``forward_model`` (a surrogate; ``None``: the twin's own finite
-    differences), twin columns ``twin_columns`` (indices) from the twin in any case.
+    :func:`bluesky_offsets.model.refine`: the one fit engine (the differentiable twin, exact
+    Jacobians; features, then profiles, then bins), options :class:`~bluesky_offsets.fit.FitOptions`
+    (default :data:`bluesky_offsets.diagnosis.FIT`; an unknown key is an error).  Streams
+    ``progress`` (every iteration) and ``offsets`` (values ± σ), then compares the result with
+    the measurement through the twin (RAYX, fresh rays).
 
     Returns
     -------
@@ -438,22 +467,23 @@ def refine_offsets(measurement, state: ModelState, twin, forward_model, *, store
     """
     meas, link = resolve_measurement(measurement, store, table=table)
     twin = twin.with_hist(meas.spec)  # the twin bins as the measurement does
-    _md = {"plan_name": "refine_offsets", "purpose": "offsets through the twin", **link,
-           **_state_md(state, table), "iterations": iterations, "n_configurations": meas.n,
-           "jacobian": "twin" if forward_model is None else "surrogate", **dict(md or {})}
+    opts = _options(options, D.FIT)
+    _md = {"plan_name": "refine_offsets", "purpose": "offsets through the differentiable twin", **link,
+           **_state_md(state, table), "fit_options": _jsonable(asdict(opts)), "n_configurations": meas.n,
+           "jacobian": "exact (torch twin)", **dict(md or {})}
 
     def body():
         res: RefineResult = yield from run_in_thread(
-            lambda progress: refine(meas, state, twin, forward_model, iterations=iterations,
-                                    anchor_rays=anchor_rays, seed=seed, twin_columns=twin_columns,
-                                    progress=progress, table=table, **refine_kw),
-            desc=f"refine offsets through the twin ({iterations} iterations)", show=show)
+            lambda progress: refine(meas, state, twin, options=opts, progress=progress, table=table),
+            desc="fit the offsets through the differentiable twin", show=show)
         st = ModelState(res.state.offsets, res.state.effects, label)
         row = _offsets_row(st, table)
-        row.update(chi2_reduced_start=float(res.history[0]["chi2_reduced"]),
-                   chi2_reduced_end=float(min(h["chi2_reduced"] for h in res.history if h["accepted"])),
-                   accepted=int(sum(h["accepted"] for h in res.history[1:])), effects_json=_json(st.effects),
-                   effect_sigma_json=_json(res.effect_sigma), history_json=_json(res.history))
+        last = [h for h in res.history if h["stage"] == res.history[-1]["stage"]]
+        row.update(chi2_reduced_start=float(last[0]["chi2_reduced"]), chi2_reduced_end=float(last[-1]["chi2_reduced"]),
+                   offsets_sigma=np.asarray(res.offset_sigma, float),
+                   accepted=int(sum(h["accepted"] for h in res.history if h["iteration"])),
+                   effects_json=_json(st.effects), effect_sigma_json=_json(res.effect_sigma),
+                   history_json=_json(res.history))
         yield from emit_rows("offsets", [row])
         c = yield from compare_model(meas, st, twin, label=label, effect_sigma=res.effect_sigma, open_run=False,
                                      show=show, table=table)
@@ -463,6 +493,12 @@ def refine_offsets(measurement, state: ModelState, twin, forward_model, *, store
     r, uid = yield from _in_run(body, _md, open_run)
     r.uid = r.comparison.uid = uid
     return r
+
+
+def _options(options, default: FitOptions) -> FitOptions:
+    if options is None:
+        return default
+    return options if isinstance(options, FitOptions) else default.replace(**dict(options))
 
 
 # --------------------------------------------------------------------------- #
@@ -488,31 +524,32 @@ def ranking_rows(d: Diagnosis) -> list[dict]:
     return rows
 
 
-def diagnose_effects(measurement, state: ModelState, twin, forward_model, *, store=None,
-                     candidates: Sequence[str] | None = None, reuse=None, folds: int = 4, seed: int = 0,
-                     open_run: bool = True, md: Mapping | None = None, show: bool = True,
-                     table: ParameterTable = METRIXS, **diagnose_kw) -> MsgGenerator[Ranking]:
+def diagnose_effects(measurement, state: ModelState, twin, forward_model=None, *, store=None,
+                     candidates: Sequence[str] | None = None, folds: int = 4, seed: int = 0,
+                     options: FitOptions | Mapping | None = None, open_run: bool = True, md: Mapping | None = None,
+                     show: bool = True, table: ParameterTable = METRIXS) -> MsgGenerator[Ranking]:
     """Which effect is missing: :func:`bluesky_offsets.diagnosis.diagnose` as a run.
 
-    ``reuse`` takes the refinement's final local model (same state) so its anchor and
-    offset Jacobian are not traced again.  Streams ``ranking`` (one event per candidate,
-    best first) and ``diagnosis`` (verdict, base misfit and its noise expectation,
-    observed signature).
+    Every candidate fitted with the offsets (``options``: the candidate fits', default
+    :data:`bluesky_offsets.diagnosis.SCAN`).  Streams ``progress`` (every fit's iterations),
+    ``ranking`` (one event per candidate, best first) and ``diagnosis`` (verdict, base misfit
+    and its noise expectation, observed signature).
     """
     meas, link = resolve_measurement(measurement, store, table=table)
     twin = twin.with_hist(meas.spec)  # the twin bins as the measurement does
     names = list(candidates) if candidates else [n for n in E.EFFECTS if n not in state.effects]
     for n in names:
         E.get(n)  # unknown names fail before the run opens
+    opts = _options(options, D.SCAN)
     _md = {"plan_name": "diagnose_effects", "purpose": "which physical effect is missing", **link,
            **_state_md(state, table), "candidates": names, "folds": folds, "n_configurations": meas.n,
-           **dict(md or {})}
+           "fit_options": _jsonable(asdict(opts)), **dict(md or {})}
 
     def body():
         d: Diagnosis = yield from run_in_thread(
-            lambda progress: diagnose(meas, state, twin, forward_model, candidates=names, folds=folds, seed=seed,
-                                      reuse=reuse, table=table, **diagnose_kw),
-            stream=None, desc=f"rank {len(names)} candidate effects", show=show)
+            lambda progress: diagnose(meas, state, twin, candidates=names, folds=folds, seed=seed, options=opts,
+                                      progress=progress, table=table),
+            desc=f"rank {len(names)} candidate effects", show=show)
         yield from emit_rows("ranking", ranking_rows(d))
         mf = d.base_misfit
         row = {"verdict": d.verdict, "best": d.best.name if d.best else "", "within_noise": bool(d.within_noise),
@@ -553,27 +590,28 @@ def record_error_history(versions: Sequence[Version], *, measurement_uid: str | 
                               "versions": [v.label for v in versions], **dict(md or {})}, open_run)
 
 
-def add_effect_and_refit(measurement, state: ModelState, effect: str, twin, forward_model, *, store=None,
+def add_effect_and_refit(measurement, state: ModelState, effect: str, twin, forward_model=None, *, store=None,
                          values: Mapping[str, float] | None = None, history: Sequence[Version] = (),
-                         iterations: int = 3, anchor_rays: int | None = None, seed: int = 0, label: str | None = None,
+                         options: FitOptions | Mapping | None = None, label: str | None = None,
                          open_run: bool = True, md: Mapping | None = None, show: bool = True,
-                         table: ParameterTable = METRIXS, **refine_kw) -> MsgGenerator[Refit]:
-    """``state.with_effect(effect, values)``, offsets and effect refitted through the twin.
+                         table: ParameterTable = METRIXS) -> MsgGenerator[Refit]:
+    """``state.with_effect(effect, values)``, offsets and effect refitted with the one fit engine.
 
     ``values`` start the effect (e.g. the diagnosis's fitted values; default 0 = absent);
-    ``refine_kw`` go to :func:`bluesky_offsets.model.refine`.  Streams ``progress`` (refit
-    iterations), ``effect`` (fitted magnitude ± uncertainty per parameter), the new version's
-    comparison (``misfit``, ``misfit_total``) and ``error_history`` (``history`` + the new
-    version).
+    ``options`` those of the fit (default :data:`bluesky_offsets.diagnosis.FIT`).  Streams
+    ``progress`` (refit iterations), ``effect`` (fitted magnitude ± uncertainty per parameter),
+    the new version's comparison (``misfit``, ``misfit_total``) and ``error_history``
+    (``history`` + the new version).
     """
     meas, link = resolve_measurement(measurement, store, table=table)
     twin = twin.with_hist(meas.spec)  # the twin bins as the measurement does
     eff = E.get(effect)
     start_values = eff.values(values)
     label = label or f"+ {effect}"
+    opts = _options(options, D.FIT)
     _md = {"plan_name": "add_effect_and_refit", "purpose": "add the missing effect and refit", **link,
            **_state_md(state, table), "effect": effect, "effect_parameters": [p.name for p in eff.parameters],
-           "effect_start": start_values, "iterations": iterations,
+           "effect_start": start_values, "fit_options": _jsonable(asdict(opts)),
            "versions": [v.label for v in history] + [label], **dict(md or {})}
 
     def body():
@@ -583,16 +621,11 @@ def add_effect_and_refit(measurement, state: ModelState, effect: str, twin, forw
             def record(d):
                 steps.append(dict(d))
                 progress(d)
-            kw = dict(iterations=iterations, anchor_rays=anchor_rays, seed=seed, progress=record, table=table,
-                      **refine_kw)
-            fn = getattr(D, "add_effect_result", None)
-            if fn is not None:
-                res = fn(meas, state, effect, twin, forward_model, values=start_values, **kw)
-            else:  # the same refit, spelled out
-                res = refine(meas, state.with_effect(effect, start_values), twin, forward_model, **kw)
+            res = D.add_effect_result(meas, state, effect, twin, values=start_values, options=opts, progress=record,
+                                      table=table)
             return res.state, res.effect_sigma
 
-        st, sig = yield from run_in_thread(work, desc=f"add {effect} and refit ({iterations} iterations)", show=show)
+        st, sig = yield from run_in_thread(work, desc=f"add {effect} and refit", show=show)
         st = ModelState(st.offsets, st.effects, label)
         row = {"effect": effect, "values_json": _json(st.effects[effect]), "sigma_json": _json(sig.get(effect, {})),
                "units_json": _json({p.name: p.unit for p in eff.parameters})}
@@ -612,27 +645,18 @@ def add_effect_and_refit(measurement, state: ModelState, effect: str, twin, forw
     return r
 
 
-def supported(func: Callable, kwargs: Mapping | None) -> dict:
-    """The keyword arguments ``func`` takes (the fitting options grow with the physics)."""
-    import inspect
-    params = inspect.signature(func).parameters
-    if any(p.kind is p.VAR_KEYWORD for p in params.values()):
-        return dict(kwargs or {})
-    return {k: v for k, v in (kwargs or {}).items() if k in params}
-
-
 # --------------------------------------------------------------------------- #
 # the whole analysis
 # --------------------------------------------------------------------------- #
-def analyse_measurement(measurement, twin, forward_model, *, store=None,
-                        starts: ModelState | Sequence[ModelState] | None = None, refine_iterations: int = 4,
-                        candidates: Sequence[str] | None = None, add_best: bool = True, refit_iterations: int = 3,
-                        anchor_rays: int | None = None, twin_columns: Sequence[int] | None = None, folds: int = 4,
-                        refine_kw: Mapping | None = None, refit_kw: Mapping | None = None,
-                        diagnose_kw: Mapping | None = None, seed: int = 0, md: Mapping | None = None,
-                        show: bool = True, resolution: str = "camera",
+def analyse_measurement(measurement, twin, forward_model=None, *, store=None,
+                        starts: ModelState | Sequence[ModelState] | None = None, refine: bool = True,
+                        candidates: Sequence[str] | None = None, add_best: bool = True, rounds: int = 2,
+                        fit_options: FitOptions | Mapping | None = None,
+                        scan_options: FitOptions | Mapping | None = None, folds: int = 4, seed: int = 0,
+                        md: Mapping | None = None, show: bool = True, resolution: str = "camera",
                         table: ParameterTable = METRIXS) -> MsgGenerator[Analysis]:
-    """Compare, refine the offsets, diagnose, add the winning effect and refit — one run each.
+    """Compare, fit the offsets, diagnose, add the winning effect and refit, diagnose again — one
+    run each.
 
     Parameters
     ----------
@@ -640,20 +664,21 @@ def analyse_measurement(measurement, twin, forward_model, *, store=None,
         The measurement or its run uid in ``store``.
     starts : ModelState or sequence of ModelState, optional
         Model versions to compare first (e.g. the bare twin and the surrogate finder's
-        offsets); the refinement starts from the one the measurement likes best (lowest
-        chi2/dof).  Default: the bare twin.
-    refine_iterations : int
-        Twin-anchored refinement of the offsets before the diagnosis (0: diagnose the best
-        start as it is).
+        offsets); each is fitted, and the one whose fit ends lowest goes on.  Default: the bare twin.
+    refine : bool
+        Fit the offsets before the diagnosis (False: diagnose the best start as it is).
     candidates : sequence of str, optional
         Effects to rank (default: all registered).
     add_best : bool
         Add the best significant candidate, starting from the values the diagnosis fitted,
         and refit (nothing is added when no candidate is significant).
-    refine_kw, refit_kw, diagnose_kw : mapping, optional
-        Further options of :func:`bluesky_offsets.model.refine` (offsets; refit) and
-        :func:`bluesky_offsets.diagnosis.diagnose`; options they do not take are dropped
-        (:data:`bluesky_offsets.diagnosis.RECIPE` is the demo's).
+    rounds : int
+        Diagnoses at most: after an effect is added the model is diagnosed again, until it is
+        within noise, no candidate is significant, or ``rounds`` diagnoses ran (two hidden
+        effects are found one after the other).
+    fit_options, scan_options : FitOptions or mapping, optional
+        Of the offsets fit and the refits (default :data:`bluesky_offsets.diagnosis.FIT`), and
+        of the diagnosis's candidate fits (:data:`bluesky_offsets.diagnosis.SCAN`).
     resolution : {"camera", "paper"}
         Of a stored run: the camera-resolution profiles where it has them, or the 50 x 50
         histograms.
@@ -661,8 +686,8 @@ def analyse_measurement(measurement, twin, forward_model, *, store=None,
     Returns
     -------
     Analysis
-        The comparisons of every model version (the error history), the ranking, the
-        refit and the uids of all runs (``analysis.uids``).
+        The comparisons of every model version (the error history), the rankings, the
+        refits and the uids of all runs (``analysis.uids``).
     """
     meas, link = resolve_measurement(measurement, store, resolution=resolution, table=table)
     twin = twin.with_hist(meas.spec)  # the twin bins as the measurement does
@@ -670,57 +695,46 @@ def analyse_measurement(measurement, twin, forward_model, *, store=None,
         starts = [ModelState()]
     elif isinstance(starts, ModelState):
         starts = [starts]
+    fopts = _options(fit_options, D.FIT)
     md = {**link, **dict(md or {})}
-    cols = {"twin_columns": twin_columns} if twin_columns is not None else {}
     out = Analysis(meas, [])
     for k, st in enumerate(starts):
         c = yield from compare_model(meas, st, twin, md=md, show=show, table=table)
         out.comparisons.append(c)
         out.uids["compare" if k == 0 else f"compare_{k}"] = c.uid
-    best_start = min(out.comparisons, key=lambda c: c.misfit.chi2_reduced_total)
-    current, local = best_start.state, None
-    if refine_iterations:
-        rkw = {**cols, **dict(refine_kw or {})}
-        if rkw.get("feature_iterations"):
-            # the other starts get a feature stage too: the one that fits the bins best goes on
-            rkw.setdefault("also_from", [c.state.offsets for c in out.comparisons if c is not best_start])
-        r = yield from refine_offsets(meas, current, twin, forward_model, iterations=refine_iterations,
-                                      anchor_rays=anchor_rays, seed=seed, md={**md, "start_label": best_start.label},
-                                      show=show, table=table, **supported(refine, rkw))
-        out.refinement = r
-        out.comparisons.append(r.comparison)
-        out.uids["refine_offsets"] = r.uid
-        current, local = r.state, r.result.local_model
-    rk = yield from diagnose_effects(meas, current, twin, forward_model, candidates=candidates, reuse=local,
-                                     folds=folds, seed=seed, md=md, show=show, table=table,
-                                     **supported(diagnose, diagnose_kw))
-    out.ranking = rk
-    out.uids["diagnose"] = rk.uid
-    best = rk.diagnosis.best
-    if add_best and best is not None:
-        kw = {**cols, **dict(refit_kw or {})}
-        if local is not None and forward_model is None:
-            # the twin's offset Jacobian from the refinement: the effect's probes are all the refit traces anew
-            kw.setdefault("offset_jacobian", local.jac)
-        if best.refined_state is not None:
-            # start where the diagnosis compensated the effect with the offsets
-            current = ModelState(best.refined_state.offsets, current.effects, current.label)
-        if kw.get("feature_iterations"):
-            # and from the nominal offsets with the effect: where the refinement had pushed the
-            # offsets to absorb the effect, the refit does not bring them all back (measured: a
-            # hidden divergence +50 %, refit from the diagnosis's state +0.36 at chi2/dof 1.59,
-            # from the nominal offsets +0.51 at 1.05); the start that fits the bins best goes on.
-            # Only where the first start's features stay beyond noise: the second costs a minute
-            kw.setdefault("also_from", [np.zeros(len(table))])
-            kw.setdefault("also_from_beyond_noise", True)
-        rf = yield from add_effect_and_refit(meas, current, best.name, twin, forward_model, values=best.values,
-                                             history=out.versions, iterations=refit_iterations,
-                                             anchor_rays=anchor_rays, seed=seed + 1, md=md, show=show, table=table,
-                                             **supported(refine, kw))
-        out.refit = rf
+    current = min(out.comparisons, key=lambda c: c.misfit.chi2_reduced_total).state
+    if refine:
+        best_r = None
+        for k, c in enumerate(out.comparisons[:len(starts)]):
+            r = yield from refine_offsets(meas, c.state, twin, options=fopts, md={**md, "start_label": c.label},
+                                          show=show, table=table)
+            out.uids["refine_offsets" if k == 0 else f"refine_offsets_{k}"] = r.uid
+            if best_r is None or r.result.fit.chi2 < best_r.result.fit.chi2:
+                best_r = r
+        out.refinement = best_r
+        out.comparisons.append(best_r.comparison)
+        current = best_r.state
+    for round_ in range(max(1, rounds)):
+        suffix = "" if round_ == 0 else f"_{round_ + 1}"
+        rk = yield from diagnose_effects(meas, current, twin, candidates=candidates, folds=folds,
+                                         seed=seed + round_, options=scan_options, md=md, show=show, table=table)
+        out.rankings.append(rk)
+        out.uids["diagnose" + suffix] = rk.uid
+        best = rk.diagnosis.best
+        if not add_best or best is None:
+            break
+        # start where the diagnosis compensated the effect with the offsets
+        start = ModelState(best.refined_state.offsets, current.effects, current.label)
+        rf = yield from add_effect_and_refit(meas, start, best.name, twin, values=best.values,
+                                             history=out.versions, options=fopts.replace(seed=fopts.seed + 1 + round_),
+                                             md=md, show=show, table=table)
+        out.refits.append(rf)
         out.comparisons.append(rf.comparison)
-        out.uids["add_effect"] = rf.uid
-    else:
+        out.uids["add_effect" + suffix] = rf.uid
+        current = rf.state
+        if rf.comparison.within_noise:
+            break
+    if not out.refits:
         uid = yield from _history_run(out.versions, md)
         out.uids["error_history"] = uid
     return out

@@ -1,6 +1,5 @@
 """``bluesky-offsets demo`` end to end, small: 6 bright configurations at 2000 rays, 2 of them
-again with the slits open, 6 analysed, one refinement and one refit iteration, two candidate
-effects.
+again with the slits open, 6 analysed, fits at 2000 model rays, two candidate effects.
 
 The full-size demo (16 + 4 configurations, 10 + 4 analysed, all 15 candidates) is measured by hand:
 docs/diagnosis.md, "Workflow".
@@ -23,9 +22,8 @@ from bluesky_offsets.parameters import METRIXS
 from bluesky_offsets.store import open_store
 from plans.diagnose import load_results
 
-ARGS = ["--rays", "2000", "--anchor-rays", "2000", "--configurations", "6", "--open-configurations", "2",
-        "--analysed-configurations", "6", "--refine-iterations", "1",
-        "--refit-iterations", "1", "--feature-iterations", "3", "--candidates", "chamber_z,intensity_scale"]
+ARGS = ["--rays", "2000", "--fit-rays", "2000", "--configurations", "6", "--open-configurations", "2",
+        "--analysed-configurations", "6", "--candidates", "chamber_z,intensity_scale"]
 
 
 def _demo(tmp_path, *extra, timeout=600):
@@ -71,7 +69,7 @@ def test_demo_runs_the_workflow_and_its_runs_load_back_by_uid(tmp_path):
             assert res["start"]["measurement_uid"] == uids["measurement"], step
             assert res["start"]["analysed_configurations"] == [0, 1, 2, 3, 6, 7], step  # 4 bright + 2 open
         ranking = load_results(store, uids["diagnose"])["ranking"]
-        assert [r["effect"] for r in ranking] == summary["ranking"]
+        assert [r["effect"] for r in ranking] == summary["rankings"][0]
         last = uids.get("add_effect") or uids["error_history"]
         hist = load_results(store, last)["error_history"]
         assert [h["label"] for h in hist] == labels
@@ -97,4 +95,8 @@ def test_demo_refuses_bad_options(tmp_path):
     assert proc.returncode == 2 and "chamber_z" in proc.stderr
     proc = _demo(tmp_path, "--open-configurations", "9", timeout=120)
     assert proc.returncode == 2 and "--open-configurations must lie in [0, 6]" in proc.stderr
+    proc = _demo(tmp_path, "--effect", "chamber_z:z=5", "--effect", "chamber_z:z=6", timeout=120)
+    assert proc.returncode == 2 and "each effect once" in proc.stderr
+    proc = _demo(tmp_path, "--offsets-fraction", "0.5", timeout=120)
+    assert proc.returncode == 2 and "--offsets-fraction must lie in [0, 0.2]" in proc.stderr
     assert not (tmp_path / "runs").exists()  # refused before anything started

@@ -1,4 +1,5 @@
-"""Which effect is missing: twin-anchored fits on data with a hidden effect (small, fast setup)."""
+"""Which effect is missing: fits through the differentiable twin on data RAYX made with a hidden
+effect (small, fast setup)."""
 
 import numpy as np
 import pytest
@@ -11,9 +12,13 @@ from bluesky_offsets.parameters import METRIXS
 from bluesky_offsets.twin import Twin
 
 N_RAYS = 4000
-# offsets hidden in three sensitive motors; the model's Jacobian comes from the twin itself
+# offsets hidden in three sensitive motors
 HIDDEN = {"E1.rotationXerror": 0.012, "E2.rotationXerror": -0.01, "M1_Cylinder.rotationXerror": 0.008}
-COLS = [METRIXS.index(n) for n in HIDDEN]
+# 8 configurations in the paper's 50 x 50 bins hold ~40 degrees of freedom for 34 offsets: the
+# offsets get the prior of a beamline aligned to a few per cent (without it the compensating
+# combinations fit the rays of the fit: chi2/dof 1.2 there, 1.7-2.3 with fresh rays)
+FIT = {"rays": 2 * N_RAYS, "stages": [["features", 10], ["bins", 6]], "prior_sigma": 0.03}
+SCAN = {"rays": N_RAYS, "stages": [["features", 4], ["bins", 4]], "prior_sigma": 0.03}
 CANDIDATES = ["intensity_scale", "background", "detector_blur", "chamber_z"]
 
 
@@ -43,45 +48,32 @@ GAIN_LOSS = -0.25
 @pytest.fixture(scope="module")
 def with_gain_loss(twin):
     meas, truth = _measure(twin, ("intensity_scale", {"delta": GAIN_LOSS}))
-    fit = refine(meas, ModelState(), twin, None, iterations=3, twin_columns=COLS, anchor_rays=4 * N_RAYS)
+    fit = refine(meas, ModelState(), twin, options=FIT)
     return meas, truth, fit
 
 
 def test_refine_finds_the_offsets_through_the_twin(twin):
     meas, truth = _measure(twin)
     start = evaluate(meas, ModelState(), twin)
-    fit = refine(meas, ModelState(), twin, None, iterations=3, twin_columns=COLS, anchor_rays=4 * N_RAYS)
+    fit = refine(meas, ModelState(), twin, options=FIT)
     end = evaluate(meas, fit.state, twin)
     assert start.chi2_reduced_total > 5 and end.chi2_reduced_total < 1.5
+    assert [h["stage"] for h in fit.history if h["iteration"] == 0] == ["features", "bins"]
     # (the offsets themselves are only determined up to compensating combinations)
-    d = diagnose(meas, fit.state, twin, None, candidates=CANDIDATES, reuse=fit.local_model)
+    d = diagnose(meas, fit.state, twin, candidates=CANDIDATES, options=SCAN)
     assert d.verdict == "no significant missing effect", d.as_dict()
-
-
-def test_refine_refreshes_a_stale_jacobian(twin):
-    """A Jacobian handed in that points nowhere: the refused step triggers a fresh one."""
-    meas, truth = _measure(twin)
-    stale = np.zeros((meas.n, 100, len(METRIXS)))
-    stale[:, :, COLS] = np.random.default_rng(0).normal(0, 0.05, (meas.n, 100, len(COLS)))
-    kw = dict(iterations=4, twin_columns=COLS, anchor_rays=4 * N_RAYS, offset_jacobian=stale)
-    stuck = refine(meas, ModelState(), twin, None, **kw)
-    fit = refine(meas, ModelState(), twin, None, refresh_on_reject=True, **kw)
-    assert not any(h["jacobian_refreshed"] for h in stuck.history)
-    assert [h["jacobian_refreshed"] for h in fit.history][:2] == [False, True]
-    # the stale Jacobian's steps are refused; the fresh one's are not (53 -> 11.5 when written)
-    assert evaluate(meas, fit.state, twin).chi2_reduced_total < 0.5 * evaluate(meas, stuck.state, twin).chi2_reduced_total
 
 
 def test_hidden_effect_ranked_first_and_fitted(twin, with_gain_loss, tmp_path):
     meas, truth, fit = with_gain_loss
-    d = diagnose(meas, fit.state, twin, None, candidates=CANDIDATES, reuse=fit.local_model)
+    d = diagnose(meas, fit.state, twin, candidates=CANDIDATES, options=SCAN)
     assert d.best is not None and d.best.name == "intensity_scale", d.as_dict()
     assert d.candidates[0].name == "intensity_scale"
     assert d.observed_signature["x.intensity"] < 0 and d.candidates[0].predicted_signature["x.intensity"] < 0
-    state, sigma = add_effect(meas, fit.state, "intensity_scale", twin, None, iterations=2,
-                              anchor_rays=4 * N_RAYS)
-    fitted = state.effects["intensity_scale"]["delta"]
-    assert fitted == pytest.approx(GAIN_LOSS, rel=0.25) and 0 < sigma["intensity_scale"]["delta"] < 0.05
+    state, sigma = add_effect(meas, fit.state, "intensity_scale", twin, values=d.best.values, options=FIT)
+    fitted, s = state.effects["intensity_scale"]["delta"], sigma["intensity_scale"]["delta"]
+    assert fitted == pytest.approx(GAIN_LOSS, rel=0.25) and 0 < s < 0.05
+    assert abs(fitted - GAIN_LOSS) <= 3 * s, (fitted, s)
     versions = [Version("twin", ModelState(), evaluate(meas, ModelState(), twin)),
                 Version("+ offsets", fit.state, evaluate(meas, fit.state, twin)),
                 Version("+ intensity_scale", state, evaluate(meas, state, twin), sigma)]
@@ -155,7 +147,7 @@ def test_stored_measurement_with_another_parameter_table_is_refused():
 @pytest.fixture(scope="module")
 def camera_case():
     """A defocus (the screen 20 mm downstream) hidden behind offsets, measured at the camera's
-    resolution on a small diagnostic design, and the offsets refined from the nominal twin
+    resolution on a small diagnostic design, and the offsets fitted from the nominal twin
     (features first, then bins)."""
     from bluesky_offsets.diagnosis import diagnostic_configurations
     from bluesky_offsets.twin import CAMERA
@@ -168,8 +160,7 @@ def camera_case():
     truth = ModelState(off, {"chamber_z": {"z": 20.0}})
     hx, hy = simulate(twin, cfgs, truth, N_RAYS, seed=[500 + i for i in range(len(cfgs))])
     meas = Measurement(cfgs, hx, hy, N_RAYS, spec=CAMERA)
-    fit = refine(meas, ModelState(), twin, None, iterations=1, anchor_rays=2 * N_RAYS, reuse_jacobian=True,
-                 feature_iterations=6, feature_kw={"anchor_rays": N_RAYS, "jacobian_rays": 2000})
+    fit = refine(meas, ModelState(), twin, options=FIT)
     return twin, meas, truth, fit
 
 
@@ -179,20 +170,16 @@ def test_feature_stage_then_diagnosis_find_a_hidden_defocus(camera_case):
     against the IOC (tests/test_diagnosis_ioc.py)."""
     from bluesky_offsets.diagnosis import add_effect_result
     twin, meas, truth, fit = camera_case
-    stages = [h["stage"] for h in fit.history]
-    assert stages[0] == "features" and "bins" in stages
-    features = [h["chi2_features"] for h in fit.history if h["stage"] == "features"]
+    features = [h["chi2"] for h in fit.history if h["stage"] == "features"]
     assert features[-1] < 0.5 * features[0]  # the offsets alone explain part of it ...
     at_truth = evaluate(meas, truth, twin).chi2_reduced_total
     offsets_only = evaluate(meas, fit.state, twin).chi2_reduced_total
     assert offsets_only > 2 * at_truth  # ... not all of it
-    d = diagnose(meas, fit.state, twin, None, candidates=["chamber_z", "detector_blur", "intensity_scale"],
-                 reuse=fit.local_model, scan_rays=2000)
+    d = diagnose(meas, fit.state, twin, candidates=["chamber_z", "detector_blur", "intensity_scale"], options=SCAN)
     assert d.best is not None and d.best.name == "chamber_z", d.as_dict()
     assert d.candidates[0].refined and d.candidates[0].delta_chi2_twin > 0
     start = ModelState(d.best.refined_state.offsets)
-    res = add_effect_result(meas, start, "chamber_z", twin, None, values=d.best.values, iterations=1,
-                            anchor_rays=2 * N_RAYS, feature_iterations=8,
-                            feature_kw={"anchor_rays": N_RAYS, "jacobian_rays": 2000})
-    assert res.state.effects["chamber_z"]["z"] > 5.0  # downstream, as hidden
+    res = add_effect_result(meas, start, "chamber_z", twin, values=d.best.values, options=FIT)
+    z, sz = res.state.effects["chamber_z"]["z"], res.effect_sigma["chamber_z"]["z"]
+    assert abs(z - 20.0) <= max(3 * sz, 5.0), (z, sz)  # downstream, as hidden
     assert evaluate(meas, res.state, twin).chi2_reduced_total < 0.6 * offsets_only

@@ -25,6 +25,7 @@ from plans.diagnose import (
     add_effect_and_refit,
     analyse_measurement,
     compare_model,
+    refine_offsets,
     diagnose_effects,
     emit_rows,
     load_results,
@@ -32,6 +33,8 @@ from plans.diagnose import (
 from sim_iocs.truth import default_start
 
 COLS = [METRIXS.index(n) for n in ("E1.rotationXerror", "E2.rotationXerror", "M1_Cylinder.rotationXerror")]
+# small fits: this file checks the workflow, tests/test_fit.py and test_diagnosis.py the physics
+FIT = {"rays": 1500, "stages": [["features", 2], ["bins", 1]]}
 CANDIDATES = ["intensity_scale", "background"]
 
 
@@ -72,7 +75,7 @@ def test_analysis_plans_store_runs_linked_to_the_measurement(RE, twin, measured,
     token = run_store.subscribe(RE)
     try:
         # the paper's 50 x 50 histograms keep this workflow check small (the camera path: test_demo.py)
-        out = RE(analyse_measurement(m.uid, twin, None, store=run_store, refine_iterations=1, twin_columns=COLS,
+        out = RE(analyse_measurement(m.uid, twin, store=run_store, fit_options=FIT, scan_options=FIT,
                                      candidates=CANDIDATES, add_best=False, show=False, resolution="paper"))
     finally:
         RE.unsubscribe(token)
@@ -93,8 +96,9 @@ def test_analysis_plans_store_runs_linked_to_the_measurement(RE, twin, measured,
     assert total["chi2_expected"] == total["dof_total"] > 0 and total["expected_mse_total"] > 0
 
     ref = load_results(run_store, a.uids["refine_offsets"])
-    assert len(ref["progress"]) == 2 and "chi2_reduced" in ref["progress"][0]
+    assert len(ref["progress"]) >= 3 and "chi2_reduced" in ref["progress"][0]
     np.testing.assert_allclose(ref["offsets"][0]["offsets"], a.refinement.state.offsets)
+    assert np.all(ref["offsets"][0]["offsets_sigma"] > 0)
     assert ref["offsets"][0]["E1_rotationXerror"] == pytest.approx(a.refinement.state.offsets[COLS[0]])
 
     diag = load_results(run_store, a.uids["diagnose"])
@@ -115,8 +119,8 @@ def test_add_effect_and_refit_stores_magnitude_and_error_history(RE, twin, measu
     token = run_store.subscribe(RE)
     try:
         base = RE(compare_model(m, ModelState(), twin, show=False)).plan_result
-        rf = RE(add_effect_and_refit(m, ModelState(), "intensity_scale", twin, None, history=[base.version()],
-                                     iterations=1, twin_columns=COLS, show=False)).plan_result
+        rf = RE(add_effect_and_refit(m, ModelState(), "intensity_scale", twin, history=[base.version()],
+                                     options=FIT, show=False)).plan_result
     finally:
         RE.unsubscribe(token)
     res = load_results(run_store, rf.uid)
@@ -127,7 +131,8 @@ def test_add_effect_and_refit_stores_magnitude_and_error_history(RE, twin, measu
     assert eff["values"] == {"delta": pytest.approx(value)} and eff["units"] == {"delta": "rel"}
     assert [h["label"] for h in res["error_history"]] == ["twin", "+ intensity_scale"]
     assert res["error_history"][1]["effects"] == {"intensity_scale": {"delta": pytest.approx(value)}}
-    assert len(res["misfit"]) == 4 and len(res["progress"]) == 2
+    assert len(res["misfit"]) == 4 and len(res["progress"]) >= 3
+    assert res["start"]["fit_options"]["rays"] == 1500
 
 
 def test_plans_refuse_bad_input_before_opening_a_run(RE, twin, measured, run_store):
@@ -136,7 +141,9 @@ def test_plans_refuse_bad_input_before_opening_a_run(RE, twin, measured, run_sto
     with pytest.raises(KeyError, match="no run 'nope'"):
         RE(compare_model("nope", ModelState(), twin, store=run_store))
     with pytest.raises(ValueError, match="unknown effect 'gravity'"):
-        RE(diagnose_effects(m, ModelState(), twin, None, candidates=["gravity"]))
+        RE(diagnose_effects(m, ModelState(), twin, candidates=["gravity"]))
+    with pytest.raises(ValueError, match=r"unknown fit option\(s\) \['ray'\]"):
+        RE(refine_offsets(m, ModelState(), twin, options={"ray": 100}))
     bad = type(m)(m.configurations, m.hist_x.copy(), m.hist_y, m.names, m.uid, metadata=dict(m.metadata))
     bad.hist_x[1, 7] = np.nan
     with pytest.raises(MeasurementError, match="configuration 1 has a non-finite bin 7"):
@@ -188,18 +195,17 @@ def test_diagnose_command_end_to_end_and_its_errors(RE, measured, tmp_path, caps
     assert rc == 2 and "x histogram of configuration 2 has a non-finite bin 3" in io.err
     rc, io = run("--uid", m2.uid, "--offsets-uid", m2.uid)
     assert rc == 2 and "holds no offsets" in io.err
-    rc, io = run("--uid", m2.uid, "--jacobian", "surrogate")
-    assert rc == 2 and "add --resolution paper" in io.err
+    rc, io = run("--uid", m2.uid, "--fit-rays", "5")
+    assert rc == 2 and "--fit-rays must be at least 100" in io.err
 
     report = tmp_path / "report.html"
-    rc, io = run("--uid", dim_uid, "--effects", ",".join(CANDIDATES), "--refine-iterations", "1", "--refit-iterations",
-                 "1", "--jacobian", "surrogate", "--resolution", "paper", "--scheduler", "inline", "--report", str(report),
-                 "--json")
+    rc, io = run("--uid", dim_uid, "--effects", ",".join(CANDIDATES), "--fit-rays", "1500", "--rounds", "1",
+                 "--resolution", "paper", "--scheduler", "inline", "--report", str(report), "--json")
     assert rc == 0, io.err
     out = json.loads(io.out)
     assert out["measurement_uid"] == dim_uid and out["verdict"]
     assert [h["model"] for h in out["history"]][:2] == ["twin", "+ offsets"]
-    assert {r["effect"] for r in out["ranking"]} == set(CANDIDATES), (out["verdict"], out["history"])
+    assert {r["effect"] for r in out["rankings"][0]} == set(CANDIDATES), (out["verdict"], out["history"])
     html = report.read_text()
     assert html.count("data:image/png;base64,") >= 4 and "Error history" in html and "ranking" in html
     assert "http://" not in html and "https://" not in html  # self-contained, opens offline

@@ -93,8 +93,8 @@ def test_twin_polish_lowers_the_twins_misfit(model):
     p = F.make_problem(model, seed=3, region=REGION, limit=LIMIT, observe="twin", twin=twin, n_rays=3000)
     r = F.find_offsets(p, model, "gradient", F.Budget(evaluations=1500), seed=0, progress=False, threads=1,
                        starts=8, screen=128, lr=LIMIT / 10)
-    o, mses = C.twin_polish(p, model, twin, r.offsets, iterations=2, n_rays=3000)
-    assert len(mses) >= 1 and all(b < a for a, b in zip(mses, mses[1:]))
+    o, mses = C.twin_polish(p, twin, r.offsets, iterations=2, n_rays=3000)
+    assert len(mses) == 2 and mses[1] < mses[0]
     assert np.all(np.abs(o) <= LIMIT)
 
 
@@ -121,16 +121,3 @@ def test_the_plans_find_offsets_stub_takes_the_offset_finder(model, problem):
     cal = RE(C.find_offsets_live(_finder(model), m, poll=0.05)).plan_result
     start = next(d for n, d in docs if n == "start")
     assert start["measurement_uid"] == "meas-1" and isinstance(cal, C.Calibration)
-
-
-def test_twin_jacobian_follows_the_physics(problem):
-    """Finite differences of the twin with common random numbers: E1 pitch moves the focus along x."""
-    from bluesky_offsets.twin import HistogramSpec, Twin
-    sub = F.OffsetProblem(problem.configurations[:3], problem.observations[:3], limit=LIMIT)
-    j = METRIXS.index("E1.rotationXerror")
-    J = C.twin_jacobian(sub, Twin(scheduler="inline"), np.zeros(34), step=0.05, n_rays=2000, parameters=[j])
-    assert J.shape == (3, 100, 34) and np.all(J[:, :, :j] == 0) and np.all(J[:, :, j + 1:] == 0)
-    cx = HistogramSpec().centers_x
-    # d(x centroid)/d(offset) = sum(x * dh_x) / sum(h_x): +1 mrad -> +3.8 mm, i.e. +11 mm per unit of range
-    shift = (J[:, :50, j] @ cx) / sub.observations[:, :50].sum(axis=1)
-    assert np.all(shift > 0) and shift.mean() > 3, shift  # binned secants: scattered, never backwards

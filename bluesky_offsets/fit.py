@@ -1,0 +1,397 @@
+"""One fit engine: offsets and effects fitted through the differentiable twin.
+
+The model of a measurement is the torch twin (:class:`~bluesky_offsets.torch_engine.TorchEngine`)
+traced at the measured configurations plus the offsets, with the state's effects.  Its
+Jacobian in the offsets and in every effect parameter is exact: each ray's screen position
+and soft weight are differentiated (:meth:`TorchEngine.ray_jacobian`), and the histograms,
+profiles and beam features the fit compares are functions of the rays, so their Jacobians
+follow by the chain rule.  The values compared are RAYX's (hard survival, hard bins); the
+derivatives are those of the soft beam, whose expectation the hard counts follow.
+
+A fit runs in stages on one set of rays (common random numbers: the objective is a
+deterministic function of the parameters, so a step is judged without sampling noise):
+
+1. ``features``: intensity, centroid and rms width per axis
+   (:func:`bluesky_offsets.diagnostics.beam_features`), smooth over many spot widths;
+2. ``profiles``: the histograms summed into coarser bins;
+3. ``bins``: the measured bins (Pearson χ², the variance from measured and model counts:
+   :func:`bluesky_offsets.diagnostics.bin_variance`).
+
+Each stage is Levenberg-Marquardt within the bounds (offsets within ±``MAX_OFFSET``, effect
+parameters within their priors).  The uncertainty of the result is the Gauss-Newton
+covariance of the last stage at the solution, inflated by χ²/dof where the model does not
+reach the noise.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field, fields
+
+import numpy as np
+import torch
+
+from . import effects as E
+from .diagnostics import bin_variance, expected_pull2
+from .parameters import MAX_OFFSET, METRIXS, ParameterTable
+from .twin import HistogramSpec
+
+STAGES = ("features", "profiles", "bins")
+
+
+@dataclass(frozen=True)
+class FitOptions:
+    """How a fit runs.
+
+    rays : model rays per configuration (one set for the whole fit).
+    seed : their seed.
+    stages : ``(stage, iterations)`` in order, stages from :data:`STAGES`.
+    profile_factor : camera bins summed per profile bin (x, y).
+    kernel : width (bins) of the kernel that turns the rays' moves into bin derivatives.
+    prior_sigma : a Gaussian prior on the offsets (normalized units): by default the spread of
+        the model's own prior, offsets uniform within ±``MAX_OFFSET`` (``MAX_OFFSET / √3``).  It
+        keeps the directions no measurement sees (compensating combinations) where they are,
+        and it bounds the uncertainty an effect inherits from them; None: no prior.
+    damping : Levenberg-Marquardt's starting damping.
+    tolerance : a stage stops when an accepted step lowers χ² by less than this fraction.
+    offset_bound : the offsets stay within ± this (normalized; default the model's ``MAX_OFFSET``).
+    engine : options of the torch engine (:class:`~bluesky_offsets.torch_engine.TorchOptions`).
+    """
+
+    rays: int = 5000
+    seed: int = 0
+    stages: tuple[tuple[str, int], ...] = (("features", 15), ("profiles", 8), ("bins", 8))
+    profile_factor: tuple[int, int] = (5, 5)
+    kernel: float = 1.0
+    prior_sigma: float | None = MAX_OFFSET / math.sqrt(3.0)
+    damping: float = 1e-3
+    tolerance: float = 1e-3
+    offset_bound: float = MAX_OFFSET
+    engine: Mapping | None = None
+
+    def __post_init__(self):
+        if int(self.rays) < 1:
+            raise ValueError("rays must be positive")
+        if not self.stages:
+            raise ValueError("a fit needs at least one stage")
+        for st in self.stages:
+            if len(st) != 2 or st[0] not in STAGES or int(st[1]) < 0:
+                raise ValueError(f"a stage is (name, iterations) with name in {STAGES}, not {st!r}")
+        if not (self.kernel > 0 and math.isfinite(self.kernel)):
+            raise ValueError("kernel must be a finite number > 0")
+        if self.prior_sigma is not None and not self.prior_sigma > 0:
+            raise ValueError("prior_sigma must be positive")
+        if not 0 < self.offset_bound <= MAX_OFFSET:
+            raise ValueError(f"offset_bound must lie in (0, {MAX_OFFSET}]")
+
+    @classmethod
+    def from_mapping(cls, options: Mapping | None = None, **more) -> FitOptions:
+        """Options from a mapping; an unknown key is an error naming the known ones."""
+        opts = {**dict(options or {}), **more}
+        known = {f.name for f in fields(cls)}
+        unknown = sorted(set(opts) - known)
+        if unknown:
+            raise ValueError(f"unknown fit option(s) {unknown}; known: {sorted(known)}")
+        if "stages" in opts:
+            opts["stages"] = tuple((str(a), int(b)) for a, b in opts["stages"])
+        if "profile_factor" in opts:
+            opts["profile_factor"] = tuple(int(v) for v in opts["profile_factor"])
+        return cls(**opts)
+
+    def replace(self, **changes) -> FitOptions:
+        return FitOptions.from_mapping({f.name: getattr(self, f.name) for f in fields(self)}, **changes)
+
+
+@dataclass
+class FitResult:
+    """Where a fit ended: the state, its χ² per stage, the uncertainties and the covariance
+    (normalized offsets, then effect parameters, in :attr:`names` order)."""
+
+    state: object                       # model.ModelState
+    history: list[dict]
+    covariance: np.ndarray
+    names: list[str]
+    chi2: float                         # the last stage's χ² at the solution (the fit's rays)
+    dof: float
+    inflation: float = 1.0
+    n_traces: int = 0
+    jacobian: np.ndarray | None = field(default=None, repr=False)  # last stage (residuals, parameters)
+    residuals: np.ndarray | None = field(default=None, repr=False)  # last stage, normalized
+    rows: np.ndarray | None = field(default=None, repr=False)       # each residual's configuration
+    stage: str = ""
+
+    @property
+    def chi2_reduced(self) -> float:
+        return self.chi2 / max(self.dof, 1.0)
+
+    @property
+    def sigma(self) -> np.ndarray:
+        return np.sqrt(np.clip(np.diag(self.covariance), 0, None))
+
+    @property
+    def offset_sigma(self) -> np.ndarray:
+        return self.sigma[:len(self.state.offsets)]
+
+    def effect_sigma(self) -> dict[str, dict[str, float]]:
+        s, out = self.sigma, {}
+        for k, name in enumerate(self.names[len(self.state.offsets):], len(self.state.offsets)):
+            eff, p = name.split(".", 1)
+            out.setdefault(eff, {})[p] = float(s[k])
+        return out
+
+
+# --------------------------------------------------------------------------- #
+# the model's products and their Jacobians
+# --------------------------------------------------------------------------- #
+def torch_engine_for(twin, options: FitOptions):
+    """The torch twin that fits for ``twin`` (its parameter table)."""
+    from .torch_engine import TorchEngine
+    return TorchEngine(table=getattr(twin, "table", METRIXS), options=dict(options.engine or {}))
+
+
+def _features(hx: torch.Tensor, hy: torch.Tensor, spec: HistogramSpec) -> torch.Tensor:
+    """:func:`bluesky_offsets.diagnostics.beam_features` (the values) in torch."""
+    out = [hx.sum(-1)]
+    for h, c in ((hx, spec.centers_x), (hy, spec.centers_y)):
+        c = torch.as_tensor(c, dtype=h.dtype)
+        tot = h.sum(-1)
+        safe = torch.where(tot > 0, tot, torch.ones_like(tot))
+        mu = (h * c).sum(-1) / safe
+        var = (h * (c - mu[..., None]) ** 2).sum(-1) / safe
+        w = float(c[-1] - c[0]) / (len(c) - 1)
+        out += [mu, torch.sqrt(torch.clamp(var, min=w * w / 12))]
+    return torch.stack(out, -1)
+
+
+class _Model:
+    """The measurement's model as a function of the fitted vector z (normalized offsets, then
+    effect parameters): values and exact Jacobians of each stage's residuals."""
+
+    def __init__(self, meas, state, engine, options: FitOptions, table: ParameterTable):
+        self.meas, self.engine, self.o, self.table = meas, engine, options, table
+        self.base = state
+        self.P = len(table)
+        self.params = state.effect_parameters()
+        self.names = list(table.names) + [f"{e}.{q.name}" for e, q in self.params]
+        self.twin_effects = [e for e in state.effects if E.get(e).level == "twin"]
+        self.det_effects = [e for e in state.effects if E.get(e).level == "detector"]
+        self.span = torch.as_tensor(table.span, dtype=torch.float64)
+        self.m = np.concatenate([meas.hist_x, meas.hist_y], 1)
+        self.n_traces = 0
+
+    # -- z <-> state -----------------------------------------------------------------
+    def vector(self, st) -> np.ndarray:
+        return np.r_[st.offsets, st.effect_vector()]
+
+    def state(self, z):
+        from .model import ModelState
+        z = np.asarray(z, float)
+        return ModelState(z[:self.P].copy(), self.base.set_effect_vector(z[self.P:]), self.base.label)
+
+    def bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        b = self.o.offset_bound
+        return (np.r_[np.full(self.P, -b), [q.low for _, q in self.params]],
+                np.r_[np.full(self.P, b), [q.high for _, q in self.params]])
+
+    # -- histograms ------------------------------------------------------------------
+    def histograms(self, z, jacobian: bool):
+        """Model histograms (C, B) at the measurement's bins, and their Jacobian (C, B, P + p) in z."""
+        st = self.state(z)
+        vals = self.meas.configurations + self.table.offsets_to_physical(st.offsets)
+        twin_eff = {e: st.effects[e] for e in self.twin_effects}
+        spec = self.meas.spec
+        self.n_traces += self.meas.n
+        if jacobian:
+            rj = self.engine.ray_jacobian(vals, twin_eff, n_rays=self.o.rays, seed=self.o.seed)
+            h, J = rj.histograms(spec, self.o.kernel)
+            # offsets are normalized: d/dz = d/dvalue * span; effect columns in the state's order
+            cols = [J[..., :self.P] * self.span]
+            k = self.P
+            for e in self.twin_effects:
+                for _ in st.effects[e]:
+                    cols.append(J[..., k:k + 1])
+                    k += 1
+            J = torch.cat(cols, -1)
+        else:
+            with torch.no_grad():
+                beam = self.engine.beam(vals, self.engine._overrides(
+                    {e: {p: torch.tensor(float(v), dtype=torch.float64) for p, v in d.items()}
+                     for e, d in twin_eff.items()}), n_rays=self.o.rays, seed=self.o.seed)
+            from .torch_engine import histograms
+            hx, hy = histograms(beam, spec)
+            h, J = torch.cat([hx, hy], 1), None
+        return self._detector(st, h, J)
+
+    def _detector(self, st, h, J):
+        """Detector-level effects on the histograms (affine in them) with their own columns;
+        the columns of every parameter in the state's order."""
+        if not self.det_effects:
+            return h, J
+        spec = self.meas.spec
+        nx = spec.bins_x
+        theta = {e: {p: torch.tensor(float(v), dtype=torch.float64) for p, v in st.effects[e].items()}
+                 for e in self.det_effects}
+
+        def apply(hh, th):
+            hx, hy = hh[..., :nx], hh[..., nx:]
+            for e in self.det_effects:
+                hx, hy = E.get(e).apply_histograms(hx, hy, th[e], spec)
+            return torch.cat([hx, hy], -1)
+
+        out = apply(h, theta)
+        if J is None:
+            return out, None
+        # every detector effect is affine in the histograms: A J = f(J) - f(0)
+        c, b, p = J.shape
+        cols = J.permute(0, 2, 1).reshape(c * p, b)
+        zero = apply(torch.zeros(1, b, dtype=h.dtype), theta)
+        JA = (apply(cols, theta) - zero).reshape(c, p, b).permute(0, 2, 1)
+        det_cols = {}
+        for e in self.det_effects:
+            for q in theta[e]:
+                def f(v, e=e, q=q):
+                    th = {k: dict(d) for k, d in theta.items()}
+                    th[e][q] = v
+                    return apply(h, th)
+                det_cols[(e, q)] = torch.func.jvp(f, (theta[e][q],), (torch.ones((), dtype=torch.float64),))[1]
+        # the columns in the state's order: twin effects are already in JA at their places
+        full, k = [JA[..., :self.P]], self.P
+        for e in self.base.effects:
+            for q in st.effects[e]:
+                if e in self.det_effects:
+                    full.append(det_cols[(e, q)][..., None])
+                else:
+                    full.append(JA[..., k:k + 1])
+                    k += 1
+        return out, torch.cat(full, -1)
+
+    # -- residuals per stage -----------------------------------------------------------
+    def residuals(self, stage: str, z, jacobian: bool):
+        """Normalized residuals (measured − model)/σ of ``stage`` (flat), their Jacobian in z
+        (rows, P + p; d model / dz / σ), the degrees of freedom and each row's configuration."""
+        h, J = self.histograms(z, jacobian)
+        meas, spec = self.meas, self.meas.spec
+        nx = spec.bins_x
+        if stage == "features":
+            from .diagnostics import beam_features
+            fm, vm = beam_features(meas.hist_x, meas.hist_y, spec, meas.n_rays)
+            hd = h.detach().requires_grad_(jacobian)
+            f = _features(hd[:, :nx], hd[:, nx:], spec)
+            hn = h.detach().numpy()
+            _, vf = beam_features(hn[:, :nx], hn[:, nx:], spec, self.o.rays)
+            sd = np.sqrt(vm + vf)
+            r = ((fm - f.detach().numpy()) / sd).reshape(-1)
+            G = None
+            if jacobian:
+                # d features / d histograms (C, 5, B), one backward pass per feature
+                d = torch.stack([torch.autograd.grad(f[:, k].sum(), hd, retain_graph=k < 4)[0] for k in range(5)], 1)
+                G = (torch.einsum("cfb,cbp->cfp", d, J).numpy() / sd[..., None]).reshape(r.size, -1)
+            return r, G, float(r.size), np.repeat(np.arange(meas.n), 5)
+        hm = torch.as_tensor(self.m)
+        if stage == "profiles":
+            fx_, fy_ = self.o.profile_factor
+            coarse = HistogramSpec(spec.bins_x // fx_, spec.range_x, spec.bins_y // fy_, spec.range_y)
+
+            def rebin(t):  # (C, B, ...) -> (C, B', ...)
+                tx, ty = t[:, :nx], t[:, nx:]
+                tx = tx.reshape(tx.shape[0], coarse.bins_x, fx_, *tx.shape[2:]).sum(2)
+                ty = ty.reshape(ty.shape[0], coarse.bins_y, fy_, *ty.shape[2:]).sum(2)
+                return torch.cat([tx, ty], 1)
+            h, hm = rebin(h), rebin(hm)
+            J = None if J is None else rebin(J)
+        m, f = hm.numpy(), h.detach().numpy()
+        n = float(meas.n_rays)
+        var = bin_variance(m, f, n, self.o.rays)
+        signal = (m > 0) | (f > 0)
+        r = np.where(signal, (m - f) / np.sqrt(var), 0.0)
+        dof = float(expected_pull2(m, f, n).sum())
+        keep = signal.reshape(-1)
+        G = None
+        if J is not None:
+            G = (J.numpy() / np.sqrt(var)[..., None]).reshape(-1, J.shape[-1])[keep]
+        rows = np.repeat(np.arange(meas.n), m.shape[1])[keep]
+        return r.reshape(-1)[keep], G, dof, rows
+
+
+# --------------------------------------------------------------------------- #
+# the fit
+# --------------------------------------------------------------------------- #
+def _lm_step(G: np.ndarray, r: np.ndarray, z: np.ndarray, lam: float, ridge: np.ndarray) -> np.ndarray:
+    A = G.T @ G + np.diag(ridge)
+    g = G.T @ r - ridge * z
+    d = np.diag(A).copy()
+    d[d <= 0] = 1.0
+    M = A + lam * np.diag(d) + 1e-12 * np.trace(A) / len(A) * np.eye(len(A))
+    try:
+        return np.linalg.solve(M, g)
+    except np.linalg.LinAlgError:
+        return np.linalg.lstsq(M, g, rcond=None)[0]
+
+
+def fit(meas, state, engine, options: FitOptions | Mapping | None = None, *,
+        progress: Callable[[dict], None] | None = None, table: ParameterTable = METRIXS) -> FitResult:
+    """Fit the offsets and the state's effect parameters to ``meas`` (see the module text).
+
+    Parameters
+    ----------
+    meas : model.Measurement
+        Histograms at their spec (the camera's or the paper's) and the commanded configurations.
+    state : model.ModelState
+        The start: offsets (normalized) and the effects the model includes, with start values.
+    engine : TorchEngine
+        The differentiable twin.
+    options : FitOptions or a mapping of its fields (unknown keys are refused).
+    progress : called with a dict after every iteration (stage, iteration, χ²/dof, accepted).
+    """
+    o = options if isinstance(options, FitOptions) else FitOptions.from_mapping(options)
+    mdl = _Model(meas, state, engine, o, table)
+    lo, hi = mdl.bounds()
+    z = np.clip(mdl.vector(state), lo, hi)
+    ridge = np.r_[np.full(mdl.P, 0.0 if o.prior_sigma is None else o.prior_sigma ** -2.0), np.zeros(len(mdl.params))]
+    history: list[dict] = []
+    r = G = rows = None
+    dof = 1.0
+    for stage, iterations in o.stages:
+        r, G, dof, rows = mdl.residuals(stage, z, True)
+        chi2 = float(r @ r) + float((ridge * z * z).sum())
+        lam = o.damping
+        history.append({"stage": stage, "iteration": 0, "accepted": True, "chi2": chi2, "dof": dof,
+                        "chi2_reduced": chi2 / max(dof, 1.0), "damping": lam})
+        if progress:
+            progress(history[-1])
+        small = 0
+        for it in range(1, iterations + 1):
+            step = _lm_step(G, r, z, lam, ridge)
+            zc = np.clip(z + step, lo, hi)
+            rc = mdl.residuals(stage, zc, False)[0]
+            cc = float(rc @ rc) + float((ridge * zc * zc).sum())
+            accepted = bool(cc < chi2) and bool(np.any(zc != z))
+            if accepted:
+                gain = (chi2 - cc) / max(chi2, 1e-300)
+                z, chi2 = zc, cc
+                r, G, dof, rows = mdl.residuals(stage, z, True)
+                lam = max(lam / 3.0, 1e-9)
+                small = small + 1 if gain < o.tolerance else 0
+            else:
+                lam *= 4.0
+            history.append({"stage": stage, "iteration": it, "accepted": accepted, "chi2": chi2, "dof": dof,
+                            "chi2_reduced": chi2 / max(dof, 1.0), "damping": lam})
+            if progress:
+                progress(history[-1])
+            if small >= 2 or lam > 1e6:
+                break
+    # the covariance of the last stage: Gauss-Newton at the solution; a bound that holds a
+    # parameter does not shrink its uncertainty below what the data say
+    A = G.T @ G + np.diag(ridge)
+    d = np.sqrt(np.clip(np.diag(A), 1e-300, None))
+    cov = np.linalg.pinv(A / np.outer(d, d), rcond=1e-12) / np.outer(d, d)
+    chi2 = float(r @ r)
+    inflation = max(1.0, chi2 / max(dof, 1.0))
+    return FitResult(mdl.state(z), history, cov * inflation, mdl.names, chi2, dof, inflation, mdl.n_traces, G, r,
+                     rows, o.stages[-1][0] if o.stages else "")
+
+
+def fit_many(meas, states: Sequence, engine, options: FitOptions | Mapping | None = None, **kw) -> list[FitResult]:
+    """:func:`fit` from several states (the same rays for all: their χ² compare sharply)."""
+    return [fit(meas, st, engine, options, **kw) for st in states]
