@@ -45,6 +45,8 @@ class FitOptions:
     """How a fit runs.
 
     rays : model rays per configuration (one set for the whole fit).
+    feature_rays : fewer rays for the feature stage (its five numbers per configuration are
+        robust to ray noise, and a stage costs in proportion to its rays); None: ``rays``.
     seed : their seed.
     stages : ``(stage, iterations)`` in order, stages from :data:`STAGES`.
     profile_factor : camera bins summed per profile bin (x, y).
@@ -60,6 +62,7 @@ class FitOptions:
     """
 
     rays: int = 5000
+    feature_rays: int | None = 2000
     seed: int = 0
     stages: tuple[tuple[str, int], ...] = (("features", 15), ("profiles", 8), ("bins", 8))
     profile_factor: tuple[int, int] = (5, 5)
@@ -71,7 +74,7 @@ class FitOptions:
     engine: Mapping | None = None
 
     def __post_init__(self):
-        if int(self.rays) < 1:
+        if int(self.rays) < 1 or (self.feature_rays is not None and int(self.feature_rays) < 1):
             raise ValueError("rays must be positive")
         if not self.stages:
             raise ValueError("a fit needs at least one stage")
@@ -195,15 +198,20 @@ class _Model:
                 np.r_[np.full(self.P, b), [q.high for _, q in self.params]])
 
     # -- histograms ------------------------------------------------------------------
-    def histograms(self, z, jacobian: bool):
+    def rays(self, stage: str) -> int:
+        o = self.o
+        return min(o.rays, o.feature_rays) if stage == "features" and o.feature_rays else o.rays
+
+    def histograms(self, z, jacobian: bool, rays: int | None = None):
         """Model histograms (C, B) at the measurement's bins, and their Jacobian (C, B, P + p) in z."""
+        rays = int(rays or self.o.rays)
         st = self.state(z)
         vals = self.meas.configurations + self.table.offsets_to_physical(st.offsets)
         twin_eff = {e: st.effects[e] for e in self.twin_effects}
         spec = self.meas.spec
         self.n_traces += self.meas.n
         if jacobian:
-            rj = self.engine.ray_jacobian(vals, twin_eff, n_rays=self.o.rays, seed=self.o.seed)
+            rj = self.engine.ray_jacobian(vals, twin_eff, n_rays=rays, seed=self.o.seed)
             h, J = rj.histograms(spec, self.o.kernel)
             # offsets are normalized: d/dz = d/dvalue * span; effect columns in the state's order
             cols = [J[..., :self.P] * self.span]
@@ -217,7 +225,7 @@ class _Model:
             with torch.no_grad():
                 beam = self.engine.beam(vals, self.engine._overrides(
                     {e: {p: torch.tensor(float(v), dtype=torch.float64) for p, v in d.items()}
-                     for e, d in twin_eff.items()}), n_rays=self.o.rays, seed=self.o.seed)
+                     for e, d in twin_eff.items()}), n_rays=rays, seed=self.o.seed)
             from .torch_engine import histograms
             hx, hy = histograms(beam, spec)
             h, J = torch.cat([hx, hy], 1), None
@@ -270,7 +278,8 @@ class _Model:
     def residuals(self, stage: str, z, jacobian: bool):
         """Normalized residuals (measured − model)/σ of ``stage`` (flat), their Jacobian in z
         (rows, P + p; d model / dz / σ), the degrees of freedom and each row's configuration."""
-        h, J = self.histograms(z, jacobian)
+        rays = self.rays(stage)
+        h, J = self.histograms(z, jacobian, rays)
         meas, spec = self.meas, self.meas.spec
         nx = spec.bins_x
         if stage == "features":
@@ -279,7 +288,7 @@ class _Model:
             hd = h.detach().requires_grad_(jacobian)
             f = _features(hd[:, :nx], hd[:, nx:], spec)
             hn = h.detach().numpy()
-            _, vf = beam_features(hn[:, :nx], hn[:, nx:], spec, self.o.rays)
+            _, vf = beam_features(hn[:, :nx], hn[:, nx:], spec, rays)
             sd = np.sqrt(vm + vf)
             r = ((fm - f.detach().numpy()) / sd).reshape(-1)
             G = None
@@ -302,7 +311,7 @@ class _Model:
             J = None if J is None else rebin(J)
         m, f = hm.numpy(), h.detach().numpy()
         n = float(meas.n_rays)
-        var = bin_variance(m, f, n, self.o.rays)
+        var = bin_variance(m, f, n, rays)
         signal = (m > 0) | (f > 0)
         r = np.where(signal, (m - f) / np.sqrt(var), 0.0)
         dof = float(expected_pull2(m, f, n).sum())

@@ -1177,17 +1177,31 @@ class TorchEngine:
         """Every ray's screen position and soft weight with their derivatives in the inputs.
 
         The inputs are the 34 parameters and the twin-level effect parameters of ``effects``
-        (as :meth:`jacobian`).  Each ray is traced as a configuration of its own (its own copy
-        of its configuration's inputs), so that three backward passes (x, y, weight) give the
-        derivative of every ray in every input; any product of the rays (histograms at any
-        binning, camera profiles, moments) then gets its exact Jacobian by the chain rule at
-        the cost of binning (:class:`RayJacobian`).  ``chunk`` bounds the rays × configurations
-        traced at once (memory ~5 kB each).
+        (as :meth:`jacobian`).  The beamline is compiled once per configuration and its
+        derivatives in the inputs taken there (a small batched backward pass over the compiled
+        fields); each ray is then traced as a configuration of its own, with its own copy of
+        the compiled fields as leaves, so that three backward passes (x, y, weight) give every
+        ray's derivative in every field, and the chain rule every ray's derivative in every
+        input.  Any product of the rays (histograms at any binning, camera profiles, moments)
+        gets its exact Jacobian from these at the cost of binning (:class:`RayJacobian`).
+        ``chunk`` bounds the rays × configurations traced at once (memory ~5 kB each).
         """
         o = self.options
         vals, leaves, names = self.inputs(values, effects)
         c = vals.shape[0]
-        bl = self.compile(vals, self._overrides(leaves, overrides))
+        vals_req = vals.clone().requires_grad_(True)
+        leaves_req = {e: {p: t.clone().requires_grad_(True) for p, t in d.items()} for e, d in leaves.items()}
+        inputs = [vals_req] + [t for d in leaves_req.values() for t in d.values()]
+        bl = self.compile(vals_req, self._overrides(leaves_req, overrides))
+        fields = _compiled_tensors(bl, c)
+        # d field / d input per configuration: (C, F, P), one batched backward pass
+        flat = torch.cat([t.reshape(c, -1) for t in fields], 1)
+        dfield = _batched_grad(flat, inputs)
+        sizes = [t[0].numel() for t in fields]
+        # only the fields the inputs move are leaves of the per-ray traces
+        bounds = np.cumsum([0] + sizes)
+        live = [i for i in range(len(fields)) if bool(dfield[:, bounds[i]:bounds[i + 1]].any())]
+        dfield_live = torch.cat([dfield[:, bounds[i]:bounds[i + 1]] for i in live], 1)
         units = source_units(bl, n_rays, seed, sampling=o.sampling, common=o.common_rays)
         step = max(1, int(chunk) // c)
         parts = []
@@ -1197,22 +1211,51 @@ class TorchEngine:
             cut = SourceUnits([t[..., a:b] for t in units.coord],
                               None if units.draws is None else units.draws.slice(a, b),
                               None if units.ctr is None else units.ctr[..., a:b]).per_ray(c)
-            v_rep = vals.repeat_interleave(r, 0).requires_grad_(True)
-            l_rep = {e: {p: t.repeat_interleave(r, 0).requires_grad_(True) for p, t in d.items()}
-                     for e, d in leaves.items()}
-            inputs = [v_rep] + [t for d in l_rep.values() for t in d.values()]
-            bl_rep = compile_beamline(v_rep, self._overrides(l_rep, overrides), table=self.table,
-                                      dtype=o.torch_dtype, device=o.device, check=False)
-            beam = trace_rays(bl_rep, source_rays(bl_rep, cut), cut.draws, edge=o.edge)
-            grads = []
-            for k, out in enumerate((beam.x, beam.y, beam.weight)):
-                g = torch.autograd.grad(out.sum(), inputs, retain_graph=k < 2, allow_unused=True)
-                grads.append(torch.cat([(gi if gi is not None else torch.zeros_like(t)).reshape(c * r, -1)
-                                        for gi, t in zip(g, inputs)], 1).reshape(c, r, -1))
+            reps = [t.detach().repeat_interleave(r, 0) for t in fields]
+            for i in live:
+                reps[i].requires_grad_(True)
+            bl_rep = _replace_tensors(bl, c, iter(reps), c * r)
+            with torch.enable_grad():
+                beam = trace_rays(bl_rep, source_rays(bl_rep, cut), cut.draws, edge=o.edge)
+                grads = []
+                for k, out in enumerate((beam.x, beam.y, beam.weight)):
+                    g = torch.autograd.grad(out.sum(), [reps[i] for i in live], retain_graph=k < 2, allow_unused=True)
+                    g = torch.cat([(gi if gi is not None else torch.zeros_like(reps[i])).reshape(c, r, sizes[i])
+                                   for gi, i in zip(g, live)], 2)  # (C, r, F')
+                    grads.append(torch.einsum("crf,cfp->crp", g, dfield_live))
             parts.append((beam.x.detach().reshape(c, r), beam.y.detach().reshape(c, r),
                           beam.alive.reshape(c, r), beam.weight.detach().reshape(c, r), *grads))
         cat = [torch.cat([p[k] for p in parts], 1) for k in range(7)]
         return RayJacobian(*cat, n_rays=n_rays, names=names)
+
+
+def _compiled_tensors(bl: CompiledBeamline, c: int) -> list[torch.Tensor]:
+    """The floating-point tensors of a compiled beamline with a configuration axis, in the
+    order :func:`_replace_tensors` visits them (each broadcast to a leading axis of ``c``)."""
+    out: list[torch.Tensor] = []
+    _replace_tensors(bl, c, None, c, out)
+    return out
+
+
+def _replace_tensors(bl: CompiledBeamline, c: int, new, c_new: int, found: list | None = None) -> CompiledBeamline:
+    """A copy of ``bl`` with its floating tensors (leading axis ``c``, or 1) taken from the
+    iterator ``new`` (leading axis ``c_new``) in a fixed order; with ``found``, collect them."""
+    def sub(v):
+        if torch.is_tensor(v) and v.is_floating_point() and v.ndim >= 1 and v.shape[0] in (1, c):
+            v = v.expand(c, *v.shape[1:]) if v.shape[0] == 1 and c != 1 else v
+            if found is not None:
+                found.append(v)
+                return v
+            return next(new)
+        if isinstance(v, tuple):
+            return tuple(sub(x) for x in v)
+        if isinstance(v, dict):
+            return {k: sub(x) for k, x in v.items()}
+        return v
+    optics = [Optic(o.name, o.type, o.behaviour, o.surface, sub(o.rot), sub(o.shift), sub(o.quadric),
+                    sub(o.cutout), sub(o.opening), sub(o.slope), sub(o.grating)) for o in bl.optics]
+    source = sub(bl.source)
+    return CompiledBeamline(c_new, source, sub(bl.source_rot), sub(bl.source_shift), optics, bl.dtype, bl.device)
 
 
 @dataclass

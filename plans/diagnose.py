@@ -664,7 +664,8 @@ def analyse_measurement(measurement, twin, forward_model=None, *, store=None,
         The measurement or its run uid in ``store``.
     starts : ModelState or sequence of ModelState, optional
         Model versions to compare first (e.g. the bare twin and the surrogate finder's
-        offsets); each is fitted, and the one whose fit ends lowest goes on.  Default: the bare twin.
+        offsets); the fit starts from the one the measurement likes best (lowest χ²/dof).
+        Default: the bare twin.
     refine : bool
         Fit the offsets before the diagnosis (False: diagnose the best start as it is).
     candidates : sequence of str, optional
@@ -702,18 +703,15 @@ def analyse_measurement(measurement, twin, forward_model=None, *, store=None,
         c = yield from compare_model(meas, st, twin, md=md, show=show, table=table)
         out.comparisons.append(c)
         out.uids["compare" if k == 0 else f"compare_{k}"] = c.uid
-    current = min(out.comparisons, key=lambda c: c.misfit.chi2_reduced_total).state
+    best_start = min(out.comparisons, key=lambda c: c.misfit.chi2_reduced_total)
+    current = best_start.state
     if refine:
-        best_r = None
-        for k, c in enumerate(out.comparisons[:len(starts)]):
-            r = yield from refine_offsets(meas, c.state, twin, options=fopts, md={**md, "start_label": c.label},
-                                          show=show, table=table)
-            out.uids["refine_offsets" if k == 0 else f"refine_offsets_{k}"] = r.uid
-            if best_r is None or r.result.fit.chi2 < best_r.result.fit.chi2:
-                best_r = r
-        out.refinement = best_r
-        out.comparisons.append(best_r.comparison)
-        current = best_r.state
+        r = yield from refine_offsets(meas, current, twin, options=fopts, md={**md, "start_label": best_start.label},
+                                      show=show, table=table)
+        out.uids["refine_offsets"] = r.uid
+        out.refinement = r
+        out.comparisons.append(r.comparison)
+        current = r.state
     for round_ in range(max(1, rounds)):
         suffix = "" if round_ == 0 else f"_{round_ + 1}"
         rk = yield from diagnose_effects(meas, current, twin, candidates=candidates, folds=folds,

@@ -61,19 +61,18 @@ _KNIFE_EDGE = pytest.mark.xfail(strict=False, reason="knife-edge ranking (intens
 def test_hidden_effect_is_found_added_and_fitted(scenario, tmp_path):
     effect, name, param, hidden = SCENARIOS[scenario]
     s = _demo(tmp_path, effect)
-    assert s["ranking"][0] == name and s["verdict"].startswith(f"missing effect: {name}"), s["ranking"]
-    fitted = s["fitted_effect"][name][param][0]
+    assert s["rankings"][0][0] == name and s["verdict"].startswith(f"missing effect: {name}"), s["rankings"]
+    fitted, sigma = s["fitted_effects"][name][param]
     assert fitted == pytest.approx(hidden, rel=0.25)
+    assert abs(fitted - hidden) <= 3 * sigma, (fitted, sigma, hidden)
     before, after = s["history"][-2], s["history"][-1]
     assert after["chi2"] < before["chi2"]
     # within 1.5x its noise expectation: chi2 against its expected value (the dof) and the MSE
     assert after["chi2"] < 1.5 * after["dof"], f"chi2/dof {after['chi2_reduced']:.2f} after adding {name}"
     assert after["mse"] < 1.5 * after["expected_mse"]
-    assert s["seconds"] < 600
 
 
 def test_no_hidden_effect_reports_none(tmp_path):
     s = _demo(tmp_path, "none")
     assert s["verdict"] == "no significant missing effect", (s["verdict"], s["history"][-1])
-    assert s["fitted_effect"] == {}
-    assert s["seconds"] < 600
+    assert s["fitted_effects"] == {}
