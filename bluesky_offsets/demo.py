@@ -54,6 +54,9 @@ class DemoSettings:
     # configurations the analysis fits (the first bright ones and the open ones)
     analysed_configurations: int = 14
     candidates: int = 40
+    # the beam search: offsets the motors may carry (normalized), and its frame budget
+    search_fraction: float = 0.15
+    search_frames: int = 120
     # hidden effects, ((name, values), ...): found one after the other
     effects: tuple = (DEMO_EFFECT,)
     offsets: dict = field(default_factory=lambda: dict(DEMO_OFFSETS))
@@ -212,7 +215,8 @@ def demo_plan(s: DemoSettings, beamline, chamber, twin, forward_model, store, lo
     from bluesky_offsets.finder import Budget
     from bluesky_offsets.model import Measurement, ModelState
     from plans import (
-        current_configuration,
+        HIGH_RAY_THRESHOLD,
+        find_beam,
         find_high_ray_configurations,
         find_offsets,
         measure_configurations,
@@ -220,9 +224,17 @@ def demo_plan(s: DemoSettings, beamline, chamber, twin, forward_model, store, lo
     from plans.diagnose import analyse_measurement
 
     t = {"start": time.perf_counter()}
-    here = yield from current_configuration(beamline)
+    log(f"[2/6] finding the beam (offsets up to ±{s.search_fraction:g} of each range assumed)")
+    beam = yield from find_beam(beamline, chamber, fraction=s.search_fraction, max_frames=s.search_frames)
+    for line in beam.log:
+        log(f"      {line}")
+    if not beam.bright:
+        raise RuntimeError(f"the beam search ended dim after {beam.frames} frames ({beam.intensity:.3g} of the source "
+                           f"rays on the screen, {HIGH_RAY_THRESHOLD:.3g} needed)")
+    here = beam.configuration
     cand = candidate_configurations(s, here)
-    log(f"[2/6] searching {len(cand)} candidate configurations near the start for {s.configurations} bright ones")
+    log(f"      searching {len(cand)} candidate configurations around it for {s.configurations} bright ones "
+        f"(beam found in {beam.frames} frames)")
     bright = yield from find_high_ray_configurations(cand, beamline, chamber, n=s.configurations)
     t["search"] = time.perf_counter()
     if len(bright) < s.configurations:
@@ -252,7 +264,7 @@ def demo_plan(s: DemoSettings, beamline, chamber, twin, forward_model, store, lo
                                               md={"purpose": "bluesky-offsets demo",
                                                   "analysed_configurations": [int(i) for i in analysed]})
     t["analysis"] = time.perf_counter()
-    return {"measurement": m, "offsets": found, "analysis": analysis, "times": t, "n_open": n_open}
+    return {"measurement": m, "offsets": found, "analysis": analysis, "times": t, "n_open": n_open, "beam": beam}
 
 
 def _quiet_logs() -> None:
@@ -337,7 +349,9 @@ def run_demo(out: Path, settings: DemoSettings | None = None, store_location: st
         m = res["measurement"]
         n_open = res["n_open"]
         # the first three runs: the search, the measurement, the surrogate finder
-        steps = {"search": uids[0], "measurement": m.uid, "find_offsets": uids[2],
+        beam = res["beam"]
+        nb = len(beam.uids)  # the beam search's runs come first, then the search, the measurement, the finder
+        steps = {"find_beam": beam.uids[-1], "search": uids[nb], "measurement": m.uid, "find_offsets": uids[nb + 2],
                  **{k: v for k, v in analysis.uids.items() if v}}
         t = res["times"]
 
@@ -367,6 +381,8 @@ def run_demo(out: Path, settings: DemoSettings | None = None, store_location: st
             "seconds": seconds, "load_average_start": load, "timing_s": timing, "store": store.location,
             "uids": steps, "all_run_uids": uids, "report": str(report), "n_configurations": len(m),
             "n_open_configurations": n_open, "n_analysed_configurations": analysis.measurement.n,
+            "beam_search": {"frames": beam.frames, "bright": beam.bright, "intensity": beam.intensity,
+                            "steps": beam.log, "uids": beam.uids},
             "n_rays": s.n_rays, "hidden_offsets": offsets, "offsets_fraction": s.offsets_fraction,
             "hidden_effects": hidden, "verdict": analysis.verdict,
             "rankings": [[c.name for c in r.diagnosis.candidates] for r in analysis.rankings],

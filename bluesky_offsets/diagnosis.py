@@ -180,6 +180,13 @@ def starting_values(effect: E.Effect) -> list[dict[str, float]]:
     return out or [{}]  # nothing worth a start away from zero: one fit from zero
 
 
+def _fit_task(state: ModelState, meas: Measurement, options: FitOptions, table: ParameterTable) -> FitResult:
+    """One candidate fit on a Dask worker (its own torch engine, one thread)."""
+    from .torch_engine import TorchEngine
+    return fit(meas, state, TorchEngine(table=table, hist=meas.spec, options=dict(options.engine or {})), options,
+               table=table)
+
+
 def _heldout(fit: FitResult, folds: Sequence[np.ndarray]) -> np.ndarray:
     """Held-out χ² per fold: the fit re-solved without the fold's configurations (one
     Gauss-Newton step from the all-data solution on its exact Jacobian), scored on the fold."""
@@ -199,7 +206,7 @@ def _heldout(fit: FitResult, folds: Sequence[np.ndarray]) -> np.ndarray:
 def diagnose(meas: Measurement, state: ModelState, twin=None, forward_model=None, *,
              candidates: Sequence[str] | None = None, folds: int = 4, seed: int = 0, n_sigma: float = 3.0,
              options: FitOptions | Mapping | None = None, verify_rays: int | None = None, verify_top: int = 3,
-             progress=None, table: ParameterTable = METRIXS) -> Diagnosis:
+             progress=None, client=None, table: ParameterTable = METRIXS) -> Diagnosis:
     """Rank candidate effects for the misfit of ``state`` against ``meas`` (see the module text).
 
     ``state`` should already carry fitted offsets (:func:`bluesky_offsets.model.refine`).
@@ -207,8 +214,9 @@ def diagnose(meas: Measurement, state: ModelState, twin=None, forward_model=None
     (the offsets-only reference and each candidate from each of its :func:`starting_values`)
     runs :func:`bluesky_offsets.fit.fit` with ``options`` (default :data:`SCAN`) on one set of
     rays.  The ``verify_top`` best are traced again with fresh rays (``verify_rays``, default
-    4x the measurement's) beside the reference.  ``twin`` names the parameter table and
-    ``forward_model`` is not used (both kept for symmetry with the other steps).
+    4x the measurement's) beside the reference.  ``client`` (a Dask client) runs the candidate
+    fits on its workers, one fit each (the same fits, in parallel).  ``twin`` names the
+    parameter table and ``forward_model`` is not used (both kept for symmetry with the other steps).
     """
     from .torch_engine import TorchEngine
     names = [n_ for n_ in (candidates or list(E.EFFECTS)) if n_ not in state.effects]
@@ -245,12 +253,21 @@ def diagnose(meas: Measurement, state: ModelState, twin=None, forward_model=None
     ref = fit(meas, state, engine, o, progress=report("offsets only"), table=table)
     n_traces += ref.n_traces
     best: dict[str, FitResult] = {}
-    for name in names:
-        for v in starting_values(E.get(name)):
-            f = fit(meas, ref.state.with_effect(name, v), engine, o, progress=report(name), table=table)
-            n_traces += f.n_traces
-            if name not in best or f.chi2 < best[name].chi2:
-                best[name] = f
+    jobs = [(name, ref.state.with_effect(name, v)) for name in names for v in starting_values(E.get(name))]
+    if client is not None:
+        # the candidate fits are independent: on the Dask workers, one fit each
+        futures = client.map(_fit_task, [st for _, st in jobs], meas=meas, options=o, table=table, pure=False)
+        fits = []
+        for k, f in enumerate(futures):
+            fits.append(f.result())
+            report(jobs[k][0])({"stage": "candidates", "iteration": k + 1, "accepted": True,
+                                "chi2": fits[-1].chi2, "chi2_reduced": fits[-1].chi2_reduced})
+    else:
+        fits = [fit(meas, st, engine, o, progress=report(name), table=table) for name, st in jobs]
+    for (name, _), f in zip(jobs, fits):
+        n_traces += f.n_traces
+        if name not in best or f.chi2 < best[name].chi2:
+            best[name] = f
     dispersion_fit = max(1.0, ref.chi2_reduced)
     n_signal = int(base_mf.dof_total)
     out = []

@@ -5,6 +5,8 @@
 * :func:`find_high_ray_configurations` (beamline) and
   :func:`high_ray_configurations_on_model` (twin/surrogate) — configurations whose
   footprint has enough rays (x + y histogram sum > :data:`HIGH_RAY_THRESHOLD` = 0.113 of the source rays).
+* :func:`find_beam` — bring the beam onto the screen from a dark start (slits open, the
+  sensitive motors scanned upstream first, as an operator does).
 * :func:`find_offsets` — run a pluggable offset finder on a measurement and emit
   offsets per parameter and the loss as a stream.
 """
@@ -22,6 +24,7 @@ from .search import (
     HIGH_RAY_THRESHOLD,
     MIN_CONFIGURATIONS,
     enough_rays,
+    find_beam,
     find_high_ray_configurations,
     high_ray_configurations_on_model,
     sample_candidates,
@@ -29,7 +32,8 @@ from .search import (
 
 __all__ = [
     "HIGH_RAY_THRESHOLD", "MIN_CONFIGURATIONS", "MotionError", "MotorLimitError", "OffsetResult",
-    "as_configurations", "current_configuration", "enough_rays", "find_high_ray_configurations", "find_offsets",
+    "as_configurations", "current_configuration", "enough_rays", "find_beam", "find_high_ray_configurations",
+    "find_offsets",
     "high_ray_configurations_on_model", "measure_configurations", "resolve_motors", "sample_candidates",
     "scan_configurations",
 ]

@@ -185,3 +185,63 @@ def find_high_ray_configurations(candidates, beamline, chamber, *, n: int = MIN_
 
 __all__ = ["HIGH_RAY_THRESHOLD", "MIN_CONFIGURATIONS", "PAPER_SCALE", "PAPER_THRESHOLD", "enough_rays",
            "find_high_ray_configurations", "high_ray_configurations_on_model", "sample_candidates"]
+
+
+def find_beam(beamline, chamber, *, fraction: float = 0.15, twin=None, max_frames: int = 120,
+              threshold: float = HIGH_RAY_THRESHOLD, table: ParameterTable = METRIXS,
+              md: Mapping | None = None) -> MsgGenerator:
+    """Bring the beam onto the screen from a dark or dim start, as an operator does.
+
+    :func:`bluesky_offsets.beam_search.search`: the start as it is; else the slits opened and
+    the motors the beam is most sensitive to scanned one by one, upstream first, watching the
+    counts; then the slits closed again and the same motors scanned finely.  Which motors,
+    over what range and in how many steps comes from the model (the nominal twin's acceptance
+    of each motor, :func:`bluesky_offsets.beam_search.acceptance`) and from ``fraction``, the
+    offsets the motors may carry (normalized; 0.15 = 15 % of each range).  Every scan is a run
+    of its own in the store (``purpose`` "beam search").  The motors stay where the brightest
+    frame with the slits as they were was taken.
+
+    Parameters
+    ----------
+    twin : Twin, optional
+        Traces the acceptance sweeps (default: the torch twin, in this process).
+    max_frames : int
+        Frames the search may take.
+
+    Returns
+    -------
+    bluesky_offsets.beam_search.SearchResult
+        The configuration (twin coordinates, motor readbacks), its intensity, whether it is
+        bright (``threshold``), the frames used, a line per step and the uids of its runs.
+    """
+    from bluesky_offsets.beam_search import acceptance, intensity, search
+    from bluesky_offsets.torch_engine import TorchEngine
+    from bluesky_offsets.twin import Twin
+
+    from .measure import scan_configurations
+    from .motion import current_configuration, move_to, resolve_motors
+
+    if not 0 < fraction <= 0.2:
+        raise ValueError(f"fraction must lie in (0, 0.2], got {fraction}")
+    here = yield from current_configuration(beamline, table)
+    twin = twin or Twin(TorchEngine(table=table))
+    widths = (acceptance(twin, here, open_slits=True, table=table), acceptance(twin, here, open_slits=False,
+                                                                               table=table))
+    gen = search(here, *widths, fraction=fraction, threshold=threshold, max_frames=max_frames, table=table)
+    cfgs = next(gen)
+    step, uids = 0, []
+    while True:
+        step += 1
+        _md = {"plan_name": "find_beam", "purpose": "beam search", "search_step": step, "fraction": fraction,
+               **dict(md or {})}
+        m = yield from scan_configurations(cfgs, beamline, chamber, md=_md, table=table)
+        uids.append(m.uid)
+        try:
+            cfgs = gen.send(intensity(m.hist_x, m.hist_y))
+        except StopIteration as done:
+            result = done.value
+            break
+    motors = resolve_motors(beamline, table)
+    yield from move_to(motors, {n: float(result.configuration[table.index(n)]) for n in motors})
+    result.uids = uids
+    return result

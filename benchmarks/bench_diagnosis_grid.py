@@ -1,0 +1,191 @@
+"""The diagnosis over a grid of hidden truths: does it name the effect, fit it, and is its ± true?
+
+Each scenario hides offsets in all 34 parameters (uniform within ±``--offsets-fraction`` of
+each range, a new draw per seed) and zero, one or two effects.  RAYX (the reference twin)
+measures it the way the demo's IOC would: the demo's design (bright configurations around
+the start that brings the hidden beamline's motors back to its nominal, plus some of them
+with the slits open), at the camera's resolution, with seeded frame noise.  The beam search
+is not part of this grid (it starts where the beam is); the analysis is the demo's: offsets
+fit from the nominal twin → diagnosis → add the winner → refit → diagnose again, all with
+the one fit engine.  The final check re-simulates the result with fresh rays (RAYX, or the
+torch twin with ``--check torch`` where RAYX is not installed, e.g. on a lent GPU).
+
+Two phases, so that the fits can run on another machine:
+
+    python benchmarks/bench_diagnosis_grid.py make --out grid/        # RAYX measurements (.npz)
+    python benchmarks/bench_diagnosis_grid.py run grid/ [--device cuda] [--check torch] [--only NAME]
+    python benchmarks/bench_diagnosis_grid.py table grid/              # the markdown table
+
+``run`` is resumable: a scenario with a result file is skipped.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+
+# (label, {effect: {parameter: value}}): both signs of a defocus, a mirror effect, a source
+# effect (both signs), a detector-level effect, two at once, and none; two magnitudes each
+SCENARIOS = {
+    "chamber_z+12": {"chamber_z": {"z": 12.0}},
+    "chamber_z-20": {"chamber_z": {"z": -20.0}},
+    "chamber_z+25": {"chamber_z": {"z": 25.0}},
+    "thermal_bump_m1_300": {"thermal_bump_m1": {"height": 300.0}},
+    "thermal_bump_m1_450": {"thermal_bump_m1": {"height": 450.0}},
+    "source_divergence+0.5": {"source_divergence": {"divergence": 0.5}},
+    "source_divergence-0.3": {"source_divergence": {"divergence": -0.3}},
+    "detector_blur_0.03": {"detector_blur": {"sigma": 0.03}},
+    "detector_blur_0.06": {"detector_blur": {"sigma": 0.06}},
+    "chamber_z+15&thermal_bump_m1_400": {"chamber_z": {"z": 15.0}, "thermal_bump_m1": {"height": 400.0}},
+    "none": {},
+}
+
+
+def _make(args) -> None:
+    from bluesky_offsets import effects as E
+    from bluesky_offsets.demo import DemoSettings, candidate_configurations, measurement_design
+    from bluesky_offsets.model import ModelState, simulate
+    from bluesky_offsets.parameters import METRIXS
+    from bluesky_offsets.twin import CAMERA, Twin
+    from plans import enough_rays
+    from sim_iocs.truth import default_start
+
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    twin = Twin(scheduler="inline")
+    for label, effects in SCENARIOS.items():
+        for draw in range(args.draws):
+            path = out / f"{label}__{draw}.npz"
+            if path.exists():
+                continue
+            seed = 1000 * draw + sum(map(ord, label))
+            rng = np.random.default_rng(seed)
+            off = rng.uniform(-args.offsets_fraction, args.offsets_fraction, len(METRIXS))
+            truth = ModelState(off, {n: E.get(n).values(v) for n, v in effects.items()}, "truth")
+            s = DemoSettings(seed=draw)
+            start = default_start() - np.where(METRIXS.motorized, METRIXS.offsets_to_physical(off), 0.0)
+            cand = candidate_configurations(s, start)
+            hx, hy = simulate(twin, cand, truth, 2000, [seed + i for i in range(len(cand))])
+            bright = cand[enough_rays(hx, hy)][:s.configurations]
+            design, analysed = measurement_design(s, bright)
+            design = design[analysed]
+            mx, my = simulate(twin.with_hist(CAMERA), design, truth, args.rays,
+                              [seed + 5000 + i for i in range(len(design))])
+            np.savez(path, configurations=design, hist_x=mx, hist_y=my, n_rays=args.rays, offsets=off,
+                     effects=json.dumps(effects), n_bright=len(bright))
+            print(f"{path.name}: {len(bright)} bright, {len(design)} analysed", flush=True)
+
+
+def _run(args) -> None:
+    import torch
+
+    from bluesky_offsets import diagnosis as D
+    from bluesky_offsets.diagnostics import misfit
+    from bluesky_offsets.model import Measurement, ModelState, refine, simulate
+    from bluesky_offsets.torch_engine import TorchEngine
+    from bluesky_offsets.twin import CAMERA, Twin
+
+    folder = Path(args.folder)
+    eng_opts = {"device": args.device}
+    fit_o = D.FIT.replace(engine=eng_opts)
+    scan_o = D.SCAN.replace(engine=eng_opts)
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    check = Twin(TorchEngine(hist=CAMERA, options=eng_opts)) if args.check == "torch" else \
+        Twin(scheduler="inline").with_hist(CAMERA)
+    for path in sorted(folder.glob("*.npz")):
+        label, draw = path.stem.split("__")
+        if (args.only and args.only not in label) or (args.draw is not None and int(draw) != args.draw):
+            continue
+        res_path = path.with_suffix(".json")
+        if res_path.exists():
+            continue
+        d = np.load(path)
+        hidden = json.loads(str(d["effects"]))
+        meas = Measurement(d["configurations"], d["hist_x"], d["hist_y"], int(d["n_rays"]), spec=CAMERA)
+        t0 = time.perf_counter()
+
+        def evaluate(st, seed=4242):
+            rays = 4 * meas.n_rays
+            hx, hy = simulate(check, meas.configurations, st, rays, [seed + i for i in range(meas.n)])
+            return misfit(meas.hist_x, meas.hist_y, hx, hy, meas.n_rays, model_rays=rays)
+
+        r = refine(meas, ModelState(), engine=TorchEngine(hist=CAMERA, options=eng_opts), options=fit_o)
+        cur, found, rankings = r.state, [], []
+        for round_ in range(2):
+            diag = D.diagnose(meas, cur, seed=round_, options=scan_o)
+            rankings.append([c.name for c in diag.candidates])
+            if diag.best is None:
+                break
+            b = diag.best
+            res = D.add_effect_result(meas, ModelState(b.refined_state.offsets, cur.effects), b.name,
+                                      values=b.values, options=fit_o.replace(seed=fit_o.seed + 1 + round_))
+            found.append({"effect": b.name, "values": res.state.effects[b.name],
+                          "sigma": res.effect_sigma.get(b.name, {})})
+            cur = res.state
+            if not evaluate(cur).total_beyond_noise():
+                break
+        mf = evaluate(cur)
+        at_truth = evaluate(ModelState(d["offsets"], hidden))
+        row = {"scenario": label, "draw": int(draw), "hidden": hidden, "found": found, "rankings": rankings,
+               "verdict": diag.verdict, "chi2_reduced": mf.chi2_reduced_total,
+               "mse_over_noise": mf.mse_total / mf.expected_mse_total,
+               "truth_chi2_reduced": at_truth.chi2_reduced_total, "offsets_chi2_reduced": evaluate(r.state).chi2_reduced_total,
+               "seconds": time.perf_counter() - t0, "device": args.device, "n_configurations": meas.n}
+        res_path.write_text(json.dumps(row, indent=1, default=float))
+        print(f"{label} #{draw}: {[f['effect'] for f in found]} chi2/dof {row['chi2_reduced']:.3f} "
+              f"({row['seconds']:.0f} s)", flush=True)
+
+
+def _table(args) -> None:
+    rows = [json.loads(p.read_text()) for p in sorted(Path(args.folder).glob("*.json"))]
+    print("| scenario | draw | hidden | found (first) | fitted ± σ | rel. error | error/σ | χ²/dof after | MSE/noise | s |")
+    print("|---|---:|---|---|---|---:|---:|---:|---:|---:|")
+    for r in rows:
+        hidden = r["hidden"]
+        names = [f["effect"] for f in r["found"]]
+        cells = []
+        for name, vals in hidden.items():
+            f = next((x for x in r["found"] if x["effect"] == name), None)
+            for k, hv in vals.items():
+                if f is None:
+                    cells.append((f"{name}.{k}: —", "—", "—"))
+                    continue
+                v, s = f["values"][k], f["sigma"].get(k, float("nan"))
+                cells.append((f"{name}.{k} = {v:.3g} ± {s:.2g}", f"{(v - hv) / hv * 100:+.0f} %",
+                              f"{(v - hv) / s:+.1f}" if s > 0 else "—"))
+        if not cells:
+            cells = [("—", "—", "—")]
+        print(f"| {r['scenario']} | {r['draw']} | {hidden or 'none'} | {', '.join(names) or 'none'} | "
+              f"{'; '.join(c[0] for c in cells)} | {'; '.join(c[1] for c in cells)} | "
+              f"{'; '.join(c[2] for c in cells)} | {r['chi2_reduced']:.2f} | {r['mse_over_noise']:.2f} | "
+              f"{r['seconds']:.0f} |")
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    sub = ap.add_subparsers(dest="cmd", required=True)
+    m = sub.add_parser("make")
+    m.add_argument("--out", default="grid")
+    m.add_argument("--draws", type=int, default=3)
+    m.add_argument("--rays", type=int, default=5000)
+    m.add_argument("--offsets-fraction", type=float, default=0.05)
+    r = sub.add_parser("run")
+    r.add_argument("folder")
+    r.add_argument("--device", default="cpu")
+    r.add_argument("--check", choices=("rayx", "torch"), default="rayx")
+    r.add_argument("--only", default=None)
+    r.add_argument("--draw", type=int, default=None)
+    r.add_argument("--threads", type=int, default=None)
+    t = sub.add_parser("table")
+    t.add_argument("folder")
+    args = ap.parse_args(argv)
+    {"make": _make, "run": _run, "table": _table}[args.cmd](args)
+
+
+if __name__ == "__main__":
+    main()
