@@ -15,7 +15,7 @@ Steps (timed together):
 4. the twin at commanded + found offsets vs. the measured histograms, next to the repeat-noise
    MSE (the expected multinomial value, and the twin's actual repeat at the hidden truth).
 
-    python benchmarks/bench_calibration_session.py [--rays 10000] [--polish 12] [--jacobian surrogate|twin|auto]
+    python benchmarks/bench_calibration_session.py [--rays 10000] [--polish 12]
 """
 
 from __future__ import annotations
@@ -52,8 +52,6 @@ def main(argv=None) -> int:
     ap.add_argument("--evaluations", type=int, default=20_000)
     ap.add_argument("--polish", type=int, default=12, help="twin-polish iterations at most (default 12)")
     ap.add_argument("--model", default=None)
-    ap.add_argument("--jacobian", choices=("surrogate", "twin", "auto"), default="surrogate",
-                    help="Jacobian of the twin polish (default: the surrogate's; auto: then the twin's)")
     ap.add_argument("--check-seeds", type=int, default=8,
                     help="fresh twin traces averaged for the compensated and the repeat MSE (default 8)")
     ap.add_argument("--out", default="data/bench_calibration_session.json")
@@ -127,7 +125,7 @@ def main(argv=None) -> int:
                          dict(m.metadata))
         with Twin(n_rays=args.rays) as twin:
             finder = C.OffsetFinder(model=model, budget=F.Budget(evaluations=args.evaluations), twin=twin,
-                                    polish_iterations=args.polish, polish_jacobian=args.jacobian)
+                                    polish_iterations=args.polish)
             res = RE(find_offsets(finder, mb)).plan_result
             t_find = time.perf_counter() - t0
             cal = res.raw

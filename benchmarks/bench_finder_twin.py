@@ -31,8 +31,6 @@ def main(argv=None) -> int:
     ap.add_argument("--evaluations", type=int, default=20_000)
     ap.add_argument("--polish", type=int, default=4, help="twin polish iterations")
     ap.add_argument("--threads", type=int, default=1)
-    ap.add_argument("--jacobian", choices=("surrogate", "twin"), default="surrogate",
-                    help="Jacobian of the twin polish (default: the surrogate's)")
     ap.add_argument("--out", default="data/bench_finder_twin.json")
     args = ap.parse_args(argv)
 
@@ -48,8 +46,7 @@ def main(argv=None) -> int:
             p = F.make_problem(model, seed=seed, observe="twin", twin=twin, n_rays=args.rays)
             t_problem = time.perf_counter() - t0
             finder = C.OffsetFinder(model=model, method=args.method, budget=F.Budget(evaluations=args.evaluations),
-                                    twin=twin, polish_iterations=args.polish, seed=seed, threads=args.threads,
-                                    polish_jacobian=args.jacobian)
+                                    twin=twin, polish_iterations=args.polish, seed=seed, threads=args.threads)
             t1 = time.perf_counter()
             cal = finder(p.physical_configurations(), p.observations, n_rays=args.rays)
             t_find = time.perf_counter() - t1

@@ -3,11 +3,13 @@
 A whole calibration and diagnosis session against the simulated beamline:
 
 1. start the simulated METRIXS IOC (RAYX twin backend, 127.0.0.1, a free port) with hidden
-   offsets *and* a hidden physical effect (default: the focus chamber 20 mm downstream);
-2. in a RunEngine, with every run written to the embedded run store: find bright
-   configurations on the beamline, measure them (>= 16), find the offsets (surrogate finder,
-   then a fit through the twin), compare model and measurement, diagnose the missing effect,
-   add the winner, refit;
+   offsets in all 34 parameters (±5 % of each range by default) *and* hidden physical effects
+   (default: the focus chamber 20 mm downstream);
+2. in a RunEngine, with every run written to the embedded run store: find the beam from the
+   start (slits open, the sensitive motors scanned), find bright configurations around it,
+   measure them (>= 16), find the offsets (surrogate finder, then a fit through the
+   differentiable twin), compare model and measurement, diagnose the missing effect, add the
+   winner, refit, diagnose again;
 3. write one self-contained HTML report and print a summary: run uids, the error history
    (twin -> + offsets -> + effect), the fitted effect next to the hidden one, and how to load
    the runs back.
@@ -35,9 +37,9 @@ from . import effects as E
 from .fit import FitOptions
 from .parameters import METRIXS
 
-# Hidden truth: offsets of a few per cent of each range in the motors that steer the focus and
-# in one focal length (a fixed-but-unknown parameter), and one physical effect.  With
-# ``offsets_fraction`` the offsets are drawn in all 34 parameters instead.
+# Hidden truth: offsets in all 34 parameters, uniform within ±``offsets_fraction`` of each range
+# (drawn from the seed), and one physical effect.  With ``offsets_fraction = 0`` the offsets are
+# DEMO_OFFSETS instead: a few per cent in the motors that steer the focus and in one focal length.
 DEMO_OFFSETS = {"E1.rotationXerror": 0.015, "E2.rotationXerror": -0.015, "M1_Cylinder.rotationXerror": 0.01,
                 "E1.translationYerror": 0.01, "E2.translationYerror": -0.01, "ExitSlit.translationZerror": 0.02,
                 "E2.longHalfAxisA": 0.01}
@@ -59,10 +61,10 @@ class DemoSettings:
     search_frames: int = 120
     # hidden effects, ((name, values), ...): found one after the other
     effects: tuple = (DEMO_EFFECT,)
+    # offsets in all 34 parameters, uniform within ± this fraction of each range (drawn from
+    # ``seed``); 0: ``offsets`` instead
+    offsets_fraction: float = 0.05
     offsets: dict = field(default_factory=lambda: dict(DEMO_OFFSETS))
-    # > 0: offsets in all 34 parameters, uniform within ± this fraction of each range (seeded by
-    # ``seed``), instead of ``offsets``
-    offsets_fraction: float = 0.0
     # an evaluation budget, never a time budget: the same command gives the same result under any load
     finder_evaluations: int = 3000
     fit: FitOptions = D.FIT           # the offsets fit and the refits
@@ -458,9 +460,9 @@ def add_cli(sub) -> None:
     p.add_argument("--effect", action="append", default=None,
                    help="hidden effect NAME:PARAM=VALUE,... (repeat for several) or 'none' (default "
                         f"{DEMO_EFFECT[0]}:" + ",".join(f"{k}={v:g}" for k, v in DEMO_EFFECT[1].items()) + ")")
-    p.add_argument("--offsets-fraction", type=float, default=0.0,
-                   help="hide offsets in all 34 parameters, uniform within ± this fraction of each range (the "
-                        "paper's is 0.2; default: the demo's 7 offsets of 1-2 %%)")
+    p.add_argument("--offsets-fraction", type=float, default=DemoSettings.offsets_fraction,
+                   help="hidden offsets in all 34 parameters, uniform within ± this fraction of each range "
+                        "(default %(default)s; the paper's is 0.2; 0: 7 fixed offsets of 1-2 %% instead)")
     p.add_argument("--candidates", default=None, help="effects to rank, comma separated (default: all)")
     p.add_argument("--rounds", type=int, default=2, help="diagnoses at most, one per effect found (default %(default)s)")
     p.add_argument("--fit-rays", type=int, default=D.FIT.rays,

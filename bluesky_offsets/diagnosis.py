@@ -61,6 +61,9 @@ class Candidate:
     refined_state: ModelState | None = field(default=None, repr=False)  # where its fit ended
     feature_penalty: float = 0.0       # p ln (number of features)
     feature_dispersion: float = 1.0    # the offsets-only fit's feature χ² per feature (>= 1)
+    # the share of its signature the offsets can mimic at its fit (1: no measurement of this
+    # design tells the effect from offsets)
+    absorbed: float = float("nan")
 
     @property
     def refined(self) -> bool:
@@ -91,7 +94,7 @@ class Candidate:
                 "significant": self.significant, "dispersion": self.dispersion,
                 "folds_improved": self.folds_improved, "folds_worse": self.folds_worse,
                 "folds_total": self.folds_total, "predicted_signature": self.predicted_signature,
-                "delta_chi2_twin": self.delta_chi2_twin}
+                "delta_chi2_twin": self.delta_chi2_twin, "absorbed": self.absorbed}
 
 
 @dataclass
@@ -187,6 +190,32 @@ def _fit_task(state: ModelState, meas: Measurement, options: FitOptions, table: 
                table=table)
 
 
+# What separates an effect from the offsets when the design cannot (reported with the verdict).
+SEPARATE_BY = {
+    "photon_energy": "frames at two or more photon energies (undulator gap and grating angle moved together)",
+    "source_size": "frames with the aperture (ASBL) closed down and opened wide",
+    "source_divergence": "frames with the aperture (ASBL) closed down and opened wide",
+}
+UNSEPARABLE = 0.99
+"""A candidate whose signature the offsets mimic to this share is reported as not separable."""
+
+
+def absorbed_share(fit: FitResult, n_offsets: int) -> float:
+    """The share of an effect's information (its diagonal of the fit's normal matrix, the offsets'
+    prior included) that the offsets can take over at the solution: 1 − Schur complement /
+    diagonal, the largest over the effect's parameters."""
+    G = fit.jacobian
+    A = G.T @ G + np.diag(fit.ridge if fit.ridge is not None else np.zeros(G.shape[1]))
+    o, e = slice(0, n_offsets), slice(n_offsets, G.shape[1])
+    if e.start >= e.stop:
+        return float("nan")
+    Aoo = A[o, o] + 1e-12 * np.trace(A[o, o]) / max(n_offsets, 1) * np.eye(n_offsets)
+    S = A[e, e] - A[e, o] @ solve_normal(Aoo, A[o, e])
+    d = np.diag(A[e, e])
+    keep = np.where(d > 0, np.diag(S) / np.where(d > 0, d, 1.0), 0.0)
+    return float(np.clip(1.0 - keep.min(), 0.0, 1.0))
+
+
 def _heldout(fit: FitResult, folds: Sequence[np.ndarray]) -> np.ndarray:
     """Held-out χ² per fold: the fit re-solved without the fold's configurations (one
     Gauss-Newton step from the all-data solution on its exact Jacobian), scored on the fold."""
@@ -280,6 +309,8 @@ def diagnose(meas: Measurement, state: ModelState, twin=None, forward_model=None
                              ref.chi2 - f.chi2, p * math.log(max(n_signal, 2)), False, {},
                              refined_state=f.state, feature_penalty=p * math.log(max(n_signal, 2)),
                              feature_dispersion=dispersion_fit))
+    for c in out:
+        c.absorbed = absorbed_share(best[c.name], len(table))
     out.sort(key=lambda c: -c.score)
 
     # 2. the best few verified with fresh rays beside the reference; held-out folds
@@ -316,6 +347,11 @@ def diagnose(meas: Measurement, state: ModelState, twin=None, forward_model=None
              f"offsets ({', '.join(f'{s} {k}' for s, k in o.stages)} iterations, {o.rays} rays, exact Jacobians); "
              f"offsets-only refit: chi2/dof {ref.chi2_reduced:.3g} on the fit's rays, {ref_mf.chi2_reduced_total:.3g} "
              f"with fresh rays; verified: {', '.join(c.name for c in top) or 'none'}")]
+    hidden_by_offsets = [c for c in out if c.absorbed >= UNSEPARABLE]
+    for c in hidden_by_offsets:
+        notes.append(f"{c.name} cannot be told from offsets with this design (the offsets mimic "
+                     f"{100 * c.absorbed:.1f} % of it); what would separate it: "
+                     f"{SEPARATE_BY.get(c.name, 'frames that move the motors its signature resembles')}")
     if within:
         notes.append(f"the offsets alone reach the noise once refitted (chi2/dof = {ref_mf.chi2_reduced_total:.2f})")
     return Diagnosis(base_mf, within, out, observed, folds, n_traces, notes, ref_state, ref_mf)

@@ -123,6 +123,7 @@ class FitResult:
     residuals: np.ndarray | None = field(default=None, repr=False)  # last stage, normalized
     rows: np.ndarray | None = field(default=None, repr=False)       # each residual's configuration
     stage: str = ""
+    ridge: np.ndarray | None = field(default=None, repr=False)      # the prior's diagonal (normal matrix)
 
     @property
     def chi2_reduced(self) -> float:
@@ -398,7 +399,7 @@ def fit(meas, state, engine, options: FitOptions | Mapping | None = None, *,
     chi2 = float(r @ r)
     inflation = max(1.0, chi2 / max(dof, 1.0))
     return FitResult(mdl.state(z), history, cov * inflation, mdl.names, chi2, dof, inflation, mdl.n_traces, G, r,
-                     rows, o.stages[-1][0] if o.stages else "")
+                     rows, o.stages[-1][0], ridge)
 
 
 def fit_many(meas, states: Sequence, engine, options: FitOptions | Mapping | None = None, **kw) -> list[FitResult]:

@@ -186,6 +186,7 @@ def analysis_sections(analysis, spec, work: Path, *, truth: Mapping | None = Non
                          "fit Δχ²": c.delta_chi2_all, "held-out Δχ²": c.delta_chi2_heldout,
                          "held-out folds better / worse": f"{c.folds_improved} / {c.folds_worse} of {c.folds_total}",
                          "significant": "yes" if c.significant else "no",
+                         "offsets mimic": f"{100 * c.absorbed:.0f} %" if np.isfinite(c.absorbed) else "—",
                          "value (diagnosis)": _fmt_values(c.values, c.sigma)})
         keys = [k for k in diag.observed_signature if not k.endswith("skewness")]
         sig_rows = [{"signature": k, "observed": diag.observed_signature[k],

@@ -515,7 +515,8 @@ def ranking_rows(d: Diagnosis) -> list[dict]:
                "delta_chi2_all": float(c.delta_chi2_all), "penalty": float(c.penalty),
                "dispersion": float(c.dispersion), "folds_improved": int(c.folds_improved),
                "folds_worse": int(c.folds_worse), "folds_total": int(c.folds_total),
-               "significant": bool(c.significant), "values_json": _json(c.values), "sigma_json": _json(c.sigma),
+               "significant": bool(c.significant), "absorbed": float(c.absorbed),
+               "values_json": _json(c.values), "sigma_json": _json(c.sigma),
                "units_json": _json({p.name: p.unit for p in eff.parameters})}
         for k, v in d.observed_signature.items():
             row[_sig_key("observed", k)] = float(v)

@@ -1,14 +1,15 @@
 """Which effect is missing — against the simulated IOC, through the main job (issue 6 acceptance).
 
 Each scenario runs ``bluesky-offsets demo`` as a user does: the METRIXS IOC (twin backend,
-127.0.0.1, a free port, seeded frame noise) with the hidden offsets of ``demo.DEMO_OFFSETS``
-and a hidden effect (or none), the search, the measurement of 16 bright configurations and 4
-of them again with the slits open through the IOC into the run store, the surrogate finder on
-the 16, then compare → refine → diagnose (all 15 candidates, camera-resolution profiles, 10
-bright + 4 open configurations) → add the winner → refit, every step a run in the store.  The
-checks read ``summary.json``.
+127.0.0.1, a free port, seeded frame noise) with hidden offsets in all 34 parameters (±5 % of
+each range, the demo's default draw) and a hidden effect (or none), the beam search, the
+measurement of 16 bright configurations and 4 of them again with the slits open through the
+IOC into the run store, the surrogate finder on the 16, then compare → fit the offsets →
+diagnose (all 15 candidates, camera-resolution profiles, 10 bright + 4 open configurations) →
+add the winner → refit → diagnose again, every step a run in the store.  The checks read
+``summary.json``.
 
-8-10 minutes per scenario on two cores (demo time measured in docs/diagnosis.md).
+About 4-5 minutes per scenario on two cores (docs/diagnosis.md).
 ``BLUESKY_OFFSETS_SKIP_ACCEPTANCE=1`` skips them for a quick local run.
 """
 
@@ -46,18 +47,7 @@ def _demo(tmp_path: Path, effect: str) -> dict:
     return json.loads((tmp_path / "out" / "summary.json").read_text())
 
 
-# The source-divergence verdict sits on a knife edge (documented at landing: source_divergence
-# 191 against intensity_scale 177).  Once the twin placed a misaligned source the physical way
-# (issue 16: RAYX inverts a source's frame; the four source offsets the analysis fits now act
-# with their true sign), the demo ranked intensity_scale first and source_divergence second in
-# both runs measured on 2026-11-24 (clean-clone CI and a rerun).  Issue 17 rebuilds the fits
-# that decide this ranking and must remove this mark.
-_KNIFE_EDGE = pytest.mark.xfail(strict=False, reason="knife-edge ranking (intensity_scale first, source_divergence "
-                                                     "second, measured twice after the source-frame fix); issue 17")
-
-
-@pytest.mark.parametrize("scenario", [pytest.param(s, marks=_KNIFE_EDGE) if s == "source_divergence" else s
-                                      for s in SCENARIOS])
+@pytest.mark.parametrize("scenario", list(SCENARIOS))
 def test_hidden_effect_is_found_added_and_fitted(scenario, tmp_path):
     effect, name, param, hidden = SCENARIOS[scenario]
     s = _demo(tmp_path, effect)
