@@ -325,8 +325,7 @@ def _gauss_blur(h, sigma_bins):
         import torch
         h = torch.as_tensor(h, dtype=torch.float64)
         s = torch.as_tensor(sigma_bins, dtype=torch.float64)
-        if not s.requires_grad and float(s) <= 0:
-            return h
+        # no branch on the value (it may carry a forward-mode tangent): at 0 the kernel is the identity
         idx = torch.arange(h.shape[-1], dtype=torch.float64)
         kernel = torch.exp(-0.5 * ((idx[:, None] - idx[None, :]) / torch.clamp(s, min=1e-6)) ** 2)
         kernel = kernel / kernel.sum(0, keepdim=True)

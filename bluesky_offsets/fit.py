@@ -224,9 +224,8 @@ class _Model:
             J = torch.cat(cols, -1)
         else:
             with torch.no_grad():
-                beam = self.engine.beam(vals, self.engine._overrides(
-                    {e: {p: torch.tensor(float(v), dtype=torch.float64) for p, v in d.items()}
-                     for e, d in twin_eff.items()}), n_rays=rays, seed=self.o.seed)
+                beam = self.engine.beam(vals, E.twin_overrides(twin_eff) if twin_eff else None, n_rays=rays,
+                                        seed=self.o.seed)
             from .torch_engine import histograms
             hx, hy = histograms(beam, spec)
             h, J = torch.cat([hx, hy], 1), None

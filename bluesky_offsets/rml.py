@@ -18,14 +18,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .geometry import (
-    MISALIGNMENT_KEYS,
-    ChainLink,
-    Frame,
-    Misalignment,
-    chain_frames,
-    ellipsoid_tangent_angle,
-)
+from .geometry import (MISALIGNMENT_KEYS, ChainLink, Frame, Misalignment, chain_frames,
+                       ellipsoid_tangent_angle)
 
 WORLD_KEYS = ("worldPosition", "worldXdirection", "worldYdirection", "worldZdirection")
 MIRROR_TYPES = {"Plane Mirror", "Cylinder", "Ellipsoid", "Toroid", "Sphere", "Cone", "Paraboloid",

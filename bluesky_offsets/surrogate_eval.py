@@ -27,13 +27,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from .dataset import (
-    GOOD_MIN_RAYS,
-    DrawScheme,
-    GenerationSettings,
-    _openmp_threads,
-    draw_in_memory,
-)
+from .dataset import GOOD_MIN_RAYS, DrawScheme, GenerationSettings, _openmp_threads, draw_in_memory
 from .surrogate import Surrogate
 from .twin import Twin
 

@@ -89,14 +89,13 @@ def test_find_beam_plan_on_the_simulated_ioc(tmp_path):
     from bluesky import RunEngine
     from ophyd_async.core import init_devices
 
-    from bluesky_offsets.demo import SimulatedBeamline
     from bluesky_offsets.devices import FocusChamber, MetrixsBeamline
+    from conftest import start_metrixs_ioc
     from plans import current_configuration, find_beam, measure_configurations
 
-    ioc = SimulatedBeamline({"offsets": DARK}, 2000, tmp_path, move_time=0.05)
+    ioc = start_metrixs_ioc(tmp_path, {"offsets": DARK}, extra=("--rays", 2000, "--move-time", 0.05))
     try:
         RE = RunEngine({}, call_returns_result=True)
-        ioc.wait_ready()
         with init_devices():
             beamline = MetrixsBeamline(ioc.prefix, name="metrixs")
             chamber = FocusChamber(ioc.prefix + "chamber:", name="chamber")
