@@ -134,7 +134,8 @@ def _run(args) -> None:
         row = {"scenario": label, "draw": int(draw), "hidden": hidden, "found": found, "rankings": rankings,
                "verdict": diag.verdict, "chi2_reduced": mf.chi2_reduced_total,
                "mse_over_noise": mf.mse_total / mf.expected_mse_total,
-               "truth_chi2_reduced": at_truth.chi2_reduced_total, "offsets_chi2_reduced": evaluate(r.state).chi2_reduced_total,
+               "truth_chi2_reduced": at_truth.chi2_reduced_total,
+               "offsets_chi2_reduced": evaluate(r.state).chi2_reduced_total,
                "seconds": time.perf_counter() - t0, "device": args.device, "n_configurations": meas.n}
         res_path.write_text(json.dumps(row, indent=1, default=float))
         print(f"{label} #{draw}: {[f['effect'] for f in found]} chi2/dof {row['chi2_reduced']:.3f} "
@@ -143,7 +144,8 @@ def _run(args) -> None:
 
 def _table(args) -> None:
     rows = [json.loads(p.read_text()) for p in sorted(Path(args.folder).glob("*.json"))]
-    print("| scenario | draw | hidden | found (first) | fitted ± σ | rel. error | error/σ | χ²/dof after | MSE/noise | s |")
+    print("| scenario | draw | hidden | found (first) | fitted ± σ | rel. error | error/σ | χ²/dof after | MSE/noise "
+          "| s |")
     print("|---|---:|---|---|---|---:|---:|---:|---:|---:|")
     for r in rows:
         hidden = r["hidden"]

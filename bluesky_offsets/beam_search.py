@@ -100,11 +100,12 @@ class SearchResult:
     uids: list[str] = field(default_factory=list)  # the runs that measured it (plans.search.find_beam)
 
 
-def search(start, open_widths: np.ndarray, closed_widths: np.ndarray, *, fraction: float = 0.05,
-           threshold: float = 0.11297, max_frames: int = 120, max_points: int = 9,
+def search(start, open_widths: np.ndarray, closed_widths: np.ndarray, *, threshold: float, fraction: float = 0.05,
+           max_frames: int = 120, max_points: int = 9,
            table: ParameterTable = METRIXS):
     """The search as a coroutine: it yields configurations (k, P) to measure and is sent their
-    intensities (:func:`intensity`); it returns a :class:`SearchResult`.
+    intensities (:func:`intensity`); it returns a :class:`SearchResult`.  ``threshold``: the
+    intensity of a bright frame (``plans.search.HIGH_RAY_THRESHOLD``, the paper's).
 
     1. the start as it is: bright, done;
     2. the slits open (:data:`bluesky_offsets.diagnosis.OPEN_APERTURE`); each motor of the

@@ -364,7 +364,8 @@ def run_demo(out: Path, settings: DemoSettings | None = None, store_location: st
         intro = [("What this is", paragraph(
             f"bluesky-offsets demo: a simulated METRIXS beamline (caproto IOC, RAYX twin at the hidden true state, "
             f"{s.n_rays} rays per frame) with {what} and hidden effects: "
-            f"{', '.join(f'{k} {v}' for k, v in hidden.items()) or 'none'}; {len(m)} configurations measured through EPICS "
+            f"{', '.join(f'{k} {v}' for k, v in hidden.items()) or 'none'}; {len(m)} configurations measured "
+            f"through EPICS "
             f"({len(m) - n_open} bright ones, {n_open} of them again with the slits open); offsets found "
             f"with the shipped surrogate (on the configurations inside its box) and fitted through the differentiable "
             f"twin on {analysis.measurement.n}; the missing effects diagnosed, added and refitted one after the "
@@ -464,7 +465,8 @@ def add_cli(sub) -> None:
                    help="hidden offsets in all 34 parameters, uniform within ± this fraction of each range "
                         "(default %(default)s; the paper's is 0.2; 0: 7 fixed offsets of 1-2 %% instead)")
     p.add_argument("--candidates", default=None, help="effects to rank, comma separated (default: all)")
-    p.add_argument("--rounds", type=int, default=2, help="diagnoses at most, one per effect found (default %(default)s)")
+    p.add_argument("--rounds", type=int, default=2,
+                   help="diagnoses at most, one per effect found (default %(default)s)")
     p.add_argument("--fit-rays", type=int, default=D.FIT.rays,
                    help="model rays per configuration in the fits (default %(default)s; the diagnosis's candidate "
                         f"fits use at most {D.SCAN.rays})")
