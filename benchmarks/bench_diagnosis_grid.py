@@ -166,6 +166,34 @@ def _table(args) -> None:
               f"{'; '.join(c[0] for c in cells)} | {'; '.join(c[1] for c in cells)} | "
               f"{'; '.join(c[2] for c in cells)} | {r['chi2_reduced']:.2f} | {r['mse_over_noise']:.2f} | "
               f"{r['seconds']:.0f} |")
+    _summary(rows)
+
+
+def _summary(rows) -> None:
+    """The issue's acceptance numbers over the rows: named first, within 25 %, within 2 σ,
+    χ²/dof and MSE/noise ≤ 1.5 after; no effect named without one."""
+    with_effect = [r for r in rows if r["hidden"]]
+    first = within = covered = fine = 0
+    params = 0
+    for r in with_effect:
+        names = [f["effect"] for f in r["found"]]
+        first += bool(names) and names[0] in r["hidden"] and set(r["hidden"]) <= set(names)
+        fine += r["chi2_reduced"] <= 1.5 and r["mse_over_noise"] <= 1.5
+        for name, vals in r["hidden"].items():
+            f = next((x for x in r["found"] if x["effect"] == name), None)
+            for k, hv in vals.items():
+                params += 1
+                if f is None:
+                    continue
+                v, s = f["values"][k], f["sigma"].get(k, float("nan"))
+                within += abs(v - hv) <= 0.25 * abs(hv)
+                covered += s > 0 and abs(v - hv) <= 2 * s
+    none = [r for r in rows if not r["hidden"]]
+    quiet = sum(not r["found"] for r in none)
+    n = len(with_effect)
+    print(f"\n{n} runs with hidden effects: all hidden effects found, a true one first: {first}/{n}; "
+          f"chi2/dof and MSE/noise <= 1.5 after: {fine}/{n}; of {params} hidden magnitudes: within 25 %: "
+          f"{within}, within 2 sigma: {covered}.  {len(none)} runs without: no effect named in {quiet}.")
 
 
 def main(argv=None):
