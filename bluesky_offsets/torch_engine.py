@@ -1276,12 +1276,15 @@ class RayJacobian:
     n_rays: int
     names: list[str]
 
-    def histograms(self, spec: HistogramSpec, kernel: float = 1.0) -> tuple[torch.Tensor, torch.Tensor]:
-        """x then y histograms (C, bins_x + bins_y) as fractions of source rays (hard counts,
-        RAYX's binning) and their Jacobian (C, bins_x + bins_y, P) from the soft beam binned
-        with a Gaussian kernel of ``kernel`` bins rms."""
-        hx = _hist(self.x, self.alive.to(self.x.dtype), spec.bins_x, spec.range_x, False, kernel)
-        hy = _hist(self.y, self.alive.to(self.y.dtype), spec.bins_y, spec.range_y, False, kernel)
+    def histograms(self, spec: HistogramSpec, kernel: float = 1.0,
+                   soft: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
+        """x then y histograms (C, bins_x + bins_y) as fractions of source rays and their
+        Jacobian (C, bins_x + bins_y, P) from the soft beam binned with a Gaussian kernel of
+        ``kernel`` bins rms.  The values are RAYX's (hard counts, RAYX's binning), or with
+        ``soft`` the soft beam's, whose derivative the Jacobian is (a smooth objective)."""
+        w = self.weight if soft else self.alive.to(self.x.dtype)
+        hx = _hist(self.x, w, spec.bins_x, spec.range_x, soft, kernel)
+        hy = _hist(self.y, w, spec.bins_y, spec.range_y, soft, kernel)
         jx = _hist_jacobian(self.x, self.weight, self.jx, self.jw, spec.bins_x, spec.range_x, kernel)
         jy = _hist_jacobian(self.y, self.weight, self.jy, self.jw, spec.bins_y, spec.range_y, kernel)
         return torch.cat([hx, hy], 1) / self.n_rays, torch.cat([jx, jy], 1) / self.n_rays
