@@ -33,7 +33,7 @@ import numpy as np
 
 from . import effects as E
 from .diagnostics import Misfit, misfit, moments
-from .fit import FitOptions, FitResult, fit
+from .fit import FitOptions, FitResult, engine_for, fit
 from .model import Measurement, ModelState, refine, simulate, solve_normal
 from .parameters import METRIXS, ParameterTable
 from .twin import Twin
@@ -185,9 +185,7 @@ def starting_values(effect: E.Effect) -> list[dict[str, float]]:
 
 def _fit_task(state: ModelState, meas: Measurement, options: FitOptions, table: ParameterTable) -> FitResult:
     """One candidate fit on a Dask worker (its own torch engine, one thread)."""
-    from .torch_engine import TorchEngine
-    return fit(meas, state, TorchEngine(table=table, hist=meas.spec, options=dict(options.engine or {})), options,
-               table=table)
+    return fit(meas, state, engine_for(meas, options, table), options, table=table)
 
 
 # What separates an effect from the offsets when the design cannot (reported with the verdict).
@@ -247,15 +245,14 @@ def diagnose(meas: Measurement, state: ModelState, twin=None, forward_model=None
     fits on its workers, one fit each (the same fits, in parallel).  ``twin`` names the
     parameter table and ``forward_model`` is not used (both kept for symmetry with the other steps).
     """
-    from .torch_engine import TorchEngine
     names = [n_ for n_ in (candidates or list(E.EFFECTS)) if n_ not in state.effects]
     for n_ in names:
         E.get(n_)
-    o = options if isinstance(options, FitOptions) else (SCAN if options is None else SCAN.replace(**options))
+    o = FitOptions.resolve(options, SCAN)
     o = o.replace(seed=seed + 7919)
     spec, n = meas.spec, meas.n
-    engine = TorchEngine(table=table, hist=spec, options=dict(o.engine or {}))
-    verifier = Twin(TorchEngine(table=table, hist=spec, options=dict(o.engine or {})))
+    engine = engine_for(meas, o, table)
+    verifier = Twin(engine)  # the same twin, traced with fresh rays
     verify_rays = int(verify_rays or 4 * meas.n_rays)
 
     def verify(st: ModelState, draw: int = 0) -> tuple[Misfit, np.ndarray]:
@@ -464,7 +461,7 @@ def add_effect_result(meas: Measurement, state: ModelState, name: str, twin=None
     diagnosis found it (a :class:`Candidate` or its ``values``)."""
     if values is not None and not isinstance(values, dict):
         values = getattr(values, "values", values)  # a Candidate
-    o = options if isinstance(options, FitOptions) else (FIT if options is None else FIT.replace(**options))
+    o = FitOptions.resolve(options, FIT)
     return refine(meas, state.with_effect(name, values), twin, forward_model, options=o, progress=progress,
                   table=table)
 

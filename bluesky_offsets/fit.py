@@ -29,14 +29,14 @@ reach the noise.
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field, fields
 
 import numpy as np
 import torch
 
 from . import effects as E
-from .diagnostics import bin_variance, expected_pull2
+from .diagnostics import beam_features, bin_variance, expected_pull2
 from .parameters import MAX_OFFSET, METRIXS, ParameterTable
 from .twin import HistogramSpec
 
@@ -117,6 +117,14 @@ class FitOptions:
     def replace(self, **changes) -> FitOptions:
         return FitOptions.from_mapping({f.name: getattr(self, f.name) for f in fields(self)}, **changes)
 
+    @classmethod
+    def resolve(cls, options: FitOptions | Mapping | None, default: FitOptions | None = None) -> FitOptions:
+        """``options`` as given, ``default`` (or the defaults) for None, a mapping applied to it."""
+        base = default or cls()
+        if options is None:
+            return base
+        return options if isinstance(options, FitOptions) else base.replace(**dict(options))
+
 
 @dataclass
 class FitResult:
@@ -160,10 +168,10 @@ class FitResult:
 # --------------------------------------------------------------------------- #
 # the model's products and their Jacobians
 # --------------------------------------------------------------------------- #
-def torch_engine_for(twin, options: FitOptions):
-    """The torch twin that fits for ``twin`` (its parameter table)."""
+def engine_for(meas, options: FitOptions, table: ParameterTable = METRIXS):
+    """The torch twin a fit of ``meas`` traces: its bins, the options' engine settings."""
     from .torch_engine import TorchEngine
-    return TorchEngine(table=getattr(twin, "table", METRIXS), options=dict(options.engine or {}))
+    return TorchEngine(table=table, hist=meas.spec, options=dict(options.engine or {}))
 
 
 def _features(hx: torch.Tensor, hy: torch.Tensor, spec: HistogramSpec) -> torch.Tensor:
@@ -194,6 +202,7 @@ class _Model:
         self.det_effects = [e for e in state.effects if E.get(e).level == "detector"]
         self.span = torch.as_tensor(table.span, dtype=torch.float64)
         self.m = np.concatenate([meas.hist_x, meas.hist_y], 1)
+        self.fm, self.vm = beam_features(meas.hist_x, meas.hist_y, meas.spec, meas.n_rays)  # measured: fixed
         self.n_traces = 0
         self.soft = bool(options.soft_values)
 
@@ -297,8 +306,7 @@ class _Model:
         meas, spec = self.meas, self.meas.spec
         nx = spec.bins_x
         if stage == "features":
-            from .diagnostics import beam_features
-            fm, vm = beam_features(meas.hist_x, meas.hist_y, spec, meas.n_rays)
+            fm, vm = self.fm, self.vm
             hd = h.detach().requires_grad_(jacobian)
             f = _features(hd[:, :nx], hd[:, nx:], spec)
             hn = h.detach().numpy()
@@ -367,7 +375,7 @@ def fit(meas, state, engine, options: FitOptions | Mapping | None = None, *,
     options : FitOptions or a mapping of its fields (unknown keys are refused).
     progress : called with a dict after every iteration (stage, iteration, χ²/dof, accepted).
     """
-    o = options if isinstance(options, FitOptions) else FitOptions.from_mapping(options)
+    o = FitOptions.resolve(options)
     mdl = _Model(meas, state, engine, o, table)
     lo, hi = mdl.bounds()
     z = np.clip(mdl.vector(state), lo, hi)

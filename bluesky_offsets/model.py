@@ -16,7 +16,7 @@ import numpy as np
 
 from . import effects as E
 from .diagnostics import MeasurementError, check_histograms
-from .fit import FitOptions, FitResult, fit
+from .fit import FitOptions, FitResult, engine_for, fit
 from .parameters import MAX_OFFSET, METRIXS, ParameterTable
 from .twin import HistogramSpec
 
@@ -215,8 +215,7 @@ def refine(meas: Measurement, state: ModelState, twin=None, forward_model=None, 
     the measurement's bins unless given); ``forward_model`` is accepted for symmetry with the
     finders and not used: the twin's own Jacobian is exact and cheap.
     """
-    from .torch_engine import TorchEngine
-    o = options if isinstance(options, FitOptions) else FitOptions.from_mapping(options)
-    engine = engine or TorchEngine(table=table, hist=meas.spec, options=dict(o.engine or {}))
+    o = FitOptions.resolve(options)
+    engine = engine or engine_for(meas, o, table)
     res = fit(meas, state, engine, o, progress=progress, table=table)
     return RefineResult(res.state, res.effect_sigma(), res.history, res)

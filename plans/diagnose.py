@@ -467,7 +467,7 @@ def refine_offsets(measurement, state: ModelState, twin, forward_model=None, *, 
     """
     meas, link = resolve_measurement(measurement, store, table=table)
     twin = twin.with_hist(meas.spec)  # the twin bins as the measurement does
-    opts = _options(options, D.FIT)
+    opts = FitOptions.resolve(options, D.FIT)
     _md = {"plan_name": "refine_offsets", "purpose": "offsets through the differentiable twin", **link,
            **_state_md(state, table), "fit_options": _jsonable(asdict(opts)), "n_configurations": meas.n,
            "jacobian": "exact (torch twin)", **dict(md or {})}
@@ -493,12 +493,6 @@ def refine_offsets(measurement, state: ModelState, twin, forward_model=None, *, 
     r, uid = yield from _in_run(body, _md, open_run)
     r.uid = r.comparison.uid = uid
     return r
-
-
-def _options(options, default: FitOptions) -> FitOptions:
-    if options is None:
-        return default
-    return options if isinstance(options, FitOptions) else default.replace(**dict(options))
 
 
 # --------------------------------------------------------------------------- #
@@ -544,7 +538,7 @@ def diagnose_effects(measurement, state: ModelState, twin, forward_model=None, *
     names = list(candidates) if candidates else [n for n in E.EFFECTS if n not in state.effects]
     for n in names:
         E.get(n)  # unknown names fail before the run opens
-    opts = _options(options, D.SCAN)
+    opts = FitOptions.resolve(options, D.SCAN)
     _md = {"plan_name": "diagnose_effects", "purpose": "which physical effect is missing", **link,
            **_state_md(state, table), "candidates": names, "folds": folds, "n_configurations": meas.n,
            "fit_options": _jsonable(asdict(opts)), **dict(md or {})}
@@ -612,7 +606,7 @@ def add_effect_and_refit(measurement, state: ModelState, effect: str, twin, forw
     eff = E.get(effect)
     start_values = eff.values(values)
     label = label or f"+ {effect}"
-    opts = _options(options, D.FIT)
+    opts = FitOptions.resolve(options, D.FIT)
     _md = {"plan_name": "add_effect_and_refit", "purpose": "add the missing effect and refit", **link,
            **_state_md(state, table), "effect": effect, "effect_parameters": [p.name for p in eff.parameters],
            "effect_start": start_values, "fit_options": _jsonable(asdict(opts)),
@@ -700,7 +694,7 @@ def analyse_measurement(measurement, twin, forward_model=None, *, store=None,
         starts = [ModelState()]
     elif isinstance(starts, ModelState):
         starts = [starts]
-    fopts = _options(fit_options, D.FIT)
+    fopts = FitOptions.resolve(fit_options, D.FIT)
     md = {**link, **dict(md or {})}
     out = Analysis(meas, [])
     for k, st in enumerate(starts):
