@@ -70,6 +70,7 @@ class DemoSettings:
     fit: FitOptions = D.FIT           # the offsets fit and the refits
     scan: FitOptions = D.SCAN         # the diagnosis's candidate fits
     rounds: int = 2                   # diagnoses at most (one per hidden effect)
+    fit_top: int | None = D.FIT_TOP   # screen every start, fit this many candidates (None: fit all)
     # the diagnosis reads the camera-resolution profiles ("camera") or the paper's histograms ("paper")
     resolution: str = "camera"
     candidates_effects: Sequence[str] | None = None
@@ -262,7 +263,8 @@ def demo_plan(s: DemoSettings, beamline, chamber, twin, forward_model, store, lo
     log(f"[5/6] compare → fit offsets (differentiable twin, exact Jacobians) → diagnose → add the winning effect "
         f"→ refit → diagnose again ({n_bright} bright + {n_open} open configurations)")
     analysis = yield from analyse_measurement(meas, twin, starts=starts, candidates=s.candidates_effects,
-                                              rounds=s.rounds, fit_options=s.fit, scan_options=s.scan, seed=s.seed,
+                                              rounds=s.rounds, fit_options=s.fit, scan_options=s.scan,
+                                              fit_top=s.fit_top, seed=s.seed,
                                               md={"purpose": "bluesky-offsets demo",
                                                   "analysed_configurations": [int(i) for i in analysed]})
     t["analysis"] = time.perf_counter()
@@ -470,6 +472,10 @@ def add_cli(sub) -> None:
     p.add_argument("--fit-rays", type=int, default=D.FIT.rays,
                    help="model rays per configuration in the fits (default %(default)s; the diagnosis's candidate "
                         f"fits use at most {D.SCAN.rays})")
+    p.add_argument("--fit-top", type=int, default=0,
+                   help="screen every start of every candidate first and fit only this many candidates to "
+                        "convergence (faster; a screen can miss a defocus: docs/diagnosis.md); default 0: every "
+                        "start fitted")
     p.add_argument("--resolution", choices=("camera", "paper"), default="camera",
                    help="histograms the diagnosis fits: the camera's profiles (20 µm x 5 µm bins, default) or the "
                         "paper's 50 x 50 bins")
@@ -522,6 +528,8 @@ def _cmd_demo(args) -> int:
         raise CliError("--rounds must be at least 1")
     if args.fit_rays < 100:
         raise CliError("--fit-rays must be at least 100")
+    if args.fit_top < 0:
+        raise CliError("--fit-top must be at least 0 (0: every start of every candidate fitted)")
     effects = tuple(parse_effect(e) for e in (args.effect or [f"{DEMO_EFFECT[0]}:z={DEMO_EFFECT[1]['z']}"]))
     effects = tuple(e for e in effects if e[0])
     names = [e[0] for e in effects]
@@ -537,7 +545,8 @@ def _cmd_demo(args) -> int:
     s = DemoSettings(n_rays=args.rays, configurations=args.configurations, open_configurations=n_open,
                      analysed_configurations=args.analysed_configurations, effects=effects,
                      offsets_fraction=args.offsets_fraction, rounds=args.rounds, seed=args.seed,
-                     fit=D.FIT.replace(rays=args.fit_rays), scan=D.SCAN.replace(rays=min(args.fit_rays, D.SCAN.rays)),
+                     fit_top=args.fit_top or None, fit=D.FIT.replace(rays=args.fit_rays),
+                     scan=D.SCAN.replace(rays=min(args.fit_rays, D.SCAN.rays)),
                      resolution=args.resolution,
                      candidates_effects=[c.strip() for c in args.candidates.split(",")] if args.candidates else None)
     for n in s.candidates_effects or ():

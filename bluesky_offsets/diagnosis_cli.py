@@ -82,6 +82,8 @@ def _cmd_diagnose(args) -> int:
     candidates = _effects(args.effects)
     if args.rounds < 1:
         raise CliError("--rounds must be at least 1")
+    if args.fit_top < 0:
+        raise CliError("--fit-top must be at least 0 (0: every start of every candidate fitted)")
     fit_options = None
     if args.fit_rays is not None:
         if args.fit_rays < 100:
@@ -116,6 +118,7 @@ def _cmd_diagnose(args) -> int:
             analysis = RE(analyse_measurement(
                 stored, twin, starts=starts, refine=not args.no_refine, candidates=candidates,
                 add_best=not args.no_add, rounds=args.rounds, fit_options=fit_options, seed=args.seed,
+                fit_top=args.fit_top or None,
                 resolution=args.resolution, md={"purpose": "bluesky-offsets diagnose"})).plan_result
             if args.report:
                 from .report import write_analysis_report
@@ -153,6 +156,10 @@ def add_cli(sub) -> None:
                    help="diagnoses at most: after an effect is added the model is diagnosed again (default %(default)s)")
     p.add_argument("--fit-rays", type=int, default=None, help="model rays per configuration in the fits "
                                                                "(default: bluesky_offsets.diagnosis.FIT's)")
+    p.add_argument("--fit-top", type=int, default=0,
+                   help="screen every start of every candidate first and fit only this many candidates to "
+                        "convergence (faster; a screen can miss a defocus: docs/diagnosis.md); default 0: every "
+                        "start fitted")
     p.add_argument("--resolution", choices=("camera", "paper"), default="camera",
                    help="histograms to fit: the camera's profiles where the run has them (default) or the "
                         "paper's 50 x 50 bins")

@@ -86,7 +86,7 @@ def _fmt_values(values: Mapping, sigma: Mapping | None = None, units: Mapping | 
     parts = []
     for k, v in values.items():
         s = f"{k} = {v:.4g}"
-        if sigma and k in sigma:
+        if sigma and k in sigma and np.isfinite(sigma[k]):
             s += f" ± {sigma[k]:.2g}"
         if units and units.get(k):
             s += f" {units[k]}"
@@ -187,15 +187,18 @@ def analysis_sections(analysis, spec, work: Path, *, truth: Mapping | None = Non
                          "held-out folds better / worse": f"{c.folds_improved} / {c.folds_worse} of {c.folds_total}",
                          "significant": "yes" if c.significant else "no",
                          "offsets mimic": f"{100 * c.absorbed:.0f} %" if np.isfinite(c.absorbed) else "—",
-                         "value (diagnosis)": _fmt_values(c.values, c.sigma)})
+                         "value (diagnosis)": _fmt_values(c.values, c.sigma) if c.fitted
+                         else f"screened only: {_fmt_values(c.values)}"})
         keys = [k for k in diag.observed_signature if not k.endswith("skewness")]
         sig_rows = [{"signature": k, "observed": diag.observed_signature[k],
                      **{c.name: c.predicted_signature.get(k, float("nan")) for c in diag.candidates[:4]}}
                     for k in keys]
         mf = diag.base_misfit
         body = (paragraph("Each candidate is fitted with the offsets through the differentiable twin (exact "
-                          "Jacobians; beam features, then bins), from starting values spread over its prior range, "
-                          "beside an offsets-only fit on the same rays; held-out: each fit re-solved without each of "
+                          "Jacobians; beam features, then bins), from starting values spread over its prior range "
+                          "(or, with screening, only the best after a first look at every start), beside an "
+                          "offsets-only fit on the same rays, refitted from where the best candidate fits left the "
+                          "offsets; held-out: each fit re-solved without each of "
                           f"{diag.folds} folds of configurations and scored on them. The best candidates are verified "
                           "in the histogram bins with fresh rays against the offsets-only "
                           "reference; score = that χ² gain ÷ the reference's χ² per degree of freedom (when > 1) − "

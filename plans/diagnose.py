@@ -509,7 +509,7 @@ def ranking_rows(d: Diagnosis) -> list[dict]:
                "delta_chi2_all": float(c.delta_chi2_all), "penalty": float(c.penalty),
                "dispersion": float(c.dispersion), "folds_improved": int(c.folds_improved),
                "folds_worse": int(c.folds_worse), "folds_total": int(c.folds_total),
-               "significant": bool(c.significant), "absorbed": float(c.absorbed),
+               "significant": bool(c.significant), "absorbed": float(c.absorbed), "fitted": bool(c.fitted),
                "values_json": _json(c.values), "sigma_json": _json(c.sigma),
                "units_json": _json({p.name: p.unit for p in eff.parameters})}
         for k, v in d.observed_signature.items():
@@ -521,12 +521,13 @@ def ranking_rows(d: Diagnosis) -> list[dict]:
 
 def diagnose_effects(measurement, state: ModelState, twin, forward_model=None, *, store=None,
                      candidates: Sequence[str] | None = None, folds: int = 4, seed: int = 0,
-                     options: FitOptions | Mapping | None = None, client=None, open_run: bool = True,
-                     md: Mapping | None = None, show: bool = True,
+                     options: FitOptions | Mapping | None = None, fit_top: int | None = D.FIT_TOP, client=None,
+                     open_run: bool = True, md: Mapping | None = None, show: bool = True,
                      table: ParameterTable = METRIXS) -> MsgGenerator[Ranking]:
     """Which effect is missing: :func:`bluesky_offsets.diagnosis.diagnose` as a run.
 
-    Every candidate fitted with the offsets (``options``: the candidate fits', default
+    Every candidate fitted with the offsets from each of its starts (``fit_top``: screen every
+    start first and fit only that many candidates; ``options``: the candidate fits', default
     :data:`bluesky_offsets.diagnosis.SCAN`; ``client``: a Dask client whose workers run them,
     worth it on a cluster: on the 2-core machine the demo's analysis took 270 s with two
     one-thread workers and 192 s in this process with two threads).  Streams ``progress`` (every fit's iterations),
@@ -541,12 +542,12 @@ def diagnose_effects(measurement, state: ModelState, twin, forward_model=None, *
     opts = FitOptions.resolve(options, D.SCAN)
     _md = {"plan_name": "diagnose_effects", "purpose": "which physical effect is missing", **link,
            **_state_md(state, table), "candidates": names, "folds": folds, "n_configurations": meas.n,
-           "fit_options": _jsonable(asdict(opts)), **dict(md or {})}
+           "fit_options": _jsonable(asdict(opts)), "fit_top": fit_top or 0, **dict(md or {})}
 
     def body():
         d: Diagnosis = yield from run_in_thread(
             lambda progress: diagnose(meas, state, twin, candidates=names, folds=folds, seed=seed, options=opts,
-                                      progress=progress, client=client, table=table),
+                                      fit_top=fit_top, progress=progress, client=client, table=table),
             desc=f"rank {len(names)} candidate effects", show=show)
         yield from emit_rows("ranking", ranking_rows(d))
         mf = d.base_misfit
@@ -650,7 +651,8 @@ def analyse_measurement(measurement, twin, forward_model=None, *, store=None,
                         starts: ModelState | Sequence[ModelState] | None = None, refine: bool = True,
                         candidates: Sequence[str] | None = None, add_best: bool = True, rounds: int = 2,
                         fit_options: FitOptions | Mapping | None = None,
-                        scan_options: FitOptions | Mapping | None = None, folds: int = 4, seed: int = 0,
+                        scan_options: FitOptions | Mapping | None = None, fit_top: int | None = D.FIT_TOP,
+                        folds: int = 4, seed: int = 0,
                         md: Mapping | None = None, show: bool = True, resolution: str = "camera",
                         table: ParameterTable = METRIXS) -> MsgGenerator[Analysis]:
     """Compare, fit the offsets, diagnose, add the winning effect and refit, diagnose again — one
@@ -678,6 +680,9 @@ def analyse_measurement(measurement, twin, forward_model=None, *, store=None,
     fit_options, scan_options : FitOptions or mapping, optional
         Of the offsets fit and the refits (default :data:`bluesky_offsets.diagnosis.FIT`), and
         of the diagnosis's candidate fits (:data:`bluesky_offsets.diagnosis.SCAN`).
+    fit_top : int or None
+        Screen every start first and fit only this many candidates to convergence (default
+        None: every start fitted; :func:`bluesky_offsets.diagnosis.diagnose`).
     resolution : {"camera", "paper"}
         Of a stored run: the camera-resolution profiles where it has them, or the 50 x 50
         histograms.
@@ -713,7 +718,8 @@ def analyse_measurement(measurement, twin, forward_model=None, *, store=None,
     for round_ in range(max(1, rounds)):
         suffix = "" if round_ == 0 else f"_{round_ + 1}"
         rk = yield from diagnose_effects(meas, current, twin, candidates=candidates, folds=folds,
-                                         seed=seed + round_, options=scan_options, md=md, show=show, table=table)
+                                         seed=seed + round_, options=scan_options, fit_top=fit_top, md=md,
+                                         show=show, table=table)
         out.rankings.append(rk)
         out.uids["diagnose" + suffix] = rk.uid
         best = rk.diagnosis.best

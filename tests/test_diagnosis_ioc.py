@@ -7,7 +7,8 @@ measurement of 16 bright configurations and 4 of them again with the slits open 
 IOC into the run store, the surrogate finder on the 16, then compare → fit the offsets →
 diagnose (all 15 candidates, camera-resolution profiles, 10 bright + 4 open configurations) →
 add the winner → refit → diagnose again, every step a run in the store.  The checks read
-``summary.json``.
+``summary.json``; the chamber_z scenario (the README's main job) is also read back from the
+store by uid.
 
 About 4-5 minutes per scenario on two cores (docs/diagnosis.md).
 ``BLUESKY_OFFSETS_SKIP_ACCEPTANCE=1`` skips them for a quick local run.
@@ -17,12 +18,18 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import shutil
 import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
+
+from bluesky_offsets.parameters import METRIXS
+from bluesky_offsets.store import open_store
+from plans.diagnose import load_results
 
 SKIP = os.environ.get("BLUESKY_OFFSETS_SKIP_ACCEPTANCE") == "1"
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(1200),
@@ -36,21 +43,34 @@ SCENARIOS = {
 }
 
 
-def _demo(tmp_path: Path, effect: str) -> dict:
-    exe = Path(sys.executable).parent / "bluesky-offsets"
+def _demo(tmp_path: Path, effect: str) -> tuple[dict, subprocess.CompletedProcess]:
+    exe = Path(sys.executable).parent / "bluesky-offsets"  # the console script, as a user runs it
     cmd = [str(exe) if exe.exists() else shutil.which("bluesky-offsets"), "demo", "--effect", effect,
            "--out", str(tmp_path / "out"), "--store", str(tmp_path / "runs")]
     proc = subprocess.run(cmd, capture_output=True, text=True, timeout=1150,
                           env=dict(os.environ, PYTHONUNBUFFERED="1"))
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
     print(proc.stdout[-2500:])
-    return json.loads((tmp_path / "out" / "summary.json").read_text())
+    return json.loads((tmp_path / "out" / "summary.json").read_text()), proc
+
+
+@pytest.fixture(scope="module")
+def demo_run(tmp_path_factory):
+    """Each scenario's demo, run once for all the tests that read it: (folder, summary, process)."""
+    done = {}
+
+    def run(scenario: str):
+        if scenario not in done:
+            tmp = tmp_path_factory.mktemp(scenario)
+            done[scenario] = (tmp, *_demo(tmp, SCENARIOS[scenario][0] if scenario in SCENARIOS else scenario))
+        return done[scenario]
+    return run
 
 
 @pytest.mark.parametrize("scenario", list(SCENARIOS))
-def test_hidden_effect_is_found_added_and_fitted(scenario, tmp_path):
+def test_hidden_effect_is_found_added_and_fitted(scenario, demo_run):
     effect, name, param, hidden = SCENARIOS[scenario]
-    s = _demo(tmp_path, effect)
+    _, s, _ = demo_run(scenario)
     assert s["rankings"][0][0] == name and s["verdict"].startswith(f"missing effect: {name}"), s["rankings"]
     fitted, sigma = s["fitted_effects"][name][param]
     assert fitted == pytest.approx(hidden, rel=0.25)
@@ -62,7 +82,64 @@ def test_hidden_effect_is_found_added_and_fitted(scenario, tmp_path):
     assert after["mse"] < 1.5 * after["expected_mse"]
 
 
-def test_no_hidden_effect_reports_none(tmp_path):
-    s = _demo(tmp_path, "none")
+def test_no_hidden_effect_reports_none(demo_run):
+    _, s, _ = demo_run("none")
     assert s["verdict"] == "no significant missing effect", (s["verdict"], s["history"][-1])
     assert s["fitted_effects"] == {}
+
+
+def test_the_main_job_s_runs_load_back_by_uid(demo_run):
+    """The chamber_z scenario is the README's main job: every step a run in the store, linked to
+    the measurement; the load-back line it prints works as printed; the report is self-contained."""
+    tmp_path, summary, proc = demo_run("chamber_z")
+    assert _gone(summary["ioc"]["pid"])  # the simulated IOC is stopped
+    uids = summary["uids"]
+    assert {"find_beam", "search", "measurement", "find_offsets", "compare", "refine_offsets",
+            "diagnose", "add_effect"} <= set(uids)
+    n, n_open, n_an = (summary["n_configurations"], summary["n_open_configurations"],
+                       summary["n_analysed_configurations"])
+    assert (n, n_open, n_an) == (20, 4, 14)
+    labels = [h["model"] for h in summary["history"]]
+    assert labels[:3] == ["twin", "surrogate offsets", "+ offsets"]
+    out = proc.stdout
+    assert "error history" in out and "load them back" in out and uids["measurement"] in out
+    assert "Virtual circuit disconnect" not in proc.stderr  # channels closed before the IOC stopped
+
+    analysed = list(range(n_an - n_open)) + list(range(n - n_open, n))  # the first bright ones, the open ones
+    with open_store(tmp_path / "runs") as store:
+        assert set(summary["all_run_uids"]) <= set(store.uids())
+        m = store.load_measurement(uids["measurement"])
+        assert m.hist_x.shape == (n, 50) and m.truth_id == summary["truth_id"] and np.isfinite(m.hist_y).all()
+        # the last ones are the first bright ones with the slits open (outside the surrogate's box)
+        assert np.allclose(m.configurations[-n_open:, 0], m.configurations[:n_open, 0])
+        assert np.allclose(m.configurations[-n_open:, METRIXS.index("ExitSlit.totalHeight")], 0.1, atol=1e-6)
+        assert store[uids["find_offsets"]].metadata["start"]["n_configurations"] == n - n_open  # its box only
+        for step in ("compare", "refine_offsets", "diagnose", "add_effect"):
+            res = load_results(store, uids[step])
+            assert res["start"]["measurement_uid"] == uids["measurement"], step
+            assert res["start"]["analysed_configurations"] == analysed, step
+        ranking = load_results(store, uids["diagnose"])["ranking"]
+        assert [r["effect"] for r in ranking] == summary["rankings"][0]
+        hist = load_results(store, uids["add_effect"])["error_history"]
+        assert [h["label"] for h in hist] == labels
+        assert hist[-1]["chi2_reduced"] == pytest.approx(summary["history"][-1]["chi2_reduced"])
+
+    # the load-back line the summary prints works as printed
+    line = next(l_ for l_ in out.splitlines() if l_.strip().startswith("python -c"))
+    code = re.search(r'python -c "(.*)"\s*$', line).group(1)
+    back = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert back.returncode == 0 and f"({n}, 50)" in back.stdout, back.stderr[-2000:]
+
+    html = (tmp_path / "out" / "report.html").read_text()
+    assert html.count("data:image/png;base64,") >= 5
+    assert not re.search(r'(src|href)=["\']?(https?:)?//', html)  # self-contained: opens offline
+    for text in ("Error history", "ranking", summary["verdict"], uids["measurement"], uids["diagnose"]):
+        assert text in html
+
+
+def _gone(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return True
+    return False

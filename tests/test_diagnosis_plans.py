@@ -74,7 +74,7 @@ def test_analysis_plans_store_runs_linked_to_the_measurement(RE, twin, measured,
     m, _ = measured
     token = run_store.subscribe(RE)
     try:
-        # the paper's 50 x 50 histograms keep this workflow check small (the camera path: test_demo.py)
+        # the paper's 50 x 50 histograms keep this workflow check small (the camera path: test_diagnosis_ioc.py)
         out = RE(analyse_measurement(m.uid, twin, store=run_store, fit_options=FIT, scan_options=FIT,
                                      candidates=CANDIDATES, add_best=False, show=False, resolution="paper"))
     finally:

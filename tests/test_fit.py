@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from bluesky_offsets import effects as E
-from bluesky_offsets.fit import FitOptions, _Model, fit
+from bluesky_offsets.fit import FitOptions, _Model, _Products, fit, screen
 from bluesky_offsets.model import Measurement, ModelState, simulate
 from bluesky_offsets.parameters import METRIXS
 from bluesky_offsets.torch_engine import TorchEngine
@@ -111,3 +111,50 @@ def test_fit_through_the_differentiable_twin_recovers_a_hidden_defocus(defocus_c
     mf = evaluate(meas, res.state, twin, model_rays=16000, seed=99)
     assert mf.chi2_reduced_total < 1.5, mf.chi2_reduced_total
     assert res.covariance.shape == (35, 35) and np.all(np.isfinite(res.sigma))
+
+
+def test_secant_update_reproduces_the_step_and_keeps_the_rest():
+    """Broyden's update: along the step the updated Jacobian gives the change the twin made;
+    across it the Jacobian is unchanged."""
+    rng = np.random.default_rng(0)
+    J = rng.normal(size=(3, 4, 5))
+    old = _Products(rng.normal(size=(3, 4)), J, 100)
+    new = _Products(rng.normal(size=(3, 4)), None, 100)
+    step = rng.normal(size=5)
+    up = old.secant(new, step)
+    assert np.allclose(up.jacobian.reshape(12, 5) @ step, (new.values - old.values).reshape(-1))
+    across = np.linalg.svd(step[None])[2][1]  # a direction orthogonal to the step
+    assert np.allclose(up.jacobian.reshape(12, 5) @ across, J.reshape(12, 5) @ across)
+    assert up.values is new.values
+
+
+def test_secant_and_exact_fits_end_alike_and_the_uncertainty_is_the_twins(defocus_case):
+    """The secant updates between exact Jacobians (the default) reach the χ² of a fit with a
+    new exact Jacobian at every accepted step; the covariance is read from the twin's own
+    Jacobian at the solution, not from an update."""
+    meas, truth, twin = defocus_case
+    opts = FitOptions(rays=2000, seed=3, stages=(("features", 10), ("bins", 6)))
+    eng = TorchEngine(hist=CAMERA)
+    start = ModelState(truth.offsets * 0.7, {"chamber_z": {"z": 9.0}})
+    sec = fit(meas, start, eng, opts)
+    ex = fit(meas, start, eng, opts.replace(secant=False))
+    assert all(h["exact"] for h in ex.history)
+    assert any(not h["exact"] for h in sec.history)
+    assert sec.chi2_reduced <= 1.2 * ex.chi2_reduced, (sec.chi2_reduced, ex.chi2_reduced)
+    mdl = _Model(meas, sec.state, eng, opts, METRIXS)
+    r, G, _, _ = mdl.residuals("bins", mdl.products("bins", mdl.vector(sec.state), True))
+    assert np.array_equal(G, sec.jacobian) and np.array_equal(r, sec.residuals)
+
+
+def test_screen_is_a_cheap_look_that_only_goes_down(defocus_case):
+    """A screen: one Jacobian of the twin, a few steps on the features, the bins χ² where they
+    ended; it never raises the features χ² and reads no uncertainty."""
+    meas, truth, twin = defocus_case
+    opts = FitOptions(rays=2000, seed=3, stages=(("features", 5), ("bins", 5)))
+    eng = TorchEngine(hist=CAMERA)
+    start = ModelState(truth.offsets * 0.5, {"chamber_z": {"z": 8.0}})
+    res = screen(meas, start, eng, opts, iterations=4)
+    feats = [h["chi2"] for h in res.history if h["stage"] == "features"]
+    assert feats == sorted(feats, reverse=True) and res.history[-1]["stage"] == "bins"
+    assert res.chi2 == res.history[-1]["chi2"] and np.all(np.isnan(res.covariance))
+    assert res.n_traces == 6 * meas.n  # one Jacobian, four steps, the bins
