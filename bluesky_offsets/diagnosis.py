@@ -169,7 +169,7 @@ def _folds(n: int, k: int, seed: int) -> list[np.ndarray]:
 # the bins.  All fits of one diagnosis share their rays (one seed), so their χ² compare
 # without sampling noise.
 FIT = FitOptions(rays=5000, stages=(("features", 15), ("profiles", 8), ("bins", 10)))
-SCAN = FitOptions(rays=3000, stages=(("features", 5), ("bins", 5)), secant=False)
+SCAN = FitOptions(rays=3000, stages=(("features", 5), ("bins", 5)))
 FIT_TOP: int | None = None
 """Candidates a diagnosis fits to convergence after every start of every candidate is screened
 (:func:`bluesky_offsets.fit.screen`); None (the default): every start fitted.  Not the default
