@@ -478,6 +478,10 @@ def fit(meas, state, engine, options: FitOptions | Mapping | None = None, *,
     A = G.T @ G + np.diag(ridge)
     d = np.sqrt(np.clip(np.diag(A), 1e-300, None))
     cov = np.linalg.pinv(A / np.outer(d, d), rcond=1e-12) / np.outer(d, d)
+    # a parameter the data do not see at all (a thermal bump below its threshold: no bump, a
+    # zero column) has no uncertainty to give; the pseudo-inverse's 0 would print "± 0"
+    blind = np.diag(A) <= 0
+    cov[blind, blind] = np.nan
     chi2 = float(r @ r)
     inflation = max(1.0, chi2 / max(dof, 1.0))
     return FitResult(mdl.state(z), history, cov * inflation, mdl.names, chi2, dof, inflation, mdl.n_traces, G, r,

@@ -158,3 +158,17 @@ def test_screen_is_a_cheap_look_that_only_goes_down(defocus_case):
     assert feats == sorted(feats, reverse=True) and res.history[-1]["stage"] == "bins"
     assert res.chi2 == res.history[-1]["chi2"] and np.all(np.isnan(res.covariance))
     assert res.n_traces == 6 * meas.n  # one Jacobian, four steps, the bins
+
+
+def test_a_parameter_the_data_do_not_see_has_no_uncertainty():
+    """A thermal bump below its threshold is no bump (its column is zero): its σ is NaN, never
+    the pseudo-inverse's 0 that would print "± 0"."""
+    cfg = _configurations(2)
+    truth = ModelState(np.zeros(len(METRIXS)), {})
+    eng = TorchEngine()
+    hx, hy = simulate(Twin(eng), cfg, truth, 800, seed=[1, 2])
+    meas = Measurement(cfg, hx, hy, 800)
+    res = fit(meas, ModelState().with_effect("thermal_bump_m1", {"height": 0.0}), eng,
+              FitOptions(rays=800, seed=2, stages=(("bins", 1),)))
+    assert np.isnan(res.effect_sigma()["thermal_bump_m1"]["height"])
+    assert np.all(np.isfinite(res.offset_sigma)) and np.all(res.offset_sigma > 0)
