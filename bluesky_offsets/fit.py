@@ -488,8 +488,6 @@ def fit(meas, state, engine, options: FitOptions | Mapping | None = None, *,
                      rows, o.stages[-1][0], ridge)
 
 
-
-
 def screen(meas, state, engine, options: FitOptions | Mapping | None = None, *, iterations: int = 6,
            table: ParameterTable = METRIXS) -> FitResult:
     """A cheap look at ``state``: the features stage on one Jacobian of the twin (at ``state``)
