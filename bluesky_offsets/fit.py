@@ -403,6 +403,64 @@ def _lm_step(G: np.ndarray, r: np.ndarray, z: np.ndarray, lam: float, ridge: np.
         return np.linalg.lstsq(M, g, rcond=None)[0]
 
 
+def _ridge(mdl: _Model, o: FitOptions) -> np.ndarray:
+    """The prior's diagonal in the normal matrix: the offsets' Gaussian prior, none on effects."""
+    prior = 0.0 if o.prior_sigma is None else o.prior_sigma ** -2.0
+    return np.r_[np.full(mdl.P, prior), np.zeros(len(mdl.params))]
+
+
+def _stage(mdl: _Model, stage: str, z: np.ndarray, pr: _Products, iterations: int, ridge: np.ndarray,
+           history: list[dict], progress: Callable[[dict], None] | None, *, secant: bool,
+           look: bool = False) -> tuple[np.ndarray, _Products, bool]:
+    """Levenberg-Marquardt on one stage from ``z``, whose products (with the twin's Jacobian)
+    are ``pr``; appends to ``history``.  Returns where it ended, the products there and whether
+    their Jacobian is the twin's own.  ``look`` (:func:`screen`): every accepted step updates
+    the Jacobian by its secant, none is recomputed, and all ``iterations`` run."""
+    lo, hi = mdl.bounds()
+    exact = True  # the Jacobian is the twin's at z (not a secant update of it)
+    r, G, dof, _ = mdl.residuals(stage, pr)
+    chi2 = float(r @ r) + float((ridge * z * z).sum())
+    lam = mdl.o.damping
+
+    def record(it: int, accepted: bool) -> None:
+        history.append({"stage": stage, "iteration": it, "accepted": accepted, "chi2": chi2, "dof": dof,
+                        "chi2_reduced": chi2 / max(dof, 1.0), "damping": lam, "exact": exact})
+        if progress:
+            progress(history[-1])
+
+    record(0, True)
+    small = 0
+    for it in range(1, iterations + 1):
+        zc = np.clip(z + _lm_step(G, r, z, lam, ridge), lo, hi)
+        pc = mdl.products(stage, zc, False)
+        rc = mdl.residuals(stage, pc)[0]
+        cc = float(rc @ rc) + float((ridge * zc * zc).sum())
+        accepted = bool(cc < chi2) and bool(np.any(zc != z))
+        if accepted:
+            gain = (chi2 - cc) / max(chi2, 1e-300)
+            small = small + 1 if gain < mdl.o.tolerance else 0
+            if look or (secant and not small):
+                # a value costs a tenth of a Jacobian: while the steps gain, secant updates
+                pr, exact = pr.secant(pc, zc - z), False
+            else:
+                # little gain (or no secants): the twin's own Jacobian where the step ended,
+                # so that a stage ends on what the twin says, not on a stale update
+                pr, exact = mdl.products(stage, zc, True), True
+            z, chi2 = zc, cc
+            r, G, dof, _ = mdl.residuals(stage, pr)
+            lam = max(lam / 3.0, 1e-9)
+        elif not exact and not look:
+            # refused on an updated Jacobian: the twin's own, before any more damping
+            pr, exact = mdl.products(stage, z, True), True
+            r, G, dof, _ = mdl.residuals(stage, pr)
+        else:
+            lam *= 4.0
+        record(it, accepted)
+        if not look and (small >= 2 or lam > 1e6):
+            break
+    return z, pr, exact
+
+
 def fit(meas, state, engine, options: FitOptions | Mapping | None = None, *,
         progress: Callable[[dict], None] | None = None, table: ParameterTable = METRIXS) -> FitResult:
     """Fit the offsets and the state's effect parameters to ``meas`` (see the module text).
@@ -420,59 +478,16 @@ def fit(meas, state, engine, options: FitOptions | Mapping | None = None, *,
     """
     o = FitOptions.resolve(options)
     mdl = _Model(meas, state, engine, o, table)
-    lo, hi = mdl.bounds()
-    z = np.clip(mdl.vector(state), lo, hi)
-    ridge = np.r_[np.full(mdl.P, 0.0 if o.prior_sigma is None else o.prior_sigma ** -2.0), np.zeros(len(mdl.params))]
+    z = np.clip(mdl.vector(state), *mdl.bounds())
+    ridge = _ridge(mdl, o)
     history: list[dict] = []
-    r = G = rows = None
-    dof = 1.0
     for stage, iterations in o.stages:
-        pr = mdl.products(stage, z, True)
-        exact = True  # the Jacobian is the twin's at z (not a secant update of it)
-        r, G, dof, rows = mdl.residuals(stage, pr)
-        chi2 = float(r @ r) + float((ridge * z * z).sum())
-        lam = o.damping
-        history.append({"stage": stage, "iteration": 0, "accepted": True, "chi2": chi2, "dof": dof,
-                        "chi2_reduced": chi2 / max(dof, 1.0), "damping": lam, "exact": True})
-        if progress:
-            progress(history[-1])
-        small = 0
-        for it in range(1, iterations + 1):
-            step = _lm_step(G, r, z, lam, ridge)
-            zc = np.clip(z + step, lo, hi)
-            pc = mdl.products(stage, zc, False)
-            rc = mdl.residuals(stage, pc)[0]
-            cc = float(rc @ rc) + float((ridge * zc * zc).sum())
-            accepted = bool(cc < chi2) and bool(np.any(zc != z))
-            if accepted:
-                gain = (chi2 - cc) / max(chi2, 1e-300)
-                small = small + 1 if gain < o.tolerance else 0
-                if o.secant and not small:
-                    # a value costs a tenth of a Jacobian: while the steps gain, secant updates
-                    pr, exact = pr.secant(pc, zc - z), False
-                else:
-                    # little gain (or no secants): the twin's own Jacobian where the step ended,
-                    # so that a stage ends on what the twin says, not on a stale update
-                    pr, exact = mdl.products(stage, zc, True), True
-                z, chi2 = zc, cc
-                r, G, dof, rows = mdl.residuals(stage, pr)
-                lam = max(lam / 3.0, 1e-9)
-            elif not exact:
-                # refused on an updated Jacobian: the twin's own, before any more damping
-                pr, exact = mdl.products(stage, z, True), True
-                r, G, dof, rows = mdl.residuals(stage, pr)
-            else:
-                lam *= 4.0
-            history.append({"stage": stage, "iteration": it, "accepted": accepted, "chi2": chi2, "dof": dof,
-                            "chi2_reduced": chi2 / max(dof, 1.0), "damping": lam, "exact": exact})
-            if progress:
-                progress(history[-1])
-            if small >= 2 or lam > 1e6:
-                break
+        z, pr, exact = _stage(mdl, stage, z, mdl.products(stage, z, True), iterations, ridge, history, progress,
+                              secant=o.secant)
     if not exact:
         # the uncertainty (and everything read from the Jacobian) at the twin's own Jacobian
         pr = mdl.products(o.stages[-1][0], z, True)
-        r, G, dof, rows = mdl.residuals(o.stages[-1][0], pr)
+    r, G, dof, rows = mdl.residuals(o.stages[-1][0], pr)
     # the covariance of the last stage: Gauss-Newton at the solution; a bound that holds a
     # parameter does not shrink its uncertainty below what the data say
     A = G.T @ G + np.diag(ridge)
@@ -498,35 +513,17 @@ def screen(meas, state, engine, options: FitOptions | Mapping | None = None, *, 
     not a solution: no uncertainty is read from it)."""
     o = FitOptions.resolve(options)
     mdl = _Model(meas, state, engine, o, table)
-    lo, hi = mdl.bounds()
-    z = np.clip(mdl.vector(state), lo, hi)
-    ridge = np.r_[np.full(mdl.P, 0.0 if o.prior_sigma is None else o.prior_sigma ** -2.0), np.zeros(len(mdl.params))]
+    z = np.clip(mdl.vector(state), *mdl.bounds())
+    ridge = _ridge(mdl, o)
     pr = mdl.products("features", z, True)
-    r, G, dof, rows = mdl.residuals("features", pr)
-    G0, r0, rows0 = G, r, rows
-    chi2 = float(r @ r) + float((ridge * z * z).sum())
-    lam = o.damping
-    history = [{"stage": "features", "iteration": 0, "accepted": True, "chi2": chi2, "dof": dof,
-                "chi2_reduced": chi2 / max(dof, 1.0), "damping": lam, "exact": True}]
-    for it in range(1, iterations + 1):
-        zc = np.clip(z + _lm_step(G, r, z, lam, ridge), lo, hi)
-        pc = mdl.products("features", zc, False)
-        rc = mdl.residuals("features", pc)[0]
-        cc = float(rc @ rc) + float((ridge * zc * zc).sum())
-        accepted = bool(cc < chi2) and bool(np.any(zc != z))
-        if accepted:
-            pr, z, chi2 = pr.secant(pc, zc - z), zc, cc
-            r, G, dof, rows = mdl.residuals("features", pr)
-            lam = max(lam / 3.0, 1e-9)
-        else:
-            lam *= 4.0
-        history.append({"stage": "features", "iteration": it, "accepted": accepted, "chi2": chi2, "dof": dof,
-                        "chi2_reduced": chi2 / max(dof, 1.0), "damping": lam, "exact": False})
+    r0, G0, _, rows0 = mdl.residuals("features", pr)  # the look's Jacobian: the twin's, at ``state``
+    history: list[dict] = []
+    z, _, _ = _stage(mdl, "features", z, pr, iterations, ridge, history, None, secant=True, look=True)
     stage = o.stages[-1][0]
     rl, _, dof_l, _ = mdl.residuals(stage, mdl.products(stage, z, False))
     chi2_l = float(rl @ rl)
     history.append({"stage": stage, "iteration": 0, "accepted": True, "chi2": chi2_l, "dof": dof_l,
-                    "chi2_reduced": chi2_l / max(dof_l, 1.0), "damping": lam, "exact": False})
+                    "chi2_reduced": chi2_l / max(dof_l, 1.0), "damping": history[-1]["damping"], "exact": False})
     nan = np.full((len(z), len(z)), np.nan)
     return FitResult(mdl.state(z), history, nan, mdl.names, chi2_l, dof_l, 1.0, mdl.n_traces, G0, r0, rows0,
                      "features", ridge)
