@@ -244,3 +244,13 @@ def run_store(tmp_path_factory):
     store = open_store(tmp_path_factory.mktemp("run_store"))
     yield store
     store.close()
+
+
+@pytest.hookimpl(tryfirst=True)
+def pytest_collection_modifyitems(config, items):
+    """pytest-xdist (``--dist loadgroup``): a module's tests stay on one worker, so that its
+    module- and session-scoped fixtures (a measured beamline, a trained model) are built once,
+    unless a test names its own group (the IOC acceptance demos: one group per demo)."""
+    for item in items:
+        if item.get_closest_marker("xdist_group") is None:
+            item.add_marker(pytest.mark.xdist_group(item.module.__name__))

@@ -67,7 +67,13 @@ def demo_run(tmp_path_factory):
     return run
 
 
-@pytest.mark.parametrize("scenario", list(SCENARIOS))
+def _on_its_own(scenario: str):
+    """Each demo's tests on one pytest-xdist worker (its demo runs once there), the demos spread
+    over the workers."""
+    return pytest.mark.xdist_group(f"demo-{scenario}")
+
+
+@pytest.mark.parametrize("scenario", [pytest.param(s, marks=_on_its_own(s)) for s in SCENARIOS])
 def test_hidden_effect_is_found_added_and_fitted(scenario, demo_run):
     effect, name, param, hidden = SCENARIOS[scenario]
     _, s, _ = demo_run(scenario)
@@ -82,12 +88,14 @@ def test_hidden_effect_is_found_added_and_fitted(scenario, demo_run):
     assert after["mse"] < 1.5 * after["expected_mse"]
 
 
+@_on_its_own("none")
 def test_no_hidden_effect_reports_none(demo_run):
     _, s, _ = demo_run("none")
     assert s["verdict"] == "no significant missing effect", (s["verdict"], s["history"][-1])
     assert s["fitted_effects"] == {}
 
 
+@_on_its_own("chamber_z")
 def test_the_main_job_s_runs_load_back_by_uid(demo_run):
     """The chamber_z scenario is the README's main job: every step a run in the store, linked to
     the measurement; the load-back line it prints works as printed; the report is self-contained."""
