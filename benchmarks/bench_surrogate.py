@@ -43,7 +43,7 @@ def bench_generator(n_rays: int, n_draws: int, screen_rays: int, keep_fraction: 
     for label, scheme in (("pre-screen", DrawScheme(screen_rays=screen_rays, keep_fraction=keep_fraction)),
                           ("no screen (every draw traced)", DrawScheme(screen_rays=0))):
         s = GenerationSettings(n_rays=n_rays, seed=12345, block_size=n_draws, scheme=scheme)
-        with dataset._openmp_threads(1):
+        with dataset.openmp_threads(1):
             t0, c0 = time.perf_counter(), time.process_time()
             res = dataset.generate_block(twin.engine, s, 0)
             cpu, wall = time.process_time() - c0, time.perf_counter() - t0

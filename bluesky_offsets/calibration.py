@@ -7,11 +7,9 @@
   multi-start gradient through the surrogate) and, when a twin is given,
   polishes the result against the twin itself (:func:`twin_polish`: the one fit
   engine), since the surrogate's own error is far above a 1e5-ray measurement's noise.
-* :func:`find_offsets_run` - a plan: opens a run, runs the finder in a
-  worker thread and streams its progress live as ``finder`` events
-  (evaluations, seconds, best MSE; plot them with :class:`LossPlot` or
-  bluesky's ``LivePlot``), then emits the result as one ``offsets`` event
-  (offsets, sigma, status, loss curve) and returns the :class:`Calibration`.
+* :class:`LossPlot` - a callback that plots the finder's progress live: the ``finder``
+  events of :func:`plans.find_offsets` (evaluations, seconds, best MSE), the plan that
+  runs an :class:`OffsetFinder` on a measurement.
 * :func:`apply_offsets` - a plan that updates the model (a
   :class:`CalibratedModel`: the twin and/or the surrogate seen through the
   offsets), never the motors, and records what it applied in a run.
@@ -20,8 +18,6 @@
 from __future__ import annotations
 
 import json
-import queue
-import threading
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
@@ -221,90 +217,8 @@ class OffsetFinder:
 
 
 # --------------------------------------------------------------------------- #
-# plans
+# the calibrated model, and the plan that updates it
 # --------------------------------------------------------------------------- #
-def _signals(prefix: str = "finder"):
-    from ophyd import Signal
-    return {"evaluations": Signal(name=f"{prefix}_evaluations", value=0),
-            "seconds": Signal(name=f"{prefix}_seconds", value=0.0),
-            "loss": Signal(name=f"{prefix}_loss", value=float("nan"))}
-
-
-def find_offsets_run(configurations, histograms, finder: Callable, *, n_rays: int | None = None,
-                     uid: str | None = None, md: Mapping | None = None, poll: float = 0.2):
-    """Plan: run ``finder`` on a measurement inside a Bluesky run, live.
-
-    Emits ``finder`` events while it works (``finder_evaluations``,
-    ``finder_seconds``, ``finder_loss``), then one ``offsets`` event with
-    ``offsets`` / ``offsets_sigma`` (normalized), ``offsets_physical``,
-    ``offsets_status`` (0 determined, 1 weak, 2 undetermined) and the loss
-    curve; the start document names the measurement run (``measurement_uid``).
-    Returns the :class:`Calibration`.
-    """
-    import bluesky.plan_stubs as bps
-    from ophyd import Signal
-
-    progress_q: queue.Queue = queue.Queue()
-    box: dict = {}
-
-    def work():
-        try:
-            box["result"] = finder(configurations, histograms, n_rays=n_rays, callback=progress_q.put, uid=uid)
-        except BaseException as exc:  # re-raised in the plan, where the RunEngine reports it
-            box["error"] = exc
-
-    sig = _signals()
-    md = {"plan_name": "find_offsets", "measurement_uid": uid, "n_configurations": int(len(configurations)),
-          "table_version": METRIXS.version, "parameter_names": list(METRIXS.names), **dict(md or {})}
-    yield from bps.open_run(md=md)
-    thread = threading.Thread(target=work, name="offset-finder", daemon=True)
-    thread.start()
-
-    def drain():
-        while True:
-            try:
-                d = progress_q.get_nowait()
-            except queue.Empty:
-                return
-            yield from bps.mv(sig["evaluations"], int(d["evaluations"]), sig["seconds"], float(d["seconds"]),
-                              sig["loss"], float(d["loss"]))
-            yield from bps.trigger_and_read(list(sig.values()), name="finder")
-
-    while thread.is_alive():
-        yield from bps.sleep(poll)
-        yield from drain()
-    thread.join()
-    yield from drain()
-    if "error" in box:
-        yield from bps.close_run(exit_status="fail", reason=str(box["error"]))
-        raise box["error"]
-    cal: Calibration = box["result"]
-    status_code = {"determined": 0, "weak": 1, "undetermined": 2}
-    out = [Signal(name="offsets", value=np.asarray(cal.offsets)),
-           Signal(name="offsets_sigma", value=np.asarray(cal.sigma)),
-           Signal(name="offsets_physical", value=cal.physical_offsets()),
-           Signal(name="offsets_status", value=np.array([status_code[s] for s in cal.status])),
-           Signal(name="loss_curve_evaluations", value=np.asarray(cal.history.get("evaluations", []), float)),
-           Signal(name="loss_curve_loss", value=np.asarray(cal.history.get("loss", []), float)),
-           Signal(name="final_mse", value=float(cal.loss)),
-           Signal(name="twin_mse", value=float(cal.twin_mse) if cal.twin_mse is not None else float("nan"))]
-    yield from bps.trigger_and_read(out, name="offsets")
-    yield from bps.close_run()
-    return cal
-
-
-def find_offsets_live(finder: Callable, measurement, *, store=None, md: Mapping | None = None, poll: float = 0.2):
-    """Plan: :func:`find_offsets_run` on a :class:`bluesky_offsets.store.Measurement` or the uid
-    of a measurement run in ``store`` (issue 3's run store), with live progress."""
-    from .store import as_measurement
-    m = as_measurement(measurement, store)
-    m.check_table(METRIXS)
-    _md = {"truth_id": m.truth_id} if m.truth_id else {}
-    _md.update(md or {})
-    return (yield from find_offsets_run(m.configurations, m.histograms, finder, n_rays=m.metadata.get("n_rays"),
-                                        uid=m.uid, md=_md, poll=poll))
-
-
 class CalibratedModel:
     """The digital twin and/or surrogate seen through the found offsets.
 
@@ -376,8 +290,8 @@ class LossPlot:
     """
 
     def __init__(self, path=None, ax=None):
-        from .plotting import _plt
-        self.plt = _plt()
+        from .plotting import pyplot
+        self.plt = pyplot()
         self.path = path
         if ax is None:
             self.fig, self.ax = self.plt.subplots(figsize=(6, 4), constrained_layout=True)
@@ -399,9 +313,9 @@ class LossPlot:
             self._desc.add(doc["uid"])
         elif name == "event" and doc["descriptor"] in self._desc:
             d = doc["data"]
-            if d["finder_loss"] > 0 and d["finder_evaluations"] > 0:
-                self.x.append(d["finder_evaluations"])
-                self.y.append(d["finder_loss"])
+            if d.get("loss", 0) > 0 and d.get("evaluations", 0) > 0:
+                self.x.append(d["evaluations"])
+                self.y.append(d["loss"])
                 self.line.set_data(self.x, self.y)
                 self.ax.relim()
                 self.ax.autoscale_view()

@@ -31,6 +31,21 @@ class CliError(Exception):
     """A user error: printed without a traceback, exit status 2."""
 
 
+def quiet_logs() -> None:
+    """Dask's and tiled's INFO lines would drown the progress.  Their imports set their
+    loggers to INFO, so they are imported first."""
+    import importlib
+    import logging
+    for module in ("distributed", "tiled.server.app"):
+        try:
+            importlib.import_module(module)
+        except ImportError:  # pragma: no cover - a client-only tiled
+            pass
+    for name in list(logging.root.manager.loggerDict):
+        if name.split(".")[0] in ("distributed", "tiled", "httpx", "bokeh"):
+            logging.getLogger(name).setLevel(logging.WARNING)
+
+
 # --------------------------------------------------------------------------- #
 # params
 # --------------------------------------------------------------------------- #

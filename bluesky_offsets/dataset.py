@@ -192,7 +192,7 @@ _ROW_FIELDS = ("index", "params", "hist_x", "hist_y", "n_hits", "screen_hits", "
 
 
 @contextlib.contextmanager
-def _openmp_threads(n: int):
+def openmp_threads(n: int):
     """Limit the OpenMP runtimes loaded in this process to ``n`` threads for a while.
 
     Many small traces in one process run ~7x faster on one thread than on
@@ -235,7 +235,7 @@ def _run_blocks(twin: Twin, settings: GenerationSettings, blocks, on_result: Cal
     """
     engine = twin.engine
     if twin.scheduler == "inline":
-        with _openmp_threads(1):
+        with openmp_threads(1):
             for b in blocks:
                 if not on_result(generate_block(engine, settings, b)):
                     return

@@ -20,6 +20,7 @@ The IOC is always stopped, also after an error or Ctrl-C.
 from __future__ import annotations
 
 import json
+import math
 import os
 import socket
 import subprocess
@@ -271,32 +272,6 @@ def demo_plan(s: DemoSettings, beamline, chamber, twin, forward_model, store, lo
     return {"measurement": m, "offsets": found, "analysis": analysis, "times": t, "n_open": n_open, "beam": beam}
 
 
-def _quiet_logs() -> None:
-    """Dask's and tiled's INFO lines would drown the progress.  Their imports set their
-    loggers to INFO, so they are imported first."""
-    import importlib
-    import logging
-    for module in ("distributed", "tiled.server.app"):
-        try:
-            importlib.import_module(module)
-        except ImportError:  # pragma: no cover - a client-only tiled
-            pass
-    for name in list(logging.root.manager.loggerDict):
-        if name.split(".")[0] in ("distributed", "tiled", "httpx", "bokeh"):
-            logging.getLogger(name).setLevel(logging.WARNING)
-
-
-def _history_lines(analysis) -> list[str]:
-    lines = [f"  {'model':26s} {'chi2/dof':>9s} {'MSE':>10s} {'noise MSE':>10s} {'MSE/noise':>9s}  effects"]
-    for c in analysis.comparisons:
-        r = c.total_row()
-        eff = "; ".join(f"{e}: " + ", ".join(f"{k} = {v:.3g} ± {c.effect_sigma.get(e, {}).get(k, float('nan')):.2g}"
-                                              for k, v in vals.items()) for e, vals in c.state.effects.items())
-        lines.append(f"  {c.label:26s} {r['chi2_reduced']:9.3f} {r['mse']:10.3e} {r['expected_mse']:10.3e} "
-                     f"{r['mse_over_noise']:9.2f}  {eff}")
-    return lines
-
-
 def run_demo(out: Path, settings: DemoSettings | None = None, store_location: str | None = None) -> dict:
     """The whole demo; returns the summary (also written to ``out/summary.json``)."""
     s = settings or DemoSettings()
@@ -325,11 +300,12 @@ def run_demo(out: Path, settings: DemoSettings | None = None, store_location: st
 
         from .devices import FocusChamber, MetrixsBeamline
         from .finder import load_forward_model
+        from .cli import quiet_logs
         from .report import paragraph, table_, write_analysis_report
         from .store import open_store
         from .twin import Twin
 
-        _quiet_logs()
+        quiet_logs()
         store = open_store(store_location)
         forward_model = load_forward_model()
         twin = Twin(n_rays=s.n_rays, n_workers=s.workers)
@@ -423,6 +399,7 @@ def _close_channels(RE) -> None:
 
 
 def _print_summary(summary: dict, analysis, location: str) -> None:
+    from .report import history_lines
     print()
     print(f"verdict: {summary['verdict']}")
     for k, ranking in enumerate(summary["rankings"], 1):
@@ -431,10 +408,10 @@ def _print_summary(summary: dict, analysis, location: str) -> None:
     for name, vals in summary["fitted_effects"].items():
         hidden = summary["hidden_effects"].get(name, {})
         print(f"fitted {name}: " + ", ".join(
-            f"{k} = {v:.3g} ± {sg:.2g}" + (f" (hidden {hidden[k]:.3g})" if k in hidden else "")
+            f"{k} = {v:.3g}" + (f" ± {sg:.2g}" if math.isfinite(sg) else "") + (f" (hidden {hidden[k]:.3g})" if k in hidden else "")
             for k, (v, sg) in vals.items()))
     print("error history (a correct model: chi2/dof ≈ 1, MSE ≈ its noise expectation):")
-    for line in _history_lines(analysis):
+    for line in history_lines(analysis):
         print(line)
     print("runs in the store:")
     for k, v in summary["uids"].items():

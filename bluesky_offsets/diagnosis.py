@@ -519,8 +519,8 @@ def add_effect_result(meas: Measurement, state: ModelState, name: str, twin=None
 
 
 def plot_error_history(versions: Sequence[Version], path, title: str = "model error across versions"):
-    from .plotting import _plt, save_figure
-    plt = _plt()
+    from .plotting import pyplot, save_figure
+    plt = pyplot()
     fig, ax = plt.subplots(figsize=(6.5, 3.8), constrained_layout=True)
     labels = [v.label for v in versions]
     chi = [v.misfit.chi2_reduced_total for v in versions]
@@ -539,8 +539,8 @@ def plot_error_history(versions: Sequence[Version], path, title: str = "model er
 
 def plot_ranking(diag: Diagnosis, path, top: int = 5):
     """Candidate scores, and the top candidates' predicted signatures beside the observed one."""
-    from .plotting import _plt, save_figure
-    plt = _plt()
+    from .plotting import pyplot, save_figure
+    plt = pyplot()
     cands = diag.candidates[:top]
     keys = [k for k in diag.observed_signature if not k.endswith("skewness")]
     fig, (ax0, ax1) = plt.subplots(1, 2, figsize=(13, 4.2), constrained_layout=True,

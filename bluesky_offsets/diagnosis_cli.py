@@ -111,10 +111,10 @@ def _cmd_diagnose(args) -> int:
         print(f"measurement {meas.uid}: {meas.n} configurations at {meas.n_rays} rays; results go to "
               f"{store.location}", file=log, flush=True)
         with Twin(n_rays=int(meas.n_rays), scheduler=args.scheduler) as twin:
-            from .demo import _quiet_logs
+            from .cli import quiet_logs
             if args.scheduler != "inline":
                 twin.client
-                _quiet_logs()
+                quiet_logs()
             analysis = RE(analyse_measurement(
                 stored, twin, starts=starts, refine=not args.no_refine, candidates=candidates,
                 add_best=not args.no_add, rounds=args.rounds, fit_options=fit_options, seed=args.seed,
@@ -130,9 +130,9 @@ def _cmd_diagnose(args) -> int:
         if args.json:
             print(json.dumps(out, indent=1, default=float))
         else:
-            from .demo import _history_lines
+            from .report import history_lines
             print(out["verdict"])
-            for line in _history_lines(analysis):
+            for line in history_lines(analysis):
                 print(line)
             for k, v in out["uids"].items():
                 print(f"  {k:16s} {v}")

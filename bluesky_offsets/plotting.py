@@ -7,7 +7,8 @@ from pathlib import Path
 import numpy as np
 
 
-def _plt():
+def pyplot():
+    """matplotlib.pyplot on the headless Agg backend (figures are written, never shown)."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -31,7 +32,7 @@ def plot_footprint(result, hist, path: str | Path, title: str = "") -> Path:
     ``result`` is a :class:`~bluesky_offsets.twin.TraceResult` traced with
     ``keep_rays=True``; ``hist`` its :class:`~bluesky_offsets.twin.HistogramSpec`.
     """
-    plt = _plt()
+    plt = pyplot()
     fig = plt.figure(figsize=(8, 6.5), constrained_layout=True)
     gs = fig.add_gridspec(2, 2, width_ratios=(4, 1.3), height_ratios=(1.3, 4))
     ax = fig.add_subplot(gs[1, 0])

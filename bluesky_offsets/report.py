@@ -5,6 +5,7 @@ from __future__ import annotations
 import base64
 import html
 import json
+import math
 import time
 from collections.abc import Mapping, Sequence
 from pathlib import Path
@@ -96,8 +97,8 @@ def _fmt_values(values: Mapping, sigma: Mapping | None = None, units: Mapping | 
 
 def _plot_progress(runs: Sequence[tuple[str, Sequence[Mapping]]], path: Path) -> Path:
     """chi2/dof of the twin at each refinement iteration (accepted steps filled)."""
-    from .plotting import _plt, save_figure
-    plt = _plt()
+    from .plotting import pyplot, save_figure
+    plt = pyplot()
     fig, ax = plt.subplots(figsize=(6.5, 3.5), constrained_layout=True)
     offset = 0
     for k, (label, hist) in enumerate(runs):
@@ -305,3 +306,20 @@ def diag_label(analysis, k: int) -> str:
     if k == 1:
         return analysis.refinement.comparison.label if analysis.refinement else analysis.comparisons[0].label
     return analysis.refits[k - 2].comparison.label
+
+
+def history_lines(analysis) -> list[str]:
+    """The error history of an analysis as aligned text lines (the terminal's version of the
+    report's table); an uncertainty that is not finite is left out."""
+    lines = [f"  {'model':26s} {'chi2/dof':>9s} {'MSE':>10s} {'noise MSE':>10s} {'MSE/noise':>9s}  effects"]
+    for c in analysis.comparisons:
+        r = c.total_row()
+        eff = "; ".join(f"{e}: " + ", ".join(_value(k, v, c.effect_sigma.get(e, {}).get(k, math.nan))
+                                              for k, v in vals.items()) for e, vals in c.state.effects.items())
+        lines.append(f"  {c.label:26s} {r['chi2_reduced']:9.3f} {r['mse']:10.3e} {r['expected_mse']:10.3e} "
+                     f"{r['mse_over_noise']:9.2f}  {eff}")
+    return lines
+
+
+def _value(name: str, value: float, sigma: float) -> str:
+    return f"{name} = {value:.3g}" + (f" ± {sigma:.2g}" if math.isfinite(sigma) else "")

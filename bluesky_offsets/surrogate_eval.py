@@ -27,7 +27,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from .dataset import GOOD_MIN_RAYS, DrawScheme, GenerationSettings, _openmp_threads, draw_in_memory
+from .dataset import GOOD_MIN_RAYS, DrawScheme, GenerationSettings, openmp_threads, draw_in_memory
 from .surrogate import Surrogate
 from .twin import Twin
 
@@ -68,7 +68,7 @@ def _trace_set(twin: Twin, settings: GenerationSettings, min_samples: int, min_n
     data = draw_in_memory(twin, s, min_samples=min_samples, min_nonempty=min_nonempty, progress=progress)
     # repeat traces with seeds no draw uses (the draws' seeds come from their own streams)
     rs = np.random.default_rng([seed, 2**40 + 17]).integers(0, 2**32, size=len(data["index"]))
-    with _openmp_threads(1) if twin.scheduler == "inline" else contextlib.nullcontext():
+    with openmp_threads(1) if twin.scheduler == "inline" else contextlib.nullcontext():
         rep = twin.trace_batch(data["params"], n_rays=settings.n_rays, seed=[int(x) for x in rs],
                                progress=progress)
     ok = rep.ok

@@ -30,15 +30,10 @@ arrays of at most 16 numbers in its tables as text.
 from __future__ import annotations
 
 import json
-import queue
-import threading
-import time
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass, field
 from typing import Any
 
-import bluesky.plan_stubs as bps
-import bluesky.preprocessors as bpp
 import numpy as np
 from bluesky.utils import MsgGenerator
 
@@ -61,6 +56,8 @@ from bluesky_offsets.model import (
     simulate,
 )
 from bluesky_offsets.parameters import METRIXS, ParameterTable
+
+from ._stubs import emit_rows, in_run, run_in_thread
 
 MODEL_SEED = 777
 """Seed base of the fresh-ray model traces of :func:`compare_model` (as ``diagnosis.evaluate``)."""
@@ -200,40 +197,6 @@ def resolve_measurement(measurement, store=None, *, n_rays: int | None = None, r
     return m, md
 
 
-class _Record:
-    """A readable whose values the plan sets: how computed results enter an event stream.
-
-    One instance per stream (the RunEngine requires the same objects in every event of a
-    stream); numbers, strings and arrays longer than 16 values."""
-
-    def __init__(self, name: str):
-        self.name, self.parent = name, None
-        self._values: dict[str, Any] = {}
-        self._time = time.time()
-
-    def set(self, values: Mapping[str, Any]) -> None:
-        self._values, self._time = dict(values), time.time()
-
-    def read(self) -> dict:
-        return {k: {"value": v, "timestamp": self._time} for k, v in self._values.items()}
-
-    def describe(self) -> dict:
-        out = {}
-        for k, v in self._values.items():
-            if isinstance(v, str):
-                out[k] = {"source": "analysis", "dtype": "string", "shape": []}
-            elif isinstance(v, (bool, np.bool_)):
-                out[k] = {"source": "analysis", "dtype": "boolean", "shape": []}
-            elif np.ndim(v):
-                arr = np.asarray(v)
-                out[k] = {"source": "analysis", "dtype": "array", "shape": list(arr.shape),
-                          "dtype_numpy": arr.dtype.str}
-            else:
-                out[k] = {"source": "analysis", "dtype": "integer" if isinstance(v, (int, np.integer))
-                          else "number", "shape": []}
-        return out
-
-
 def _jsonable(obj):
     if isinstance(obj, Mapping):
         return {str(k): _jsonable(v) for k, v in obj.items()}
@@ -248,98 +211,6 @@ def _jsonable(obj):
 
 def _json(obj) -> str:
     return json.dumps(_jsonable(obj))
-
-
-def emit_rows(stream: str, rows: Sequence[Mapping[str, Any]]) -> MsgGenerator[None]:
-    """One event per row in ``stream`` (rows share their keys)."""
-    rec = _Record(stream)
-    for row in rows:
-        rec.set(row)
-        yield from bps.create(name=stream)
-        yield from bps.read(rec)
-        yield from bps.save()
-
-
-BAR_KEYS = ("iteration", "accepted", "chi2_reduced", "chi2_features", "jacobian_refreshed")
-
-
-def run_in_thread(func: Callable[[Callable[[dict], None]], Any], *, stream: str | None = "progress",
-                  desc: str = "working", poll: float = 0.25, show: bool = True) -> MsgGenerator[Any]:
-    """Call ``func(progress)`` in a worker thread; return its result (or raise its error).
-
-    Every ``progress(dict)`` call from the worker becomes an event in ``stream`` (its
-    numeric entries; the first call fixes the keys) and a line on a tqdm bar, so long fits
-    show what they do while the RunEngine keeps serving pause and abort.
-    """
-    from tqdm.auto import tqdm
-
-    q: queue.Queue = queue.Queue()
-    box: dict = {}
-
-    def work():
-        try:
-            box["result"] = func(q.put)
-        except BaseException as exc:  # re-raised in the plan, where the RunEngine reports it
-            box["error"] = exc
-
-    rec, keys = _Record(stream or "progress"), None
-    t0 = time.monotonic()
-    bar = tqdm(desc=desc, unit="step", disable=not show, bar_format="{desc}: {n_fmt} steps, {elapsed} {postfix}")
-
-    def drain():
-        nonlocal keys
-        while True:
-            try:
-                d = q.get_nowait()
-            except queue.Empty:
-                return
-            num = {k: (int(v) if isinstance(v, (bool, np.bool_)) else v) for k, v in d.items()
-                   if isinstance(v, (int, float, bool, np.number, np.bool_))}
-            bar.update(1)
-            # a few numbers on the bar (all of them go to the stream)
-            shown = {k: v for k, v in num.items() if k in BAR_KEYS and not (isinstance(v, float) and np.isnan(v))}
-            bar.set_postfix({k: (f"{v:.4g}" if isinstance(v, float) else v) for k, v in (shown or num).items()},
-                            refresh=True)
-            if stream is None:
-                continue
-            keys = keys or sorted(num)
-            rec.set({"seconds": time.monotonic() - t0, **{k: num.get(k, float("nan")) for k in keys}})
-            yield from bps.create(name=stream)
-            yield from bps.read(rec)
-            yield from bps.save()
-
-    thread = threading.Thread(target=work, name=f"analysis: {desc}", daemon=True)
-    thread.start()
-    # the elapsed time ticks on a terminal; in a log a line every 10 s is plenty
-    every = 1.0 if getattr(getattr(bar, "fp", None), "isatty", lambda: False)() else 10.0
-    last = time.monotonic()
-    try:
-        while thread.is_alive():
-            yield from bps.sleep(poll)
-            if time.monotonic() - last > every:
-                bar.refresh()
-                last = time.monotonic()
-            yield from drain()
-        thread.join()
-        yield from drain()
-    finally:
-        bar.close()
-    if "error" in box:
-        raise box["error"]
-    return box["result"]
-
-
-def _in_run(body: Callable[[], MsgGenerator[Any]], md: Mapping, open_run: bool) -> MsgGenerator[tuple[Any, str | None]]:
-    """Run ``body()`` in a run of its own (closed as failed on error), or in the open one."""
-    if not open_run:
-        return (yield from body()), None
-    box = {}
-
-    def inner():
-        box["result"] = yield from body()
-
-    uid = yield from bpp.run_wrapper(inner(), md=dict(md))
-    return box["result"], uid
 
 
 def _state_md(state: ModelState, table: ParameterTable) -> dict:
@@ -434,7 +305,7 @@ def compare_model(measurement, state: ModelState, twin, *, label: str | None = N
         yield from emit_comparison(c)
         return c
 
-    c, uid = yield from _in_run(body, _md, open_run)
+    c, uid = yield from in_run(body, _md, open_run)
     c.uid = uid
     return c
 
@@ -490,7 +361,7 @@ def refine_offsets(measurement, state: ModelState, twin, forward_model=None, *, 
         res.state = st
         return Refinement(res, c)
 
-    r, uid = yield from _in_run(body, _md, open_run)
+    r, uid = yield from in_run(body, _md, open_run)
     r.uid = r.comparison.uid = uid
     return r
 
@@ -559,7 +430,7 @@ def diagnose_effects(measurement, state: ModelState, twin, forward_model=None, *
         yield from emit_rows("diagnosis", [row])
         return Ranking(d)
 
-    r, uid = yield from _in_run(body, _md, open_run)
+    r, uid = yield from in_run(body, _md, open_run)
     r.uid = uid
     return r
 
@@ -585,7 +456,7 @@ def record_error_history(versions: Sequence[Version], *, measurement_uid: str | 
     def body():
         yield from emit_rows("error_history", history_rows(versions))
 
-    yield from _in_run(body, {"plan_name": "error_history", "measurement_uid": measurement_uid,
+    yield from in_run(body, {"plan_name": "error_history", "measurement_uid": measurement_uid,
                               "versions": [v.label for v in versions], **dict(md or {})}, open_run)
 
 
@@ -639,7 +510,7 @@ def add_effect_and_refit(measurement, state: ModelState, effect: str, twin, forw
         yield from record_error_history(versions)
         return Refit(effect, st, sig, c, steps, versions)
 
-    r, uid = yield from _in_run(body, _md, open_run)
+    r, uid = yield from in_run(body, _md, open_run)
     r.uid = r.comparison.uid = uid
     return r
 
@@ -745,7 +616,7 @@ def analyse_measurement(measurement, twin, forward_model=None, *, store=None,
 def _history_run(versions, md) -> MsgGenerator[str]:
     def body():
         yield from record_error_history(versions)
-    _, uid = yield from _in_run(body, {"plan_name": "error_history", "versions": [v.label for v in versions], **md},
+    _, uid = yield from in_run(body, {"plan_name": "error_history", "versions": [v.label for v in versions], **md},
                                 True)
     return uid
 

@@ -13,26 +13,27 @@ The result may be an :class:`OffsetResult`, any object with ``offsets``
 a mapping with those keys (offsets may be ``{name: value}``), or a tuple
 ``(offsets, loss)``.
 The finder runs in a worker thread, so the RunEngine stays responsive
-(pause/abort) while it works.  For bluesky-queueserver, pass the finder as an
+(pause/abort) while it works; a finder that takes ``callback=`` reports its progress
+(dicts of evaluations, seconds, loss) and the plan streams it live as ``finder`` events
+(plot them with :class:`bluesky_offsets.calibration.LossPlot`).  For bluesky-queueserver, pass the finder as an
 import path string (``"package.module:function"``) and the measurement as a
 run uid: both are plain JSON.
 """
 
 from __future__ import annotations
 
-import asyncio
 import importlib
-import time
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 
 import bluesky.plan_stubs as bps
-import bluesky.preprocessors as bpp
 import numpy as np
 from bluesky.utils import MsgGenerator
 
 from bluesky_offsets.parameters import METRIXS, ParameterTable
 from bluesky_offsets.store import Measurement, RunStore, as_measurement
+
+from ._stubs import Record, in_run, run_in_thread
 
 
 @dataclass
@@ -98,22 +99,31 @@ def _resolve_finder(finder) -> Callable:
     raise TypeError(f"finder must be a callable or 'module:function', got {finder!r}")
 
 
-def _takes_arrays(func: Callable) -> bool:
-    """True for finders with the ``(configurations, histograms, ...)`` convention."""
+def _parameters(func: Callable):
     import inspect
     try:
-        params = inspect.signature(func).parameters.values()
+        return list(inspect.signature(func).parameters.values())
     except (TypeError, ValueError):
-        return False
-    positional = [p for p in params if p.kind in (p.POSITIONAL_ONLY, p.POSITIONAL_OR_KEYWORD)
+        return []
+
+
+def _takes_arrays(func: Callable) -> bool:
+    """True for finders with the ``(configurations, histograms, ...)`` convention."""
+    positional = [p for p in _parameters(func) if p.kind in (p.POSITIONAL_ONLY, p.POSITIONAL_OR_KEYWORD)
                   and p.default is p.empty]
     return len(positional) >= 2
 
 
-def _call_finder(func: Callable, m: Measurement):
+def _reports_progress(func: Callable) -> bool:
+    """True for finders that take ``callback=`` (progress dicts while they work)."""
+    return any(p.name == "callback" or p.kind is p.VAR_KEYWORD for p in _parameters(func))
+
+
+def _call_finder(func: Callable, m: Measurement, progress: Callable[[dict], None] | None = None):
+    kw = {"callback": progress} if progress is not None and _reports_progress(func) else {}
     if _takes_arrays(func):
-        return func(m.configurations, m.histograms, n_rays=m.metadata.get("n_rays"), uid=m.uid)
-    return func(m)
+        return func(m.configurations, m.histograms, n_rays=m.metadata.get("n_rays"), uid=m.uid, **kw)
+    return func(m, **kw)
 
 
 _STATUS_CODE = {"determined": 2.0, "weak": 1.0, "undetermined": 0.0}
@@ -130,6 +140,9 @@ def _extras(raw, n: int) -> dict[str, object]:
     if status is not None and len(status) == n:
         # 2 determined, 1 weak, 0 undetermined (numbers: event data wants numeric arrays)
         out["offsets_determined"] = np.array([_STATUS_CODE.get(str(s), 0.0) for s in status])
+    twin_mse = get("twin_mse")
+    if twin_mse is not None:
+        out["twin_mse"] = float(twin_mse)
     history = get("history")
     if isinstance(history, Mapping):
         for key, val in history.items():
@@ -144,30 +157,9 @@ def data_key(name: str) -> str:
     return name.replace(".", "_")
 
 
-class _Values:
-    """Readable with fixed values: how the plan puts the finder's result into a stream."""
-
-    def __init__(self, name: str, values: Mapping[str, object]):
-        self.name, self.parent = name, None
-        self._values, self._time = dict(values), time.time()
-
-    def read(self):
-        return {k: {"value": v, "timestamp": self._time} for k, v in self._values.items()}
-
-    def describe(self):
-        out = {}
-        for k, v in self._values.items():
-            arr = np.asarray(v)
-            if arr.ndim:
-                out[k] = {"source": "finder", "dtype": "array", "shape": list(arr.shape), "dtype_numpy": "<f8"}
-            else:
-                out[k] = {"source": "finder", "dtype": "number", "shape": []}
-        return out
-
-
 def find_offsets(finder, measurement=None, *, store: RunStore | str | None = None,
                  table: ParameterTable = METRIXS, stream_name: str = "offsets", open_run: bool = True,
-                 md: Mapping | None = None) -> MsgGenerator[OffsetResult]:
+                 md: Mapping | None = None, show: bool = True) -> MsgGenerator[OffsetResult]:
     """Run an offset finder on a measurement and emit the result as a stream.
 
     Parameters
@@ -204,39 +196,32 @@ def find_offsets(finder, measurement=None, *, store: RunStore | str | None = Non
     func = _resolve_finder(finder)
     m: Measurement = as_measurement(measurement, store)
     m.check_table(table)
-    holder: dict = {}
-
-    def call():
-        holder["result"] = _as_result(_call_finder(func, m), table)
-        return holder["result"]
-
-    def start_finder():
-        return asyncio.get_running_loop().run_in_executor(None, call)
+    live = _reports_progress(func)
 
     def body():
-        (task,) = yield from bps.wait_for([start_finder])
-        result: OffsetResult = task.result()  # re-raises the finder's error
+        # the finder in a worker thread: the RunEngine keeps serving pause and abort, and a
+        # finder that reports progress streams it live ("finder": evaluations, seconds, loss)
+        result: OffsetResult = yield from run_in_thread(
+            lambda progress: _as_result(_call_finder(func, m, progress), table),
+            stream="finder" if live else None, desc="find offsets", show=show)
         values = {"loss": result.loss, "offsets": result.offsets, "offsets_physical": result.physical}
         values.update({data_key(n): float(v) for n, v in zip(table.names, result.offsets)})
         values.update(_extras(result.raw, len(table)))
+        rec = Record("finder")
+        rec.set(values)
         yield from bps.create(name=stream_name)
-        yield from bps.read(_Values("finder", values))
+        yield from bps.read(rec)
         yield from bps.save()
         return result
 
-    if not open_run:
-        return (yield from body())
     _md = {"plan_name": "find_offsets", "purpose": "offset finding",
+           "plan_args": {"finder": finder if isinstance(finder, str) else repr(func),
+                         "measurement": m.uid or "", "stream_name": stream_name},
            "measurement_uid": m.uid, "parameter_table_version": table.version,
            "parameter_names": list(table.names), "finder": getattr(func, "__qualname__", repr(func)),
            "n_configurations": len(m)}
     if m.truth_id:
         _md["truth_id"] = m.truth_id
     _md.update(md or {})
-    holder_uid = {}
-
-    def with_uid():
-        holder_uid["result"] = yield from body()
-
-    yield from bpp.run_wrapper(with_uid(), md=_md)
-    return holder_uid["result"]
+    result, _ = yield from in_run(body, _md, open_run)
+    return result

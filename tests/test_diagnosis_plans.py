@@ -27,9 +27,9 @@ from plans.diagnose import (
     compare_model,
     refine_offsets,
     diagnose_effects,
-    emit_rows,
     load_results,
 )
+from plans._stubs import emit_rows
 from sim_iocs.truth import default_start
 
 COLS = [METRIXS.index(n) for n in ("E1.rotationXerror", "E2.rotationXerror", "M1_Cylinder.rotationXerror")]
