@@ -120,9 +120,7 @@ def main(argv=None) -> int:
         report.update(measured=len(m), bright=int(bright.sum()), measurement_uid=uid)
 
         # 3. find the offsets on the bright configurations of that run
-        from bluesky_offsets.store import Measurement
-        mb = Measurement(m.configurations[bright], m.hist_x[bright], m.hist_y[bright], m.names, uid, None, None,
-                         dict(m.metadata))
+        mb = m.subset(bright)
         with Twin(n_rays=args.rays) as twin:
             finder = C.OffsetFinder(model=model, budget=F.Budget(evaluations=args.evaluations), twin=twin,
                                     polish_iterations=args.polish)

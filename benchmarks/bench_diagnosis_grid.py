@@ -85,7 +85,8 @@ def _run(args) -> None:
 
     from bluesky_offsets import diagnosis as D
     from bluesky_offsets.diagnostics import misfit
-    from bluesky_offsets.model import Measurement, ModelState, refine, simulate
+    from bluesky_offsets.measurement import Measurement
+    from bluesky_offsets.model import ModelState, refine, simulate
     from bluesky_offsets.torch_engine import TorchEngine
     from bluesky_offsets.twin import CAMERA, Twin
 

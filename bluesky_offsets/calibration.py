@@ -116,14 +116,16 @@ def twin_polish(problem: F.OffsetProblem, twin, offsets, *, iterations: int = 4,
     to the observations at the start and at the end (the fit's rays).
     """
     from .fit import FitOptions, fit
-    from .model import Measurement, ModelState
+    from .measurement import Measurement
+    from .model import ModelState
     from .torch_engine import TorchEngine
     from .twin import HistogramSpec
     N = int(n_rays or problem.n_rays or 100_000)
     spec = HistogramSpec()
     obs = problem.observations
     cfg = problem.physical_configurations()
-    meas = Measurement(cfg, obs[:, :spec.bins_x], obs[:, spec.bins_x:], N, problem.table.version, spec=spec)
+    meas = Measurement(cfg, obs[:, :spec.bins_x], obs[:, spec.bins_x:], N, spec,
+                       metadata={"parameter_table_version": problem.table.version})
     engine = TorchEngine(table=problem.table, hist=spec)
     # the features first: in the paper's bins a focus fills a bin or two, and from the surrogate's
     # solution the bins alone refused every step (measured: chi2/dof 10.1 held for 4 iterations)

@@ -217,7 +217,7 @@ def demo_plan(s: DemoSettings, beamline, chamber, twin, forward_model, store, lo
     """Find bright configurations, measure, find offsets, compare, diagnose, add the effect, refit."""
     from bluesky_offsets.calibration import OffsetFinder
     from bluesky_offsets.finder import Budget
-    from bluesky_offsets.model import Measurement, ModelState
+    from bluesky_offsets.model import ModelState
     from plans import (
         HIGH_RAY_THRESHOLD,
         find_beam,
@@ -250,7 +250,7 @@ def demo_plan(s: DemoSettings, beamline, chamber, twin, forward_model, store, lo
         f" at {s.n_rays} rays")
     m = yield from measure_configurations(design, beamline, chamber, md={"purpose": "demo measurement"})
     t["measure"] = time.perf_counter()
-    meas = Measurement.from_store(m, resolution=s.resolution)
+    meas = m.for_analysis(resolution=s.resolution)
     inside = D.in_box(m.configurations)
     meas = meas.subset(analysed)
     n_bright = len(analysed) - n_open

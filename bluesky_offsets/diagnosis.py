@@ -39,7 +39,8 @@ import numpy as np
 from . import effects as E
 from .diagnostics import Misfit, misfit, moments
 from .fit import FitOptions, FitResult, engine_for, fit, screen
-from .model import Measurement, ModelState, refine, simulate, solve_normal
+from .measurement import Measurement
+from .model import ModelState, refine, simulate, solve_normal
 from .parameters import METRIXS, ParameterTable
 from .twin import Twin
 
@@ -283,7 +284,7 @@ def diagnose(meas: Measurement, state: ModelState, twin=None, forward_model=None
     fold_idx = _folds(n, folds, seed)
     if not base_mf.total_beyond_noise(n_sigma):
         # nothing to explain: no candidate is fitted
-        return Diagnosis(base_mf, True, [], _signature(meas.histograms(), base_view, spec), folds, n_traces,
+        return Diagnosis(base_mf, True, [], _signature(meas.histograms, base_view, spec), folds, n_traces,
                          [(f"the base model is within noise (chi2/dof = {base_mf.chi2_reduced_total:.2f}): "
                           "no candidate fitted")], state, base_mf)
 
@@ -387,7 +388,7 @@ def diagnose(meas: Measurement, state: ModelState, twin=None, forward_model=None
         if not c.refined:  # what the others would add, for the ranking plot
             c.predicted_signature = _signature(verify(c.refined_state)[1], ref_view, spec)
             n_traces += n
-    observed = _signature(meas.histograms(), ref_view, spec)
+    observed = _signature(meas.histograms, ref_view, spec)
     out.sort(key=lambda c: (not c.refined, -c.score))
     n_starts = sum(len(starting_values(E.get(n_))) for n_ in names)
     how = (f"{n_starts} starts of {len(names)} candidates screened (one Jacobian of the twin each), the best "

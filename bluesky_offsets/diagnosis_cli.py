@@ -19,7 +19,6 @@ from .cli import CliError
 
 def _load(store, uid: str, n_rays: int | None, resolution: str = "camera"):
     from .diagnostics import MeasurementError
-    from .model import Measurement
     try:
         stored = store.load_measurement(uid)
     except KeyError as exc:
@@ -29,7 +28,7 @@ def _load(store, uid: str, n_rays: int | None, resolution: str = "camera"):
     if len(stored) == 0:
         raise CliError(f"run {uid} holds no measured configurations")
     try:
-        return stored, Measurement.from_store(stored, n_rays, resolution=resolution)
+        return stored, stored.for_analysis(n_rays, resolution=resolution)
     except MeasurementError as exc:
         raise CliError(f"run {uid}: {exc}") from None
 

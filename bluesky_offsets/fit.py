@@ -467,7 +467,7 @@ def fit(meas, state, engine, options: FitOptions | Mapping | None = None, *,
 
     Parameters
     ----------
-    meas : model.Measurement
+    meas : measurement.Measurement (as :meth:`~bluesky_offsets.measurement.Measurement.for_analysis` gives it)
         Histograms at their spec (the camera's or the paper's) and the commanded configurations.
     state : model.ModelState
         The start: offsets (normalized) and the effects the model includes, with start values.

@@ -10,94 +10,14 @@ offsets for the 34 parameters and the values of the physical effects it includes
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 
 import numpy as np
 
 from . import effects as E
-from .diagnostics import MeasurementError, check_histograms
 from .fit import FitOptions, FitResult, engine_for, fit
+from .measurement import Measurement
 from .parameters import MAX_OFFSET, METRIXS, ParameterTable
-from .twin import HistogramSpec
-
-
-# --------------------------------------------------------------------------- #
-# data
-# --------------------------------------------------------------------------- #
-@dataclass
-class Measurement:
-    """Histograms measured at commanded configurations (absolute positions as the
-    beamline's motors report them), binned as ``spec`` says (default: the paper's 50 x 50;
-    the camera's own resolution, :data:`bluesky_offsets.twin.CAMERA`, where the detector
-    gives it)."""
-
-    configurations: np.ndarray   # (n, 34) physical
-    hist_x: np.ndarray           # (n, spec.bins_x) fraction of source rays
-    hist_y: np.ndarray           # (n, spec.bins_y)
-    n_rays: int                  # source rays (ray budget) per measurement
-    table_version: str = METRIXS.version
-    uid: str | None = None
-    spec: HistogramSpec = field(default_factory=HistogramSpec)
-
-    def __post_init__(self):
-        self.validate()
-
-    def validate(self, table: ParameterTable = METRIXS) -> None:
-        if self.table_version != table.version:
-            raise MeasurementError(f"measurement was taken with parameter table {self.table_version}, "
-                                   f"the model uses {table.version}")
-        try:
-            cfg = table.validate(self.configurations, "measured configurations")
-        except ValueError as exc:
-            raise MeasurementError(str(exc)) from None
-        if cfg.ndim != 2:
-            raise MeasurementError("configurations must be (n, 34)")
-        hx, hy = check_histograms(self.hist_x, self.hist_y, self.spec.bins_x, self.spec.bins_y)
-        if hx.shape[0] != cfg.shape[0]:
-            raise MeasurementError(f"{cfg.shape[0]} configurations but {hx.shape[0]} histogram pairs")
-        if int(self.n_rays) <= 0:
-            raise MeasurementError("n_rays must be positive")
-        self.configurations, self.hist_x, self.hist_y = cfg, hx, hy
-
-    @classmethod
-    def from_store(cls, m, n_rays: int | None = None, table: ParameterTable = METRIXS,
-                   resolution: str = "camera") -> Measurement:
-        """From a run-store :class:`bluesky_offsets.store.Measurement` (ray budget from its
-        metadata unless given).  ``resolution="camera"`` takes the camera-resolution profiles
-        where the run has them (the paper's histograms otherwise); ``"paper"`` the 50 x 50 ones."""
-        try:
-            m.check_table(table)
-        except ValueError as exc:
-            raise MeasurementError(str(exc)) from None
-        if resolution not in ("camera", "paper"):
-            raise ValueError(f"resolution must be 'camera' or 'paper', not {resolution!r}")
-        rays = n_rays or m.metadata.get("n_rays") or m.metadata.get("num_rays")
-        if not rays:
-            raise MeasurementError(f"measurement {m.uid or ''} does not say its ray budget; pass n_rays")
-        if resolution == "camera" and getattr(m, "profile_x", None) is not None:
-            return cls(m.configurations, m.profile_x, m.profile_y, int(rays), table.version, m.uid, m.profile_spec)
-        return cls(m.configurations, m.hist_x, m.hist_y, int(rays), table.version, m.uid)
-
-    @property
-    def bins_x(self) -> int:
-        return self.spec.bins_x
-
-    def histograms(self) -> np.ndarray:
-        """(n, bins_x + bins_y): x then y."""
-        return np.concatenate([self.hist_x, self.hist_y], axis=1)
-
-    def rebinned(self, coarse: HistogramSpec) -> Measurement:
-        """The same measurement in coarser bins (e.g. the paper's, for the surrogate)."""
-        hx, hy = self.spec.rebin(self.hist_x, self.hist_y, coarse)
-        return replace(self, hist_x=hx, hist_y=hy, spec=coarse)
-
-    @property
-    def n(self) -> int:
-        return len(self.configurations)
-
-    def subset(self, idx) -> Measurement:
-        return replace(self, configurations=self.configurations[idx], hist_x=self.hist_x[idx],
-                       hist_y=self.hist_y[idx])
 
 
 @dataclass

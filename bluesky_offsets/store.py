@@ -21,11 +21,11 @@ from __future__ import annotations
 import os
 import warnings
 from collections.abc import Mapping
-from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
 
+from .measurement import Measurement
 from .parameters import METRIXS, ParameterTable
 
 ENV_STORE = "BLUESKY_OFFSETS_STORE"
@@ -47,96 +47,6 @@ def default_store_location() -> str:
 # --------------------------------------------------------------------------- #
 # measurements as arrays
 # --------------------------------------------------------------------------- #
-@dataclass
-class Measurement:
-    """Configurations and the focus-chamber histograms measured at them.
-
-    Attributes
-    ----------
-    configurations : ndarray, shape (n, P)
-        Commanded configurations in twin coordinates (table order).
-    hist_x, hist_y : ndarray, shape (n, 50)
-        Measured histograms (fraction of source rays per bin).
-    names : tuple of str
-        Parameter names (table order).
-    uid : str or None
-        Run uid when the measurement comes from a stored run.
-    total_counts : ndarray, shape (n,), optional
-        Rays on the screen per configuration.
-    images : ndarray, shape (n, ny, nx), optional
-        2-D histograms when recorded.
-    metadata : dict
-        The run's start document (or the plan's metadata).
-    profile_x, profile_y : ndarray, shape (n, bins), optional
-        The footprint at the camera's resolution (``profile_spec``), when the detector gave it.
-    """
-
-    configurations: np.ndarray
-    hist_x: np.ndarray
-    hist_y: np.ndarray
-    names: tuple[str, ...] = METRIXS.names
-    uid: str | None = None
-    total_counts: np.ndarray | None = None
-    images: np.ndarray | None = None
-    metadata: dict = field(default_factory=dict)
-    profile_x: np.ndarray | None = None
-    profile_y: np.ndarray | None = None
-
-    def __post_init__(self):
-        self.configurations = np.atleast_2d(np.asarray(self.configurations, dtype=float))
-        self.hist_x = np.atleast_2d(np.asarray(self.hist_x, dtype=float))
-        self.hist_y = np.atleast_2d(np.asarray(self.hist_y, dtype=float))
-        self.names = tuple(self.names)
-        n = len(self.configurations)
-        if self.hist_x.shape[0] != n or self.hist_y.shape[0] != n:
-            raise ValueError(f"measurement: {n} configurations but {self.hist_x.shape[0]} x and "
-                             f"{self.hist_y.shape[0]} y histograms")
-        if self.configurations.shape[1] != len(self.names):
-            raise ValueError(f"measurement: configurations have {self.configurations.shape[1]} columns "
-                             f"for {len(self.names)} parameter names")
-
-    def __len__(self) -> int:
-        return len(self.configurations)
-
-    def subset(self, idx) -> Measurement:
-        """The configurations ``idx`` (index array or mask) with their histograms; same uid."""
-        def pick(a):
-            return None if a is None else np.asarray(a)[idx]
-        return replace(self, configurations=self.configurations[idx], hist_x=self.hist_x[idx],
-                       hist_y=self.hist_y[idx], total_counts=pick(self.total_counts), images=pick(self.images),
-                       profile_x=pick(self.profile_x), profile_y=pick(self.profile_y))
-
-    @property
-    def profile_spec(self):
-        """Binning of the profiles (from the run's ``profile`` metadata); None without profiles."""
-        from .twin import HistogramSpec
-        fp = self.metadata.get("profile")
-        return HistogramSpec.from_fingerprint(fp) if fp and self.profile_x is not None else None
-
-    @property
-    def truth_id(self) -> str | None:
-        return self.metadata.get("truth_id")
-
-    @property
-    def table_version(self) -> str | None:
-        return self.metadata.get("parameter_table_version")
-
-    @property
-    def histograms(self) -> np.ndarray:
-        """``(n, 100)``: x then y histogram per configuration (the surrogate's output layout)."""
-        return np.concatenate([self.hist_x, self.hist_y], axis=1)
-
-    def check_table(self, table: ParameterTable = METRIXS) -> None:
-        """Raise if the measurement was taken with a different parameter table."""
-        if tuple(self.names) != tuple(table.names):
-            raise ValueError(f"measurement {self.uid or ''} uses other parameters than table {table.name!r}: "
-                             f"{table.diff({'names': list(self.names), 'low': [], 'high': []})}")
-        v = self.table_version
-        if v is not None and v != table.version:
-            raise ValueError(f"measurement {self.uid or ''} was taken with parameter-table version {v}, "
-                             f"current is {table.version} (ranges changed)")
-
-
 def _key(keys, suffix: str, preferred: str | None = None) -> str:
     if preferred and preferred in keys:
         return preferred
@@ -155,7 +65,7 @@ def measurement_from_run(run, *, stream: str = "primary") -> Measurement:
     names = tuple(start.get("parameter_names", METRIXS.names))
     configs = np.asarray(start["configurations"], dtype=float)
     if stream not in run:
-        return Measurement(configs[:0], np.zeros((0, 50)), np.zeros((0, 50)), names, uid, metadata=start)
+        return Measurement(configs[:0], np.zeros((0, 50)), np.zeros((0, 50)), names=names, uid=uid, metadata=start)
     ds = run[stream].read()
     keys = list(ds.data_vars) if hasattr(ds, "data_vars") else list(ds)
     hk = start.get("hist_keys", {})
@@ -178,7 +88,8 @@ def measurement_from_run(run, *, stream: str = "primary") -> Measurement:
     stop = run.metadata.get("stop") or {}
     md = dict(start, exit_status=stop.get("exit_status"))
     px, py = _profiles(ds, keys, hk, start, hist_x, hist_y)
-    return Measurement(configs[idx], hist_x, hist_y, names, uid, counts, images, md, px, py)
+    return Measurement(configs[idx], hist_x, hist_y, names=names, uid=uid, total_counts=counts, images=images,
+                       metadata=md, profile_x=px, profile_y=py)
 
 
 def _profiles(ds, keys, hk, start, hist_x, hist_y):

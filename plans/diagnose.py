@@ -48,8 +48,8 @@ from bluesky_offsets.diagnostics import (
     residual_signature,
 )
 from bluesky_offsets.fit import FitOptions
+from bluesky_offsets.measurement import Measurement
 from bluesky_offsets.model import (
-    Measurement,
     ModelState,
     RefineResult,
     refine,
@@ -176,24 +176,22 @@ class Analysis:
 # --------------------------------------------------------------------------- #
 def resolve_measurement(measurement, store=None, *, n_rays: int | None = None, resolution: str = "camera",
                         table: ParameterTable = METRIXS) -> tuple[Measurement, dict]:
-    """A :class:`bluesky_offsets.model.Measurement` and the run metadata worth linking.
+    """The measurement as the fits read it (:meth:`Measurement.for_analysis`) and the run
+    metadata worth linking.
 
-    ``measurement`` is a model measurement, a run-store measurement
-    (:class:`bluesky_offsets.store.Measurement`) or a measurement run's uid in ``store``; of a
-    stored run the camera-resolution profiles are taken where it has them
+    ``measurement`` is a :class:`bluesky_offsets.measurement.Measurement` or a measurement
+    run's uid in ``store``; the camera-resolution profiles are taken where it has them
     (``resolution="camera"``), else (or with ``"paper"``) the 50 x 50 histograms.
     """
     from bluesky_offsets import store as S
-    if isinstance(measurement, Measurement):
-        return measurement, {"measurement_uid": measurement.uid}
     if isinstance(measurement, str):
         measurement = S.as_measurement(measurement, store)
-    if not isinstance(measurement, S.Measurement):
+    if not isinstance(measurement, Measurement):
         raise TypeError(f"expected a measurement or a run uid, got {type(measurement).__name__}")
-    m = Measurement.from_store(measurement, n_rays, table, resolution=resolution)
+    m = measurement.for_analysis(n_rays, table, resolution=resolution)
     md = {"measurement_uid": m.uid, "histogram": m.spec.fingerprint()}
-    if measurement.truth_id:
-        md["truth_id"] = measurement.truth_id
+    if m.truth_id:
+        md["truth_id"] = m.truth_id
     return m, md
 
 
@@ -270,7 +268,7 @@ def compare_model(measurement, state: ModelState, twin, *, label: str | None = N
 
     Parameters
     ----------
-    measurement : Measurement, store.Measurement or str
+    measurement : Measurement or str
         The measurement, or its run uid in ``store``.
     state : ModelState
         The model version (offsets and effects).
@@ -531,7 +529,7 @@ def analyse_measurement(measurement, twin, forward_model=None, *, store=None,
 
     Parameters
     ----------
-    measurement : Measurement, store.Measurement or str
+    measurement : Measurement or str
         The measurement or its run uid in ``store``.
     starts : ModelState or sequence of ModelState, optional
         Model versions to compare first (e.g. the bare twin and the surrogate finder's

@@ -20,7 +20,8 @@ import numpy as np
 from bluesky.utils import MsgGenerator
 
 from bluesky_offsets.parameters import METRIXS, ParameterTable
-from bluesky_offsets.store import Measurement, consistent_profiles
+from bluesky_offsets.measurement import Measurement
+from bluesky_offsets.store import consistent_profiles
 from bluesky_offsets.twin import HistogramSpec
 
 from .motion import (
@@ -169,7 +170,8 @@ def _measurement(readings, configs, table, uid, md) -> Measurement:
     keys = md.get("hist_keys", {})
     n = len(readings)
     if n == 0:
-        return Measurement(configs[:0], np.zeros((0, 50)), np.zeros((0, 50)), table.names, uid, metadata=md)
+        return Measurement(configs[:0], np.zeros((0, 50)), np.zeros((0, 50)), names=table.names, uid=uid,
+                           metadata=md)
     hx = np.array([_value(r, "hist_x", keys.get("x")) for r in readings], dtype=float)
     hy = np.array([_value(r, "hist_y", keys.get("y")) for r in readings], dtype=float)
     try:
@@ -185,7 +187,8 @@ def _measurement(readings, configs, table, uid, md) -> Measurement:
                                          md["profile"], hx, hy)
         except KeyError:
             pass
-    return Measurement(configs[idx], hx, hy, table.names, uid, counts, None, dict(md), px, py)
+    return Measurement(configs[idx], hx, hy, names=table.names, uid=uid, total_counts=counts, metadata=dict(md),
+                       profile_x=px, profile_y=py)
 
 
 def measure_configurations(configurations, beamline, chamber, *, reference=None,

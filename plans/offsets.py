@@ -2,7 +2,7 @@
 
 The finder itself is pluggable.  Two calling conventions are accepted:
 
-* ``finder(measurement)`` with a :class:`bluesky_offsets.store.Measurement`;
+* ``finder(measurement)`` with a :class:`bluesky_offsets.measurement.Measurement`;
 * ``finder(configurations, histograms, n_rays=..., uid=...)`` with
   configurations ``(n, 34)`` and histograms ``(n, 100)`` (x then y), the
   convention of :class:`bluesky_offsets.calibration.OffsetFinder` (chosen
@@ -31,7 +31,8 @@ import numpy as np
 from bluesky.utils import MsgGenerator
 
 from bluesky_offsets.parameters import METRIXS, ParameterTable
-from bluesky_offsets.store import Measurement, RunStore, as_measurement
+from bluesky_offsets.measurement import Measurement
+from bluesky_offsets.store import RunStore, as_measurement
 
 from ._stubs import Record, in_run, run_in_thread
 

@@ -7,7 +7,8 @@ import pytest
 from bluesky_offsets import effects as E
 from bluesky_offsets.diagnosis import Version, add_effect, diagnose, evaluate, plot_error_history, plot_ranking
 from bluesky_offsets.diagnostics import MeasurementError
-from bluesky_offsets.model import Measurement, ModelState, refine, simulate
+from bluesky_offsets.measurement import Measurement
+from bluesky_offsets.model import ModelState, refine, simulate
 from bluesky_offsets.parameters import METRIXS
 from bluesky_offsets.twin import Twin
 
@@ -95,26 +96,26 @@ def test_model_versions_and_bad_data():
     cfg = np.tile(METRIXS.reference, (2, 1))
     with pytest.raises(MeasurementError, match="2 configurations but 3"):
         Measurement(cfg, np.zeros((3, 50)), np.zeros((3, 50)), 1000)
-    with pytest.raises(MeasurementError, match="parameter table"):
-        Measurement(cfg, np.zeros((2, 50)), np.zeros((2, 50)), 1000, table_version="0000")
+    with pytest.raises(MeasurementError, match="parameter-table version 0000"):
+        Measurement(cfg, np.zeros((2, 50)), np.zeros((2, 50)), 1000,
+                    metadata={"parameter_table_version": "0000"}).for_analysis()
     bad = cfg.copy()
     bad[1, 3] = np.nan
     with pytest.raises(MeasurementError, match="U41_318eV.rotationYerror"):
-        Measurement(bad, np.zeros((2, 50)), np.zeros((2, 50)), 1000)
+        Measurement(bad, np.zeros((2, 50)), np.zeros((2, 50)), 1000).for_analysis()
 
 
 def test_measurement_from_the_run_store():
-    from bluesky_offsets.store import Measurement as Stored
     cfg = np.tile(METRIXS.reference, (2, 1))
-    stored = Stored(cfg, np.zeros((2, 50)), np.zeros((2, 50)), uid="u1",
-                    metadata={"n_rays": 5000, "parameter_table_version": METRIXS.version})
-    m = Measurement.from_store(stored)
+    stored = Measurement(cfg, np.zeros((2, 50)), np.zeros((2, 50)), uid="u1",
+                         metadata={"n_rays": 5000, "parameter_table_version": METRIXS.version})
+    m = stored.for_analysis()
     assert m.n == 2 and m.n_rays == 5000 and m.uid == "u1"
     with pytest.raises(MeasurementError, match="ray budget"):
-        Measurement.from_store(Stored(cfg, np.zeros((2, 50)), np.zeros((2, 50))))
+        Measurement(cfg, np.zeros((2, 50)), np.zeros((2, 50))).for_analysis()
     with pytest.raises(MeasurementError, match="version"):
-        Measurement.from_store(Stored(cfg, np.zeros((2, 50)), np.zeros((2, 50)),
-                                      metadata={"n_rays": 1, "parameter_table_version": "xyz"}))
+        Measurement(cfg, np.zeros((2, 50)), np.zeros((2, 50)),
+                    metadata={"n_rays": 1, "parameter_table_version": "xyz"}).for_analysis()
 
 
 @pytest.mark.parametrize("change, message", [
@@ -130,17 +131,16 @@ def test_measurement_refuses_wrong_shapes_and_nan(change, message):
     hist = np.full((2, 50), 0.01)
     c, hx, hy = change(cfg, hist, hist)
     with pytest.raises(MeasurementError, match=message):
-        Measurement(c, hx, hy, 1000)
+        Measurement(c, hx, hy, 1000).for_analysis()
 
 
 def test_stored_measurement_with_another_parameter_table_is_refused():
-    from bluesky_offsets.store import Measurement as Stored
     names = list(METRIXS.names)
     names[0] = "U41.tx"
-    stored = Stored(np.tile(METRIXS.reference, (2, 1)), np.zeros((2, 50)), np.zeros((2, 50)), names=names,
-                    metadata={"n_rays": 1000})
+    stored = Measurement(np.tile(METRIXS.reference, (2, 1)), np.zeros((2, 50)), np.zeros((2, 50)), names=names,
+                         metadata={"n_rays": 1000})
     with pytest.raises(MeasurementError, match=r"missing \['U41_318eV.translationXerror'\], unexpected \['U41.tx'\]"):
-        Measurement.from_store(stored)
+        stored.for_analysis()
 
 
 # --------------------------------------------------------------------------- #

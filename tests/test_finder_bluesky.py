@@ -34,7 +34,7 @@ def test_find_offsets_streams_progress_and_emits_offsets(model, problem, tmp_pat
     LossPlot draws them), the result as one ``offsets`` event, the run linked to its measurement."""
     from bluesky import RunEngine
 
-    from bluesky_offsets.store import Measurement
+    from bluesky_offsets.measurement import Measurement
     from plans import find_offsets
     RE = RunEngine({}, call_returns_result=True)
     docs = []

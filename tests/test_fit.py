@@ -7,7 +7,8 @@ import torch
 
 from bluesky_offsets import effects as E
 from bluesky_offsets.fit import FitOptions, _Model, _Products, fit, screen
-from bluesky_offsets.model import Measurement, ModelState, simulate
+from bluesky_offsets.measurement import Measurement
+from bluesky_offsets.model import ModelState, simulate
 from bluesky_offsets.parameters import METRIXS
 from bluesky_offsets.torch_engine import TorchEngine
 from bluesky_offsets.twin import CAMERA, HistogramSpec, Twin

@@ -12,7 +12,6 @@ from bluesky.utils import RunEngineInterrupted
 
 from bluesky_offsets.devices import FocusChamber, MetrixsBeamline
 from bluesky_offsets.parameters import METRIXS
-from bluesky_offsets.model import Measurement as ModelMeasurement
 from bluesky_offsets.twin import CAMERA, HistogramSpec, Twin
 from conftest import start_metrixs_ioc
 from plans import (
@@ -126,7 +125,7 @@ def test_acceptance_measured_histograms_follow_the_hidden_truth(RE, acceptance_i
     assert m.hist_x.shape == (16, 50) and m.hist_y.shape == (16, 50)
     # the camera-resolution profiles of the same frames, and what the diagnosis reads
     assert m.profile_x.shape == (16, CAMERA.bins_x) and m.profile_spec == CAMERA
-    fine = ModelMeasurement.from_store(m)
+    fine = m.for_analysis()
     assert fine.spec == CAMERA and fine.hist_y.shape == (16, CAMERA.bins_y)
     np.testing.assert_allclose(fine.rebinned(HistogramSpec()).hist_x, m.hist_x, atol=1e-12)
     np.testing.assert_allclose(m.configurations, configs)

@@ -19,7 +19,8 @@ import pytest
 from bluesky import RunEngine
 
 from bluesky_offsets.parameters import METRIXS
-from bluesky_offsets.store import ENV_STORE, Measurement, default_store_location, open_store
+from bluesky_offsets.measurement import Measurement
+from bluesky_offsets.store import ENV_STORE, default_store_location, open_store
 
 
 @pytest.fixture(scope="module")

@@ -1,0 +1,159 @@
+"""The one measurement: configurations and the focus-chamber histograms measured at them.
+
+A :class:`Measurement` is what the measure plans return, what the run store loads back by
+uid, and what the fits, the diagnosis and the finders read.  As measured it may carry the
+camera-resolution profiles beside the paper's 50 x 50 histograms; :meth:`Measurement.for_analysis`
+gives the one binning an analysis uses (``spec``), checked against the parameter table, with
+its ray budget.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from .diagnostics import MeasurementError, check_histograms
+from .parameters import METRIXS, ParameterTable
+from .twin import HistogramSpec
+
+RESOLUTIONS = ("camera", "paper")
+
+
+@dataclass
+class Measurement:
+    """Configurations and the focus-chamber histograms measured at them.
+
+    Attributes
+    ----------
+    configurations : ndarray, shape (n, P)
+        Commanded configurations, absolute as the motors report them (table order).
+    hist_x, hist_y : ndarray, shape (n, bins)
+        Measured histograms (fraction of source rays per bin), binned as ``spec`` says.
+    n_rays : int or None
+        Source rays (ray budget) per frame; None: the metadata's ``n_rays`` if it has one.
+    spec : HistogramSpec
+        Binning of ``hist_x``/``hist_y`` (default the paper's 50 x 50).
+    names : tuple of str
+        Parameter names (table order).
+    uid : str or None
+        Run uid when the measurement comes from a stored run.
+    total_counts : ndarray, shape (n,), optional
+        Rays on the screen per configuration.
+    images : ndarray, shape (n, ny, nx), optional
+        2-D histograms when recorded.
+    metadata : dict
+        The run's start document (or the plan's metadata).
+    profile_x, profile_y : ndarray, shape (n, bins), optional
+        The footprint at the camera's resolution (``profile_spec``), when the detector gave it.
+    """
+
+    configurations: np.ndarray
+    hist_x: np.ndarray
+    hist_y: np.ndarray
+    n_rays: int | None = None
+    spec: HistogramSpec = field(default_factory=HistogramSpec)
+    names: tuple[str, ...] = METRIXS.names
+    uid: str | None = None
+    total_counts: np.ndarray | None = None
+    images: np.ndarray | None = None
+    metadata: dict = field(default_factory=dict)
+    profile_x: np.ndarray | None = None
+    profile_y: np.ndarray | None = None
+
+    def __post_init__(self):
+        self.names = tuple(self.names)
+        cfg = np.asarray(self.configurations, dtype=float)
+        cfg = cfg[None] if cfg.ndim == 1 else cfg
+        if cfg.ndim != 2 or cfg.shape[1] != len(self.names):
+            raise MeasurementError(f"measured configurations: expected {len(self.names)} parameters in table "
+                                   f"order, got shape {cfg.shape}")
+        hx, hy = (np.asarray(h, dtype=float) for h in (self.hist_x, self.hist_y))
+        hx, hy = (h[None] if h.ndim == 1 else h for h in (hx, hy))
+        if hx.shape[0] != len(cfg) or hy.shape[0] != len(cfg):
+            raise MeasurementError(f"measurement: {len(cfg)} configurations but {hx.shape[0]} x and "
+                                   f"{hy.shape[0]} y histograms")
+        self.hist_x, self.hist_y = check_histograms(hx, hy, self.spec.bins_x, self.spec.bins_y)
+        self.configurations = cfg
+        if self.n_rays is None:
+            rays = self.metadata.get("n_rays") or self.metadata.get("num_rays")
+            self.n_rays = int(rays) if rays else None
+        elif int(self.n_rays) <= 0:
+            raise MeasurementError("n_rays must be positive")
+        else:
+            self.n_rays = int(self.n_rays)
+
+    def __len__(self) -> int:
+        return len(self.configurations)
+
+    @property
+    def n(self) -> int:
+        """Number of configurations."""
+        return len(self.configurations)
+
+    @property
+    def histograms(self) -> np.ndarray:
+        """``(n, bins_x + bins_y)``: x then y histogram per configuration (the surrogate's
+        output layout at the paper's binning)."""
+        return np.concatenate([self.hist_x, self.hist_y], axis=1)
+
+    @property
+    def profile_spec(self) -> HistogramSpec | None:
+        """Binning of the profiles (from the run's ``profile`` metadata); None without profiles."""
+        fp = self.metadata.get("profile")
+        return HistogramSpec.from_fingerprint(fp) if fp and self.profile_x is not None else None
+
+    @property
+    def truth_id(self) -> str | None:
+        return self.metadata.get("truth_id")
+
+    @property
+    def table_version(self) -> str | None:
+        return self.metadata.get("parameter_table_version")
+
+    def subset(self, idx) -> Measurement:
+        """The configurations ``idx`` (index array or mask) with their histograms; same uid."""
+        def pick(a):
+            return None if a is None else np.asarray(a)[idx]
+        return replace(self, configurations=self.configurations[idx], hist_x=self.hist_x[idx],
+                       hist_y=self.hist_y[idx], total_counts=pick(self.total_counts), images=pick(self.images),
+                       profile_x=pick(self.profile_x), profile_y=pick(self.profile_y))
+
+    def rebinned(self, coarse: HistogramSpec) -> Measurement:
+        """The same measurement in coarser bins (e.g. the paper's, for the surrogate)."""
+        hx, hy = self.spec.rebin(self.hist_x, self.hist_y, coarse)
+        return replace(self, hist_x=hx, hist_y=hy, spec=coarse)
+
+    def check_table(self, table: ParameterTable = METRIXS) -> None:
+        """Raise if the measurement was taken with a different parameter table."""
+        if tuple(self.names) != tuple(table.names):
+            raise MeasurementError(f"measurement {self.uid or ''} uses other parameters than table {table.name!r}: "
+                                   f"{table.diff({'names': list(self.names), 'low': [], 'high': []})}")
+        v = self.table_version
+        if v is not None and v != table.version:
+            raise MeasurementError(f"measurement {self.uid or ''} was taken with parameter-table version {v}, "
+                                   f"current is {table.version} (ranges changed)")
+
+    def for_analysis(self, n_rays: int | None = None, table: ParameterTable = METRIXS,
+                     resolution: str = "camera") -> Measurement:
+        """The measurement as the fits read it: one binning, the table's parameters, its ray budget.
+
+        ``resolution="camera"`` takes the camera-resolution profiles where it has them (the
+        paper's histograms otherwise); ``"paper"`` the 50 x 50 ones.  ``n_rays`` overrides the
+        ray budget.  Raises :class:`~bluesky_offsets.diagnostics.MeasurementError` for another
+        parameter table, a configuration outside it, or an unknown ray budget.
+        """
+        if resolution not in RESOLUTIONS:
+            raise ValueError(f"resolution must be 'camera' or 'paper', not {resolution!r}")
+        self.check_table(table)
+        try:
+            cfg = table.validate(self.configurations, "measured configurations")
+        except ValueError as exc:
+            raise MeasurementError(str(exc)) from None
+        rays = n_rays or self.n_rays
+        if not rays:
+            raise MeasurementError(f"measurement {self.uid or ''} does not say its ray budget; pass n_rays")
+        if resolution == "camera" and self.profile_x is not None and self.profile_spec is not None:
+            return replace(self, configurations=cfg, hist_x=self.profile_x, hist_y=self.profile_y,
+                           spec=self.profile_spec, n_rays=int(rays), profile_x=None, profile_y=None, images=None)
+        return replace(self, configurations=cfg, n_rays=int(rays), profile_x=None, profile_y=None, images=None)
