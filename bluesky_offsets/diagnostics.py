@@ -4,7 +4,8 @@ Everything here is a pure function of histograms (fractions of source rays,
 ``(n_configurations, bins)`` for x and for y) and ray counts, so it serves the
 twin, the surrogate and stored measurement runs alike.
 
-Noise model: a measured bin fraction ``m`` from ``N`` source rays has
+Noise model (:func:`bluesky_offsets.noise.bin_variance`, the one of every misfit and
+fit): a measured bin fraction ``m`` from ``N`` source rays has
 variance ``p (1 - p) / N`` (multinomial counts).  A model histogram traced by
 the twin with ``N_model`` rays adds ``p (1 - p) / N_model``; a surrogate adds
 its own error variance ``model_var``.  ``p`` is floored at one ray so empty
@@ -17,6 +18,8 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
+
+from .noise import bin_variance
 
 SIGNATURE_NAMES = ("intensity", "centroid", "width", "skewness", "tails")
 
@@ -110,19 +113,6 @@ def expected_pull2(meas: np.ndarray, model: np.ndarray, n_rays) -> np.ndarray:
     return np.where(meas > 0, 1.0, np.clip(model * n, 0.0, 1.0))
 
 
-def bin_variance(meas, model, n_rays, model_rays: int | None = None, model_var: float = 0.0) -> np.ndarray:
-    """The variance of a bin's measured − model fraction: ``p (1 - p) / N`` for the measurement
-    and ``p (1 - p) / N_model`` for a traced model (a mean model, e.g. a surrogate: its error
-    variance ``model_var`` instead), ``p`` the mean of both floored at one ray in ``N``.  The
-    one noise model of every misfit and fit."""
-    n = np.asarray(n_rays, dtype=float)
-    p = np.maximum(0.5 * (np.asarray(meas, float) + np.asarray(model, float)), 1.0 / n)
-    var = p * (1 - p) / n + model_var
-    if model_rays:
-        var = var + p * (1 - p) / model_rays
-    return var
-
-
 def misfit(meas_x, meas_y, model_x, model_y, n_rays: int | Sequence[int], *,
            model_rays: int | None = None, model_var: float = 0.0) -> Misfit:
     """Chi-square and MSE of model histograms against measured ones.
@@ -151,22 +141,19 @@ def misfit(meas_x, meas_y, model_x, model_y, n_rays: int | Sequence[int], *,
         raise MeasurementError("ray budgets must be positive")
 
     def _pulls(m, f):
-        p = np.maximum(0.5 * (m + f), 1.0 / n)
         var = bin_variance(m, f, n, model_rays, model_var)
-        signal = (m > 0) | (f > 0)
-        pull = np.where(signal, (m - f) / np.sqrt(var), 0.0)
-        return pull, signal, p
+        return np.where((m > 0) | (f > 0), (m - f) / np.sqrt(var), 0.0)
 
-    px, _, ppx = _pulls(mx, fx)
-    py, _, ppy = _pulls(my, fy)
+    px, py = _pulls(mx, fx), _pulls(my, fy)
     chi2 = (px ** 2).sum(1) + (py ** 2).sum(1)
     wx, wy = expected_pull2(mx, fx, n), expected_pull2(my, fy, n)
     dof = wx.sum(1) + wy.sum(1)
     mse = np.concatenate([(mx - fx) ** 2, (my - fy) ** 2], axis=1).mean(1)
-    # a correct model: E[(m - f)^2] = var per bin (scaled like the dof in nearly empty bins)
-    var_factor = 1.0 / n + (1.0 / model_rays if model_rays else 0.0)
-    exp_mse = (np.concatenate([ppx * (1 - ppx) * wx, ppy * (1 - ppy) * wy], axis=1) * var_factor
-               + model_var).mean(1)
+    # a correct model: E[(m - f)^2] = var per bin (its counting part scaled like the dof in
+    # nearly empty bins)
+    counting = np.concatenate([(bin_variance(mx, fx, n, model_rays) * wx), (bin_variance(my, fy, n, model_rays) * wy)],
+                              axis=1)
+    exp_mse = (counting + model_var).mean(1)
     return Misfit(chi2, dof, mse, exp_mse, px, py)
 
 

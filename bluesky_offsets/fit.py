@@ -15,7 +15,7 @@ deterministic function of the parameters, so a step is judged without sampling n
    (:func:`bluesky_offsets.diagnostics.beam_features`), smooth over many spot widths;
 2. ``profiles``: the histograms summed into coarser bins;
 3. ``bins``: the measured bins (Pearson χ², the variance from measured and model counts:
-   :func:`bluesky_offsets.diagnostics.bin_variance`).
+   :func:`bluesky_offsets.noise.bin_variance`).
 
 Every stage compares RAYX's own counts; with ``FitOptions.soft_values`` the first two compare
 the soft beam instead (a smooth objective whose derivative the Jacobian is exactly).
@@ -37,7 +37,8 @@ import numpy as np
 import torch
 
 from . import effects as E
-from .diagnostics import beam_features, bin_variance, expected_pull2
+from .diagnostics import beam_features, expected_pull2
+from .noise import bin_variance
 from .parameters import MAX_OFFSET, METRIXS, ParameterTable
 from .twin import HistogramSpec
 

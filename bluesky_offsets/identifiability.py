@@ -12,10 +12,10 @@ Model
 Near the solution ``o*`` the histograms are linear in the offsets,
 ``h(c + o) ≈ h(c + o*) + J_c (o - o*)`` with ``J_c`` the forward model's
 Jacobian (100 x P) at configuration ``c``.  Each bin carries the counting
-noise of a measurement with ``N`` source rays, variance
-``max(p(1 - p), 1/N) / N`` for a bin fraction ``p`` (the floor: one ray,
-so empty bins still carry information), plus, optionally, the model's own
-error ``model_mse`` per bin.  The Fisher matrix is
+noise of a measurement with ``N`` source rays, the one noise model of every
+fit (:func:`bluesky_offsets.noise.bin_variance`: ``p (1 - p) / N`` for a bin
+fraction ``p`` floored at one ray, so empty bins still carry information), plus,
+optionally, the model's own error ``model_mse`` per bin.  The Fisher matrix is
 ``F = Σ_c J_cᵀ diag(1/var_c) J_c``.  The offsets' prior is the search box,
 uniform in ``[-limit, limit]``, standard deviation ``σ_prior = limit/√3``;
 the posterior covariance is ``C = (F + I/σ_prior²)⁻¹``.
@@ -45,6 +45,7 @@ import numpy as np
 import torch
 
 from .finder import OffsetProblem, model_device, model_dtype
+from .noise import bin_variance
 
 DETERMINED, UNDETERMINED = 0.1, 0.5
 PAPER_RAYS = 100_000
@@ -61,12 +62,6 @@ def jacobian(model, configurations: np.ndarray, offsets: np.ndarray) -> np.ndarr
 
     J = torch.autograd.functional.jacobian(f, o, vectorize=True)
     return J.double().cpu().numpy()
-
-
-def bin_variance(hist: np.ndarray, n_rays: int, model_mse: float = 0.0) -> np.ndarray:
-    """Per-bin variance of a measured histogram (fractions of ``n_rays`` source rays)."""
-    p = np.clip(np.asarray(hist, dtype=float), 0.0, 1.0)
-    return np.maximum(p * (1 - p), 1.0 / n_rays) / n_rays + float(model_mse)
 
 
 def fisher_matrix(J: np.ndarray, variance: np.ndarray) -> np.ndarray:
@@ -211,7 +206,8 @@ def analyze(problem: OffsetProblem, model, offsets, *, n_rays: int | None = None
     J = jacobian(model, c, offsets)
     with torch.no_grad():
         pred = model(torch.as_tensor(c + offsets, device=model_device(model), dtype=model_dtype(model)))
-    var = bin_variance(pred.double().cpu().numpy(), N, model_mse)
+    pred = np.clip(pred.double().cpu().numpy(), 0.0, 1.0)
+    var = bin_variance(pred, pred, N, model_var=float(model_mse))
     F = fisher_matrix(J, var)
     prior = problem.limit / math.sqrt(3.0)
     # eigen-decomposition of the prior-whitened Fisher matrix: eigenvalue 0 = the data add nothing

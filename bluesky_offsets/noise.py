@@ -24,14 +24,33 @@ def histogram_mse(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.mean((np.asarray(a) - np.asarray(b)) ** 2, axis=-1)
 
 
+def multinomial_variance(p, n_rays):
+    """The variance of a bin fraction ``p`` of ``N`` source rays: ``p (1 - p) / N``."""
+    return p * (1 - p) / n_rays
+
+
+def bin_variance(meas, model, n_rays, model_rays: int | None = None, model_var: float = 0.0) -> np.ndarray:
+    """The variance of a bin's measured − model fraction: ``p (1 - p) / N`` for the measurement
+    and ``p (1 - p) / N_model`` for a traced model (a mean model, e.g. a surrogate: its error
+    variance ``model_var`` instead), ``p`` the mean of both floored at one ray in ``N``.  The
+    one noise model of every misfit and fit."""
+    n = np.asarray(n_rays, dtype=float)
+    p = np.maximum(0.5 * (np.asarray(meas, float) + np.asarray(model, float)), 1.0 / n)
+    var = multinomial_variance(p, n) + model_var
+    if model_rays:
+        var = var + multinomial_variance(p, model_rays)
+    return var
+
+
 def expected_repeat_mse(hist: np.ndarray, n_rays: int) -> np.ndarray:
     """Expected MSE between two independent traces with bin fractions ``hist``.
 
     ``hist`` is (..., bins) of fractions of source rays (x and y histograms
-    concatenated); the variance of each bin fraction is ``p (1 - p) / N``.
+    concatenated), each bin of variance :func:`multinomial_variance` (no floor: the
+    expectation of an empty bin's difference is zero).
     """
     p = np.clip(np.asarray(hist, dtype=float), 0.0, 1.0)
-    return 2.0 * np.mean(p * (1.0 - p), axis=-1) / float(n_rays)
+    return 2.0 * np.mean(multinomial_variance(p, float(n_rays)), axis=-1)
 
 
 def good_configurations(twin, n: int, rng: np.random.Generator, *, min_hits: int = 10,
