@@ -10,7 +10,7 @@ Steps (timed together):
 2. pick candidate configurations near the start position that the *uncalibrated* surrogate
    predicts bright (the operator knows no offsets), measure them on the beamline
    (``plans.find_high_ray_configurations``) until >= 16 are bright, store the run;
-3. ``plans.find_offsets`` with :class:`bluesky_offsets.calibration.OffsetFinder` (surrogate
+3. ``plans.find_offsets`` with :class:`bluesky_offsets.offsets.calibration.OffsetFinder` (surrogate
    search + twin polish) on the stored measurement;
 4. the twin at commanded + found offsets vs. the measured histograms, next to the repeat-noise
    MSE (the expected multinomial value, and the twin's actual repeat at the hidden truth).
@@ -76,13 +76,13 @@ def main(argv=None) -> int:
         from bluesky import RunEngine
         from ophyd_async.core import init_devices
 
-        from bluesky_offsets import calibration as C
-        from bluesky_offsets import finder as F
+        from bluesky_offsets.offsets import calibration as C
+        from bluesky_offsets.offsets import finder as F
         from bluesky_offsets.devices import FocusChamber, MetrixsBeamline
-        from bluesky_offsets.noise import expected_repeat_mse
-        from bluesky_offsets.parameters import METRIXS
+        from bluesky_offsets.physics.noise import expected_repeat_mse
+        from bluesky_offsets.physics.parameters import METRIXS
         from bluesky_offsets.store import open_store
-        from bluesky_offsets.twin import Twin
+        from bluesky_offsets.physics.twin import Twin
         from plans import enough_rays, find_high_ray_configurations, find_offsets, sample_candidates
         from sim_iocs.truth import Truth, default_start
 

@@ -46,11 +46,11 @@ SCENARIOS = {
 
 
 def _make(args) -> None:
-    from bluesky_offsets import effects as E
-    from bluesky_offsets.demo import DemoSettings, candidate_configurations, measurement_design
-    from bluesky_offsets.model import ModelState, simulate
-    from bluesky_offsets.parameters import METRIXS
-    from bluesky_offsets.twin import CAMERA, Twin
+    from bluesky_offsets.physics import effects as E
+    from bluesky_offsets.commands.demo import DemoSettings, candidate_configurations, measurement_design
+    from bluesky_offsets.model.state import ModelState, simulate
+    from bluesky_offsets.physics.parameters import METRIXS
+    from bluesky_offsets.physics.twin import CAMERA, Twin
     from plans import enough_rays
     from sim_iocs.truth import default_start
 
@@ -83,12 +83,12 @@ def _make(args) -> None:
 def _run(args) -> None:
     import torch
 
-    from bluesky_offsets import diagnosis as D
-    from bluesky_offsets.diagnostics import misfit
-    from bluesky_offsets.measurement import Measurement
-    from bluesky_offsets.model import ModelState, refine, simulate
-    from bluesky_offsets.torch_engine import TorchEngine
-    from bluesky_offsets.twin import CAMERA, Twin
+    from bluesky_offsets.model import diagnosis as D
+    from bluesky_offsets.model.misfit import misfit
+    from bluesky_offsets.model.measurement import Measurement
+    from bluesky_offsets.model.state import ModelState, refine, simulate
+    from bluesky_offsets.physics.torch_engine import TorchEngine
+    from bluesky_offsets.physics.twin import CAMERA, Twin
 
     folder = Path(args.folder)
     eng_opts = {"device": args.device}

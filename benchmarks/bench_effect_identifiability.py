@@ -20,11 +20,11 @@ import time
 
 import numpy as np
 
-from bluesky_offsets import effects as E
-from bluesky_offsets.diagnosis import diagnostic_configurations, open_aperture
-from bluesky_offsets.model import ModelState, detector_view, simulate_raw
-from bluesky_offsets.parameters import METRIXS
-from bluesky_offsets.twin import Twin
+from bluesky_offsets.physics import effects as E
+from bluesky_offsets.model.diagnosis import diagnostic_configurations, open_aperture
+from bluesky_offsets.model.state import ModelState, detector_view, simulate_raw
+from bluesky_offsets.physics.parameters import METRIXS
+from bluesky_offsets.physics.twin import Twin
 from sim_iocs.truth import default_start
 
 HIDDEN = {"E1.rotationXerror": 0.04, "E2.rotationXerror": -0.04, "M1_Cylinder.rotationXerror": 0.02,

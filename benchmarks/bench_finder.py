@@ -144,8 +144,8 @@ def main(argv=None) -> int:
         res["torch"] = torch.__version__
         md = markdown(res, "merged: " + ", ".join(str(d) for d in args.merge) + (" " + " ".join(rest) if rest else ""))
         Path(args.out).mkdir(parents=True, exist_ok=True)
-        from bluesky_offsets import finder as F
-        from bluesky_offsets.finder_eval import plot_curves
+        from bluesky_offsets.offsets import finder as F
+        from bluesky_offsets.offsets.evaluate import plot_curves
         curves = {m: [F.FinderResult(m, np.asarray(r["offsets"]), r["loss"], r["evaluations"], r["seconds"],
                                      r["history"], r["settings"]) for r in runs] for m, runs in res["results"].items()}
         target = res["summary"].get("smart-walker", {}).get("mse_mean")
@@ -158,7 +158,7 @@ def main(argv=None) -> int:
     find_args = ["find", "--out", str(out), *rest]
     command = "python benchmarks/bench_finder.py --out " + str(out) + (" " + " ".join(rest) if rest else "")
     if not args.markdown_only:
-        from bluesky_offsets.cli import main as cli_main
+        from bluesky_offsets.commands.cli import main as cli_main
         rc = cli_main(find_args)
         if rc:
             return rc

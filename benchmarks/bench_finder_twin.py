@@ -4,7 +4,7 @@ The acceptance test of issue 5 asks, against the simulated IOC (twin backend), t
 at the compensated configurations matches the measured histograms with an MSE within 2x the
 repeat-noise MSE, and that the session takes < 5 min on 2 cores.  This benchmark measures the
 finder's part of that without EPICS: a problem with observations from the RAYX twin at
-``--rays`` (the measurement), the :class:`~bluesky_offsets.calibration.OffsetFinder` (surrogate
+``--rays`` (the measurement), the :class:`~bluesky_offsets.offsets.calibration.OffsetFinder` (surrogate
 search + twin polish), then the twin re-traced at the found offsets vs. the observations, next
 to the twin's own repeat MSE (the same configurations at the true offsets, traced again).
 
@@ -34,9 +34,9 @@ def main(argv=None) -> int:
     ap.add_argument("--out", default="data/bench_finder_twin.json")
     args = ap.parse_args(argv)
 
-    from bluesky_offsets import calibration as C
-    from bluesky_offsets import finder as F
-    from bluesky_offsets.twin import Twin
+    from bluesky_offsets.offsets import calibration as C
+    from bluesky_offsets.offsets import finder as F
+    from bluesky_offsets.physics.twin import Twin
 
     model = F.load_forward_model(args.model)
     rows = []

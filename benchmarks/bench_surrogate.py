@@ -34,9 +34,9 @@ def _machine() -> str:
 
 
 def bench_generator(n_rays: int, n_draws: int, screen_rays: int, keep_fraction: float) -> list[dict]:
-    from bluesky_offsets import dataset
-    from bluesky_offsets.dataset import DrawScheme, GenerationSettings
-    from bluesky_offsets.twin import Twin
+    from bluesky_offsets.surrogate import dataset
+    from bluesky_offsets.surrogate.dataset import DrawScheme, GenerationSettings
+    from bluesky_offsets.physics.twin import Twin
 
     twin = Twin(scheduler="inline", n_rays=n_rays)
     rows = []
@@ -55,7 +55,7 @@ def bench_generator(n_rays: int, n_draws: int, screen_rays: int, keep_fraction: 
 
 
 def bench_training(width: int, batches=(32, 256), seconds: float = 8.0, threads: int = 1) -> list[dict]:
-    from bluesky_offsets.surrogate import Architecture, SurrogateNet
+    from bluesky_offsets.surrogate.network import Architecture, SurrogateNet
     torch.set_num_threads(threads)
     net = SurrogateNet(Architecture(width=width))
     opt = torch.optim.Adam(net.parameters(), lr=1e-4)
@@ -107,7 +107,7 @@ def main() -> None:
     draws = 256 if args.quick else args.draws
     secs = 2.0 if args.quick else 8.0
 
-    from bluesky_offsets import surrogate
+    from bluesky_offsets.surrogate import network as surrogate
     model = surrogate.load(args.checkpoint)
     width = model.arch.width
     gen = bench_generator(args.rays, draws, args.screen_rays, args.keep_fraction)

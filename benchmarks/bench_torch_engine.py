@@ -30,9 +30,9 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _machine import machine  # noqa: E402
 
-from bluesky_offsets.parameters import METRIXS  # noqa: E402
-from bluesky_offsets.torch_engine import TorchEngine  # noqa: E402
-from bluesky_offsets.twin import RayxEngine, TraceRequest, _rayx_fix_seed  # noqa: E402
+from bluesky_offsets.physics.parameters import METRIXS  # noqa: E402
+from bluesky_offsets.physics.torch_engine import TorchEngine  # noqa: E402
+from bluesky_offsets.physics.twin import RayxEngine, TraceRequest, _rayx_fix_seed  # noqa: E402
 
 
 def configurations(n, seed=0):

@@ -30,9 +30,9 @@ def bench_overhead(n_rays: int, repeats: int) -> dict:
     """Our engine vs. a bare RAYX import+trace of the same RML, single thread, same seed."""
     import rayx
 
-    from bluesky_offsets.metrixs import build_beamline
-    from bluesky_offsets.parameters import METRIXS
-    from bluesky_offsets.twin import RayxEngine, TraceRequest, _rayx_fix_seed
+    from bluesky_offsets.physics.metrixs import build_beamline
+    from bluesky_offsets.physics.parameters import METRIXS
+    from bluesky_offsets.physics.twin import RayxEngine, TraceRequest, _rayx_fix_seed
 
     engine = RayxEngine()
     values = METRIXS.reference
@@ -59,8 +59,8 @@ def bench_overhead(n_rays: int, repeats: int) -> dict:
 
 
 def bench_throughput(n_rays: int, n_workers: int, n_samples: int) -> dict:
-    from bluesky_offsets.parameters import METRIXS
-    from bluesky_offsets.twin import Twin
+    from bluesky_offsets.physics.parameters import METRIXS
+    from bluesky_offsets.physics.twin import Twin
 
     rng = np.random.default_rng(1)
     # the nominal beam with small random misalignments: every sample traces the full chain
@@ -108,9 +108,9 @@ def main(argv=None) -> int:
             lines.append(f"| {n_rays:,} | {w} | {n} | {r['seconds']:.1f} | {r['samples_per_s']:.2f} |")
 
     if not args.no_noise:
-        from bluesky_offsets.noise import good_configurations, measure_noise_floor
-        from bluesky_offsets.parameters import METRIXS
-        from bluesky_offsets.twin import Twin
+        from bluesky_offsets.physics.noise import good_configurations, measure_noise_floor
+        from bluesky_offsets.physics.parameters import METRIXS
+        from bluesky_offsets.physics.twin import Twin
         n_cfg = 8 if args.quick else args.noise_configs
         floor = {"description": "MSE between two independent twin traces of the same configuration "
                                 "(x and y histograms concatenated, fraction of source rays). "

@@ -33,7 +33,7 @@ def main(argv=None) -> None:
     ap.add_argument("--screen", type=int, default=0, help="diagnostic: start from the best of this many")
     args = ap.parse_args(argv)
     torch.set_num_threads(1)
-    from bluesky_offsets import finder as F
+    from bluesky_offsets.offsets import finder as F
 
     model = F.load_forward_model(None)
     problem = F.make_problem(model, seed=args.seed)

@@ -26,7 +26,7 @@ from collections.abc import Mapping
 
 import numpy as np
 
-from .parameters import METRIXS, Parameter, ParameterTable
+from bluesky_offsets.physics.parameters import METRIXS, Parameter, ParameterTable
 
 
 class FixedParameterError(TypeError):

@@ -25,8 +25,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .measurement import Measurement
-from .parameters import METRIXS, ParameterTable
+from bluesky_offsets.model.measurement import Measurement
+from bluesky_offsets.physics.parameters import METRIXS, ParameterTable
 
 ENV_STORE = "BLUESKY_OFFSETS_STORE"
 
@@ -108,7 +108,7 @@ def consistent_profiles(profile_x, profile_y, fingerprint, hist_x, hist_y):
     """``(profile_x, profile_y)`` as float arrays if, binned as ``fingerprint`` says, they sum up
     to the histograms; ``(None, None)`` otherwise (a detector backend without rays publishes
     zeros)."""
-    from .twin import HistogramSpec
+    from bluesky_offsets.physics.twin import HistogramSpec
     try:
         px, py = np.asarray(profile_x, dtype=float), np.asarray(profile_y, dtype=float)
         spec = HistogramSpec.from_fingerprint(fingerprint)

@@ -1,6 +1,6 @@
 """Model vs. measurement as Bluesky plans: compare, diagnose the missing effect, add it, refit.
 
-Thin plans over :mod:`bluesky_offsets.model` and :mod:`bluesky_offsets.diagnosis`.  Each
+Thin plans over :mod:`bluesky_offsets.model.state` and :mod:`bluesky_offsets.model.diagnosis`.  Each
 opens one run (``open_run=False`` emits into a run that is already open) whose start
 document names the measurement run (``measurement_uid``, and its ``truth_id`` in a
 simulation); the heavy work runs in a worker thread, so the RunEngine stays responsive, and
@@ -37,25 +37,25 @@ from typing import Any
 import numpy as np
 from bluesky.utils import MsgGenerator
 
-from bluesky_offsets import diagnosis as D
-from bluesky_offsets import effects as E
-from bluesky_offsets.diagnosis import Diagnosis, Version, diagnose
-from bluesky_offsets.diagnostics import (
+from bluesky_offsets.model import diagnosis as D
+from bluesky_offsets.physics import effects as E
+from bluesky_offsets.model.diagnosis import Diagnosis, Version, diagnose
+from bluesky_offsets.model.misfit import (
     Misfit,
     correlate_with_parameters,
     failing_regions,
     misfit,
     residual_signature,
 )
-from bluesky_offsets.fit import FitOptions
-from bluesky_offsets.measurement import Measurement
-from bluesky_offsets.model import (
+from bluesky_offsets.model.fit import FitOptions
+from bluesky_offsets.model.measurement import Measurement
+from bluesky_offsets.model.state import (
     ModelState,
     RefineResult,
     refine,
     simulate,
 )
-from bluesky_offsets.parameters import METRIXS, ParameterTable
+from bluesky_offsets.physics.parameters import METRIXS, ParameterTable
 
 from ._stubs import emit_rows, in_run, run_in_thread
 
@@ -179,7 +179,7 @@ def resolve_measurement(measurement, store=None, *, n_rays: int | None = None, r
     """The measurement as the fits read it (:meth:`Measurement.for_analysis`) and the run
     metadata worth linking.
 
-    ``measurement`` is a :class:`bluesky_offsets.measurement.Measurement` or a measurement
+    ``measurement`` is a :class:`bluesky_offsets.model.measurement.Measurement` or a measurement
     run's uid in ``store``; the camera-resolution profiles are taken where it has them
     (``resolution="camera"``), else (or with ``"paper"``) the 50 x 50 histograms.
     """
@@ -323,9 +323,9 @@ def refine_offsets(measurement, state: ModelState, twin, forward_model=None, *, 
                    table: ParameterTable = METRIXS) -> MsgGenerator[Refinement]:
     """Fit the offsets (and the state's effects), starting from ``state``.
 
-    :func:`bluesky_offsets.model.refine`: the one fit engine (the differentiable twin, exact
-    Jacobians; features, then profiles, then bins), options :class:`~bluesky_offsets.fit.FitOptions`
-    (default :data:`bluesky_offsets.diagnosis.FIT`; an unknown key is an error).  Streams
+    :func:`bluesky_offsets.model.state.refine`: the one fit engine (the differentiable twin, exact
+    Jacobians; features, then profiles, then bins), options :class:`~bluesky_offsets.model.fit.FitOptions`
+    (default :data:`bluesky_offsets.model.diagnosis.FIT`; an unknown key is an error).  Streams
     ``progress`` (every iteration) and ``offsets`` (values ± σ), then compares the result with
     the measurement through the twin (RAYX, fresh rays).
 
@@ -393,11 +393,11 @@ def diagnose_effects(measurement, state: ModelState, twin, forward_model=None, *
                      options: FitOptions | Mapping | None = None, fit_top: int | None = D.FIT_TOP, client=None,
                      open_run: bool = True, md: Mapping | None = None, show: bool = True,
                      table: ParameterTable = METRIXS) -> MsgGenerator[Ranking]:
-    """Which effect is missing: :func:`bluesky_offsets.diagnosis.diagnose` as a run.
+    """Which effect is missing: :func:`bluesky_offsets.model.diagnosis.diagnose` as a run.
 
     Every candidate fitted with the offsets from each of its starts (``fit_top``: screen every
     start first and fit only that many candidates; ``options``: the candidate fits', default
-    :data:`bluesky_offsets.diagnosis.SCAN`; ``client``: a Dask client whose workers run them,
+    :data:`bluesky_offsets.model.diagnosis.SCAN`; ``client``: a Dask client whose workers run them,
     worth it on a cluster: on the 2-core machine the demo's analysis took 270 s with two
     one-thread workers and 192 s in this process with two threads).  Streams ``progress`` (every fit's iterations),
     ``ranking`` (one event per candidate, best first) and ``diagnosis`` (verdict, base misfit
@@ -466,7 +466,7 @@ def add_effect_and_refit(measurement, state: ModelState, effect: str, twin, forw
     """``state.with_effect(effect, values)``, offsets and effect refitted with the one fit engine.
 
     ``values`` start the effect (e.g. the diagnosis's fitted values; default 0 = absent);
-    ``options`` those of the fit (default :data:`bluesky_offsets.diagnosis.FIT`).  Streams
+    ``options`` those of the fit (default :data:`bluesky_offsets.model.diagnosis.FIT`).  Streams
     ``progress`` (refit iterations), ``effect`` (fitted magnitude ± uncertainty per parameter),
     the new version's comparison (``misfit``, ``misfit_total``) and ``error_history``
     (``history`` + the new version).
@@ -547,11 +547,11 @@ def analyse_measurement(measurement, twin, forward_model=None, *, store=None,
         within noise, no candidate is significant, or ``rounds`` diagnoses ran (two hidden
         effects are found one after the other).
     fit_options, scan_options : FitOptions or mapping, optional
-        Of the offsets fit and the refits (default :data:`bluesky_offsets.diagnosis.FIT`), and
-        of the diagnosis's candidate fits (:data:`bluesky_offsets.diagnosis.SCAN`).
+        Of the offsets fit and the refits (default :data:`bluesky_offsets.model.diagnosis.FIT`), and
+        of the diagnosis's candidate fits (:data:`bluesky_offsets.model.diagnosis.SCAN`).
     fit_top : int or None
         Screen every start first and fit only this many candidates to convergence (default
-        None: every start fitted; :func:`bluesky_offsets.diagnosis.diagnose`).
+        None: every start fitted; :func:`bluesky_offsets.model.diagnosis.diagnose`).
     resolution : {"camera", "paper"}
         Of a stored run: the camera-resolution profiles where it has them, or the 50 x 50
         histograms.

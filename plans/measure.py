@@ -19,10 +19,10 @@ import bluesky.preprocessors as bpp
 import numpy as np
 from bluesky.utils import MsgGenerator
 
-from bluesky_offsets.parameters import METRIXS, ParameterTable
-from bluesky_offsets.measurement import Measurement
+from bluesky_offsets.physics.parameters import METRIXS, ParameterTable
+from bluesky_offsets.model.measurement import Measurement
 from bluesky_offsets.store import consistent_profiles
-from bluesky_offsets.twin import HistogramSpec
+from bluesky_offsets.physics.twin import HistogramSpec
 
 from .motion import (
     as_configurations,

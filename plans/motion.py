@@ -21,7 +21,7 @@ import bluesky.plan_stubs as bps
 import numpy as np
 from bluesky.utils import MsgGenerator
 
-from bluesky_offsets.parameters import METRIXS, ParameterError, ParameterTable
+from bluesky_offsets.physics.parameters import METRIXS, ParameterError, ParameterTable
 
 
 class MotorLimitError(ValueError):

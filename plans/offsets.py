@@ -2,10 +2,10 @@
 
 The finder itself is pluggable.  Two calling conventions are accepted:
 
-* ``finder(measurement)`` with a :class:`bluesky_offsets.measurement.Measurement`;
+* ``finder(measurement)`` with a :class:`bluesky_offsets.model.measurement.Measurement`;
 * ``finder(configurations, histograms, n_rays=..., uid=...)`` with
   configurations ``(n, 34)`` and histograms ``(n, 100)`` (x then y), the
-  convention of :class:`bluesky_offsets.calibration.OffsetFinder` (chosen
+  convention of :class:`bluesky_offsets.offsets.calibration.OffsetFinder` (chosen
   when the callable takes two positional parameters).
 
 The result may be an :class:`OffsetResult`, any object with ``offsets``
@@ -15,7 +15,7 @@ a mapping with those keys (offsets may be ``{name: value}``), or a tuple
 The finder runs in a worker thread, so the RunEngine stays responsive
 (pause/abort) while it works; a finder that takes ``callback=`` reports its progress
 (dicts of evaluations, seconds, loss) and the plan streams it live as ``finder`` events
-(plot them with :class:`bluesky_offsets.calibration.LossPlot`).  For bluesky-queueserver, pass the finder as an
+(plot them with :class:`bluesky_offsets.offsets.calibration.LossPlot`).  For bluesky-queueserver, pass the finder as an
 import path string (``"package.module:function"``) and the measurement as a
 run uid: both are plain JSON.
 """
@@ -30,8 +30,8 @@ import bluesky.plan_stubs as bps
 import numpy as np
 from bluesky.utils import MsgGenerator
 
-from bluesky_offsets.parameters import METRIXS, ParameterTable
-from bluesky_offsets.measurement import Measurement
+from bluesky_offsets.physics.parameters import METRIXS, ParameterTable
+from bluesky_offsets.model.measurement import Measurement
 from bluesky_offsets.store import RunStore, as_measurement
 
 from ._stubs import Record, in_run, run_in_thread
@@ -190,7 +190,7 @@ def find_offsets(finder, measurement=None, *, store: RunStore | str | None = Non
     The stream has one event: ``loss``, the normalized offset of every
     parameter (key = name with ``.`` -> ``_``), and arrays ``offsets`` /
     ``offsets_physical`` in table order; when the finder reports them (e.g. a
-    :class:`bluesky_offsets.calibration.Calibration`), also ``offsets_sigma``,
+    :class:`bluesky_offsets.offsets.calibration.Calibration`), also ``offsets_sigma``,
     ``offsets_determined`` (2 determined, 1 weak, 0 undetermined) and the loss
     curve ``loss_curve_<key>`` arrays.
     """

@@ -11,7 +11,7 @@ The paper's histograms are raw bin counts at 1e5 source rays divided by
 22594, so a sum of 0.5 means 0.5 x 22594 = 11297 rays of 1e5.  Our
 histograms are fractions of the source rays, so the same threshold is
 ``0.5 * 22594 / 1e5 = 0.11297`` (:data:`HIGH_RAY_THRESHOLD`), applied, as in the
-authors' code and in :mod:`bluesky_offsets.finder`, to the sum over all 100 bins
+authors' code and in :mod:`bluesky_offsets.offsets.finder`, to the sum over all 100 bins
 (x and y histograms together): about 6 % of the source rays inside both windows.
 
 Two searches: :func:`high_ray_configurations_on_model` on a model (the
@@ -26,7 +26,7 @@ from collections.abc import Mapping
 import numpy as np
 from bluesky.utils import MsgGenerator
 
-from bluesky_offsets.parameters import METRIXS, ParameterTable
+from bluesky_offsets.physics.parameters import METRIXS, ParameterTable
 
 from .measure import scan_configurations
 
@@ -192,11 +192,11 @@ def find_beam(beamline, chamber, *, fraction: float = 0.15, twin=None, max_frame
               md: Mapping | None = None) -> MsgGenerator:
     """Bring the beam onto the screen from a dark or dim start, as an operator does.
 
-    :func:`bluesky_offsets.beam_search.search`: the start as it is; else the slits opened and
+    :func:`bluesky_offsets.offsets.beam_search.search`: the start as it is; else the slits opened and
     the motors the beam is most sensitive to scanned one by one, upstream first, watching the
     counts; then the slits closed again and the same motors scanned finely.  Which motors,
     over what range and in how many steps comes from the model (the nominal twin's acceptance
-    of each motor, :func:`bluesky_offsets.beam_search.acceptance`) and from ``fraction``, the
+    of each motor, :func:`bluesky_offsets.offsets.beam_search.acceptance`) and from ``fraction``, the
     offsets the motors may carry (normalized; 0.15 = 15 % of each range).  Every scan is a run
     of its own in the store (``purpose`` "beam search").  The motors stay where the brightest
     frame with the slits as they were was taken.
@@ -210,13 +210,13 @@ def find_beam(beamline, chamber, *, fraction: float = 0.15, twin=None, max_frame
 
     Returns
     -------
-    bluesky_offsets.beam_search.SearchResult
+    bluesky_offsets.offsets.beam_search.SearchResult
         The configuration (twin coordinates, motor readbacks), its intensity, whether it is
         bright (``threshold``), the frames used, a line per step and the uids of its runs.
     """
-    from bluesky_offsets.beam_search import acceptance, intensity, search
-    from bluesky_offsets.torch_engine import TorchEngine
-    from bluesky_offsets.twin import Twin
+    from bluesky_offsets.offsets.beam_search import acceptance, intensity, search
+    from bluesky_offsets.physics.torch_engine import TorchEngine
+    from bluesky_offsets.physics.twin import Twin
 
     from .measure import scan_configurations
     from .motion import current_configuration, move_to, resolve_motors

@@ -12,7 +12,7 @@ frame.  It must not block the IOC's event loop: :meth:`submit` returns a
   An abort stops the worker; a state no beamline can be in (a slit driven past
   closed) is traced closed, so that the truth shows only as light or no light.
 * :class:`SurrogateBackend` evaluates a trained surrogate checkpoint
-  (:mod:`bluesky_offsets.surrogate`) and draws the finite-ray noise itself
+  (:mod:`bluesky_offsets.surrogate.network`) and draws the finite-ray noise itself
   (multinomial counts for the ray budget); it has no image, no camera-resolution
   profiles and cannot apply hidden physical effects.
 * Any other backend plugs in through ``--backend module:factory``; the
@@ -34,7 +34,7 @@ from typing import Protocol, runtime_checkable
 
 import numpy as np
 
-from bluesky_offsets.twin import CAMERA, HistogramSpec
+from bluesky_offsets.physics.twin import CAMERA, HistogramSpec
 
 
 @dataclass
@@ -42,7 +42,7 @@ class Frame:
     """One focus-chamber frame; histograms are fractions of the source rays.
 
     ``profile_x``/``profile_y`` are the same footprint projected at the camera's own
-    resolution (:data:`bluesky_offsets.twin.CAMERA`); None when the backend has no rays."""
+    resolution (:data:`bluesky_offsets.physics.twin.CAMERA`); None when the backend has no rays."""
 
     hist_x: np.ndarray
     hist_y: np.ndarray
@@ -90,8 +90,8 @@ def physical_state(values: np.ndarray, table=None) -> tuple[np.ndarray, str | No
     Returns the state to trace and, when it had to be changed or cannot be traced at all,
     a note for the simulation's operator (never for its clients: it names true values).
     """
-    from bluesky_offsets.metrixs import check_physical
-    from bluesky_offsets.parameters import METRIXS
+    from bluesky_offsets.physics.metrixs import check_physical
+    from bluesky_offsets.physics.parameters import METRIXS
     table = table or METRIXS
     v = np.array(values, float)
     note = None
@@ -115,7 +115,7 @@ def _twin_frame(values: np.ndarray, overrides: Mapping, n_rays: int, seed: int |
         # no beamline can be in this state: no light, as in any dark frame
         return Frame.dark(hist, n_rays), note
     if _worker_twin is None:
-        from bluesky_offsets.twin import RayxEngine, Twin
+        from bluesky_offsets.physics.twin import RayxEngine, Twin
         _worker_twin = Twin(RayxEngine(hist=hist), scheduler="inline")
     r = _worker_twin.trace(values, overrides=overrides, n_rays=n_rays, keep_rays=True, seed=seed)
     x, y = (r.rays[:, 0], r.rays[:, 1]) if r.rays is not None and len(r.rays) else (np.empty(0), np.empty(0))
@@ -182,7 +182,7 @@ class TwinBackend:
 
     An abort stops the worker at once and the next frame goes to a spare worker that is
     already warm; a worker that died is replaced before the next frame.  RAYX's input files
-    live only for their import (:func:`bluesky_offsets.twin._import_rml`).
+    live only for their import (:func:`bluesky_offsets.physics.twin._import_rml`).
 
     Parameters
     ----------
@@ -223,7 +223,7 @@ class TwinBackend:
 
     @staticmethod
     def _warm_state() -> np.ndarray:
-        from bluesky_offsets.parameters import METRIXS
+        from bluesky_offsets.physics.parameters import METRIXS
         return METRIXS.reference.copy()
 
     @staticmethod
@@ -310,7 +310,7 @@ class SurrogateBackend:
                              f"({sorted(overrides)}); use the twin backend")
         from pathlib import Path
 
-        from bluesky_offsets.surrogate import SurrogateError, load
+        from bluesky_offsets.surrogate.network import SurrogateError, load
         self.hist = hist or HistogramSpec()
         try:
             self.model = load(path, hist=self.hist)

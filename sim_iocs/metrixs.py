@@ -47,8 +47,8 @@ from caproto import ChannelType
 from caproto.server import PVGroup, pvproperty
 from caproto._data import SkipWrite
 
-from bluesky_offsets.parameters import METRIXS, ParameterError, ParameterTable
-from bluesky_offsets.twin import CAMERA, HistogramSpec
+from bluesky_offsets.physics.parameters import METRIXS, ParameterError, ParameterTable
+from bluesky_offsets.physics.twin import CAMERA, HistogramSpec
 
 from .backends import FootprintBackend, Frame, FrameAborted, make_backend
 from .motor_record import AxisSettings, MotorRecord

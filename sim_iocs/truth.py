@@ -36,7 +36,7 @@ from pathlib import Path
 
 import numpy as np
 
-from bluesky_offsets.parameters import METRIXS, ParameterError, ParameterTable
+from bluesky_offsets.physics.parameters import METRIXS, ParameterError, ParameterTable
 
 
 def default_start(table: ParameterTable = METRIXS) -> np.ndarray:

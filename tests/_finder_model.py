@@ -15,7 +15,7 @@ import functools
 import numpy as np
 import torch
 
-from bluesky_offsets.parameters import METRIXS
+from bluesky_offsets.physics.parameters import METRIXS
 
 CENTER, HALF_WIDTH = 0.5, 0.02
 N_SAMPLES, N_RAYS = 220, 500
@@ -37,7 +37,7 @@ class LocalMLP(torch.nn.Module):
 
 @functools.lru_cache(maxsize=1)
 def twin_data(n: int = N_SAMPLES, n_rays: int = N_RAYS, seed: int = 0):
-    from bluesky_offsets.twin import Twin
+    from bluesky_offsets.physics.twin import Twin
     rng = np.random.default_rng(seed)
     x = CENTER + rng.uniform(-HALF_WIDTH, HALF_WIDTH, (n, len(METRIXS)))
     twin = Twin(scheduler="inline", n_rays=n_rays)

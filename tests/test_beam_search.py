@@ -5,10 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from bluesky_offsets.beam_search import OPEN_SLITS, acceptance, intensity, schedule, search
-from bluesky_offsets.parameters import METRIXS
-from bluesky_offsets.torch_engine import TorchEngine
-from bluesky_offsets.twin import Twin
+from bluesky_offsets.offsets.beam_search import OPEN_SLITS, acceptance, intensity, schedule, search
+from bluesky_offsets.physics.parameters import METRIXS
+from bluesky_offsets.physics.torch_engine import TorchEngine
+from bluesky_offsets.physics.twin import Twin
 from plans import HIGH_RAY_THRESHOLD
 from sim_iocs.truth import default_start
 

@@ -6,7 +6,7 @@ import sys
 
 import pytest
 
-from bluesky_offsets.cli import main
+from bluesky_offsets.commands.cli import main
 
 
 def _json(capsys, argv):
@@ -68,6 +68,6 @@ def test_simulate_bad_input(capsys, argv, message):
 
 
 def test_console_script_entry_point():
-    out = subprocess.run([sys.executable, "-m", "bluesky_offsets.cli", "params", "--json"],
+    out = subprocess.run([sys.executable, "-m", "bluesky_offsets.commands.cli", "params", "--json"],
                          capture_output=True, text=True, check=True).stdout
     assert len(json.loads(out)["parameters"]) == 34

@@ -13,10 +13,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from bluesky_offsets import dataset
-from bluesky_offsets.cli import main
-from bluesky_offsets.dataset import DatasetError, DrawScheme, GenerationSettings
-from bluesky_offsets.parameters import METRIXS
+from bluesky_offsets.surrogate import dataset
+from bluesky_offsets.commands.cli import main
+from bluesky_offsets.surrogate.dataset import DatasetError, DrawScheme, GenerationSettings
+from bluesky_offsets.physics.parameters import METRIXS
 
 os.environ.setdefault("OMP_NUM_THREADS", "1")  # inline tracing of many tiny traces
 
@@ -86,7 +86,7 @@ def test_kill_and_resume_cli_exact_no_duplicates(tmp_path):
     n = 40
     args = [str(store), "--samples", str(n), "--rays", "300", "--screen-rays", "60", "--keep-fraction", "0.05",
             "--block-size", "24", "--seed", "11"]
-    cmd = [sys.executable, "-m", "bluesky_offsets.cli", "dataset", "generate", *args, "--workers", "2",
+    cmd = [sys.executable, "-m", "bluesky_offsets.commands.cli", "dataset", "generate", *args, "--workers", "2",
            "--no-progress"]
     proc = subprocess.Popen(cmd, start_new_session=True, stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
     try:

@@ -19,7 +19,7 @@ from bluesky_offsets.devices import (
     MetrixsBeamline,
     make_beamline_v1,
 )
-from bluesky_offsets.parameters import METRIXS
+from bluesky_offsets.physics.parameters import METRIXS
 
 
 @pytest.fixture(scope="module")

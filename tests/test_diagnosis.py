@@ -4,13 +4,13 @@ effect (small, fast setup)."""
 import numpy as np
 import pytest
 
-from bluesky_offsets import effects as E
-from bluesky_offsets.diagnosis import Version, add_effect, diagnose, evaluate, plot_error_history, plot_ranking
-from bluesky_offsets.diagnostics import MeasurementError
-from bluesky_offsets.measurement import Measurement
-from bluesky_offsets.model import ModelState, refine, simulate
-from bluesky_offsets.parameters import METRIXS
-from bluesky_offsets.twin import Twin
+from bluesky_offsets.physics import effects as E
+from bluesky_offsets.model.diagnosis import Version, add_effect, diagnose, evaluate, plot_error_history, plot_ranking
+from bluesky_offsets.model.misfit import MeasurementError
+from bluesky_offsets.model.measurement import Measurement
+from bluesky_offsets.model.state import ModelState, refine, simulate
+from bluesky_offsets.physics.parameters import METRIXS
+from bluesky_offsets.physics.twin import Twin
 
 N_RAYS = 4000
 # offsets hidden in three sensitive motors
@@ -151,8 +151,8 @@ def camera_case():
     """A defocus (the screen 20 mm downstream) hidden behind offsets, measured at the camera's
     resolution on a small diagnostic design, and the offsets fitted from the nominal twin
     (features first, then bins)."""
-    from bluesky_offsets.diagnosis import diagnostic_configurations
-    from bluesky_offsets.twin import CAMERA
+    from bluesky_offsets.model.diagnosis import diagnostic_configurations
+    from bluesky_offsets.physics.twin import CAMERA
     from sim_iocs.truth import default_start
     twin = Twin(scheduler="inline", n_rays=N_RAYS).with_hist(CAMERA)
     cfgs = diagnostic_configurations(default_start(), 8, seed=1)
@@ -170,7 +170,7 @@ def test_feature_stage_then_diagnosis_find_a_hidden_defocus(camera_case):
     """The workflow's physics on a small design (8 configurations, 4000 rays): the acceptance
     numbers (magnitude within 25 %, misfit within 1.5x noise) are checked on the demo's design
     against the IOC (tests/test_diagnosis_ioc.py)."""
-    from bluesky_offsets.diagnosis import add_effect_result
+    from bluesky_offsets.model.diagnosis import add_effect_result
     twin, meas, truth, fit = camera_case
     features = [h["chi2"] for h in fit.history if h["stage"] == "features"]
     assert features[-1] < 0.5 * features[0]  # the offsets alone explain part of it ...

@@ -27,7 +27,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from bluesky_offsets.parameters import METRIXS
+from bluesky_offsets.physics.parameters import METRIXS
 from bluesky_offsets.store import open_store
 from plans.diagnose import load_results
 

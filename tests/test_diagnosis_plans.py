@@ -15,11 +15,11 @@ import numpy as np
 import pytest
 from bluesky import RunEngine
 
-from bluesky_offsets import cli
-from bluesky_offsets.diagnostics import MeasurementError
-from bluesky_offsets.model import ModelState
-from bluesky_offsets.parameters import METRIXS
-from bluesky_offsets.twin import Twin
+from bluesky_offsets.commands import cli
+from bluesky_offsets.model.misfit import MeasurementError
+from bluesky_offsets.model.state import ModelState
+from bluesky_offsets.physics.parameters import METRIXS
+from bluesky_offsets.physics.twin import Twin
 from plans import measure_configurations, sample_candidates
 from plans.diagnose import (
     add_effect_and_refit,

@@ -4,11 +4,11 @@ beyond noise and with the right signature when an effect is missing."""
 import numpy as np
 import pytest
 
-from bluesky_offsets import effects as E
-from bluesky_offsets.diagnostics import (MeasurementError, correlate_with_parameters, failing_regions, misfit,
+from bluesky_offsets.physics import effects as E
+from bluesky_offsets.model.misfit import (MeasurementError, correlate_with_parameters, failing_regions, misfit,
                                          plot_overlays, plot_residual_maps, residual_signature)
-from bluesky_offsets.parameters import METRIXS
-from bluesky_offsets.twin import HistogramSpec, Twin
+from bluesky_offsets.physics.parameters import METRIXS
+from bluesky_offsets.physics.twin import HistogramSpec, Twin
 
 N_MEAS, N_MODEL = 10_000, 40_000
 
@@ -86,8 +86,8 @@ def test_bad_measurements_are_refused(data, mutate, message):
 def test_beam_features_of_a_known_beam():
     """Intensity, centroid and width of a Gaussian beam binned at the camera's resolution,
     with noise variances that match the scatter of repeated finite-ray frames."""
-    from bluesky_offsets.diagnostics import FEATURE_NAMES, beam_features
-    from bluesky_offsets.twin import CAMERA
+    from bluesky_offsets.model.misfit import FEATURE_NAMES, beam_features
+    from bluesky_offsets.physics.twin import CAMERA
     rng = np.random.default_rng(1)
     n_rays, frames = 5000, 200
     feats = []
@@ -107,7 +107,7 @@ def test_beam_features_of_a_known_beam():
 
 
 def test_histogram_specs_rebin_and_describe_themselves():
-    from bluesky_offsets.twin import CAMERA
+    from bluesky_offsets.physics.twin import CAMERA
     paper = HistogramSpec()
     assert CAMERA.factors(paper) == (20, 24)
     rng = np.random.default_rng(2)

@@ -3,9 +3,9 @@
 import numpy as np
 import pytest
 
-from bluesky_offsets import effects as E
-from bluesky_offsets.parameters import METRIXS
-from bluesky_offsets.twin import HistogramSpec, Twin
+from bluesky_offsets.physics import effects as E
+from bluesky_offsets.physics.parameters import METRIXS
+from bluesky_offsets.physics.twin import HistogramSpec, Twin
 
 REQUIRED = {"chamber_x", "chamber_y", "chamber_z", "chamber_rotation", "source_size", "source_divergence", "photon_energy",
             "slope_error_m1", "slope_error_e1", "slope_error_e2", "thermal_bump_m1", "grating_line_density",

@@ -14,8 +14,8 @@ import pytest
 import torch
 
 from _finder_model import CENTER, HALF_WIDTH, trained_model
-from bluesky_offsets import finder as F
-from bluesky_offsets.parameters import METRIXS
+from bluesky_offsets.offsets import finder as F
+from bluesky_offsets.physics.parameters import METRIXS
 
 REGION = (CENTER - HALF_WIDTH, CENTER + HALF_WIDTH)
 LIMIT = 0.01
@@ -110,7 +110,7 @@ def test_time_budget_is_respected(model, problem):
 
 
 def test_twin_observations_carry_noise(model):
-    from bluesky_offsets.twin import Twin
+    from bluesky_offsets.physics.twin import Twin
     twin = Twin(scheduler="inline")
     p = F.make_problem(model, seed=3, region=REGION, limit=LIMIT, observe="twin", twin=twin, n_rays=2000)
     ref = F.make_problem(model, seed=3, region=REGION, limit=LIMIT)
@@ -150,7 +150,7 @@ def test_bad_input_is_refused_clearly(model, problem):
 
 def test_the_shipped_surrogate_is_a_forward_model():
     """The shipped checkpoint through the finder's adapter equals the surrogate's own predict()."""
-    from bluesky_offsets.surrogate import load
+    from bluesky_offsets.surrogate.network import load
     fm = F.load_forward_model()
     assert isinstance(fm, F.ForwardModel) and fm.test_mse > 0
     rng = np.random.default_rng(0)
@@ -167,7 +167,7 @@ def test_find_command_end_to_end(tmp_path, capsys):
     """``bluesky-offsets find`` on the shipped surrogate, tiny budgets: summary, JSON, plots."""
     import json
 
-    from bluesky_offsets.cli import main
+    from bluesky_offsets.commands.cli import main
     out = tmp_path / "find"
     rc = main(["find", "--runs", "2", "--candidates", "32", "--iterations", "4", "--threads", "1",
                "--methods", "smart-walker,monte-carlo,levenberg-marquardt", "--no-progress", "--quiet",
@@ -188,8 +188,8 @@ def test_find_command_end_to_end(tmp_path, capsys):
 
 def test_sinkhorn_and_twin_check(problem, tmp_path):
     """POT's debiased Sinkhorn on ray clouds; the twin re-simulation at true vs. found offsets; Fig. 6."""
-    from bluesky_offsets import finder_eval as E
-    from bluesky_offsets.twin import Twin
+    from bluesky_offsets.offsets import evaluate as E
+    from bluesky_offsets.physics.twin import Twin
     rng = np.random.default_rng(0)
     a = rng.normal(0, [0.07, 0.016], (400, 2))
     b = rng.normal(0, [0.07, 0.016], (400, 2))

@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 
 from _finder_model import CENTER, HALF_WIDTH, trained_model
-from bluesky_offsets import calibration as C
-from bluesky_offsets import finder as F
-from bluesky_offsets.parameters import METRIXS
+from bluesky_offsets.offsets import calibration as C
+from bluesky_offsets.offsets import finder as F
+from bluesky_offsets.physics.parameters import METRIXS
 
 REGION = (CENTER - HALF_WIDTH, CENTER + HALF_WIDTH)
 LIMIT = 0.01
@@ -34,7 +34,7 @@ def test_find_offsets_streams_progress_and_emits_offsets(model, problem, tmp_pat
     LossPlot draws them), the result as one ``offsets`` event, the run linked to its measurement."""
     from bluesky import RunEngine
 
-    from bluesky_offsets.measurement import Measurement
+    from bluesky_offsets.model.measurement import Measurement
     from plans import find_offsets
     RE = RunEngine({}, call_returns_result=True)
     docs = []
@@ -97,7 +97,7 @@ def test_apply_offsets_updates_the_model_not_the_motors(model, problem, tmp_path
 
 
 def test_twin_polish_lowers_the_twins_misfit(model):
-    from bluesky_offsets.twin import Twin
+    from bluesky_offsets.physics.twin import Twin
     twin = Twin(scheduler="inline")
     p = F.make_problem(model, seed=3, region=REGION, limit=LIMIT, observe="twin", twin=twin, n_rays=3000)
     r = F.find_offsets(p, model, "gradient", F.Budget(evaluations=1500), seed=0, progress=False, threads=1,

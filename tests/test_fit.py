@@ -5,13 +5,13 @@ import numpy as np
 import pytest
 import torch
 
-from bluesky_offsets import effects as E
-from bluesky_offsets.fit import FitOptions, _Model, _Products, fit, screen
-from bluesky_offsets.measurement import Measurement
-from bluesky_offsets.model import ModelState, simulate
-from bluesky_offsets.parameters import METRIXS
-from bluesky_offsets.torch_engine import TorchEngine
-from bluesky_offsets.twin import CAMERA, HistogramSpec, Twin
+from bluesky_offsets.physics import effects as E
+from bluesky_offsets.model.fit import FitOptions, _Model, _Products, fit, screen
+from bluesky_offsets.model.measurement import Measurement
+from bluesky_offsets.model.state import ModelState, simulate
+from bluesky_offsets.physics.parameters import METRIXS
+from bluesky_offsets.physics.torch_engine import TorchEngine
+from bluesky_offsets.physics.twin import CAMERA, HistogramSpec, Twin
 from sim_iocs.truth import default_start
 
 
@@ -34,7 +34,7 @@ def test_ray_jacobian_gives_the_soft_histograms_exact_jacobian():
     assert rj.names == names and J.shape == J_ref.shape == (2, 100, 35)
     assert float((J - J_ref).abs().max()) <= 1e-9 * float(J_ref.abs().max())
     # the values are the hard counts of the same rays (RAYX's survival and binning)
-    from bluesky_offsets.torch_engine import histograms
+    from bluesky_offsets.physics.torch_engine import histograms
     hx, hy = histograms(eng.beam(cfg, E.twin_overrides(eff), n_rays=1500, seed=5), HistogramSpec())
     assert torch.equal(h, torch.cat([hx, hy], 1))
 
@@ -89,7 +89,7 @@ def defocus_case():
     off = rng.uniform(-0.03, 0.03, len(METRIXS))
     truth = ModelState(off, {"chamber_z": {"z": 15.0}}, "truth")
     start = default_start() - np.where(METRIXS.motorized, METRIXS.offsets_to_physical(off), 0.0)
-    from bluesky_offsets.diagnosis import diagnostic_configurations, open_aperture
+    from bluesky_offsets.model.diagnosis import diagnostic_configurations, open_aperture
     cfg = diagnostic_configurations(start, 6, seed=2)
     cfg = np.vstack([cfg, open_aperture(cfg[:2])])
     twin = Twin(scheduler="inline").with_hist(CAMERA)
@@ -99,7 +99,7 @@ def defocus_case():
 
 def test_fit_through_the_differentiable_twin_recovers_a_hidden_defocus(defocus_case):
     meas, truth, twin = defocus_case
-    from bluesky_offsets.diagnosis import evaluate
+    from bluesky_offsets.model.diagnosis import evaluate
     opts = FitOptions(rays=4000, seed=3, stages=(("features", 12), ("profiles", 6), ("bins", 8)))
     eng = TorchEngine(hist=CAMERA)
     seen = []

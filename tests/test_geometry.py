@@ -6,10 +6,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from bluesky_offsets.geometry import ChainLink, Misalignment, chain_frames, ellipsoid_tangent_angle, misalign
-from bluesky_offsets.metrixs import build_beamline, nominal_beamline
-from bluesky_offsets.parameters import METRIXS
-from bluesky_offsets.rml import WORLD_KEYS, RmlError, read_rml, read_world_vectors
+from bluesky_offsets.physics.geometry import ChainLink, Misalignment, chain_frames, ellipsoid_tangent_angle, misalign
+from bluesky_offsets.physics.metrixs import build_beamline, nominal_beamline
+from bluesky_offsets.physics.parameters import METRIXS
+from bluesky_offsets.physics.rml import WORLD_KEYS, RmlError, read_rml, read_world_vectors
 
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "reference"
 METRIXS_RML = SHARED / "METRIX_U41_G1_H1_318eV_PS_MLearn_1.15.rml"

@@ -7,9 +7,9 @@ import pytest
 import torch
 
 from _finder_model import CENTER, HALF_WIDTH, trained_model
-from bluesky_offsets import finder as F
-from bluesky_offsets import identifiability as I
-from bluesky_offsets.parameters import METRIXS, Parameter, ParameterTable
+from bluesky_offsets.offsets import finder as F
+from bluesky_offsets.offsets import identifiability as I
+from bluesky_offsets.physics.parameters import METRIXS, Parameter, ParameterTable
 
 REGION = (CENTER - HALF_WIDTH, CENTER + HALF_WIDTH)
 LIMIT = 0.01

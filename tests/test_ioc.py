@@ -16,8 +16,8 @@ import time
 import numpy as np
 import pytest
 
-from bluesky_offsets.parameters import METRIXS
-from bluesky_offsets.twin import CAMERA, HistogramSpec
+from bluesky_offsets.physics.parameters import METRIXS
+from bluesky_offsets.physics.twin import CAMERA, HistogramSpec
 from sim_iocs.motor_record import trapezoid
 from sim_iocs.truth import Truth, default_start
 
@@ -82,7 +82,7 @@ def test_bad_truth_file_gives_clear_error_and_exit_2(tmp_path):
     r = subprocess.run([sys.executable, "-m", "sim_iocs.metrixs", "--prefix", "BAD:", "--truth", str(f)],
                        capture_output=True, text=True, timeout=60)
     assert r.returncode == 2 and "not valid JSON" in r.stderr and "Traceback" not in r.stderr
-    r = subprocess.run([sys.executable, "-m", "bluesky_offsets.cli", "ioc", "--truth", str(tmp_path / "none.json")],
+    r = subprocess.run([sys.executable, "-m", "bluesky_offsets.commands.cli", "ioc", "--truth", str(tmp_path / "none.json")],
                        capture_output=True, text=True, timeout=60)
     assert r.returncode == 2 and "does not exist" in r.stderr
 
@@ -450,8 +450,8 @@ def _small_surrogate(path):
     twin traces near the centre of the box (where footprints are bright)."""
     import torch
 
-    from bluesky_offsets.surrogate import Architecture, Normalization, Surrogate
-    from bluesky_offsets.twin import Twin
+    from bluesky_offsets.surrogate.network import Architecture, Normalization, Surrogate
+    from bluesky_offsets.physics.twin import Twin
     rng = np.random.default_rng(0)
     x = 0.5 + rng.uniform(-0.01, 0.01, (24, len(METRIXS)))
     b = Twin(scheduler="inline").trace_batch(METRIXS.denormalize(x), n_rays=400, seed=0, progress=False)

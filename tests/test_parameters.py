@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from bluesky_offsets.parameters import MAX_OFFSET, METRIXS, ParameterError, ParameterTable
+from bluesky_offsets.physics.parameters import MAX_OFFSET, METRIXS, ParameterError, ParameterTable
 
 PAPER_RANGES = {  # paper Table 1 / authors' dataset config
     "U41_318eV.translationXerror": (-0.25, 0.25), "U41_318eV.translationYerror": (-0.25, 0.25),
@@ -103,7 +103,7 @@ def test_version_and_diff():
 
 
 def test_motor_travel_is_the_box_except_for_the_slit_openings():
-    from bluesky_offsets.diagnosis import OPEN_APERTURE, in_box, open_aperture
+    from bluesky_offsets.model.diagnosis import OPEN_APERTURE, in_box, open_aperture
     from sim_iocs.metrixs import axis_settings
 
     wider = {p.name for p in METRIXS if p.limits != (p.low, p.high)}

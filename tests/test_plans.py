@@ -11,8 +11,8 @@ from bluesky import RunEngine
 from bluesky.utils import RunEngineInterrupted
 
 from bluesky_offsets.devices import FocusChamber, MetrixsBeamline
-from bluesky_offsets.parameters import METRIXS
-from bluesky_offsets.twin import CAMERA, HistogramSpec, Twin
+from bluesky_offsets.physics.parameters import METRIXS
+from bluesky_offsets.physics.twin import CAMERA, HistogramSpec, Twin
 from conftest import start_metrixs_ioc
 from plans import (
     HIGH_RAY_THRESHOLD,

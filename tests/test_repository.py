@@ -32,7 +32,7 @@ def test_ci_runs_the_readme_test_command():
 
 def test_pyproject():
     meta = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]
-    assert meta["scripts"]["bluesky-offsets"] == "bluesky_offsets.cli:main"
+    assert meta["scripts"]["bluesky-offsets"] == "bluesky_offsets.commands.cli:main"
     assert meta["requires-python"] == ">=3.11"
     torch = [d for d in meta["dependencies"] if d.startswith("torch")]
     assert torch == ["torch>=2.3,<3"]  # admits the installed CPU 2.13.0, pulls nothing else

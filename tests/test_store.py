@@ -18,8 +18,8 @@ import numpy as np
 import pytest
 from bluesky import RunEngine
 
-from bluesky_offsets.parameters import METRIXS
-from bluesky_offsets.measurement import Measurement
+from bluesky_offsets.physics.parameters import METRIXS
+from bluesky_offsets.model.measurement import Measurement
 from bluesky_offsets.store import ENV_STORE, default_store_location, open_store
 
 
@@ -158,7 +158,7 @@ def test_tiled_server_url(RE, chamber, tmp_path):
 def test_camera_profiles_are_kept_only_when_they_add_up_to_the_histograms():
     """A detector backend without rays (the surrogate) publishes zero profiles: they are ignored."""
     from bluesky_offsets.store import _profiles
-    from bluesky_offsets.twin import CAMERA, HistogramSpec
+    from bluesky_offsets.physics.twin import CAMERA, HistogramSpec
     rng = np.random.default_rng(0)
     px = np.stack([CAMERA.histograms(rng.normal(0, 0.1, 900), rng.normal(0, 0.02, 900), 3000)[0] for _ in range(2)])
     py = np.stack([CAMERA.histograms(rng.normal(0, 0.1, 900), rng.normal(0, 0.02, 900), 3000)[1] for _ in range(2)])

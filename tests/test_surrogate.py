@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 import torch
 
-from bluesky_offsets import surrogate
-from bluesky_offsets.parameters import METRIXS, METRIXS_PARAMETERS, ParameterTable
-from bluesky_offsets.surrogate import Architecture, Normalization, Surrogate, SurrogateError
-from bluesky_offsets.twin import HistogramSpec
+from bluesky_offsets.surrogate import network as surrogate
+from bluesky_offsets.physics.parameters import METRIXS, METRIXS_PARAMETERS, ParameterTable
+from bluesky_offsets.surrogate.network import Architecture, Normalization, Surrogate, SurrogateError
+from bluesky_offsets.physics.twin import HistogramSpec
 
 
 def _model(width=32, seed=0) -> Surrogate:

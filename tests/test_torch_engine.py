@@ -15,14 +15,14 @@ import pytest
 import rayx
 import torch
 
-from bluesky_offsets import effects
-from bluesky_offsets import torch_random as rnd
-from bluesky_offsets.metrixs import build_beamline
-from bluesky_offsets.parameters import METRIXS
-from bluesky_offsets.rml import read_rml
-from bluesky_offsets.torch_engine import (FEATURES, TorchEngine, TorchOptions, compile_beamline,
+from bluesky_offsets.physics import effects
+from bluesky_offsets.physics import torch_random as rnd
+from bluesky_offsets.physics.metrixs import build_beamline
+from bluesky_offsets.physics.parameters import METRIXS
+from bluesky_offsets.physics.rml import read_rml
+from bluesky_offsets.physics.torch_engine import (FEATURES, TorchEngine, TorchOptions, compile_beamline,
                                           rays_from_arrays, sample_source, trace_rays)
-from bluesky_offsets.twin import Twin, TraceRequest, _rayx_fix_seed, footprint
+from bluesky_offsets.physics.twin import Twin, TraceRequest, _rayx_fix_seed, footprint
 
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "reference"
 RAYUI_FILES = sorted((SHARED / "rayui-misalignment").glob("*.rml"))
@@ -352,7 +352,7 @@ def test_options_refuse_unknown_keys_and_bad_values():
 def test_simulate_compares_both_engines(capsys):
     import json
 
-    from bluesky_offsets.cli import main
+    from bluesky_offsets.commands.cli import main
     assert main(["simulate", "--engine", "both", "--rays", "4000", "--seed", "1", "--json"]) == 0
     out = json.loads(capsys.readouterr().out)
     assert [r["engine"].split()[0] for r in out["runs"]] == ["rayx", "torch"]

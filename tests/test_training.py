@@ -8,9 +8,11 @@ import os
 import numpy as np
 import pytest
 
-from bluesky_offsets import dataset, surrogate, training
-from bluesky_offsets.cli import main
-from bluesky_offsets.training import TrainConfig, TrainingError
+from bluesky_offsets.surrogate import dataset
+from bluesky_offsets.surrogate import network as surrogate
+from bluesky_offsets.surrogate import training
+from bluesky_offsets.commands.cli import main
+from bluesky_offsets.surrogate.training import TrainConfig, TrainingError
 
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 

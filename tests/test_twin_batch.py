@@ -7,8 +7,8 @@ import cloudpickle
 import numpy as np
 import pytest
 
-from bluesky_offsets.parameters import METRIXS
-from bluesky_offsets.twin import RayxEngine, TraceEngine, TraceFailed, Twin
+from bluesky_offsets.physics.parameters import METRIXS
+from bluesky_offsets.physics.twin import RayxEngine, TraceEngine, TraceFailed, Twin
 
 CRASH_MARK = 0.123  # source x offset that makes the engine below kill its worker
 
@@ -82,7 +82,7 @@ def test_bad_batch_input_is_refused_before_any_work():
 
 
 def test_with_hist_shares_the_tracer_and_bins_anew():
-    from bluesky_offsets.twin import CAMERA, HistogramSpec
+    from bluesky_offsets.physics.twin import CAMERA, HistogramSpec
     twin = Twin(scheduler="inline", n_rays=2000)
     fine = twin.with_hist(CAMERA)
     assert twin.with_hist(HistogramSpec()) is twin and fine.hist == CAMERA and twin.hist == HistogramSpec()

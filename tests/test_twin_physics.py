@@ -8,11 +8,11 @@ import pandas as pd
 import pytest
 import rayx
 
-from bluesky_offsets.metrixs import nominal_beamline
-from bluesky_offsets.noise import expected_repeat_mse, histogram_mse, load_noise_floor
-from bluesky_offsets.parameters import METRIXS
-from bluesky_offsets.rml import read_rml
-from bluesky_offsets.twin import HistogramSpec, Twin, _rayx_fix_seed, footprint
+from bluesky_offsets.physics.metrixs import nominal_beamline
+from bluesky_offsets.physics.noise import expected_repeat_mse, histogram_mse, load_noise_floor
+from bluesky_offsets.physics.parameters import METRIXS
+from bluesky_offsets.physics.rml import read_rml
+from bluesky_offsets.physics.twin import HistogramSpec, Twin, _rayx_fix_seed, footprint
 
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "reference"
 METRIXS_RML = SHARED / "METRIX_U41_G1_H1_318eV_PS_MLearn_1.15.rml"

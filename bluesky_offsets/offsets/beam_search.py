@@ -16,8 +16,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .diagnosis import open_aperture
-from .parameters import METRIXS, ParameterTable
+from bluesky_offsets.model.diagnosis import open_aperture
+from bluesky_offsets.physics.parameters import METRIXS, ParameterTable
 
 SWEEP = (0.001, 0.002, 0.005, 0.01, 0.02, 0.05, 0.1, 0.2)
 """Normalized distances (fractions of a motor's range) the acceptance sweep tries."""
@@ -45,7 +45,7 @@ def acceptance(twin, start, *, open_slits: bool = True, rays: int = 500, seed: i
     largest swept distance where it never drops that far).
 
     ``twin`` traces (``trace_batch``), e.g. ``Twin(TorchEngine())``; ``open_slits`` sweeps
-    with the slits open (:func:`bluesky_offsets.diagnosis.open_aperture`), as the search does.
+    with the slits open (:func:`bluesky_offsets.model.diagnosis.open_aperture`), as the search does.
     """
     base = np.asarray(start, float)
     if open_slits:
@@ -108,7 +108,7 @@ def search(start, open_widths: np.ndarray, closed_widths: np.ndarray, *, thresho
     intensity of a bright frame (``plans.search.HIGH_RAY_THRESHOLD``, the paper's).
 
     1. the start as it is: bright, done;
-    2. the slits open (:data:`bluesky_offsets.diagnosis.OPEN_APERTURE`); each motor of the
+    2. the slits open (:data:`bluesky_offsets.model.diagnosis.OPEN_APERTURE`); each motor of the
        open-slit :func:`schedule` scanned in turn, upstream first, moving to the brightest
        position (a scan that sees no light leaves the motor where it was);
     3. the slits back as they were; the closed-slit schedule scanned the same way, each motor
@@ -175,4 +175,4 @@ def search(start, open_widths: np.ndarray, closed_widths: np.ndarray, *, thresho
 
 
 OPEN_SLITS = ("ASBL.totalWidth", "ASBL.totalHeight", "ExitSlit.totalHeight")
-"""The slit openings :func:`bluesky_offsets.diagnosis.open_aperture` sets (never scanned)."""
+"""The slit openings :func:`bluesky_offsets.model.diagnosis.open_aperture` sets (never scanned)."""

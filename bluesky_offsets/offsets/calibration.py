@@ -26,9 +26,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from . import finder as F
-from . import identifiability as I
-from .parameters import MAX_OFFSET, METRIXS, ParameterTable
+from bluesky_offsets.offsets import finder as F
+from bluesky_offsets.offsets import identifiability as I
+from bluesky_offsets.physics.parameters import MAX_OFFSET, METRIXS, ParameterTable
 
 
 # --------------------------------------------------------------------------- #
@@ -40,7 +40,7 @@ class Calibration:
 
     ``offsets`` / ``sigma`` are normalized (fractions of each parameter's
     range); :meth:`physical_offsets` converts.  ``status`` per parameter:
-    determined / weak / undetermined (see :mod:`bluesky_offsets.identifiability`).
+    determined / weak / undetermined (see :mod:`bluesky_offsets.offsets.identifiability`).
     """
 
     offsets: np.ndarray
@@ -106,7 +106,7 @@ def twin_polish(problem: F.OffsetProblem, twin, offsets, *, iterations: int = 4,
                 seed: int = 0, oversample: float = 2.0,
                 callback: Callable[[dict], None] | None = None) -> tuple[np.ndarray, list[float]]:
     """The surrogate's solution fitted on through the twin itself: the one fit engine
-    (:func:`bluesky_offsets.fit.fit`, the differentiable twin, exact Jacobians) on the
+    (:func:`bluesky_offsets.model.fit.fit`, the differentiable twin, exact Jacobians) on the
     problem's 50 + 50 bins, ``iterations`` Levenberg-Marquardt steps on the beam features, then
     as many on the bins, at ``oversample`` x the measurement's rays (one set of rays, so that a
     step near the optimum is judged without sampling noise).
@@ -115,11 +115,11 @@ def twin_polish(problem: F.OffsetProblem, twin, offsets, *, iterations: int = 4,
     counting noise of a 1e5-ray measurement (~4e-8).  Returns the offsets and the twin's MSE
     to the observations at the start and at the end (the fit's rays).
     """
-    from .fit import FitOptions, fit
-    from .measurement import Measurement
-    from .model import ModelState
-    from .torch_engine import TorchEngine
-    from .twin import HistogramSpec
+    from bluesky_offsets.model.fit import FitOptions, fit
+    from bluesky_offsets.model.measurement import Measurement
+    from bluesky_offsets.model.state import ModelState
+    from bluesky_offsets.physics.torch_engine import TorchEngine
+    from bluesky_offsets.physics.twin import HistogramSpec
     N = int(n_rays or problem.n_rays or 100_000)
     spec = HistogramSpec()
     obs = problem.observations
@@ -151,7 +151,7 @@ def twin_polish(problem: F.OffsetProblem, twin, offsets, *, iterations: int = 4,
 
 def _twin_histograms(engine, values: np.ndarray, n_rays: int, seed: int) -> np.ndarray:
     """Histograms (n, 100) of the torch twin at ``values`` (one set of rays)."""
-    from .twin import Twin
+    from bluesky_offsets.physics.twin import Twin
     res = Twin(engine).trace_batch(values, n_rays=n_rays, seed=seed, progress=False, raise_on_error=True)
     return np.concatenate([res.hist_x, res.hist_y], axis=1)
 
@@ -206,7 +206,7 @@ class OffsetFinder:
             offsets, mses = twin_polish(problem, self.twin, offsets, iterations=self.polish_iterations,
                                         n_rays=n_rays, seed=self.seed, callback=cb)
             twin_mse = mses[-1]
-            from .noise import expected_repeat_mse
+            from bluesky_offsets.physics.noise import expected_repeat_mse
             repeat = float(expected_repeat_mse(problem.observations, int(n_rays or 100_000)).mean())
             extra["twin_polish_mse"] = mses
         model_mse = getattr(self.model, "test_mse", 0.0)
@@ -292,7 +292,7 @@ class LossPlot:
     """
 
     def __init__(self, path=None, ax=None):
-        from .plotting import pyplot
+        from bluesky_offsets.commands.plotting import pyplot
         self.plt = pyplot()
         self.path = path
         if ax is None:

@@ -13,9 +13,9 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from .diagnostics import MeasurementError, check_histograms
-from .parameters import METRIXS, ParameterTable
-from .twin import HistogramSpec
+from bluesky_offsets.model.misfit import MeasurementError, check_histograms
+from bluesky_offsets.physics.parameters import METRIXS, ParameterTable
+from bluesky_offsets.physics.twin import HistogramSpec
 
 RESOLUTIONS = ("camera", "paper")
 
@@ -140,7 +140,7 @@ class Measurement:
 
         ``resolution="camera"`` takes the camera-resolution profiles where it has them (the
         paper's histograms otherwise); ``"paper"`` the 50 x 50 ones.  ``n_rays`` overrides the
-        ray budget.  Raises :class:`~bluesky_offsets.diagnostics.MeasurementError` for another
+        ray budget.  Raises :class:`~bluesky_offsets.model.misfit.MeasurementError` for another
         parameter table, a configuration outside it, or an unknown ray budget.
         """
         if resolution not in RESOLUTIONS:

@@ -47,8 +47,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .parameters import METRIXS, ParameterTable
-from .twin import SOURCE_FRAME, HistogramSpec, TraceRequest, Twin
+from bluesky_offsets.physics.parameters import METRIXS, ParameterTable
+from bluesky_offsets.physics.twin import SOURCE_FRAME, HistogramSpec, TraceRequest, Twin
 
 log = logging.getLogger(__name__)
 

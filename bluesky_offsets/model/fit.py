@@ -1,6 +1,6 @@
 """One fit engine: offsets and effects fitted through the differentiable twin.
 
-The model of a measurement is the torch twin (:class:`~bluesky_offsets.torch_engine.TorchEngine`)
+The model of a measurement is the torch twin (:class:`~bluesky_offsets.physics.torch_engine.TorchEngine`)
 traced at the measured configurations plus the offsets, with the state's effects.  Its
 Jacobian in the offsets and in every effect parameter is exact: each ray's screen position
 and soft weight are differentiated (:meth:`TorchEngine.ray_jacobian`), and the histograms,
@@ -12,10 +12,10 @@ A fit runs in stages on one set of rays (common random numbers: the objective is
 deterministic function of the parameters, so a step is judged without sampling noise):
 
 1. ``features``: intensity, centroid and rms width per axis
-   (:func:`bluesky_offsets.diagnostics.beam_features`), smooth over many spot widths;
+   (:func:`bluesky_offsets.model.misfit.beam_features`), smooth over many spot widths;
 2. ``profiles``: the histograms summed into coarser bins;
 3. ``bins``: the measured bins (Pearson χ², the variance from measured and model counts:
-   :func:`bluesky_offsets.noise.bin_variance`).
+   :func:`bluesky_offsets.physics.noise.bin_variance`).
 
 Every stage compares RAYX's own counts; with ``FitOptions.soft_values`` the first two compare
 the soft beam instead (a smooth objective whose derivative the Jacobian is exactly).
@@ -36,11 +36,11 @@ from dataclasses import dataclass, field, fields
 import numpy as np
 import torch
 
-from . import effects as E
-from .diagnostics import beam_features, expected_pull2
-from .noise import bin_variance
-from .parameters import MAX_OFFSET, METRIXS, ParameterTable
-from .twin import HistogramSpec
+from bluesky_offsets.physics import effects as E
+from bluesky_offsets.model.misfit import beam_features, expected_pull2
+from bluesky_offsets.physics.noise import bin_variance
+from bluesky_offsets.physics.parameters import MAX_OFFSET, METRIXS, ParameterTable
+from bluesky_offsets.physics.twin import HistogramSpec
 
 STAGES = ("features", "profiles", "bins")
 
@@ -81,7 +81,7 @@ class FitOptions:
         fit in the paper's bins stalled at 1.38 in the features (exact: 0.11) and ended at 1.80
         with fresh rays (exact: 0.75), and a diagnosis's 5 + 5 iteration candidate fit of a
         12 mm defocus ended at z = 7 mm.
-    engine : options of the torch engine (:class:`~bluesky_offsets.torch_engine.TorchOptions`).
+    engine : options of the torch engine (:class:`~bluesky_offsets.physics.torch_engine.TorchOptions`).
     """
 
     rays: int = 5000
@@ -183,12 +183,12 @@ class FitResult:
 # --------------------------------------------------------------------------- #
 def engine_for(meas, options: FitOptions, table: ParameterTable = METRIXS):
     """The torch twin a fit of ``meas`` traces: its bins, the options' engine settings."""
-    from .torch_engine import TorchEngine
+    from bluesky_offsets.physics.torch_engine import TorchEngine
     return TorchEngine(table=table, hist=meas.spec, options=dict(options.engine or {}))
 
 
 def _features(hx: torch.Tensor, hy: torch.Tensor, spec: HistogramSpec) -> torch.Tensor:
-    """:func:`bluesky_offsets.diagnostics.beam_features` (the values) in torch."""
+    """:func:`bluesky_offsets.model.misfit.beam_features` (the values) in torch."""
     out = [hx.sum(-1)]
     for h, c in ((hx, spec.centers_x), (hy, spec.centers_y)):
         c = torch.as_tensor(c, dtype=h.dtype)
@@ -225,7 +225,7 @@ class _Model:
         return np.r_[st.offsets, st.effect_vector()]
 
     def state(self, z):
-        from .model import ModelState
+        from bluesky_offsets.model.state import ModelState
         z = np.asarray(z, float)
         return ModelState(z[:self.P].copy(), self.base.set_effect_vector(z[self.P:]), self.base.label)
 
@@ -263,7 +263,7 @@ class _Model:
             with torch.no_grad():
                 beam = self.engine.beam(vals, E.twin_overrides(twin_eff) if twin_eff else None, n_rays=rays,
                                         seed=self.o.seed, edge=self.engine.options.edge if soft else 0.0)
-            from .torch_engine import histograms
+            from bluesky_offsets.physics.torch_engine import histograms
             hx, hy = histograms(beam, spec, soft=soft, kernel=self.o.kernel)
             h, J = torch.cat([hx, hy], 1), None
         return self._detector(st, h, J)
@@ -468,7 +468,7 @@ def fit(meas, state, engine, options: FitOptions | Mapping | None = None, *,
 
     Parameters
     ----------
-    meas : measurement.Measurement (as :meth:`~bluesky_offsets.measurement.Measurement.for_analysis` gives it)
+    meas : measurement.Measurement (as :meth:`~bluesky_offsets.model.measurement.Measurement.for_analysis` gives it)
         Histograms at their spec (the camera's or the paper's) and the commanded configurations.
     state : model.ModelState
         The start: offsets (normalized) and the effects the model includes, with start values.

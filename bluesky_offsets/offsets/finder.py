@@ -55,7 +55,7 @@ from typing import Any, Protocol, runtime_checkable
 import numpy as np
 import torch
 
-from .parameters import MAX_OFFSET, METRIXS, ParameterTable
+from bluesky_offsets.physics.parameters import MAX_OFFSET, METRIXS, ParameterTable
 
 # torch.func has no batching rule for Mish's backward yet: correct, just slower; not the user's concern
 warnings.filterwarnings("ignore", message=".*batching rule for aten::mish", category=UserWarning)
@@ -104,7 +104,7 @@ def model_dtype(model) -> torch.dtype:
 
 
 class SurrogateForwardModel(torch.nn.Module):
-    """A trained :class:`bluesky_offsets.surrogate.Surrogate` as a :class:`ForwardModel`.
+    """A trained :class:`bluesky_offsets.surrogate.network.Surrogate` as a :class:`ForwardModel`.
 
     Its network already takes the table-normalized parameters; this module
     adds the output de-normalization (to fractions of source rays) and the
@@ -133,7 +133,7 @@ class SurrogateForwardModel(torch.nn.Module):
 def load_forward_model(path=None, device: str | torch.device | None = None) -> SurrogateForwardModel:
     """The surrogate checkpoint at ``path`` (default: the one shipped in
     ``bluesky_offsets/data``) as a :class:`ForwardModel` ready for the finder."""
-    from .surrogate import SurrogateError, load
+    from bluesky_offsets.surrogate.network import SurrogateError, load
     try:
         model = SurrogateForwardModel(load(path))
     except SurrogateError as exc:
@@ -313,7 +313,7 @@ def make_problem(model, seed: int = 0, *, n_configurations: int = 16, min_hist_s
                     "inside_box": inside_box}
             if observe == "surrogate":
                 return OffsetProblem(c, hist[t, rows], o, "surrogate", limit, 0.0, None, seed, table, meta)
-            from .noise import expected_repeat_mse
+            from bluesky_offsets.physics.noise import expected_repeat_mse
             res = twin.trace_batch(table.denormalize(c + o), n_rays=n_rays, seed=int(rng.integers(2**31)),
                                    progress=progress)
             obs = np.concatenate([res.hist_x, res.hist_y], axis=1)
@@ -345,7 +345,7 @@ def problem_from_measurements(configurations, histograms, *, physical: bool = Tr
     c = table.normalize(c) if physical else c
     noise = None
     if n_rays:
-        from .noise import expected_repeat_mse
+        from bluesky_offsets.physics.noise import expected_repeat_mse
         noise = float(0.5 * expected_repeat_mse(h, n_rays).mean())
     return OffsetProblem(c, h, None, "measurement", limit, noise, n_rays, None, table, dict(metadata or {}))
 

@@ -25,10 +25,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from .dataset import GOOD_MIN_RAYS, Dataset
-from .parameters import METRIXS, ParameterTable
-from .surrogate import DECODERS, Architecture, Normalization, Surrogate
-from .twin import HistogramSpec
+from bluesky_offsets.surrogate.dataset import GOOD_MIN_RAYS, Dataset
+from bluesky_offsets.physics.parameters import METRIXS, ParameterTable
+from bluesky_offsets.surrogate.network import DECODERS, Architecture, Normalization, Surrogate
+from bluesky_offsets.physics.twin import HistogramSpec
 
 log = logging.getLogger(__name__)
 
@@ -67,7 +67,7 @@ class TrainConfig:
     decoder : str
         "bins" (the paper: the net outputs the bins, MSE loss) or "factored"
         (transmission x shape per axis, ray-count likelihood loss; see
-        :class:`~bluesky_offsets.surrogate.Architecture`).
+        :class:`~bluesky_offsets.surrogate.network.Architecture`).
     members : int
         Ensemble size (factored decoder only; 1: a single model).
     patience : int
@@ -230,7 +230,7 @@ def _save_atomic(obj, path: Path) -> None:
 
 
 def _load_init(path: str, table: ParameterTable, hist: HistogramSpec) -> Surrogate:
-    from .surrogate import load
+    from bluesky_offsets.surrogate.network import load
     try:
         return load(path, table=table, hist=hist)
     except Exception as exc:
@@ -398,7 +398,7 @@ def train(data: Dataset, run_dir: str | os.PathLike, config: TrainConfig | None 
             break
     epochs.close()
 
-    from .surrogate import load
+    from bluesky_offsets.surrogate.network import load
     if not best_path.exists():
         raise TrainingError(f"no epoch finished in {run_dir}")
     best = load(best_path, table=table, hist=hist, device=device)

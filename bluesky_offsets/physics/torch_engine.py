@@ -44,12 +44,12 @@ from typing import Literal
 import numpy as np
 import torch
 
-from . import torch_random as rnd
-from .geometry import Misalignment, chain_frames
-from .metrixs import beamline_state, check_physical, nominal_beamline
-from .parameters import METRIXS, ParameterTable
-from .rml import FLAT_TYPES, GRATING_TYPES, MIRROR_TYPES, RmlError, chain_link
-from .twin import HistogramSpec, TraceRequest, TraceResult
+from bluesky_offsets.physics import torch_random as rnd
+from bluesky_offsets.physics.geometry import Misalignment, chain_frames
+from bluesky_offsets.physics.metrixs import beamline_state, check_physical, nominal_beamline
+from bluesky_offsets.physics.parameters import METRIXS, ParameterTable
+from bluesky_offsets.physics.rml import FLAT_TYPES, GRATING_TYPES, MIRROR_TYPES, RmlError, chain_link
+from bluesky_offsets.physics.twin import HistogramSpec, TraceRequest, TraceResult
 
 HC_EV_NM = 1239.841984332002622  # RAYX's h·c in eV·nm
 SEARCH_SHIFT = 1e-6  # mm: RAYX starts each search this far along the ray
@@ -276,7 +276,7 @@ def compile_beamline(values, overrides: Mapping | Sequence[Mapping] | None = Non
 
 def _stack_states(states, device):
     """One state with (C,) tensors from per-configuration states of numbers."""
-    from .metrixs import BeamlineState
+    from bluesky_offsets.physics.metrixs import BeamlineState
     out = BeamlineState()
     types = [s.types for s in states]
     if any(t != types[0] for t in types):
@@ -355,7 +355,7 @@ def _quadric(t, col, obj) -> dict:
     elif t in ("Sphere", "Spherical Grating"):
         q.update(a11=1.0, a22=1.0, a33=1.0, a24=-col("radius"), icurv=1.0)
     elif t == "Ellipsoid":
-        from .geometry import ellipsoid_pole
+        from bluesky_offsets.physics.geometry import ellipsoid_pole
         a, b = col("longHalfAxisA"), col("shortHalfAxisB")
         theta = math.radians(obj.get_float("designGrazingIncAngle"))
         y0, z0 = ellipsoid_pole(a, b, theta, obj.get_float("entranceArmLength"), obj.get_float("exitArmLength"))
@@ -946,7 +946,7 @@ def features_from_moments(m: torch.Tensor, n_rays: int) -> torch.Tensor:
 # the engine
 # --------------------------------------------------------------------------- #
 class TorchEngine:
-    """The differentiable twin behind the :class:`~bluesky_offsets.twin.TraceEngine` interface.
+    """The differentiable twin behind the :class:`~bluesky_offsets.physics.twin.TraceEngine` interface.
 
     ``Twin(engine="torch")`` uses it; RAYX stays the reference engine.  Besides ``trace``
     (one request) it traces batches in one call (:meth:`trace_many`, :meth:`beam`) and gives
@@ -955,7 +955,7 @@ class TorchEngine:
 
     Parameters
     ----------
-    table, hist : as for :class:`~bluesky_offsets.twin.RayxEngine`.
+    table, hist : as for :class:`~bluesky_offsets.physics.twin.RayxEngine`.
     options : TorchOptions or a mapping of its fields (unknown keys are refused).
     """
 
@@ -1055,7 +1055,7 @@ class TorchEngine:
         c = vals.shape[0]
         eff_leaves: dict[str, dict[str, torch.Tensor]] = {}
         names = list(self.table.names)
-        from . import effects as fx
+        from bluesky_offsets.physics import effects as fx
         for name, vals_e in (effects or {}).items():
             eff = fx.get(name)
             if eff.level != "twin":
@@ -1067,7 +1067,7 @@ class TorchEngine:
         return vals, eff_leaves, names
 
     def _overrides(self, eff_leaves, extra=None):
-        from . import effects as fx
+        from bluesky_offsets.physics import effects as fx
         ov = fx.twin_overrides(eff_leaves) if eff_leaves else {}
         for obj, flds in (extra or {}).items():
             tgt = ov.setdefault(obj, {})
@@ -1097,7 +1097,7 @@ class TorchEngine:
         if what == "features":
             return moments(beam, soft=self.options.edge > 0)
         if what in ("histograms", "profiles"):
-            from .twin import CAMERA
+            from bluesky_offsets.physics.twin import CAMERA
             sp = spec or (self.hist if what == "histograms" else CAMERA)
             hx, hy = histograms(beam, sp, soft=True, kernel=self.options.kernel)
             return torch.cat([hx, hy], -1)

@@ -14,11 +14,11 @@ from pathlib import Path
 
 import numpy as np
 
-from .cli import CliError
+from bluesky_offsets.commands.cli import CliError
 
 
 def _load(store, uid: str, n_rays: int | None, resolution: str = "camera"):
-    from .diagnostics import MeasurementError
+    from bluesky_offsets.model.misfit import MeasurementError
     try:
         stored = store.load_measurement(uid)
     except KeyError as exc:
@@ -35,7 +35,7 @@ def _load(store, uid: str, n_rays: int | None, resolution: str = "camera"):
 
 def _offsets_from_run(store, uid: str):
     """Normalized offsets stored by a find_offsets / refine_offsets / add_effect run."""
-    from .parameters import METRIXS
+    from bluesky_offsets.physics.parameters import METRIXS
     try:
         run = store[uid]
     except KeyError as exc:
@@ -51,7 +51,7 @@ def _offsets_from_run(store, uid: str):
 
 
 def _effects(text: str | None) -> list[str] | None:
-    from . import effects as E
+    from bluesky_offsets.physics import effects as E
     if not text:
         return None
     names = [n.strip() for n in text.split(",") if n.strip()]
@@ -77,7 +77,7 @@ def summary_dict(analysis) -> dict:
 
 
 def _cmd_diagnose(args) -> int:
-    from .store import open_store
+    from bluesky_offsets.store import open_store
     candidates = _effects(args.effects)
     if args.rounds < 1:
         raise CliError("--rounds must be at least 1")
@@ -94,7 +94,7 @@ def _cmd_diagnose(args) -> int:
         raise CliError(str(exc)) from None
     try:
         stored, meas = _load(store, args.uid, args.rays, args.resolution)
-        from .model import ModelState
+        from bluesky_offsets.model.state import ModelState
         starts = [ModelState(label="twin")]
         if args.offsets_uid:
             starts.append(ModelState(_offsets_from_run(store, args.offsets_uid), {}, "stored offsets"))
@@ -103,14 +103,14 @@ def _cmd_diagnose(args) -> int:
 
         from plans.diagnose import analyse_measurement
 
-        from .twin import Twin
+        from bluesky_offsets.physics.twin import Twin
         RE = RunEngine({}, call_returns_result=True)
         store.subscribe(RE)
         log = sys.stderr if args.json else sys.stdout
         print(f"measurement {meas.uid}: {meas.n} configurations at {meas.n_rays} rays; results go to "
               f"{store.location}", file=log, flush=True)
         with Twin(n_rays=int(meas.n_rays), scheduler=args.scheduler) as twin:
-            from .cli import quiet_logs
+            from bluesky_offsets.commands.cli import quiet_logs
             if args.scheduler != "inline":
                 twin.client
                 quiet_logs()
@@ -120,7 +120,7 @@ def _cmd_diagnose(args) -> int:
                 fit_top=args.fit_top or None,
                 resolution=args.resolution, md={"purpose": "bluesky-offsets diagnose"})).plan_result
             if args.report:
-                from .report import write_analysis_report
+                from bluesky_offsets.commands.report import write_analysis_report
                 path = write_analysis_report(args.report, analysis, analysis.measurement.spec,
                                              title=f"model vs. measurement {meas.uid}",
                                              store_location=store.location)
@@ -129,7 +129,7 @@ def _cmd_diagnose(args) -> int:
         if args.json:
             print(json.dumps(out, indent=1, default=float))
         else:
-            from .report import history_lines
+            from bluesky_offsets.commands.report import history_lines
             print(out["verdict"])
             for line in history_lines(analysis):
                 print(line)
@@ -154,7 +154,7 @@ def add_cli(sub) -> None:
     p.add_argument("--rounds", type=int, default=2,
                    help="diagnoses at most: after an effect is added the model is diagnosed again (default %(default)s)")
     p.add_argument("--fit-rays", type=int, default=None, help="model rays per configuration in the fits "
-                                                               "(default: bluesky_offsets.diagnosis.FIT's)")
+                                                               "(default: bluesky_offsets.model.diagnosis.FIT's)")
     p.add_argument("--fit-top", type=int, default=0,
                    help="screen every start of every candidate first and fit only this many candidates to "
                         "convergence (faster; a screen can miss a defocus: docs/diagnosis.md); default 0: every "

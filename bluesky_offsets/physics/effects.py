@@ -33,8 +33,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .geometry import is_tensor
-from .metrixs import IMAGE_PLANE, SOURCE, nominal_beamline
+from bluesky_offsets.physics.geometry import is_tensor
+from bluesky_offsets.physics.metrixs import IMAGE_PLANE, SOURCE, nominal_beamline
 
 _NOMINAL = nominal_beamline()
 

@@ -28,8 +28,8 @@ import numpy as np
 import torch
 from torch import nn
 
-from .parameters import METRIXS, ParameterTable
-from .twin import SOURCE_FRAME, HistogramSpec
+from bluesky_offsets.physics.parameters import METRIXS, ParameterTable
+from bluesky_offsets.physics.twin import SOURCE_FRAME, HistogramSpec
 
 FORMAT = "bluesky-offsets-surrogate/1"
 DEFAULT_CHECKPOINT = "surrogate.pt"

@@ -3,7 +3,7 @@
 An :class:`RmlBeamline` is an ordered list of :class:`RmlObject` (source,
 elements, image plane), each an ordered list of ``<param>`` entries.  The
 world position and orientation of every object are *computed* from the
-element chain (:mod:`bluesky_offsets.geometry`) when the file is written:
+element chain (:mod:`bluesky_offsets.physics.geometry`) when the file is written:
 whatever world vectors an input file held are replaced.  That is what makes
 misalignments real for RAYX, which reads the world vectors only.
 """
@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .geometry import (MISALIGNMENT_KEYS, ChainLink, Frame, Misalignment, chain_frames,
+from bluesky_offsets.physics.geometry import (MISALIGNMENT_KEYS, ChainLink, Frame, Misalignment, chain_frames,
                        ellipsoid_tangent_angle)
 
 WORLD_KEYS = ("worldPosition", "worldXdirection", "worldYdirection", "worldZdirection")

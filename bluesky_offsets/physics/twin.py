@@ -26,7 +26,7 @@ from typing import Protocol, runtime_checkable
 
 import numpy as np
 
-from .parameters import METRIXS, ParameterTable
+from bluesky_offsets.physics.parameters import METRIXS, ParameterTable
 
 log = logging.getLogger(__name__)
 
@@ -326,7 +326,7 @@ class RayxEngine:
             return "rayx (unknown version)"
 
     def build(self, request: TraceRequest, n_rays: int):
-        from .metrixs import build_beamline, check_physical
+        from bluesky_offsets.physics.metrixs import build_beamline, check_physical
         check_physical(request.values, self.table)
         return build_beamline(request.values, overrides=request.overrides, table=self.table, n_rays=n_rays)
 
@@ -419,7 +419,7 @@ def make_engine(engine: TraceEngine | str | None = None, **options) -> TraceEngi
     if engine is None or engine == "rayx":
         return RayxEngine(**options)
     if engine == "torch":
-        from .torch_engine import TorchEngine
+        from bluesky_offsets.physics.torch_engine import TorchEngine
         return TorchEngine(**options)
     if isinstance(engine, str):
         raise ValueError(f"unknown engine {engine!r}; known: {', '.join(ENGINES)}")
@@ -433,7 +433,7 @@ class Twin:
     ----------
     engine : TraceEngine or str, optional
         ``"rayx"`` (the default, :class:`RayxEngine`: the reference), ``"torch"`` (the
-        differentiable twin, :class:`~bluesky_offsets.torch_engine.TorchEngine`) or an engine.
+        differentiable twin, :class:`~bluesky_offsets.physics.torch_engine.TorchEngine`) or an engine.
     n_rays : int
         Source rays per simulation (the paper: 1e5).
     scheduler : str, optional

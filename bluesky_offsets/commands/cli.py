@@ -15,14 +15,14 @@ import sys
 
 import numpy as np
 
-from .parameters import METRIXS, ParameterError
+from bluesky_offsets.physics.parameters import METRIXS, ParameterError
 
 EXTENSIONS: list[str] = [
     # "module:function" pairs, each adding sub-commands.
-    "bluesky_offsets.demo:add_cli",
-    "bluesky_offsets.surrogate_cli:add_cli",
-    "bluesky_offsets.finder_cli:add_cli",
-    "bluesky_offsets.diagnosis_cli:add_cli",
+    "bluesky_offsets.commands.demo:add_cli",
+    "bluesky_offsets.commands.surrogate:add_cli",
+    "bluesky_offsets.commands.find:add_cli",
+    "bluesky_offsets.commands.diagnose:add_cli",
     "sim_iocs.metrixs:add_cli",
 ]
 
@@ -89,12 +89,12 @@ def _sparkline(h: np.ndarray) -> str:
 
 
 def _engine(name: str, sampling: str):
-    from .twin import make_engine
+    from bluesky_offsets.physics.twin import make_engine
     return make_engine(name, **({"options": {"sampling": sampling}} if name == "torch" else {}))
 
 
 def _cmd_simulate(args) -> int:
-    from .twin import Twin
+    from bluesky_offsets.physics.twin import Twin
 
     if args.rays < 1:
         raise CliError(f"--rays must be positive, got {args.rays}")
@@ -143,7 +143,7 @@ def _cmd_simulate(args) -> int:
             print(f"rayx vs torch: histogram chi2/dof {comparison['chi2_per_dof']:.2f} over {comparison['dof']} "
                   f"bins (1 ± {comparison['sigma']:.2f} when they agree within counting noise)")
     if args.plot:
-        from .plotting import plot_footprint
+        from bluesky_offsets.commands.plotting import plot_footprint
         for twin, result in runs:
             path = args.plot if len(runs) == 1 else _suffixed(args.plot, twin.engine.version.split()[0])
             plot_footprint(result, hist, path, title=f"METRIXS twin ({twin.engine.version.split()[0]}), "

@@ -27,9 +27,9 @@ from dataclasses import replace
 
 import numpy as np
 
-from .dataset import GOOD_MIN_RAYS, DrawScheme, GenerationSettings, openmp_threads, draw_in_memory
-from .surrogate import Surrogate
-from .twin import Twin
+from bluesky_offsets.surrogate.dataset import GOOD_MIN_RAYS, DrawScheme, GenerationSettings, openmp_threads, draw_in_memory
+from bluesky_offsets.surrogate.network import Surrogate
+from bluesky_offsets.physics.twin import Twin
 
 
 def _fresh_seed() -> int:
@@ -159,7 +159,7 @@ def plot_comparison(model: Surrogate, data: dict, path, n: int = 3, seed: int = 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from .twin import HistogramSpec
+    from bluesky_offsets.physics.twin import HistogramSpec
     hs = HistogramSpec(**{k: (tuple(v) if isinstance(v, list) else v)
                           for k, v in model.histogram.items() if k != "normalization"})
     ne = np.flatnonzero(data["n_hits"] >= GOOD_MIN_RAYS)

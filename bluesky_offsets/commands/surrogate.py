@@ -7,7 +7,7 @@ import json
 import logging
 import os
 
-from .cli import CliError
+from bluesky_offsets.commands.cli import CliError
 
 
 # --------------------------------------------------------------------------- #
@@ -29,7 +29,7 @@ def _prepare_tracing(args) -> None:
 
 
 def _settings_from_args(args):
-    from .dataset import DrawScheme, GenerationSettings
+    from bluesky_offsets.surrogate.dataset import DrawScheme, GenerationSettings
     try:
         scheme = DrawScheme(screen_rays=args.screen_rays, screen_min_hits=args.screen_min_hits,
                             keep_fraction=args.keep_fraction)
@@ -39,7 +39,7 @@ def _settings_from_args(args):
 
 
 def _cmd_dataset_generate(args) -> int:
-    from .dataset import DatasetError, generate
+    from bluesky_offsets.surrogate.dataset import DatasetError, generate
     if args.samples < 1:
         raise CliError("--samples must be positive")
     settings = _settings_from_args(args)
@@ -59,7 +59,7 @@ def _cmd_dataset_generate(args) -> int:
 
 
 def _cmd_dataset_info(args) -> int:
-    from .dataset import DatasetError, info
+    from bluesky_offsets.surrogate.dataset import DatasetError, info
     try:
         out = info(args.path)
     except DatasetError as exc:
@@ -69,7 +69,7 @@ def _cmd_dataset_info(args) -> int:
 
 
 def _add_generation_options(p: argparse.ArgumentParser, *, rays: int = 10_000) -> None:
-    from .dataset import DrawScheme
+    from bluesky_offsets.surrogate.dataset import DrawScheme
     d = DrawScheme()
     p.add_argument("--rays", type=int, default=rays, help=f"source rays per full trace (default {rays})")
     p.add_argument("--screen-rays", type=int, default=d.screen_rays,
@@ -89,9 +89,9 @@ def _add_generation_options(p: argparse.ArgumentParser, *, rays: int = 10_000) -
 # train
 # --------------------------------------------------------------------------- #
 def _cmd_train(args) -> int:
-    from .dataset import DatasetError, load
-    from .surrogate import SurrogateError
-    from .training import TrainConfig, TrainingError, train
+    from bluesky_offsets.surrogate.dataset import DatasetError, load
+    from bluesky_offsets.surrogate.network import SurrogateError
+    from bluesky_offsets.surrogate.training import TrainConfig, TrainingError, train
     try:
         config = TrainConfig(epochs=args.epochs, batch_size=args.batch_size, lr=args.lr, gamma=args.gamma,
                              good_min_rays=args.good_min_rays,
@@ -127,7 +127,7 @@ def _cmd_train(args) -> int:
 # surrogate
 # --------------------------------------------------------------------------- #
 def _load_model(path):
-    from .surrogate import SurrogateError, load
+    from bluesky_offsets.surrogate.network import SurrogateError, load
     try:
         return load(path)
     except SurrogateError as exc:
@@ -135,7 +135,7 @@ def _load_model(path):
 
 
 def _cmd_surrogate_info(args) -> int:
-    from .surrogate import SurrogateError, default_checkpoint, read_metadata
+    from bluesky_offsets.surrogate.network import SurrogateError, default_checkpoint, read_metadata
     path = args.checkpoint or default_checkpoint()
     _load_model(path)  # full check: table, histogram spec, checksum
     try:
@@ -148,8 +148,8 @@ def _cmd_surrogate_info(args) -> int:
 
 
 def _cmd_surrogate_evaluate(args) -> int:
-    from .dataset import DrawScheme
-    from .surrogate_eval import evaluate, plot_comparison
+    from bluesky_offsets.surrogate.dataset import DrawScheme
+    from bluesky_offsets.surrogate.evaluate import evaluate, plot_comparison
     model = _load_model(args.checkpoint)
     _prepare_tracing(args)
     scheme = None
@@ -213,7 +213,7 @@ def add_cli(sub) -> None:
     i.add_argument("path")
     i.set_defaults(func=_cmd_dataset_info)
 
-    from .training import TrainConfig
+    from bluesky_offsets.surrogate.training import TrainConfig
     c = TrainConfig()
     t = sub.add_parser("train", help="train the surrogate on a dataset store (paper recipe by default)",
                        description="Train the surrogate (min-max normalization, 7 linear layers with Mish, "

@@ -97,7 +97,7 @@ def _fmt_values(values: Mapping, sigma: Mapping | None = None, units: Mapping | 
 
 def _plot_progress(runs: Sequence[tuple[str, Sequence[Mapping]]], path: Path) -> Path:
     """chi2/dof of the twin at each refinement iteration (accepted steps filled)."""
-    from .plotting import pyplot, save_figure
+    from bluesky_offsets.commands.plotting import pyplot, save_figure
     plt = pyplot()
     fig, ax = plt.subplots(figsize=(6.5, 3.5), constrained_layout=True)
     offset = 0
@@ -123,10 +123,10 @@ def analysis_sections(analysis, spec, work: Path, *, truth: Mapping | None = Non
 
     ``truth`` (simulations only) adds the hidden effect beside the fitted one.
     """
-    from .diagnosis import plot_error_history, plot_ranking
-    from .diagnostics import plot_overlays, plot_residual_maps
-    from .effects import get as get_effect
-    from .parameters import METRIXS
+    from bluesky_offsets.model.diagnosis import plot_error_history, plot_ranking
+    from bluesky_offsets.model.misfit import plot_overlays, plot_residual_maps
+    from bluesky_offsets.physics.effects import get as get_effect
+    from bluesky_offsets.physics.parameters import METRIXS
     table = table or METRIXS
     work = Path(work)
     work.mkdir(parents=True, exist_ok=True)

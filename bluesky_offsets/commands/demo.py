@@ -33,10 +33,10 @@ from pathlib import Path
 
 import numpy as np
 
-from . import diagnosis as D
-from . import effects as E
-from .fit import FitOptions
-from .parameters import METRIXS
+from bluesky_offsets.model import diagnosis as D
+from bluesky_offsets.physics import effects as E
+from bluesky_offsets.model.fit import FitOptions
+from bluesky_offsets.physics.parameters import METRIXS
 
 # Hidden truth: offsets in all 34 parameters, uniform within ±``offsets_fraction`` of each range
 # (drawn from the seed), and one physical effect.  With ``offsets_fraction = 0`` the offsets are
@@ -215,9 +215,9 @@ class ScanProgress:
 # --------------------------------------------------------------------------- #
 def demo_plan(s: DemoSettings, beamline, chamber, twin, forward_model, store, log):
     """Find bright configurations, measure, find offsets, compare, diagnose, add the effect, refit."""
-    from bluesky_offsets.calibration import OffsetFinder
-    from bluesky_offsets.finder import Budget
-    from bluesky_offsets.model import ModelState
+    from bluesky_offsets.offsets.calibration import OffsetFinder
+    from bluesky_offsets.offsets.finder import Budget
+    from bluesky_offsets.model.state import ModelState
     from plans import (
         HIGH_RAY_THRESHOLD,
         find_beam,
@@ -298,12 +298,12 @@ def run_demo(out: Path, settings: DemoSettings | None = None, store_location: st
         from bluesky.utils import RunEngineInterrupted
         from ophyd_async.core import init_devices
 
-        from .devices import FocusChamber, MetrixsBeamline
-        from .finder import load_forward_model
-        from .cli import quiet_logs
-        from .report import paragraph, table_, write_analysis_report
-        from .store import open_store
-        from .twin import Twin
+        from bluesky_offsets.devices import FocusChamber, MetrixsBeamline
+        from bluesky_offsets.offsets.finder import load_forward_model
+        from bluesky_offsets.commands.cli import quiet_logs
+        from bluesky_offsets.commands.report import paragraph, table_, write_analysis_report
+        from bluesky_offsets.store import open_store
+        from bluesky_offsets.physics.twin import Twin
 
         quiet_logs()
         store = open_store(store_location)
@@ -399,7 +399,7 @@ def _close_channels(RE) -> None:
 
 
 def _print_summary(summary: dict, analysis, location: str) -> None:
-    from .report import history_lines
+    from bluesky_offsets.commands.report import history_lines
     print()
     print(f"verdict: {summary['verdict']}")
     for k, ranking in enumerate(summary["rankings"], 1):
@@ -462,7 +462,7 @@ def add_cli(sub) -> None:
 
 
 def parse_effect(text: str) -> tuple[str, dict]:
-    from .cli import CliError
+    from bluesky_offsets.commands.cli import CliError
     if text.lower() in ("none", ""):
         return ("", {})
     name, _, rest = text.partition(":")
@@ -489,7 +489,7 @@ def parse_effect(text: str) -> tuple[str, dict]:
 
 
 def _cmd_demo(args) -> int:
-    from .cli import CliError
+    from bluesky_offsets.commands.cli import CliError
     if args.configurations < 2:
         raise CliError("--configurations must be at least 2 (the paper asks for 16)")
     n_open = args.open_configurations if args.open_configurations is not None else 4

@@ -29,8 +29,8 @@ def save_figure(fig, path: str | Path, *, dpi: int = 110, title: str = "") -> Pa
 def plot_footprint(result, hist, path: str | Path, title: str = "") -> Path:
     """Footprint scatter on the focus-chamber screen with its x and y histograms.
 
-    ``result`` is a :class:`~bluesky_offsets.twin.TraceResult` traced with
-    ``keep_rays=True``; ``hist`` its :class:`~bluesky_offsets.twin.HistogramSpec`.
+    ``result`` is a :class:`~bluesky_offsets.physics.twin.TraceResult` traced with
+    ``keep_rays=True``; ``hist`` its :class:`~bluesky_offsets.physics.twin.HistogramSpec`.
     """
     plt = pyplot()
     fig = plt.figure(figsize=(8, 6.5), constrained_layout=True)

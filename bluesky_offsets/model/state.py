@@ -4,7 +4,7 @@ A :class:`ModelState` is what the model believes about the real beamline: normal
 offsets for the 34 parameters and the values of the physical effects it includes.
 :func:`simulate` traces it with the twin (RAYX) at the commanded configurations of a
 :class:`Measurement`; :func:`refine` fits it with the one fit engine
-(:mod:`bluesky_offsets.fit`: the differentiable torch twin, exact Jacobians).
+(:mod:`bluesky_offsets.model.fit`: the differentiable torch twin, exact Jacobians).
 """
 
 from __future__ import annotations
@@ -14,10 +14,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from . import effects as E
-from .fit import FitOptions, FitResult, engine_for, fit
-from .measurement import Measurement
-from .parameters import MAX_OFFSET, METRIXS, ParameterTable
+from bluesky_offsets.physics import effects as E
+from bluesky_offsets.model.fit import FitOptions, FitResult, engine_for, fit
+from bluesky_offsets.model.measurement import Measurement
+from bluesky_offsets.physics.parameters import MAX_OFFSET, METRIXS, ParameterTable
 
 
 @dataclass
@@ -129,7 +129,7 @@ class RefineResult:
 def refine(meas: Measurement, state: ModelState, twin=None, forward_model=None, *,
            options: FitOptions | Mapping | None = None, progress=None, engine=None,
            table: ParameterTable = METRIXS) -> RefineResult:
-    """Fit the offsets and the state's effects to ``meas`` with :func:`bluesky_offsets.fit.fit`.
+    """Fit the offsets and the state's effects to ``meas`` with :func:`bluesky_offsets.model.fit.fit`.
 
     ``twin`` names the parameter table (the fit traces the torch twin, ``engine``, made for
     the measurement's bins unless given); ``forward_model`` is accepted for symmetry with the

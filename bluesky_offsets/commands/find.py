@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .cli import CliError
+from bluesky_offsets.commands.cli import CliError
 
 DEFAULT_METHODS = "smart-walker,monte-carlo,gradient,levenberg-marquardt,cmaes"
 
@@ -26,7 +26,7 @@ def _fmt(x) -> str:
 
 
 def _cmd_find(args) -> int:
-    from . import finder as F
+    from bluesky_offsets.offsets import finder as F
     try:
         return _find(args)
     except F.FinderError as exc:
@@ -36,9 +36,9 @@ def _cmd_find(args) -> int:
 def _find(args) -> int:
     import torch
 
-    from . import finder as F
-    from . import finder_eval as E
-    from . import identifiability as I
+    from bluesky_offsets.offsets import finder as F
+    from bluesky_offsets.offsets import evaluate as E
+    from bluesky_offsets.offsets import identifiability as I
 
     methods = [m.strip() for m in args.methods.split(",") if m.strip()]
     unknown = [m for m in methods if m not in F.METHODS]
@@ -60,7 +60,7 @@ def _find(args) -> int:
     out.mkdir(parents=True, exist_ok=True)
     twin = None
     if args.observe == "twin" or args.twin_check:
-        from .twin import Twin
+        from bluesky_offsets.physics.twin import Twin
         twin = Twin(n_rays=args.rays, scheduler=args.scheduler)
 
     E_paper = args.candidates * (args.iterations + 1)

@@ -13,7 +13,7 @@ Near the solution ``o*`` the histograms are linear in the offsets,
 ``h(c + o) ≈ h(c + o*) + J_c (o - o*)`` with ``J_c`` the forward model's
 Jacobian (100 x P) at configuration ``c``.  Each bin carries the counting
 noise of a measurement with ``N`` source rays, the one noise model of every
-fit (:func:`bluesky_offsets.noise.bin_variance`: ``p (1 - p) / N`` for a bin
+fit (:func:`bluesky_offsets.physics.noise.bin_variance`: ``p (1 - p) / N`` for a bin
 fraction ``p`` floored at one ray, so empty bins still carry information), plus,
 optionally, the model's own error ``model_mse`` per bin.  The Fisher matrix is
 ``F = Σ_c J_cᵀ diag(1/var_c) J_c``.  The offsets' prior is the search box,
@@ -44,8 +44,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from .finder import OffsetProblem, model_device, model_dtype
-from .noise import bin_variance
+from bluesky_offsets.offsets.finder import OffsetProblem, model_device, model_dtype
+from bluesky_offsets.physics.noise import bin_variance
 
 DETERMINED, UNDETERMINED = 0.1, 0.5
 PAPER_RAYS = 100_000
@@ -253,7 +253,7 @@ def plot_identifiability(report: IdentifiabilityReport, path, curve: dict | None
                          true_offsets=None) -> Path:
     """Uncertainty per parameter (with the found and true offsets), correlation matrix,
     and - given a :func:`configuration_curve` - the gain from more configurations."""
-    from .plotting import pyplot
+    from bluesky_offsets.commands.plotting import pyplot
     plt = pyplot()
     ncols = 3 if curve is not None else 2
     fig, axes = plt.subplots(1, ncols, figsize=(7 * ncols, 7.5), constrained_layout=True,

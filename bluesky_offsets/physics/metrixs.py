@@ -6,7 +6,7 @@ that file is only a test oracle here, never a template.
 
 :func:`build_beamline` turns a vector of the 34 parameters (plus optional
 RML-level overrides, used by the physical-effects library and the
-focus-chamber translation) into an :class:`~bluesky_offsets.rml.RmlBeamline`
+focus-chamber translation) into an :class:`~bluesky_offsets.physics.rml.RmlBeamline`
 whose world frames carry every misalignment.
 """
 
@@ -17,9 +17,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .geometry import MISALIGNMENT_KEYS, is_tensor
-from .parameters import METRIXS, ParameterTable
-from .rml import RmlBeamline, RmlError, RmlObject, make_object
+from bluesky_offsets.physics.geometry import MISALIGNMENT_KEYS, is_tensor
+from bluesky_offsets.physics.parameters import METRIXS, ParameterTable
+from bluesky_offsets.physics.rml import RmlBeamline, RmlError, RmlObject, make_object
 
 SOURCE, IMAGE_PLANE = "U41_318eV", "ImagePlane"
 

@@ -4,7 +4,7 @@ Everything here is a pure function of histograms (fractions of source rays,
 ``(n_configurations, bins)`` for x and for y) and ray counts, so it serves the
 twin, the surrogate and stored measurement runs alike.
 
-Noise model (:func:`bluesky_offsets.noise.bin_variance`, the one of every misfit and
+Noise model (:func:`bluesky_offsets.physics.noise.bin_variance`, the one of every misfit and
 fit): a measured bin fraction ``m`` from ``N`` source rays has
 variance ``p (1 - p) / N`` (multinomial counts).  A model histogram traced by
 the twin with ``N_model`` rays adds ``p (1 - p) / N_model``; a surrogate adds
@@ -19,7 +19,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .noise import bin_variance
+from bluesky_offsets.physics.noise import bin_variance
 
 SIGNATURE_NAMES = ("intensity", "centroid", "width", "skewness", "tails")
 
@@ -290,7 +290,7 @@ def failing_regions(misfit_: Misfit, spec, n_sigma: float = 3.0) -> list[dict]:
 def plot_overlays(meas_x, meas_y, model_x, model_y, spec, path, misfit_: Misfit | None = None,
                   max_configurations: int = 8, title: str = "measured vs model"):
     """Per configuration: measured and modelled x/y histograms, residuals below."""
-    from .plotting import pyplot, save_figure
+    from bluesky_offsets.commands.plotting import pyplot, save_figure
     plt = pyplot()
     n = min(len(meas_x), max_configurations)
     # each configuration zoomed on its own spot: at the camera's resolution a spot fills a few
@@ -327,7 +327,7 @@ def plot_overlays(meas_x, meas_y, model_x, model_y, spec, path, misfit_: Misfit 
 
 def plot_residual_maps(misfit_: Misfit, spec, path, title: str = "normalized residuals (measured − model) / σ"):
     """Per-bin pulls across configurations, for x and y."""
-    from .plotting import pyplot, save_figure
+    from bluesky_offsets.commands.plotting import pyplot, save_figure
     plt = pyplot()
     fig, axes = plt.subplots(1, 2, figsize=(11, 0.35 * len(misfit_.chi2) + 2), constrained_layout=True)
     lim = max(3.0, float(np.percentile(np.abs(np.concatenate([misfit_.pulls_x.ravel(), misfit_.pulls_y.ravel()])), 99)))

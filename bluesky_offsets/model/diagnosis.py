@@ -4,13 +4,13 @@ The offsets absorb much of what a missing effect does to the histograms (they mo
 and dim the focus too), and a fit of the offsets alone leaves them where they absorbed it: at
 that point an effect's own gradient is often flat (a defocus).  So every candidate is *fitted*
 together with the offsets, from starting values spread over its prior range, and judged by
-the misfit left.  Every fit is the one fit engine (:mod:`bluesky_offsets.fit`: the
+the misfit left.  Every fit is the one fit engine (:mod:`bluesky_offsets.model.fit`: the
 differentiable twin, exact Jacobians, beam features then bins):
 
 1. **Fit** the offsets alone (the reference) and each candidate with the offsets, from each
    of its :func:`starting_values`, all on one set of rays (common random numbers: their χ²
    differ by what the models differ in, not by sampling noise).  Optionally (``fit_top``)
-   every start is first *screened* (:func:`bluesky_offsets.fit.screen`: one Jacobian of the
+   every start is first *screened* (:func:`bluesky_offsets.model.fit.screen`: one Jacobian of the
    twin and a few steps on its secant updates) and only the best candidates are fitted; not
    the default, a screen misjudges a defocus (:data:`FIT_TOP`).  The reference is then
    refitted from where the best candidate fits left the offsets (their effect removed): a
@@ -36,13 +36,13 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from . import effects as E
-from .diagnostics import Misfit, misfit, moments
-from .fit import FitOptions, FitResult, engine_for, fit, screen
-from .measurement import Measurement
-from .model import ModelState, refine, simulate, solve_normal
-from .parameters import METRIXS, ParameterTable
-from .twin import Twin
+from bluesky_offsets.physics import effects as E
+from bluesky_offsets.model.misfit import Misfit, misfit, moments
+from bluesky_offsets.model.fit import FitOptions, FitResult, engine_for, fit, screen
+from bluesky_offsets.model.measurement import Measurement
+from bluesky_offsets.model.state import ModelState, refine, simulate, solve_normal
+from bluesky_offsets.physics.parameters import METRIXS, ParameterTable
+from bluesky_offsets.physics.twin import Twin
 
 
 @dataclass
@@ -173,7 +173,7 @@ FIT = FitOptions(rays=5000, stages=(("features", 15), ("profiles", 8), ("bins", 
 SCAN = FitOptions(rays=3000, stages=(("features", 5), ("bins", 5)))
 FIT_TOP: int | None = None
 """Candidates a diagnosis fits to convergence after every start of every candidate is screened
-(:func:`bluesky_offsets.fit.screen`); None (the default): every start fitted.  Not the default
+(:func:`bluesky_offsets.model.fit.screen`); None (the default): every start fitted.  Not the default
 because a screen misjudges a defocus: measured on a hidden 25 mm defocus with all-34 offsets,
 the offsets had absorbed it and a screen from either start ended at twice the reference's χ²
 (5265 and 6795 against 2737: the offsets need many exact steps to give it back), so chamber_z
@@ -252,14 +252,14 @@ def diagnose(meas: Measurement, state: ModelState, twin=None, forward_model=None
              table: ParameterTable = METRIXS) -> Diagnosis:
     """Rank candidate effects for the misfit of ``state`` against ``meas`` (see the module text).
 
-    ``state`` should already carry fitted offsets (:func:`bluesky_offsets.model.refine`).
+    ``state`` should already carry fitted offsets (:func:`bluesky_offsets.model.state.refine`).
     Candidates default to every registered effect the state does not include yet.  Every fit
     (the offsets-only reference and each candidate from each of its :func:`starting_values`)
-    runs :func:`bluesky_offsets.fit.fit` with ``options`` (default :data:`SCAN`) on one set of
+    runs :func:`bluesky_offsets.model.fit.fit` with ``options`` (default :data:`SCAN`) on one set of
     rays.  The ``verify_top`` best are traced again with fresh rays (``verify_rays``, default
     4x the measurement's) beside the reference.  ``client`` (a Dask client) runs the candidate
     fits on its workers, one fit each (the same fits, in parallel).  ``fit_top``: with more
-    candidates than this, every start is first screened (:func:`bluesky_offsets.fit.screen`:
+    candidates than this, every start is first screened (:func:`bluesky_offsets.model.fit.screen`:
     the twin's Jacobian there and a few steps on its secant updates, a fifth of a fit) and only
     the best ``fit_top`` candidates are fitted; None fits every start.  ``twin`` names the
     parameter table and ``forward_model`` is not used (both kept for symmetry with the other steps).
@@ -509,8 +509,8 @@ def add_effect_result(meas: Measurement, state: ModelState, name: str, twin=None
                       values=None, options: FitOptions | Mapping | None = None, progress=None,
                       table: ParameterTable = METRIXS):
     """``state.with_effect(name, values)``, offsets and effect refitted with the one fit engine
-    (:func:`bluesky_offsets.model.refine`, options default :data:`FIT`); returns its
-    :class:`~bluesky_offsets.model.RefineResult`.  ``values`` starts the effect where the
+    (:func:`bluesky_offsets.model.state.refine`, options default :data:`FIT`); returns its
+    :class:`~bluesky_offsets.model.state.RefineResult`.  ``values`` starts the effect where the
     diagnosis found it (a :class:`Candidate` or its ``values``)."""
     if values is not None and not isinstance(values, dict):
         values = getattr(values, "values", values)  # a Candidate
@@ -520,7 +520,7 @@ def add_effect_result(meas: Measurement, state: ModelState, name: str, twin=None
 
 
 def plot_error_history(versions: Sequence[Version], path, title: str = "model error across versions"):
-    from .plotting import pyplot, save_figure
+    from bluesky_offsets.commands.plotting import pyplot, save_figure
     plt = pyplot()
     fig, ax = plt.subplots(figsize=(6.5, 3.8), constrained_layout=True)
     labels = [v.label for v in versions]
@@ -540,7 +540,7 @@ def plot_error_history(versions: Sequence[Version], path, title: str = "model er
 
 def plot_ranking(diag: Diagnosis, path, top: int = 5):
     """Candidate scores, and the top candidates' predicted signatures beside the observed one."""
-    from .plotting import pyplot, save_figure
+    from bluesky_offsets.commands.plotting import pyplot, save_figure
     plt = pyplot()
     cands = diag.candidates[:top]
     keys = [k for k in diag.observed_signature if not k.endswith("skewness")]

@@ -1,0 +1,1 @@
+"""The command line: its verbs (demo, diagnose, find, surrogate), the report and its figures."""
