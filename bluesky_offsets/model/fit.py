@@ -37,10 +37,9 @@ import numpy as np
 import torch
 
 from bluesky_offsets.physics import effects as E
-from bluesky_offsets.model.misfit import beam_features, expected_pull2
+from bluesky_offsets.model.misfit import beam_features, expected_pull2, feature_values
 from bluesky_offsets.physics.noise import bin_variance
 from bluesky_offsets.physics.parameters import MAX_OFFSET, METRIXS, ParameterTable
-from bluesky_offsets.physics.twin import HistogramSpec
 
 STAGES = ("features", "profiles", "bins")
 
@@ -187,20 +186,6 @@ def engine_for(meas, options: FitOptions, table: ParameterTable = METRIXS):
     return TorchEngine(table=table, hist=meas.spec, options=dict(options.engine or {}))
 
 
-def _features(hx: torch.Tensor, hy: torch.Tensor, spec: HistogramSpec) -> torch.Tensor:
-    """:func:`bluesky_offsets.model.misfit.beam_features` (the values) in torch."""
-    out = [hx.sum(-1)]
-    for h, c in ((hx, spec.centers_x), (hy, spec.centers_y)):
-        c = torch.as_tensor(c, dtype=h.dtype)
-        tot = h.sum(-1)
-        safe = torch.where(tot > 0, tot, torch.ones_like(tot))
-        mu = (h * c).sum(-1) / safe
-        var = (h * (c - mu[..., None]) ** 2).sum(-1) / safe
-        w = float(c[-1] - c[0]) / (len(c) - 1)
-        out += [mu, torch.sqrt(torch.clamp(var, min=w * w / 12))]
-    return torch.stack(out, -1)
-
-
 class _Model:
     """The measurement's model as a function of the fitted vector z (normalized offsets, then
     effect parameters): values and exact Jacobians of each stage's residuals."""
@@ -320,7 +305,7 @@ class _Model:
         spec, nx = self.meas.spec, self.meas.spec.bins_x
         if stage == "features":
             hd = h.detach().requires_grad_(jacobian)
-            f = _features(hd[:, :nx], hd[:, nx:], spec)
+            f = torch.stack(feature_values(hd[:, :nx], hd[:, nx:], spec), -1)
             hn = h.detach().numpy()
             _, vf = beam_features(hn[:, :nx], hn[:, nx:], spec, rays)
             Jf = None

@@ -160,13 +160,34 @@ def misfit(meas_x, meas_y, model_x, model_y, n_rays: int | Sequence[int], *,
 # --------------------------------------------------------------------------- #
 # residual signatures
 # --------------------------------------------------------------------------- #
-def _centroid_variance(h: np.ndarray, centers: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _centroid_variance(h, centers: np.ndarray):
     """Total, centroid and variance of histograms (..., bins); an empty one has centroid and
-    variance 0."""
+    variance 0.  Numpy arrays or torch tensors alike (the fit differentiates them)."""
+    if not isinstance(h, np.ndarray):  # a torch tensor: the centres on its device and dtype
+        centers = h.new_tensor(centers)
     tot = h.sum(-1)
-    safe = np.where(tot > 0, tot, 1.0)
+    safe = tot + (tot <= 0)  # 1 where empty
     mu = (h * centers).sum(-1) / safe
     return tot, mu, (h * (centers - mu[..., None]) ** 2).sum(-1) / safe
+
+
+def _spot(h, centers: np.ndarray):
+    """Centroid and variance of a beam's histograms; the variance floored at the bin's own
+    spread (w^2 / 12: a beam inside one bin still has it).  Numpy or torch alike."""
+    w = (centers[-1] - centers[0]) / (len(centers) - 1)
+    _, mu, v = _centroid_variance(h, centers)
+    return mu, v.clip(min=w * w / 12)
+
+
+def feature_values(hist_x, hist_y, spec) -> list:
+    """The five numbers of :func:`beam_features` (intensity, then centroid and rms width per
+    axis) without their variances, as a list; numpy arrays or torch tensors alike, so that the
+    fit's model side is the same function as the measurement's."""
+    out = [hist_x.sum(-1)]
+    for h, c in ((hist_x, spec.centers_x), (hist_y, spec.centers_y)):
+        mu, v = _spot(h, c)
+        out += [mu, np.sqrt(v) if isinstance(v, np.ndarray) else v.sqrt()]
+    return out
 
 
 def moments(hist: np.ndarray, centers: np.ndarray) -> dict[str, np.ndarray]:
@@ -203,19 +224,14 @@ def beam_features(hist_x, hist_y, spec, n_rays) -> tuple[np.ndarray, np.ndarray]
     Returns ``(features, variances)``, each ``(..., 5)`` in :data:`FEATURE_NAMES` order.
     """
     n = float(n_rays)
-    out, var = [], []
     # a linearized model may dip below zero in empty bins
     hx, hy = np.clip(np.asarray(hist_x, float), 0, None), np.clip(np.asarray(hist_y, float), 0, None)
     inten = hx.sum(-1)
     hits = np.maximum(inten * n, 1.0)
-    out.append(inten)
-    var.append(np.maximum(inten * (1 - inten), 1.0 / n) / n)
+    out, var = [inten], [np.maximum(inten * (1 - inten), 1.0 / n) / n]
     for h, c in ((hx, spec.centers_x), (hy, spec.centers_y)):
-        w = (c[-1] - c[0]) / (len(c) - 1)
-        tot, mu, v = _centroid_variance(h, c)
-        dark = tot <= 0
-        # a beam inside one bin still has the bin's own spread (w^2 / 12) as a floor
-        v = np.maximum(v, w * w / 12)
+        mu, v = _spot(h, c)
+        dark = h.sum(-1) <= 0
         # no rays, no position: the whole window as the uncertainty
         big = (c[-1] - c[0]) ** 2
         out += [mu, np.sqrt(v)]
