@@ -14,10 +14,10 @@ a mapping with those keys (offsets may be ``{name: value}``), or a tuple
 ``(offsets, loss)``.
 The finder runs in a worker thread, so the RunEngine stays responsive
 (pause/abort) while it works; a finder that takes ``callback=`` reports its progress
-(dicts of evaluations, seconds, loss) and the plan streams it live as ``finder`` events
-(plot them with :class:`bluesky_offsets.offsets.calibration.LossPlot`).  For bluesky-queueserver, pass the finder as an
-import path string (``"package.module:function"``) and the measurement as a
-run uid: both are plain JSON.
+(dicts of evaluations, seconds, loss) and the plan streams it live as ``finder``
+events (plot them with :class:`bluesky_offsets.offsets.calibration.LossPlot`).  For
+bluesky-queueserver, pass the finder as an import path string
+(``"package.module:function"``) and the measurement as a run uid: both are plain JSON.
 """
 
 from __future__ import annotations
@@ -30,8 +30,8 @@ import bluesky.plan_stubs as bps
 import numpy as np
 from bluesky.utils import MsgGenerator
 
-from bluesky_offsets.physics.parameters import METRIXS, ParameterTable
 from bluesky_offsets.model.measurement import Measurement
+from bluesky_offsets.physics.parameters import METRIXS, ParameterTable
 from bluesky_offsets.store import RunStore, as_measurement
 
 from ._stubs import Record, in_run, run_in_thread
@@ -123,7 +123,7 @@ def _reports_progress(func: Callable) -> bool:
 def _call_finder(func: Callable, m: Measurement, progress: Callable[[dict], None] | None = None):
     kw = {"callback": progress} if progress is not None and _reports_progress(func) else {}
     if _takes_arrays(func):
-        return func(m.configurations, m.histograms, n_rays=m.metadata.get("n_rays"), uid=m.uid, **kw)
+        return func(m.configurations, m.histograms, n_rays=m.n_rays, uid=m.uid, **kw)
     return func(m, **kw)
 
 
