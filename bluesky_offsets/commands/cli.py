@@ -48,6 +48,30 @@ def quiet_logs() -> None:
 
 # --------------------------------------------------------------------------- #
 # params
+def add_analysis_options(p: argparse.ArgumentParser, *, fit_rays: int | None, fit_rays_help: str,
+                         resolution_help: str) -> None:
+    """The options every verb that analyses a measurement shares (``demo``, ``diagnose``):
+    rounds of diagnosis, the fits' rays, screening, the binning fitted."""
+    p.add_argument("--rounds", type=int, default=2,
+                   help="diagnoses at most: after an effect is added the model is diagnosed again (default %(default)s)")
+    p.add_argument("--fit-rays", type=int, default=fit_rays, help=fit_rays_help)
+    p.add_argument("--fit-top", type=int, default=0,
+                   help="screen every start of every candidate first and fit only this many candidates to "
+                        "convergence (faster; a screen can miss a defocus: docs/diagnosis.md); default 0: every "
+                        "start fitted")
+    p.add_argument("--resolution", choices=("camera", "paper"), default="camera", help=resolution_help)
+
+
+def check_analysis_options(args) -> None:
+    """One line for each analysis option a user can fix (see :func:`add_analysis_options`)."""
+    if args.rounds < 1:
+        raise CliError("--rounds must be at least 1")
+    if args.fit_rays is not None and args.fit_rays < 100:
+        raise CliError("--fit-rays must be at least 100")
+    if args.fit_top < 0:
+        raise CliError("--fit-top must be at least 0 (0: every start of every candidate fitted)")
+
+
 # --------------------------------------------------------------------------- #
 def _cmd_params(args) -> int:
     records = METRIXS.as_records()

@@ -426,6 +426,7 @@ def _print_summary(summary: dict, analysis, location: str) -> None:
 
 
 def add_cli(sub) -> None:
+    from bluesky_offsets.commands.cli import add_analysis_options
     p = sub.add_parser("demo", help="the main job: calibrate and diagnose a simulated METRIXS end to end",
                        description=__doc__.split("\n\n", 1)[1] if __doc__ else None)
     p.add_argument("--out", default="bluesky-offsets-demo", help="output folder (default ./bluesky-offsets-demo)")
@@ -444,18 +445,11 @@ def add_cli(sub) -> None:
                    help="hidden offsets in all 34 parameters, uniform within ± this fraction of each range "
                         "(default %(default)s; the paper's is 0.2; 0: 7 fixed offsets of 1-2 %% instead)")
     p.add_argument("--candidates", default=None, help="effects to rank, comma separated (default: all)")
-    p.add_argument("--rounds", type=int, default=2,
-                   help="diagnoses at most, one per effect found (default %(default)s)")
-    p.add_argument("--fit-rays", type=int, default=D.FIT.rays,
-                   help="model rays per configuration in the fits (default %(default)s; the diagnosis's candidate "
-                        f"fits use at most {D.SCAN.rays})")
-    p.add_argument("--fit-top", type=int, default=0,
-                   help="screen every start of every candidate first and fit only this many candidates to "
-                        "convergence (faster; a screen can miss a defocus: docs/diagnosis.md); default 0: every "
-                        "start fitted")
-    p.add_argument("--resolution", choices=("camera", "paper"), default="camera",
-                   help="histograms the diagnosis fits: the camera's profiles (20 µm x 5 µm bins, default) or the "
-                        "paper's 50 x 50 bins")
+    add_analysis_options(p, fit_rays=D.FIT.rays,
+                         fit_rays_help="model rays per configuration in the fits (default %(default)s; the "
+                                       f"diagnosis's candidate fits use at most {D.SCAN.rays})",
+                         resolution_help="histograms the diagnosis fits: the camera's profiles (20 µm x 5 µm bins, "
+                                         "default) or the paper's 50 x 50 bins")
     p.add_argument("--seed", type=int, default=0,
                    help="another draw of the demo: candidate design, frame noise, fit seeds (default %(default)s)")
     p.set_defaults(func=_cmd_demo)
@@ -489,7 +483,7 @@ def parse_effect(text: str) -> tuple[str, dict]:
 
 
 def _cmd_demo(args) -> int:
-    from bluesky_offsets.commands.cli import CliError
+    from bluesky_offsets.commands.cli import CliError, check_analysis_options
     if args.configurations < 2:
         raise CliError("--configurations must be at least 2 (the paper asks for 16)")
     n_open = args.open_configurations if args.open_configurations is not None else 4
@@ -501,12 +495,7 @@ def _cmd_demo(args) -> int:
         raise CliError("--rays must be at least 100")
     if not 0 <= args.offsets_fraction <= 0.2:
         raise CliError("--offsets-fraction must lie in [0, 0.2] (offsets beyond 20 % of a range are outside the model)")
-    if args.rounds < 1:
-        raise CliError("--rounds must be at least 1")
-    if args.fit_rays < 100:
-        raise CliError("--fit-rays must be at least 100")
-    if args.fit_top < 0:
-        raise CliError("--fit-top must be at least 0 (0: every start of every candidate fitted)")
+    check_analysis_options(args)
     effects = tuple(parse_effect(e) for e in (args.effect or [f"{DEMO_EFFECT[0]}:z={DEMO_EFFECT[1]['z']}"]))
     effects = tuple(e for e in effects if e[0])
     names = [e[0] for e in effects]

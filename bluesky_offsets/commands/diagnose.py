@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from bluesky_offsets.commands.cli import CliError
+from bluesky_offsets.commands.cli import CliError, add_analysis_options, check_analysis_options
 
 
 def _load(store, uid: str, n_rays: int | None, resolution: str = "camera"):
@@ -79,15 +79,8 @@ def summary_dict(analysis) -> dict:
 def _cmd_diagnose(args) -> int:
     from bluesky_offsets.store import open_store
     candidates = _effects(args.effects)
-    if args.rounds < 1:
-        raise CliError("--rounds must be at least 1")
-    if args.fit_top < 0:
-        raise CliError("--fit-top must be at least 0 (0: every start of every candidate fitted)")
-    fit_options = None
-    if args.fit_rays is not None:
-        if args.fit_rays < 100:
-            raise CliError("--fit-rays must be at least 100")
-        fit_options = {"rays": args.fit_rays}
+    check_analysis_options(args)
+    fit_options = None if args.fit_rays is None else {"rays": args.fit_rays}
     try:
         store = open_store(args.store)
     except OSError as exc:
@@ -151,17 +144,10 @@ def add_cli(sub) -> None:
                    help="also start from the offsets of this run (find_offsets / refine_offsets)")
     p.add_argument("--no-refine", action="store_true", help="diagnose the start as it is (no offsets fit first)")
     p.add_argument("--no-add", action="store_true", help="rank only; do not add the best effect")
-    p.add_argument("--rounds", type=int, default=2,
-                   help="diagnoses at most: after an effect is added the model is diagnosed again (default %(default)s)")
-    p.add_argument("--fit-rays", type=int, default=None, help="model rays per configuration in the fits "
-                                                               "(default: bluesky_offsets.model.diagnosis.FIT's)")
-    p.add_argument("--fit-top", type=int, default=0,
-                   help="screen every start of every candidate first and fit only this many candidates to "
-                        "convergence (faster; a screen can miss a defocus: docs/diagnosis.md); default 0: every "
-                        "start fitted")
-    p.add_argument("--resolution", choices=("camera", "paper"), default="camera",
-                   help="histograms to fit: the camera's profiles where the run has them (default) or the "
-                        "paper's 50 x 50 bins")
+    add_analysis_options(p, fit_rays=None, fit_rays_help="model rays per configuration in the fits (default: "
+                                                          "bluesky_offsets.model.diagnosis.FIT's)",
+                         resolution_help="histograms to fit: the camera's profiles where the run has them (default) "
+                                         "or the paper's 50 x 50 bins")
     p.add_argument("--rays", type=int, default=None, help="ray budget of the measurement when the run lacks it")
     p.add_argument("--scheduler", default=None, help="Dask scheduler address, or 'inline' (default: local cluster)")
     p.add_argument("--seed", type=int, default=0)
