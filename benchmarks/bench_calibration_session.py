@@ -78,7 +78,7 @@ def main(argv=None) -> int:
 
         from bluesky_offsets.offsets import calibration as C
         from bluesky_offsets.offsets import finder as F
-        from bluesky_offsets.devices import FocusChamber, MetrixsBeamline
+        from bluesky_offsets.epics.devices import FocusChamber, MetrixsBeamline
         from bluesky_offsets.physics.noise import expected_repeat_mse
         from bluesky_offsets.physics.parameters import METRIXS
         from bluesky_offsets.store import open_store

@@ -3,7 +3,7 @@
 Device-agnostic: a *beamline* is any of
 
 * a mapping ``{parameter name or device path: movable}``,
-* an object with a ``motors`` mapping (``bluesky_offsets.devices.MetrixsBeamline``,
+* an object with a ``motors`` mapping (``bluesky_offsets.epics.devices.MetrixsBeamline``,
   ``make_beamline_v1(...)``),
 * an object whose attribute paths follow the table's ``device`` paths
   (``beamline.e1.rx``).

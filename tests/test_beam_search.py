@@ -90,7 +90,7 @@ def test_find_beam_plan_on_the_simulated_ioc(tmp_path):
     from bluesky import RunEngine
     from ophyd_async.core import init_devices
 
-    from bluesky_offsets.devices import FocusChamber, MetrixsBeamline
+    from bluesky_offsets.epics.devices import FocusChamber, MetrixsBeamline
     from conftest import start_metrixs_ioc
     from plans import current_configuration, find_beam, measure_configurations
 

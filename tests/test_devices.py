@@ -10,15 +10,9 @@ import numpy as np
 import pytest
 from bluesky import RunEngine
 
-from bluesky_offsets.devices import (
-    ChamberError,
-    FixedParameter,
-    FixedParameterError,
-    FocusChamber,
-    FocusChamberV1,
-    MetrixsBeamline,
-    make_beamline_v1,
-)
+from bluesky_offsets.epics.devices import FixedParameter, FocusChamber, MetrixsBeamline
+from bluesky_offsets.epics.devices_v1 import FocusChamberV1, make_beamline_v1
+from bluesky_offsets.epics.pvs import ChamberError, FixedParameterError
 from bluesky_offsets.physics.parameters import METRIXS
 
 

@@ -58,7 +58,7 @@ def _configs(n: int, seed: int = 5) -> np.ndarray:
 def measured(RE, metrixs_ioc, run_store):
     from ophyd_async.core import init_devices
 
-    from bluesky_offsets.devices import FocusChamber, MetrixsBeamline
+    from bluesky_offsets.epics.devices import FocusChamber, MetrixsBeamline
     with init_devices():
         beamline = MetrixsBeamline(metrixs_ioc.prefix, name="metrixs")
         chamber = FocusChamber(metrixs_ioc.prefix + "chamber:", name="chamber")

@@ -10,7 +10,7 @@ import pytest
 from bluesky import RunEngine
 from bluesky.utils import RunEngineInterrupted
 
-from bluesky_offsets.devices import FocusChamber, MetrixsBeamline
+from bluesky_offsets.epics.devices import FocusChamber, MetrixsBeamline
 from bluesky_offsets.physics.parameters import METRIXS
 from bluesky_offsets.physics.twin import CAMERA, HistogramSpec, Twin
 from conftest import start_metrixs_ioc
@@ -328,7 +328,7 @@ def test_find_offsets_emits_offsets_stream_standalone_and_inside_a_plan(RE, devi
 
 
 def test_measure_with_classic_ophyd_devices_and_a_motor_mapping(RE, metrixs_ioc, ca):
-    from bluesky_offsets.devices import FocusChamberV1, make_beamline_v1
+    from bluesky_offsets.epics.devices_v1 import FocusChamberV1, make_beamline_v1
     P = metrixs_ioc.prefix
     beamline = make_beamline_v1(P, name="v1")
     chamber = FocusChamberV1(P + "chamber:", name="cam")

@@ -298,7 +298,7 @@ def run_demo(out: Path, settings: DemoSettings | None = None, store_location: st
         from bluesky.utils import RunEngineInterrupted
         from ophyd_async.core import init_devices
 
-        from bluesky_offsets.devices import FocusChamber, MetrixsBeamline
+        from bluesky_offsets.epics.devices import FocusChamber, MetrixsBeamline
         from bluesky_offsets.offsets.finder import load_forward_model
         from bluesky_offsets.commands.cli import quiet_logs
         from bluesky_offsets.commands.report import paragraph, table_, write_analysis_report
