@@ -144,11 +144,11 @@ def test_plans_refuse_bad_input_before_opening_a_run(RE, twin, measured, run_sto
         RE(diagnose_effects(m, ModelState(), twin, candidates=["gravity"]))
     with pytest.raises(ValueError, match=r"unknown fit option\(s\) \['ray'\]"):
         RE(refine_offsets(m, ModelState(), twin, options={"ray": 100}))
-    bad = type(m)(m.configurations, m.hist_x.copy(), m.hist_y, m.names, m.uid, metadata=dict(m.metadata))
-    bad.hist_x[1, 7] = np.nan
+    bad = type(m)(m.configurations, m.hist_x.copy(), m.hist_y, names=m.names, uid=m.uid, metadata=dict(m.metadata))
+    bad.hist_x[1, 7] = np.nan  # after construction: the plans check again before a run opens
     with pytest.raises(MeasurementError, match="configuration 1 has a non-finite bin 7"):
         RE(compare_model(bad, ModelState(), twin))
-    other = type(m)(m.configurations, m.hist_x, m.hist_y, m.names, m.uid,
+    other = type(m)(m.configurations, m.hist_x, m.hist_y, names=m.names, uid=m.uid,
                     metadata={**m.metadata, "parameter_table_version": "0123abcd"})
     with pytest.raises(MeasurementError, match="parameter-table version 0123abcd"):
         RE(compare_model(other, ModelState(), twin))
