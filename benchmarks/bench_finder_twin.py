@@ -34,6 +34,7 @@ def main(argv=None) -> int:
     ap.add_argument("--out", default="data/bench_finder_twin.json")
     args = ap.parse_args(argv)
 
+    from bluesky_offsets.model.measurement import Measurement
     from bluesky_offsets.offsets import calibration as C
     from bluesky_offsets.offsets import finder as F
     from bluesky_offsets.physics.twin import Twin
@@ -48,7 +49,8 @@ def main(argv=None) -> int:
             finder = C.OffsetFinder(model=model, method=args.method, budget=F.Budget(evaluations=args.evaluations),
                                     twin=twin, polish_iterations=args.polish, seed=seed, threads=args.threads)
             t1 = time.perf_counter()
-            cal = finder(p.physical_configurations(), p.observations, n_rays=args.rays)
+            obs = p.observations
+            cal = finder(Measurement(p.physical_configurations(), obs[:, :50], obs[:, 50:], args.rays))
             t_find = time.perf_counter() - t1
             # the twin's own repeat: the true configurations traced again with other seeds
             rep = twin.trace_batch(p.physical_configurations(p.true_offsets), n_rays=args.rays,

@@ -7,8 +7,8 @@
   footprint has enough rays (x + y histogram sum > :data:`HIGH_RAY_THRESHOLD` = 0.113 of the source rays).
 * :func:`find_beam` — bring the beam onto the screen from a dark start (slits open, the
   sensitive motors scanned upstream first, as an operator does).
-* :func:`find_offsets` — run a pluggable offset finder on a measurement and emit
-  offsets per parameter and the loss as a stream.
+* :func:`find_offsets` — run a pluggable offset finder (a :class:`Finder`) on a measurement
+  and emit offsets per parameter and the loss as a stream.
 """
 
 from .measure import measure_configurations, scan_configurations
@@ -19,7 +19,7 @@ from .motion import (
     current_configuration,
     resolve_motors,
 )
-from .offsets import OffsetResult, find_offsets
+from .offsets import Finder, FinderResult, OffsetResult, find_offsets
 from .search import (
     HIGH_RAY_THRESHOLD,
     MIN_CONFIGURATIONS,
@@ -31,7 +31,8 @@ from .search import (
 )
 
 __all__ = [
-    "HIGH_RAY_THRESHOLD", "MIN_CONFIGURATIONS", "MotionError", "MotorLimitError", "OffsetResult",
+    "HIGH_RAY_THRESHOLD", "MIN_CONFIGURATIONS", "Finder", "FinderResult", "MotionError", "MotorLimitError",
+    "OffsetResult",
     "as_configurations", "current_configuration", "enough_rays", "find_beam", "find_high_ray_configurations",
     "find_offsets",
     "high_ray_configurations_on_model", "measure_configurations", "resolve_motors", "sample_candidates",

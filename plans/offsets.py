@@ -1,17 +1,12 @@
 """Offset finding as a plan: measurement in, offsets per parameter and loss out, as a stream.
 
-The finder itself is pluggable.  Two calling conventions are accepted:
+The finder itself is pluggable: anything that satisfies :class:`Finder`, i.e.
+``finder(measurement, callback=None)`` with a
+:class:`bluesky_offsets.model.measurement.Measurement`, returning a :class:`FinderResult`
+(normalized ``offsets`` in table order and a ``loss``: an :class:`OffsetResult`, a
+:class:`bluesky_offsets.offsets.calibration.Calibration`, or any object with both).
+:class:`bluesky_offsets.offsets.calibration.OffsetFinder` is the project's own.
 
-* ``finder(measurement)`` with a :class:`bluesky_offsets.model.measurement.Measurement`;
-* ``finder(configurations, histograms, n_rays=..., uid=...)`` with
-  configurations ``(n, 34)`` and histograms ``(n, 100)`` (x then y), the
-  convention of :class:`bluesky_offsets.offsets.calibration.OffsetFinder` (chosen
-  when the callable takes two positional parameters).
-
-The result may be an :class:`OffsetResult`, any object with ``offsets``
-(normalized, table order) and ``loss`` attributes (e.g. a ``Calibration``),
-a mapping with those keys (offsets may be ``{name: value}``), or a tuple
-``(offsets, loss)``.
 The finder runs in a worker thread, so the RunEngine stays responsive
 (pause/abort) while it works; a finder that takes ``callback=`` reports its progress
 (dicts of evaluations, seconds, loss) and the plan streams it live as ``finder``
@@ -25,6 +20,7 @@ from __future__ import annotations
 import importlib
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
+from typing import Protocol, runtime_checkable
 
 import bluesky.plan_stubs as bps
 import numpy as np
@@ -66,26 +62,32 @@ class OffsetResult:
         return {n: float(v) for n, v in zip(self.table.names, self.offsets)}
 
 
+class FinderResult(Protocol):
+    """What a finder returns: normalized offsets (fractions of each range, table order) and its
+    final loss.  Anything else it carries (uncertainties ``sigma``, ``status``, ``history``,
+    ``twin_mse``) goes into the run when present."""
+
+    offsets: np.ndarray
+    loss: float
+
+
+@runtime_checkable
+class Finder(Protocol):
+    """An offset finder: a measurement in, a :class:`FinderResult` out.  ``callback`` (a finder
+    may leave it out of its signature) receives progress dicts (evaluations, seconds, loss)."""
+
+    def __call__(self, measurement: Measurement, *,
+                 callback: Callable[[dict], None] | None = None) -> FinderResult: ...
+
+
 def _as_result(raw, table: ParameterTable) -> OffsetResult:
     if isinstance(raw, OffsetResult):
         return raw
-    if hasattr(raw, "offsets") and hasattr(raw, "loss") and not isinstance(raw, Mapping):
-        off = table.validate(np.asarray(raw.offsets, dtype=float), "finder offsets")
-        return OffsetResult(off, float(raw.loss), {}, table, raw)
-    if isinstance(raw, tuple) and len(raw) == 2:
-        raw = {"offsets": raw[0], "loss": raw[1]}
-    if not isinstance(raw, Mapping) or "offsets" not in raw or "loss" not in raw:
-        raise TypeError("the finder must return an OffsetResult, a mapping with 'offsets' and 'loss', "
-                        f"or a tuple (offsets, loss); got {type(raw).__name__}")
-    off = raw["offsets"]
-    if isinstance(off, Mapping):
-        vec = np.zeros(len(table))
-        for name, v in off.items():
-            vec[table.index(name)] = float(v)
-        off = vec
-    off = table.validate(off, "finder offsets")
-    info = {k: v for k, v in raw.items() if k not in ("offsets", "loss")}
-    return OffsetResult(off, float(raw["loss"]), info, table, raw)
+    if not (hasattr(raw, "offsets") and hasattr(raw, "loss")):
+        raise TypeError("a finder must return a FinderResult: an object with 'offsets' (normalized, table order) "
+                        f"and 'loss' (e.g. plans.OffsetResult); got {type(raw).__name__}")
+    off = table.validate(np.asarray(raw.offsets, dtype=float), "finder offsets")
+    return OffsetResult(off, float(raw.loss), {}, table, raw)
 
 
 def _resolve_finder(finder) -> Callable:
@@ -100,31 +102,14 @@ def _resolve_finder(finder) -> Callable:
     raise TypeError(f"finder must be a callable or 'module:function', got {finder!r}")
 
 
-def _parameters(func: Callable):
-    import inspect
-    try:
-        return list(inspect.signature(func).parameters.values())
-    except (TypeError, ValueError):
-        return []
-
-
-def _takes_arrays(func: Callable) -> bool:
-    """True for finders with the ``(configurations, histograms, ...)`` convention."""
-    positional = [p for p in _parameters(func) if p.kind in (p.POSITIONAL_ONLY, p.POSITIONAL_OR_KEYWORD)
-                  and p.default is p.empty]
-    return len(positional) >= 2
-
-
 def _reports_progress(func: Callable) -> bool:
     """True for finders that take ``callback=`` (progress dicts while they work)."""
-    return any(p.name == "callback" or p.kind is p.VAR_KEYWORD for p in _parameters(func))
-
-
-def _call_finder(func: Callable, m: Measurement, progress: Callable[[dict], None] | None = None):
-    kw = {"callback": progress} if progress is not None and _reports_progress(func) else {}
-    if _takes_arrays(func):
-        return func(m.configurations, m.histograms, n_rays=m.n_rays, uid=m.uid, **kw)
-    return func(m, **kw)
+    import inspect
+    try:
+        params = inspect.signature(func).parameters.values()
+    except (TypeError, ValueError):
+        return False
+    return any(p.name == "callback" or p.kind is p.VAR_KEYWORD for p in params)
 
 
 _STATUS_CODE = {"determined": 2.0, "weak": 1.0, "undetermined": 0.0}
@@ -132,7 +117,8 @@ _STATUS_CODE = {"determined": 2.0, "weak": 1.0, "undetermined": 0.0}
 
 def _extras(raw, n: int) -> dict[str, object]:
     """Uncertainties, identifiability and the loss curve, when the finder reports them."""
-    get = (lambda k: raw.get(k)) if isinstance(raw, Mapping) else (lambda k: getattr(raw, k, None))
+    def get(k):
+        return getattr(raw, k, None)
     out: dict[str, object] = {}
     sigma = get("sigma")
     if sigma is not None and np.asarray(sigma).shape == (n,):
@@ -165,9 +151,9 @@ def find_offsets(finder, measurement=None, *, store: RunStore | str | None = Non
 
     Parameters
     ----------
-    finder : callable or str
-        ``finder(measurement) -> OffsetResult | {"offsets", "loss"} | (offsets, loss)``,
-        or its import path ``"module:function"``.
+    finder : Finder or str
+        ``finder(measurement, callback=None) -> FinderResult`` (:class:`Finder`), or its import
+        path ``"module:function"``.
     measurement : Measurement or str
         The measurement (e.g. returned by :func:`plans.measure_configurations`)
         or the uid of a measurement run in ``store``.
@@ -203,7 +189,7 @@ def find_offsets(finder, measurement=None, *, store: RunStore | str | None = Non
         # the finder in a worker thread: the RunEngine keeps serving pause and abort, and a
         # finder that reports progress streams it live ("finder": evaluations, seconds, loss)
         result: OffsetResult = yield from run_in_thread(
-            lambda progress: _as_result(_call_finder(func, m, progress), table),
+            lambda progress: _as_result(func(m, callback=progress) if live else func(m), table),
             stream="finder" if live else None, desc="find offsets", show=show)
         values = {"loss": result.loss, "offsets": result.offsets, "offsets_physical": result.physical}
         values.update({data_key(n): float(v) for n, v in zip(table.names, result.offsets)})

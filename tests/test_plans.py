@@ -282,7 +282,7 @@ def _centroid_finder(measurement):
     cx = (measurement.hist_x * np.arange(50)).sum(1) / np.maximum(measurement.hist_x.sum(1), 1e-12)
     off = np.zeros(34)
     off[METRIXS.index("E1.rotationXerror")] = float(np.ptp(cx)) * 0.4 / 3.8 / METRIXS["E1.rotationXerror"].span
-    return {"offsets": np.clip(off, -0.2, 0.2), "loss": float(np.var(cx))}
+    return OffsetResult(np.clip(off, -0.2, 0.2), float(np.var(cx)))
 
 
 def test_find_offsets_emits_offsets_stream_standalone_and_inside_a_plan(RE, devices, store):
@@ -306,9 +306,11 @@ def test_find_offsets_emits_offsets_stream_standalone_and_inside_a_plan(RE, devi
             m = yield from measure_configurations(configs, beamline, chamber)
             seen = []
 
-            def finder(configurations, histograms, *, n_rays=None, uid=None):  # calibration.OffsetFinder style
-                seen.append((configurations.shape, histograms.shape, n_rays, uid))
-                return (np.zeros(34), 1e-6)
+            def finder(measurement, *, callback=None):  # a Finder that reports progress
+                seen.append((measurement.configurations.shape, measurement.histograms.shape, measurement.n_rays,
+                             measurement.uid))
+                callback({"evaluations": 1, "seconds": 0.0, "loss": 1e-6})
+                return OffsetResult(np.zeros(34), 1e-6)
 
             yield from bps.open_run({"plan_name": "calibrate"})
             r = yield from find_offsets(finder, m, open_run=False)
@@ -318,11 +320,14 @@ def test_find_offsets_emits_offsets_stream_standalone_and_inside_a_plan(RE, devi
         out2 = RE(larger_plan())
         r, seen, muid = out2.plan_result
         assert seen == [((2, 34), (2, 100), 3000, muid)] and r.loss == 1e-6
+        assert {"finder", "offsets"} <= set(store[out2.run_start_uids[-1]])  # its progress streamed live
         assert "offsets" in store[out2.run_start_uids[-1]]
     finally:
         RE.unsubscribe(token)
-    with pytest.raises(TypeError, match="must return"):
+    with pytest.raises(TypeError, match="must return a FinderResult"):
         RE(find_offsets(lambda m: 3.0, meas))
+    with pytest.raises(TypeError, match="must return a FinderResult"):  # one return shape: no tuples, no dicts
+        RE(find_offsets(lambda m: (np.zeros(34), 1.0), meas))
     with pytest.raises(ValueError, match="cannot be imported"):
         RE(find_offsets("nowhere.module:finder", meas))
 

@@ -163,13 +163,12 @@ def _twin_histograms(engine, values: np.ndarray, n_rays: int, seed: int) -> np.n
 class OffsetFinder:
     """The pluggable finder for a ``find_offsets`` plan.
 
-    ``finder(configurations, histograms, n_rays=..., callback=...) -> Calibration``
-    with ``configurations`` (n, 34) physical (motor read-backs; the fixed
-    parameters at their nominal values) and ``histograms`` (n, 100) or
-    (n, 2, 50).  ``callback`` receives progress dicts (evaluations, seconds,
-    loss).  With a ``twin``, the result is polished against the twin and the
-    twin's MSE to the measurement is reported next to the expected repeat
-    noise.
+    ``finder(measurement, callback=...) -> Calibration`` (a :class:`plans.offsets.Finder`):
+    the measurement's configurations are physical (motor read-backs; the fixed parameters at
+    their nominal values), its histograms the paper's 50 + 50 bins.  ``callback`` receives
+    progress dicts (evaluations, seconds, loss).  With a ``twin``, the result is polished
+    against the twin and the twin's MSE to the measurement is reported next to the expected
+    repeat noise.
     """
 
     model: object = None  # ForwardModel; None: the shipped surrogate
@@ -189,10 +188,10 @@ class OffsetFinder:
         if self.model is None:
             self.model = F.load_forward_model()
 
-    def __call__(self, configurations, histograms, *, n_rays: int | None = None,
-                 callback: Callable[[dict], None] | None = None, uid: str | None = None) -> Calibration:
-        problem = F.problem_from_measurements(configurations, histograms, n_rays=n_rays, limit=self.limit,
-                                              metadata={"uid": uid} if uid else None)
+    def __call__(self, measurement, *, callback: Callable[[dict], None] | None = None) -> Calibration:
+        n_rays, uid = measurement.n_rays, measurement.uid
+        problem = F.problem_from_measurements(measurement.configurations, measurement.histograms, n_rays=n_rays,
+                                              limit=self.limit, metadata={"uid": uid} if uid else None)
         res = F.find_offsets(problem, self.model, self.method, self.budget, seed=self.seed, progress=self.progress,
                              callback=callback, threads=self.threads, **self.settings)
         offsets, history = res.offsets, dict(res.history)
