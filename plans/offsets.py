@@ -22,7 +22,6 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Protocol, runtime_checkable
 
-import bluesky.plan_stubs as bps
 import numpy as np
 from bluesky.utils import MsgGenerator
 
@@ -30,7 +29,7 @@ from bluesky_offsets.model.measurement import Measurement
 from bluesky_offsets.physics.parameters import METRIXS, ParameterTable
 from bluesky_offsets.store import RunStore, as_measurement
 
-from ._stubs import Record, in_run, run_in_thread
+from ._stubs import emit_rows, in_run, run_in_thread
 
 
 @dataclass
@@ -194,11 +193,7 @@ def find_offsets(finder, measurement=None, *, store: RunStore | str | None = Non
         values = {"loss": result.loss, "offsets": result.offsets, "offsets_physical": result.physical}
         values.update({data_key(n): float(v) for n, v in zip(table.names, result.offsets)})
         values.update(_extras(result.raw, len(table)))
-        rec = Record("finder")
-        rec.set(values)
-        yield from bps.create(name=stream_name)
-        yield from bps.read(rec)
-        yield from bps.save()
+        yield from emit_rows(stream_name, [values])
         return result
 
     _md = {"plan_name": "find_offsets", "purpose": "offset finding",

@@ -68,13 +68,10 @@ class Measurement:
         if cfg.ndim != 2 or cfg.shape[1] != len(self.names):
             raise MeasurementError(f"measured configurations: expected {len(self.names)} parameters in table "
                                    f"order, got shape {cfg.shape}")
-        hx, hy = (np.asarray(h, dtype=float) for h in (self.hist_x, self.hist_y))
-        hx, hy = (h[None] if h.ndim == 1 else h for h in (hx, hy))
-        if hx.shape[0] != len(cfg) or hy.shape[0] != len(cfg):
-            raise MeasurementError(f"measurement: {len(cfg)} configurations but {hx.shape[0]} x and "
-                                   f"{hy.shape[0]} y histograms")
-        self.hist_x, self.hist_y = check_histograms(hx, hy, self.spec.bins_x, self.spec.bins_y)
-        self.configurations = cfg
+        hx, hy = check_histograms(self.hist_x, self.hist_y, self.spec.bins_x, self.spec.bins_y)
+        if len(hx) != len(cfg):
+            raise MeasurementError(f"measurement: {len(cfg)} configurations but {len(hx)} x and {len(hy)} y histograms")
+        self.configurations, self.hist_x, self.hist_y = cfg, hx, hy
         if self.n_rays is None:
             rays = self.metadata.get("n_rays") or self.metadata.get("num_rays")
             self.n_rays = int(rays) if rays else None
