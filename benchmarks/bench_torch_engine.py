@@ -11,7 +11,10 @@ Measures, on this machine:
   chamber's z) at 1e4 rays: torch reverse mode against one-sided finite differences through
   RAYX (35 extra traces per configuration, common seed), as the fits do today;
 * how many rays a torch feature Jacobian needs to be accurate to 1 % (relative error of the
-  entries above noise against a 2e5-ray reference, median over entries and configurations).
+  entries above noise against a 2e5-ray reference, median over entries and configurations);
+* the per-ray Jacobian every fit step takes (:meth:`TorchEngine.ray_jacobian`, then its
+  camera histograms' Jacobian) at a diagnosis's candidate-fit size: 14 configurations x
+  3000 rays, 34 parameters + the chamber's z, one thread (``--only ray-jacobian``).
 
 Numbers go to docs/benchmarks.md with machine, command and date.
 """
@@ -221,12 +224,28 @@ def bench_device(device, repeat=3):
     return {"trace": rows, "jacobian": jac}
 
 
+def bench_ray_jacobian(n_cfg=14, n_rays=3000, repeat=5):
+    """Seconds per :meth:`TorchEngine.ray_jacobian` and per camera-histogram Jacobian of it."""
+    import resource
+    from bluesky_offsets.physics.twin import CAMERA
+    torch.set_num_threads(1)
+    eng, vals, eff = TorchEngine(hist=CAMERA), configurations(n_cfg), {"chamber_z": {"z": 3.0}}
+    rj = eng.ray_jacobian(vals, eff, n_rays=n_rays, seed=1)  # warm-up
+    r0 = resource.getrusage(resource.RUSAGE_SELF)
+    ray = best(lambda: eng.ray_jacobian(vals, eff, n_rays=n_rays, seed=1), repeat)
+    hist = best(lambda: rj.histograms(CAMERA), repeat)
+    r1 = resource.getrusage(resource.RUSAGE_SELF)
+    return {"configurations": n_cfg, "rays": n_rays, "inputs": len(rj.names), "threads": 1,
+            "ray_jacobian_s": ray, "histogram_jacobian_s": hist,
+            "sys_share": (r1.ru_stime - r0.ru_stime) / max(r1.ru_utime - r0.ru_utime + r1.ru_stime - r0.ru_stime, 1e-9)}
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="small sizes (a smoke run)")
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--json", help="write the results here")
-    ap.add_argument("--only", choices=("trace", "jacobian", "accuracy"), help="run one part only")
+    ap.add_argument("--only", choices=("trace", "jacobian", "accuracy", "ray-jacobian"), help="run one part only")
     args = ap.parse_args(argv)
     if args.quick:
         sizes, threads, repeat = [(10_000, 1), (10_000, 16)], [1], 1
@@ -255,6 +274,9 @@ def main(argv=None):
         print(json.dumps(result["jacobian"]), flush=True)
     if args.only in (None, "accuracy"):
         result["rays_for_jacobian"] = bench_rays_for_one_percent(4, args.device, ladder, ref)
+    if args.only in (None, "ray-jacobian"):
+        result["ray_jacobian"] = bench_ray_jacobian(repeat=2 if args.quick else 5)
+        print(json.dumps(result["ray_jacobian"]), flush=True)
     if args.json:
         Path(args.json).write_text(json.dumps(result, indent=2))
     return 0

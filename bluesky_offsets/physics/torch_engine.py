@@ -585,12 +585,22 @@ def _where_safe(cond, value, safe=1.0):
     return torch.where(cond, value, torch.as_tensor(safe, dtype=value.dtype, device=value.device))
 
 
+def _entries(m) -> tuple:
+    """A matrix (C, 3, 3) or vector (C, 3) as nested tuples of its entries (C,); given as such
+    (:meth:`TorchEngine.ray_jacobian`: every entry a leaf of its own), as it is.  Entries by
+    unbind, not by indexing: the backward of one index writes the whole matrix per entry,
+    which had made 60 % of a per-ray Jacobian (each ray has its own matrices there)."""
+    if isinstance(m, tuple):
+        return m
+    return tuple(_entries(row) for row in m.unbind(1)) if m.ndim > 2 else m.unbind(1)
+
+
 def _apply(rot, shift, x, y, z):
-    r = rot[:, :, :, None]  # (C, 3, 3, 1) broadcast over rays
-    out = [_poly((r[:, k, 0], x), (r[:, k, 1], y), (r[:, k, 2], z)) for k in range(3)]
+    r = [[e[:, None] for e in row] for row in _entries(rot)]  # (C, 1) broadcast over rays
+    out = [_poly((r[k][0], x), (r[k][1], y), (r[k][2], z)) for k in range(3)]
     if shift is None:
         return tuple(out)
-    return tuple(o + shift[:, k, None] for k, o in enumerate(out))
+    return tuple(o + s[:, None] for o, s in zip(out, _entries(shift)))
 
 
 def _plane_hit(px, py, pz, dx, dy, dz):
@@ -1212,17 +1222,28 @@ class TorchEngine:
                               None if units.draws is None else units.draws.slice(a, b),
                               None if units.ctr is None else units.ctr[..., a:b]).per_ray(c)
             reps = [t.detach().repeat_interleave(r, 0) for t in fields]
+            # the live fields' entries as leaves, in the order of their flattening: frame
+            # matrices and shifts as tuples of entries (see _entries), the rest whole
+            comps: list[torch.Tensor] = []
             for i in live:
-                reps[i].requires_grad_(True)
+                t = reps[i]
+                if t.ndim == 2 and t.shape[1] == 1:
+                    comps.append(t.requires_grad_(True))
+                    continue
+                ent = [e.clone().requires_grad_(True) for e in t.reshape(c * r, -1).unbind(1)]
+                comps += ent
+                reps[i] = tuple(ent) if t.ndim == 2 else tuple(tuple(ent[3 * a:3 * a + 3]) for a in range(3))
             bl_rep = _replace_tensors(bl, c, iter(reps), c * r)
             with torch.enable_grad():
                 beam = trace_rays(bl_rep, source_rays(bl_rep, cut), cut.draws, edge=o.edge)
-                grads = []
+                grads, buf = [], None
                 for k, out in enumerate((beam.x, beam.y, beam.weight)):
-                    g = torch.autograd.grad(out.sum(), [reps[i] for i in live], retain_graph=k < 2, allow_unused=True)
-                    g = torch.cat([(gi if gi is not None else torch.zeros_like(reps[i])).reshape(c, r, sizes[i])
-                                   for gi, i in zip(g, live)], 2)  # (C, r, F')
-                    grads.append(torch.einsum("crf,cfp->crp", g, dfield_live))
+                    g = torch.autograd.grad(out.sum(), comps, retain_graph=k < 2, allow_unused=True)
+                    cols = [(gi if gi is not None else torch.zeros_like(t)).reshape(c, r, 1) for gi, t in zip(g, comps)]
+                    # (C, r, F') into one buffer for the three: tens of MB, each new one mapped
+                    # and faulted in afresh by the allocator
+                    buf = torch.cat(cols, 2) if buf is None else torch.cat(cols, 2, out=buf)
+                    grads.append(torch.einsum("crf,cfp->crp", buf, dfield_live))
             parts.append((beam.x.detach().reshape(c, r), beam.y.detach().reshape(c, r),
                           beam.alive.reshape(c, r), beam.weight.detach().reshape(c, r), *grads))
         cat = [torch.cat([p[k] for p in parts], 1) for k in range(7)]
