@@ -12,6 +12,8 @@ from bluesky_offsets.physics.twin import Twin
 from plans import HIGH_RAY_THRESHOLD
 from sim_iocs.truth import default_start
 
+pytestmark = pytest.mark.slow  # over a minute: scheduled first (conftest)
+
 # M1 moved sideways out of the beam, plus a few other offsets: the start is dark
 DARK = {"M1_Cylinder.translationXerror": 0.06, "E1.rotationXerror": 0.02, "SphericalGrating.rotationZerror": -0.03,
         "ASBL.translationYerror": 0.02}

@@ -12,6 +12,8 @@ from bluesky_offsets.model.state import ModelState, refine, simulate
 from bluesky_offsets.physics.parameters import METRIXS
 from bluesky_offsets.physics.twin import Twin
 
+pytestmark = pytest.mark.slow  # over a minute: scheduled first (conftest)
+
 N_RAYS = 4000
 # offsets hidden in three sensitive motors
 HIDDEN = {"E1.rotationXerror": 0.012, "E2.rotationXerror": -0.01, "M1_Cylinder.rotationXerror": 0.008}

@@ -54,95 +54,104 @@ def _demo(tmp_path: Path, effect: str) -> tuple[dict, subprocess.CompletedProces
     return json.loads((tmp_path / "out" / "summary.json").read_text()), proc
 
 
-@pytest.fixture(scope="module")
-def demo_run(tmp_path_factory):
-    """Each scenario's demo, run once for all the tests that read it: (folder, summary, process)."""
-    done = {}
+class _Scenario:
+    """One scenario's demo, run once for the tests of its class: pytest-xdist (``--dist
+    loadscope``) runs a class on one worker, so the demos spread over the workers."""
 
-    def run(scenario: str):
-        if scenario not in done:
-            tmp = tmp_path_factory.mktemp(scenario)
-            done[scenario] = (tmp, *_demo(tmp, SCENARIOS[scenario][0] if scenario in SCENARIOS else scenario))
-        return done[scenario]
-    return run
+    @pytest.fixture(scope="class")
+    def demo(self, scenario, tmp_path_factory) -> tuple[Path, dict, subprocess.CompletedProcess]:
+        """(folder, summary, process)"""
+        tmp = tmp_path_factory.mktemp(scenario)
+        return (tmp, *_demo(tmp, SCENARIOS[scenario][0] if scenario in SCENARIOS else scenario))
 
 
-def _on_its_own(scenario: str):
-    """Each demo's tests on one pytest-xdist worker (its demo runs once there), the demos spread
-    over the workers."""
-    return pytest.mark.xdist_group(f"demo-{scenario}")
+class _HiddenEffect(_Scenario):
+    def test_hidden_effect_is_found_added_and_fitted(self, scenario, demo):
+        effect, name, param, hidden = SCENARIOS[scenario]
+        _, s, _ = demo
+        assert s["rankings"][0][0] == name and s["verdict"].startswith(f"missing effect: {name}"), s["rankings"]
+        fitted, sigma = s["fitted_effects"][name][param]
+        assert fitted == pytest.approx(hidden, rel=0.25)
+        assert abs(fitted - hidden) <= 3 * sigma, (fitted, sigma, hidden)
+        before, after = s["history"][-2], s["history"][-1]
+        assert after["chi2"] < before["chi2"]
+        # within 1.5x its noise expectation: chi2 against its expected value (the dof) and the MSE
+        assert after["chi2"] < 1.5 * after["dof"], f"chi2/dof {after['chi2_reduced']:.2f} after adding {name}"
+        assert after["mse"] < 1.5 * after["expected_mse"]
 
 
-@pytest.mark.parametrize("scenario", [pytest.param(s, marks=_on_its_own(s)) for s in SCENARIOS])
-def test_hidden_effect_is_found_added_and_fitted(scenario, demo_run):
-    effect, name, param, hidden = SCENARIOS[scenario]
-    _, s, _ = demo_run(scenario)
-    assert s["rankings"][0][0] == name and s["verdict"].startswith(f"missing effect: {name}"), s["rankings"]
-    fitted, sigma = s["fitted_effects"][name][param]
-    assert fitted == pytest.approx(hidden, rel=0.25)
-    assert abs(fitted - hidden) <= 3 * sigma, (fitted, sigma, hidden)
-    before, after = s["history"][-2], s["history"][-1]
-    assert after["chi2"] < before["chi2"]
-    # within 1.5x its noise expectation: chi2 against its expected value (the dof) and the MSE
-    assert after["chi2"] < 1.5 * after["dof"], f"chi2/dof {after['chi2_reduced']:.2f} after adding {name}"
-    assert after["mse"] < 1.5 * after["expected_mse"]
+def _scenario(name: str):
+    """The class's scenario, as the tests' parameter (their ids keep it: ``...[chamber_z]``)."""
+    return pytest.mark.parametrize("scenario", [name], scope="class")
 
 
-@_on_its_own("none")
-def test_no_hidden_effect_reports_none(demo_run):
-    _, s, _ = demo_run("none")
-    assert s["verdict"] == "no significant missing effect", (s["verdict"], s["history"][-1])
-    assert s["fitted_effects"] == {}
+@_scenario("chamber_z")
+class TestChamberZ(_HiddenEffect):
+    def test_the_main_job_s_runs_load_back_by_uid(self, demo):
+        """The chamber_z scenario is the README's main job: every step a run in the store, linked to
+        the measurement; the load-back line it prints works as printed; the report is self-contained."""
+        tmp_path, summary, proc = demo
+        assert _gone(summary["ioc"]["pid"])  # the simulated IOC is stopped
+        uids = summary["uids"]
+        assert {"find_beam", "search", "measurement", "find_offsets", "compare", "refine_offsets",
+                "diagnose", "add_effect"} <= set(uids)
+        n, n_open, n_an = (summary["n_configurations"], summary["n_open_configurations"],
+                           summary["n_analysed_configurations"])
+        assert (n, n_open, n_an) == (20, 4, 14)
+        labels = [h["model"] for h in summary["history"]]
+        assert labels[:3] == ["twin", "surrogate offsets", "+ offsets"]
+        out = proc.stdout
+        assert "error history" in out and "load them back" in out and uids["measurement"] in out
+        assert "Virtual circuit disconnect" not in proc.stderr  # channels closed before the IOC stopped
+
+        analysed = list(range(n_an - n_open)) + list(range(n - n_open, n))  # the first bright ones, the open ones
+        with open_store(tmp_path / "runs") as store:
+            assert set(summary["all_run_uids"]) <= set(store.uids())
+            m = store.load_measurement(uids["measurement"])
+            assert m.hist_x.shape == (n, 50) and m.truth_id == summary["truth_id"] and np.isfinite(m.hist_y).all()
+            # the last ones are the first bright ones with the slits open (outside the surrogate's box)
+            assert np.allclose(m.configurations[-n_open:, 0], m.configurations[:n_open, 0])
+            assert np.allclose(m.configurations[-n_open:, METRIXS.index("ExitSlit.totalHeight")], 0.1, atol=1e-6)
+            assert store[uids["find_offsets"]].metadata["start"]["n_configurations"] == n - n_open  # its box only
+            for step in ("compare", "refine_offsets", "diagnose", "add_effect"):
+                res = load_results(store, uids[step])
+                assert res["start"]["measurement_uid"] == uids["measurement"], step
+                assert res["start"]["analysed_configurations"] == analysed, step
+            ranking = load_results(store, uids["diagnose"])["ranking"]
+            assert [r["effect"] for r in ranking] == summary["rankings"][0]
+            hist = load_results(store, uids["add_effect"])["error_history"]
+            assert [h["label"] for h in hist] == labels
+            assert hist[-1]["chi2_reduced"] == pytest.approx(summary["history"][-1]["chi2_reduced"])
+
+        # the load-back line the summary prints works as printed
+        line = next(l_ for l_ in out.splitlines() if l_.strip().startswith("python -c"))
+        code = re.search(r'python -c "(.*)"\s*$', line).group(1)
+        back = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+        assert back.returncode == 0 and f"({n}, 50)" in back.stdout, back.stderr[-2000:]
+
+        html = (tmp_path / "out" / "report.html").read_text()
+        assert html.count("data:image/png;base64,") >= 5
+        assert not re.search(r'(src|href)=["\']?(https?:)?//', html)  # self-contained: opens offline
+        for text in ("Error history", "ranking", summary["verdict"], uids["measurement"], uids["diagnose"]):
+            assert text in html
 
 
-@_on_its_own("chamber_z")
-def test_the_main_job_s_runs_load_back_by_uid(demo_run):
-    """The chamber_z scenario is the README's main job: every step a run in the store, linked to
-    the measurement; the load-back line it prints works as printed; the report is self-contained."""
-    tmp_path, summary, proc = demo_run("chamber_z")
-    assert _gone(summary["ioc"]["pid"])  # the simulated IOC is stopped
-    uids = summary["uids"]
-    assert {"find_beam", "search", "measurement", "find_offsets", "compare", "refine_offsets",
-            "diagnose", "add_effect"} <= set(uids)
-    n, n_open, n_an = (summary["n_configurations"], summary["n_open_configurations"],
-                       summary["n_analysed_configurations"])
-    assert (n, n_open, n_an) == (20, 4, 14)
-    labels = [h["model"] for h in summary["history"]]
-    assert labels[:3] == ["twin", "surrogate offsets", "+ offsets"]
-    out = proc.stdout
-    assert "error history" in out and "load them back" in out and uids["measurement"] in out
-    assert "Virtual circuit disconnect" not in proc.stderr  # channels closed before the IOC stopped
+@_scenario("thermal_bump_m1")
+class TestThermalBump(_HiddenEffect):
+    pass
 
-    analysed = list(range(n_an - n_open)) + list(range(n - n_open, n))  # the first bright ones, the open ones
-    with open_store(tmp_path / "runs") as store:
-        assert set(summary["all_run_uids"]) <= set(store.uids())
-        m = store.load_measurement(uids["measurement"])
-        assert m.hist_x.shape == (n, 50) and m.truth_id == summary["truth_id"] and np.isfinite(m.hist_y).all()
-        # the last ones are the first bright ones with the slits open (outside the surrogate's box)
-        assert np.allclose(m.configurations[-n_open:, 0], m.configurations[:n_open, 0])
-        assert np.allclose(m.configurations[-n_open:, METRIXS.index("ExitSlit.totalHeight")], 0.1, atol=1e-6)
-        assert store[uids["find_offsets"]].metadata["start"]["n_configurations"] == n - n_open  # its box only
-        for step in ("compare", "refine_offsets", "diagnose", "add_effect"):
-            res = load_results(store, uids[step])
-            assert res["start"]["measurement_uid"] == uids["measurement"], step
-            assert res["start"]["analysed_configurations"] == analysed, step
-        ranking = load_results(store, uids["diagnose"])["ranking"]
-        assert [r["effect"] for r in ranking] == summary["rankings"][0]
-        hist = load_results(store, uids["add_effect"])["error_history"]
-        assert [h["label"] for h in hist] == labels
-        assert hist[-1]["chi2_reduced"] == pytest.approx(summary["history"][-1]["chi2_reduced"])
 
-    # the load-back line the summary prints works as printed
-    line = next(l_ for l_ in out.splitlines() if l_.strip().startswith("python -c"))
-    code = re.search(r'python -c "(.*)"\s*$', line).group(1)
-    back = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
-    assert back.returncode == 0 and f"({n}, 50)" in back.stdout, back.stderr[-2000:]
+@_scenario("source_divergence")
+class TestSourceDivergence(_HiddenEffect):
+    pass
 
-    html = (tmp_path / "out" / "report.html").read_text()
-    assert html.count("data:image/png;base64,") >= 5
-    assert not re.search(r'(src|href)=["\']?(https?:)?//', html)  # self-contained: opens offline
-    for text in ("Error history", "ranking", summary["verdict"], uids["measurement"], uids["diagnose"]):
-        assert text in html
+
+@_scenario("none")
+class TestNoHiddenEffect(_Scenario):
+    def test_no_hidden_effect_reports_none(self, demo):
+        _, s, _ = demo
+        assert s["verdict"] == "no significant missing effect", (s["verdict"], s["history"][-1])
+        assert s["fitted_effects"] == {}
 
 
 def _gone(pid: int) -> bool:

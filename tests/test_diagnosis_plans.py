@@ -32,6 +32,8 @@ from plans.diagnose import (
 from plans._stubs import emit_rows
 from sim_iocs.truth import default_start
 
+pytestmark = pytest.mark.slow  # over a minute: scheduled first (conftest)
+
 COLS = [METRIXS.index(n) for n in ("E1.rotationXerror", "E2.rotationXerror", "M1_Cylinder.rotationXerror")]
 # small fits: this file checks the workflow, tests/test_fit.py and test_diagnosis.py the physics
 FIT = {"rays": 1500, "stages": [["features", 2], ["bins", 1]]}

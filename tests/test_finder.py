@@ -17,6 +17,8 @@ from _finder_model import CENTER, HALF_WIDTH, trained_model
 from bluesky_offsets.offsets import finder as F
 from bluesky_offsets.physics.parameters import METRIXS
 
+pytestmark = pytest.mark.slow  # over a minute: scheduled first (conftest)
+
 REGION = (CENTER - HALF_WIDTH, CENTER + HALF_WIDTH)
 LIMIT = 0.01
 SETTINGS = {"smart-walker": dict(candidates=128, step=LIMIT / 100 * 4),
