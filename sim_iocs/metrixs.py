@@ -459,6 +459,9 @@ def serve(args) -> int:
         raise KeyboardInterrupt
 
     signal.signal(signal.SIGTERM, _terminate)
+    # SIGINT stops the IOC even when its parent ignored SIGINT (a disposition children inherit:
+    # measured, such an IOC sat out the 10 s its stopper waits before killing it)
+    signal.signal(signal.SIGINT, signal.default_int_handler)
     interfaces = _interfaces(args.interfaces)
     _beacon_environment(interfaces)
     try:

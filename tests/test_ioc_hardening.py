@@ -5,6 +5,7 @@ IOC on loopback, through caproto's client)."""
 import json
 import math
 import os
+import signal
 import socket
 import subprocess
 import sys
@@ -192,6 +193,21 @@ def test_the_start_up_banner_and_truth_id_give_nothing_away(tmp_path, ca):
     assert published == truth.truth_id
     # the seed's offsets hashed without the secret salt do not give the published id
     assert Truth(truth.offsets).truth_id != published
+
+
+def test_sigint_stops_the_ioc_even_when_its_parent_ignored_it(tmp_path):
+    """A child inherits an ignored SIGINT (some test runners' workers ignore it): the IOC
+    restores it, else its stopper waited 10 s before killing it."""
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        ioc = start_metrixs_ioc(tmp_path)
+    finally:
+        signal.signal(signal.SIGINT, previous)
+    try:
+        ioc.proc.send_signal(signal.SIGINT)
+        assert ioc.proc.wait(5) == 0
+    finally:
+        ioc.stop()
 
 
 def test_no_temporary_files_remain(tmp_path, monkeypatch, ca):
