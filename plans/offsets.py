@@ -116,20 +116,18 @@ _STATUS_CODE = {"determined": 2.0, "weak": 1.0, "undetermined": 0.0}
 
 def _extras(raw, n: int) -> dict[str, object]:
     """Uncertainties, identifiability and the loss curve, when the finder reports them."""
-    def get(k):
-        return getattr(raw, k, None)
     out: dict[str, object] = {}
-    sigma = get("sigma")
+    sigma = getattr(raw, "sigma", None)
     if sigma is not None and np.asarray(sigma).shape == (n,):
         out["offsets_sigma"] = np.asarray(sigma, dtype=float)
-    status = get("status")
+    status = getattr(raw, "status", None)
     if status is not None and len(status) == n:
         # 2 determined, 1 weak, 0 undetermined (numbers: event data wants numeric arrays)
         out["offsets_determined"] = np.array([_STATUS_CODE.get(str(s), 0.0) for s in status])
-    twin_mse = get("twin_mse")
+    twin_mse = getattr(raw, "twin_mse", None)
     if twin_mse is not None:
         out["twin_mse"] = float(twin_mse)
-    history = get("history")
+    history = getattr(raw, "history", None)
     if isinstance(history, Mapping):
         for key, val in history.items():
             arr = np.asarray(val)

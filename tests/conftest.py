@@ -68,11 +68,12 @@ def _threads_per_worker() -> int | None:
     return max(1, (os.cpu_count() or 1) // workers) if workers else None
 
 
-if _threads_per_worker() is not None:
+_THREADS = _threads_per_worker()
+if _THREADS is not None:
     for _var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS"):
-        os.environ[_var] = str(_threads_per_worker())
+        os.environ[_var] = str(_THREADS)
     import torch
-    torch.set_num_threads(_threads_per_worker())
+    torch.set_num_threads(_THREADS)
 
 _prefix_counter = itertools.count(1)
 
