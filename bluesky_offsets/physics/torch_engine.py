@@ -54,6 +54,10 @@ from bluesky_offsets.physics.twin import HistogramSpec, TraceRequest, TraceResul
 HC_EV_NM = 1239.841984332002622  # RAYX's h·c in eV·nm
 SEARCH_SHIFT = 1e-6  # mm: RAYX starts each search this far along the ray
 ARCSEC = math.pi / 180.0 / 3600.0
+# soft weight below which a ray's derivatives are taken as 0 (TorchEngine.ray_jacobian): each is
+# bounded by the weight times its apertures' logistic slopes (< 1e5), < 1e-25, far beneath the
+# rounding of any product of the rays
+RAY_WEIGHT_FLOOR = 1e-30
 FEATURES = ("intensity", "centroid_x", "centroid_y", "width_x", "width_y")
 _MIS_KEYS = {"translationXerror": "tx", "translationYerror": "ty", "translationZerror": "tz",
              "rotationXerror": "rx", "rotationYerror": "ry", "rotationZerror": "rz"}
@@ -457,14 +461,15 @@ class SourceUnits:
     draws: Draws | None
     ctr: torch.Tensor | None = None
 
-    def per_ray(self, c: int) -> SourceUnits:
-        """Every ray its own configuration: (C|1, N) -> (C N, 1), configuration-major."""
-        def flat(t):
-            return t.expand(*t.shape[:-2], c, t.shape[-1]).reshape(*t.shape[:-2], -1, 1)
+    def take(self, configs: torch.Tensor, rays: torch.Tensor) -> SourceUnits:
+        """The rays ``rays`` of configurations ``configs`` (K each), every one its own
+        configuration (a leading axis of K, one ray each): (C|1, N) -> (K, 1)."""
+        def pick(t):
+            return t[..., configs if t.shape[-2] > 1 else 0, rays][..., None]
         d = self.draws
-        draws = None if d is None else Draws({k: flat(v) for k, v in d.slits.items()},
-                                             {k: flat(v) for k, v in d.slopes.items()})
-        return SourceUnits([flat(t) for t in self.coord], draws, None if self.ctr is None else flat(self.ctr))
+        draws = None if d is None else Draws({k: pick(v) for k, v in d.slits.items()},
+                                             {k: pick(v) for k, v in d.slopes.items()})
+        return SourceUnits([pick(t) for t in self.coord], draws, None if self.ctr is None else pick(self.ctr))
 
 
 def source_units(bl: CompiledBeamline, n_rays: int, seed, *, sampling: str = "fast",
@@ -1194,7 +1199,10 @@ class TorchEngine:
         ray's derivative in every field, and the chain rule every ray's derivative in every
         input.  Any product of the rays (histograms at any binning, camera profiles, moments)
         gets its exact Jacobian from these at the cost of binning (:class:`RayJacobian`).
-        ``chunk`` bounds the rays × configurations traced at once (memory ~5 kB each).
+        Every ray is first traced without derivatives (its values, bit for bit :meth:`beam`'s);
+        only the rays whose soft weight is above :data:`RAY_WEIGHT_FLOOR` are traced again for
+        theirs (about a fifth of a bright configuration's rays: the rest end far outside a
+        slit).  ``chunk`` bounds the rays × configurations traced at once (memory ~5 kB each).
         """
         o = self.options
         vals, leaves, names = self.inputs(values, effects)
@@ -1214,40 +1222,65 @@ class TorchEngine:
         dfield_live = torch.cat([dfield[:, bounds[i]:bounds[i + 1]] for i in live], 1)
         units = source_units(bl, n_rays, seed, sampling=o.sampling, common=o.common_rays)
         step = max(1, int(chunk) // c)
+        n_live = dfield_live.shape[1]
         parts = []
         for a in range(0, n_rays, step):
             b = min(n_rays, a + step)
             r = b - a
             cut = SourceUnits([t[..., a:b] for t in units.coord],
                               None if units.draws is None else units.draws.slice(a, b),
-                              None if units.ctr is None else units.ctr[..., a:b]).per_ray(c)
-            reps = [t.detach().repeat_interleave(r, 0) for t in fields]
-            # the live fields' entries as leaves, in the order of their flattening: frame
-            # matrices and shifts as tuples of entries (see _entries), the rest whole
-            comps: list[torch.Tensor] = []
-            for i in live:
-                t = reps[i]
-                if t.ndim == 2 and t.shape[1] == 1:
-                    comps.append(t.requires_grad_(True))
-                    continue
-                ent = [e.clone().requires_grad_(True) for e in t.reshape(c * r, -1).unbind(1)]
-                comps += ent
-                reps[i] = tuple(ent) if t.ndim == 2 else tuple(tuple(ent[3 * a:3 * a + 3]) for a in range(3))
-            bl_rep = _replace_tensors(bl, c, iter(reps), c * r)
-            with torch.enable_grad():
-                beam = trace_rays(bl_rep, source_rays(bl_rep, cut), cut.draws, edge=o.edge)
-                grads, buf = [], None
-                for k, out in enumerate((beam.x, beam.y, beam.weight)):
-                    g = torch.autograd.grad(out.sum(), comps, retain_graph=k < 2, allow_unused=True)
-                    cols = [(gi if gi is not None else torch.zeros_like(t)).reshape(c, r, 1) for gi, t in zip(g, comps)]
-                    # (C, r, F') into one buffer for the three: tens of MB, each new one mapped
-                    # and faulted in afresh by the allocator
-                    buf = torch.cat(cols, 2) if buf is None else torch.cat(cols, 2, out=buf)
-                    grads.append(torch.einsum("crf,cfp->crp", buf, dfield_live))
-            parts.append((beam.x.detach().reshape(c, r), beam.y.detach().reshape(c, r),
-                          beam.alive.reshape(c, r), beam.weight.detach().reshape(c, r), *grads))
-        cat = [torch.cat([p[k] for p in parts], 1) for k in range(7)]
-        return RayJacobian(*cat, n_rays=n_rays, names=names)
+                              None if units.ctr is None else units.ctr[..., a:b])
+            # every ray's values, without a graph (bit for bit the values of :meth:`beam`)
+            with torch.no_grad():
+                full = trace_rays(bl, source_rays(bl, cut), cut.draws, edge=o.edge)
+            # derivatives only for the rays with weight: a ray's soft weight w bounds its
+            # derivatives' share of every product (|dw| <= w * sum |du/dθ| over its apertures'
+            # logistic arguments u; the position's enters multiplied by w), so below
+            # RAY_WEIGHT_FLOOR they lie beneath the rounding of any sum and their rows are 0.
+            # Most rays of a bright configuration end far outside a slit: this skips ~80 %.
+            keep = torch.nonzero(full.weight.reshape(-1) > RAY_WEIGHT_FLOOR).squeeze(1)
+            k_n = int(keep.numel())
+            grads = [torch.zeros(0, len(names), dtype=dfield_live.dtype, device=dfield_live.device)] * 3
+            if k_n:
+                conf = keep // r
+                sub = [t.detach()[conf] for t in fields]
+                # the live fields' entries as leaves, in the order of their flattening: frame
+                # matrices and shifts as tuples of entries (see _entries), the rest whole
+                comps: list[torch.Tensor] = []
+                for i in live:
+                    t = sub[i]
+                    if t.ndim == 2 and t.shape[1] == 1:
+                        comps.append(t.requires_grad_(True))
+                        continue
+                    ent = [e.clone().requires_grad_(True) for e in t.reshape(k_n, -1).unbind(1)]
+                    comps += ent
+                    sub[i] = tuple(ent) if t.ndim == 2 else tuple(tuple(ent[3 * a:3 * a + 3]) for a in range(3))
+                rays_k = cut.take(conf, keep % r)
+                per_config = torch.bincount(conf, minlength=c).tolist()
+                with torch.enable_grad():
+                    bl_k = _replace_tensors(bl, c, iter(sub), k_n)
+                    beam = trace_rays(bl_k, source_rays(bl_k, rays_k), rays_k.draws, edge=o.edge)
+                    # (F', K): one row per live field entry, one buffer for the three outputs
+                    buf = torch.empty(n_live, k_n, dtype=dfield_live.dtype, device=dfield_live.device)
+                    grads = []
+                    for k, out in enumerate((beam.x, beam.y, beam.weight)):
+                        g = torch.autograd.grad(out.sum(), comps, retain_graph=k < 2, allow_unused=True)
+                        torch.cat([(gi if gi is not None else torch.zeros_like(t)).reshape(1, k_n)
+                                   for gi, t in zip(g, comps)], 0, out=buf)
+                        # each kept ray's field derivatives times its configuration's d field / d input
+                        grads.append(torch.cat([blk.T @ dfield_live[j] for j, blk in
+                                                enumerate(buf.split(per_config, 1)) if blk.shape[1]], 0))
+            # the kept rays as (configuration, ray) of the whole trace, configuration-major
+            rows = conf * n_rays + a + keep % r if k_n else keep
+            parts.append((full.x.reshape(c, r), full.y.reshape(c, r), full.alive.reshape(c, r),
+                          full.weight.reshape(c, r), rows, *grads))
+        if len(parts) == 1:
+            x, y, alive, weight, rows, jx, jy, jw = parts[0]
+        else:
+            x, y, alive, weight = (torch.cat([p[k] for p in parts], 1) for k in range(4))
+            order = torch.argsort(torch.cat([p[4] for p in parts]))  # configuration-major again
+            rows, jx, jy, jw = (torch.cat([p[k] for p in parts])[order] for k in range(4, 8))
+        return RayJacobian(x, y, alive, weight, rows, jx, jy, jw, n_rays=n_rays, names=names)
 
 
 def _compiled_tensors(bl: CompiledBeamline, c: int) -> list[torch.Tensor]:
@@ -1281,21 +1314,43 @@ def _replace_tensors(bl: CompiledBeamline, c: int, new, c_new: int, found: list 
 
 @dataclass
 class RayJacobian:
-    """Rays at the screen (C, N) with their derivatives (C, N, P) in the P inputs ``names``.
+    """Rays at the screen (C, N) with their derivatives in the P inputs ``names``.
 
     Values are RAYX's (hard survival ``alive``); the derivatives are those of the soft beam
     (weights that fall off over ``edge`` of each aperture), the smooth version of the same
-    rays whose expectation the hard beam's counts follow."""
+    rays whose expectation the hard beam's counts follow.  Only the rays whose soft weight is
+    above :data:`RAY_WEIGHT_FLOOR` have derivatives: ``rows`` (K,) are their flat indices
+    (configuration-major) and ``rows_jx``, ``rows_jy``, ``rows_jw`` (K, P) their derivatives;
+    every other ray's are 0 to rounding (:attr:`jx` etc. give them all, (C, N, P))."""
 
     x: torch.Tensor
     y: torch.Tensor
     alive: torch.Tensor
     weight: torch.Tensor
-    jx: torch.Tensor
-    jy: torch.Tensor
-    jw: torch.Tensor
+    rows: torch.Tensor
+    rows_jx: torch.Tensor
+    rows_jy: torch.Tensor
+    rows_jw: torch.Tensor
     n_rays: int
     names: list[str]
+
+    def _dense(self, t: torch.Tensor) -> torch.Tensor:
+        c, n = self.x.shape
+        out = torch.zeros(c * n, t.shape[1], dtype=t.dtype, device=t.device)
+        out[self.rows] = t
+        return out.reshape(c, n, -1)
+
+    @property
+    def jx(self) -> torch.Tensor:
+        return self._dense(self.rows_jx)
+
+    @property
+    def jy(self) -> torch.Tensor:
+        return self._dense(self.rows_jy)
+
+    @property
+    def jw(self) -> torch.Tensor:
+        return self._dense(self.rows_jw)
 
     def histograms(self, spec: HistogramSpec, kernel: float = 1.0,
                    soft: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
@@ -1306,23 +1361,27 @@ class RayJacobian:
         w = self.weight if soft else self.alive.to(self.x.dtype)
         hx = _hist(self.x, w, spec.bins_x, spec.range_x, soft, kernel)
         hy = _hist(self.y, w, spec.bins_y, spec.range_y, soft, kernel)
-        jx = _hist_jacobian(self.x, self.weight, self.jx, self.jw, spec.bins_x, spec.range_x, kernel)
-        jy = _hist_jacobian(self.y, self.weight, self.jy, self.jw, spec.bins_y, spec.range_y, kernel)
+        c, n = self.x.shape
+        conf, wk = self.rows // n, self.weight.reshape(-1)[self.rows]
+        jx = _hist_jacobian(c, conf, self.x.reshape(-1)[self.rows], wk, self.rows_jx, self.rows_jw,
+                            spec.bins_x, spec.range_x, kernel)
+        jy = _hist_jacobian(c, conf, self.y.reshape(-1)[self.rows], wk, self.rows_jy, self.rows_jw,
+                            spec.bins_y, spec.range_y, kernel)
         return torch.cat([hx, hy], 1) / self.n_rays, torch.cat([jx, jy], 1) / self.n_rays
 
 
-def _hist_jacobian(v, w, jv, jw, bins, rng, kernel):
-    """d/dθ of Σ_i w_i K_b(v_i) for Gaussian-kernel bins K_b: Σ_i (K_b jw_i + w_i K_b' jv_i)."""
+def _hist_jacobian(c, conf, v, w, jv, jw, bins, rng, kernel):
+    """d/dθ of Σ_i w_i K_b(v_i) for Gaussian-kernel bins K_b: Σ_i (K_b jw_i + w_i K_b' jv_i),
+    over the rays i of configuration ``conf[i]`` (of ``c``) with derivatives, each (K,)."""
     lo, hi = rng
-    c, n, p = jv.shape
+    p = jv.shape[1]
     scale = bins / (hi - lo)
     pos = (v - lo) * scale
     reach = int(math.ceil(4 * kernel)) + 1
     centre = pos.floor().long()
-    near = (centre > -reach) & (centre < bins + reach - 1) & (w > 0)
-    ci, ri = torch.nonzero(near, as_tuple=True)
-    pos, centre, w = pos[ci, ri], centre[ci, ri], w[ci, ri]
-    jv, jw = jv[ci, ri] * scale, jw[ci, ri]
+    near = torch.nonzero((centre > -reach) & (centre < bins + reach - 1)).squeeze(1)
+    ci, pos, centre, w = conf[near], pos[near], centre[near], w[near]
+    jv, jw = jv[near] * scale, jw[near]
     out = torch.zeros(c * (bins + 2 * reach), p, dtype=jv.dtype, device=jv.device)
     root2 = math.sqrt(2.0) * kernel
     norm = 1.0 / (math.sqrt(2.0 * math.pi) * kernel)
