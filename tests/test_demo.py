@@ -34,4 +34,6 @@ def test_demo_refuses_bad_options(tmp_path):
     assert proc.returncode == 2 and "each effect once" in proc.stderr
     proc = _demo(tmp_path, "--offsets-fraction", "0.5", timeout=120)
     assert proc.returncode == 2 and "--offsets-fraction must lie in [0, 0.2]" in proc.stderr
+    proc = _demo(tmp_path, "--threads", "0", timeout=120)
+    assert proc.returncode == 2 and "--threads must be at least 1" in proc.stderr
     assert not (tmp_path / "runs").exists()  # refused before anything started

@@ -10,7 +10,7 @@ add the winner → refit → diagnose again, every step a run in the store.  The
 ``summary.json``; the chamber_z scenario (the README's main job) is also read back from the
 store by uid.
 
-About 4-5 minutes per scenario on two cores (docs/diagnosis.md).
+About 2-4 minutes per scenario on two cores (docs/diagnosis.md).
 ``BLUESKY_OFFSETS_SKIP_ACCEPTANCE=1`` skips them for a quick local run.
 """
 

@@ -452,6 +452,9 @@ def add_cli(sub) -> None:
                                          "default) or the paper's 50 x 50 bins")
     p.add_argument("--seed", type=int, default=0,
                    help="another draw of the demo: candidate design, frame noise, fit seeds (default %(default)s)")
+    p.add_argument("--threads", type=int, default=1,
+                   help="torch CPU threads of the analysis (default %(default)s: its operations on 10^4-10^5 rays "
+                        "gain nothing from more while the IOC and the Dask workers share the cores)")
     p.set_defaults(func=_cmd_demo)
 
 
@@ -495,6 +498,8 @@ def _cmd_demo(args) -> int:
         raise CliError("--rays must be at least 100")
     if not 0 <= args.offsets_fraction <= 0.2:
         raise CliError("--offsets-fraction must lie in [0, 0.2] (offsets beyond 20 % of a range are outside the model)")
+    if args.threads < 1:
+        raise CliError("--threads must be at least 1")
     check_analysis_options(args)
     effects = tuple(parse_effect(e) for e in (args.effect or [f"{DEMO_EFFECT[0]}:z={DEMO_EFFECT[1]['z']}"]))
     effects = tuple(e for e in effects if e[0])
@@ -528,6 +533,11 @@ def _cmd_demo(args) -> int:
         raise SystemExit(128 + signum)
 
     previous = signal.signal(signal.SIGTERM, _terminate)
+    # measured on 2 cores (2026-11-24): the README's demo took 192 s and 213 s with torch's two
+    # threads, 175 s with one; the fits' tensors are too small to share, the other processes
+    # (IOC, Dask workers) need the second core
+    import torch
+    torch.set_num_threads(args.threads)
     try:
         run_demo(Path(args.out), s, args.store)
     finally:
