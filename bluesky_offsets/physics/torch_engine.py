@@ -55,8 +55,9 @@ HC_EV_NM = 1239.841984332002622  # RAYX's h·c in eV·nm
 SEARCH_SHIFT = 1e-6  # mm: RAYX starts each search this far along the ray
 ARCSEC = math.pi / 180.0 / 3600.0
 # soft weight below which a ray's derivatives are taken as 0 (TorchEngine.ray_jacobian): each is
-# bounded by the weight times its apertures' logistic slopes (< 1e5), < 1e-25, far beneath the
-# rounding of any product of the rays
+# bounded by the weight times its apertures' logistic slopes (|dw/dθ| / w measured up to 6e4 per
+# unit of an input, the exit slit's height), so below 1e-24: far beneath the rounding of any
+# product of the rays
 RAY_WEIGHT_FLOOR = 1e-30
 FEATURES = ("intensity", "centroid_x", "centroid_y", "width_x", "width_y")
 _MIS_KEYS = {"translationXerror": "tx", "translationYerror": "ty", "translationZerror": "tz",
