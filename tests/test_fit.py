@@ -37,6 +37,12 @@ def test_ray_jacobian_gives_the_soft_histograms_exact_jacobian():
     from bluesky_offsets.physics.torch_engine import histograms
     hx, hy = histograms(eng.beam(cfg, E.twin_overrides(eff), n_rays=1500, seed=5), HistogramSpec())
     assert torch.equal(h, torch.cat([hx, hy], 1))
+    # every ray's values bit for bit the soft beam's; derivatives only for the rays with weight
+    from bluesky_offsets.physics.torch_engine import RAY_WEIGHT_FLOOR
+    soft = eng.beam(cfg, E.twin_overrides(eff), n_rays=1500, seed=5, edge=eng.options.edge)
+    assert all(torch.equal(getattr(rj, k), getattr(soft, k)) for k in ("x", "y", "alive", "weight"))
+    assert torch.equal(rj.rows, torch.nonzero(soft.weight.reshape(-1) > RAY_WEIGHT_FLOOR).squeeze(1))
+    assert 0 < rj.rows.numel() < soft.weight.numel()
 
 
 def test_pitch_moves_the_focus_along_x():
