@@ -1240,10 +1240,9 @@ class TorchEngine:
             # RAY_WEIGHT_FLOOR they lie beneath the rounding of any sum and their rows are 0.
             # Most rays of a bright configuration end far outside a slit: this skips ~80 %.
             keep = torch.nonzero(full.weight.reshape(-1) > RAY_WEIGHT_FLOOR).squeeze(1)
-            k_n = int(keep.numel())
+            k_n, conf = int(keep.numel()), keep // r
             grads = [torch.zeros(0, len(names), dtype=dfield_live.dtype, device=dfield_live.device)] * 3
             if k_n:
-                conf = keep // r
                 sub = [t.detach()[conf] for t in fields]
                 # the live fields' entries as leaves, in the order of their flattening: frame
                 # matrices and shifts as tuples of entries (see _entries), the rest whole
@@ -1272,7 +1271,7 @@ class TorchEngine:
                         grads.append(torch.cat([blk.T @ dfield_live[j] for j, blk in
                                                 enumerate(buf.split(per_config, 1)) if blk.shape[1]], 0))
             # the kept rays as (configuration, ray) of the whole trace, configuration-major
-            rows = conf * n_rays + a + keep % r if k_n else keep
+            rows = conf * n_rays + a + keep % r
             parts.append((full.x.reshape(c, r), full.y.reshape(c, r), full.alive.reshape(c, r),
                           full.weight.reshape(c, r), rows, *grads))
         if len(parts) == 1:
