@@ -195,6 +195,20 @@ class RunStore:
         keys = list(self.client.keys())
         return keys[-n:] if n else keys
 
+    def latest(self, plan_names, **match) -> str | None:
+        """Uid of the most recent run that ended successfully, whose ``plan_name`` is one of
+        ``plan_names`` and whose start document has ``match``'s values; None if there is none."""
+        from tiled.queries import Eq, In
+        names = [plan_names] if isinstance(plan_names, str) else list(plan_names)
+        results = self.client.search(In("start.plan_name", names))
+        for key, value in match.items():
+            results = results.search(Eq(f"start.{key}", value))
+        for uid in reversed(list(results.keys())):
+            stop = results[uid].metadata.get("stop") or {}
+            if stop.get("exit_status") == "success":
+                return uid
+        return None
+
     def load_measurement(self, uid: str, *, table: ParameterTable | None = METRIXS) -> Measurement:
         """Configurations x histograms of a measurement run (checked against ``table``)."""
         m = measurement_from_run(self[uid])
@@ -220,6 +234,19 @@ class RunStore:
 def open_store(location: str | os.PathLike | None = None, **kwargs) -> RunStore:
     """Open (creating if needed) the run store at ``location`` (see :class:`RunStore`)."""
     return RunStore(location, **kwargs)
+
+
+_SHARED: dict[str, RunStore] = {}
+
+
+def shared_store(location: str | os.PathLike | None = None) -> RunStore:
+    """One open :class:`RunStore` per location for the whole process: what plans that take a
+    run uid read from when they are given no store (a queueserver session, a script), and
+    what its RunEngine writes to (``shared_store().subscribe(RE)``)."""
+    loc = str(location) if location is not None else default_store_location()
+    if loc not in _SHARED or _SHARED[loc]._context is None and not loc.startswith(("http://", "https://")):
+        _SHARED[loc] = RunStore(loc)
+    return _SHARED[loc]
 
 
 def load_measurement(uid: str, location: str | os.PathLike | None = None,

@@ -40,7 +40,7 @@ import signal
 import socket
 import sys
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 
 import numpy as np
 from caproto import ChannelType
@@ -315,22 +315,29 @@ class MetrixsIOC:
         Upper bound of ``NumRays`` (memory: RAYX holds ~4 kB per ray).
     truth_log : callable, optional
         Receives the notes that name true values (impossible states, model errors).
+    leave_out : sequence of str
+        Motorized parameters served without a motor record (a beamline with a record
+        missing, for ``bluesky-offsets check-pvs``): they stay where the truth starts them.
     """
 
     def __init__(self, prefix: str = DEFAULT_PREFIX, truth: Truth | None = None,
                  backend: FootprintBackend | str = "twin", *, table: ParameterTable = METRIXS,
                  n_rays: int = 10000, move_time: float = 4.0, accel_time: float = 0.2, tick: float = 0.05,
                  noise_seed: int | None = None, max_rays: int = MAX_RAYS,
-                 truth_log: Callable[[str], None] | None = None):
+                 truth_log: Callable[[str], None] | None = None, leave_out: Sequence[str] = ()):
         self.prefix = prefix
         self.table = table
         self.truth = truth or Truth.from_seed(None, table)
         if isinstance(backend, str):
             backend = make_backend(backend, overrides=self.truth.overrides, hist=HIST, noise_seed=noise_seed)
         self.backend = backend
+        unknown = [n for n in leave_out if n not in table.motorized_names]
+        if unknown:
+            raise ValueError(f"--leave-out: {', '.join(unknown)} are not motorized parameters")
         self.motors: dict[str, MotorRecord] = {}
+        self._fixed_start = np.array(self.truth.start, dtype=float)
         for i, p in enumerate(table):
-            if p.motorized:
+            if p.motorized and p.name not in leave_out:
                 settings = axis_settings(p, self.truth.start[i], move_time=move_time, accel_time=accel_time)
                 self.motors[p.name] = MotorRecord(prefix=motor_pv(p, prefix), settings=settings, tick=tick,
                                                   name=p.name)
@@ -344,6 +351,8 @@ class MetrixsIOC:
     def positions(self) -> np.ndarray:
         """Physical axis positions, table order (fixed parameters at design value)."""
         pos = self.table.reference.copy()
+        for name in self.table.motorized_names:  # a left-out motor stands where the truth started it
+            pos[self.table.index(name)] = self._fixed_start[self.table.index(name)]
         for name, m in self.motors.items():
             pos[self.table.index(name)] = m.axis_position
         return pos
@@ -399,6 +408,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--tick", type=float, default=0.05, help="readback update period while moving (s)")
     parser.add_argument("--interfaces", nargs="+", default=None,
                         help="interfaces to serve on (default: $EPICS_CAS_INTF_ADDR_LIST, else loopback only)")
+    parser.add_argument("--leave-out", action="append", default=[], metavar="PARAMETER",
+                        help="serve no motor record for this motorized parameter (repeatable): a beamline with "
+                             "a record missing, e.g. for bluesky-offsets check-pvs")
     parser.add_argument("-v", "--verbose", action="store_true", help="log more")
 
 
@@ -412,7 +424,8 @@ def _build(args) -> MetrixsIOC:
     try:
         return MetrixsIOC(args.prefix, truth, args.backend, n_rays=args.rays, move_time=args.move_time,
                           accel_time=args.accel_time, tick=args.tick, noise_seed=args.noise_seed,
-                          max_rays=args.max_rays, truth_log=_truth_logger(args.truth_log))
+                          max_rays=args.max_rays, truth_log=_truth_logger(args.truth_log),
+                          leave_out=args.leave_out)
     except ValueError as exc:
         raise ParameterError(str(exc)) from None
 

@@ -23,6 +23,8 @@ EXTENSIONS: list[str] = [
     "bluesky_offsets.commands.surrogate:add_cli",
     "bluesky_offsets.commands.find:add_cli",
     "bluesky_offsets.commands.diagnose:add_cli",
+    "bluesky_offsets.commands.pvs:add_cli",
+    "bluesky_offsets.commands.queue:add_cli",
     "sim_iocs.metrixs:add_cli",
 ]
 

@@ -1,7 +1,7 @@
 """Classic ophyd (v1) devices of the METRIXS beamline, built on ``ophyd.EpicsMotor``: the same
 layout and PVs as the ophyd-async ones (:mod:`bluesky_offsets.epics.devices`).
 
-:func:`make_beamline_v1` and :class:`FocusChamberV1`.
+:func:`make_beamline_v1`, :class:`FocusChamberV1` and :func:`make_chamber_v1` (full PV names).
 """
 
 from __future__ import annotations
@@ -16,7 +16,14 @@ from ophyd.device import create_device_from_components
 from ophyd.signal import SignalRO
 from ophyd.status import DeviceStatus
 
-from bluesky_offsets.epics.pvs import ChamberError, FixedParameterError, fixed_message, motor_pvs
+from bluesky_offsets.epics.pvs import (
+    CHAMBER_PVS,
+    ChamberError,
+    FixedParameterError,
+    chamber_pvs,
+    fixed_message,
+    motor_pvs,
+)
 from bluesky_offsets.physics.parameters import METRIXS, Parameter, ParameterTable
 
 
@@ -81,28 +88,28 @@ def make_beamline_v1(prefix: str = "", name: str = "metrixs", *, table: Paramete
     return cls("", name=name)
 
 
-class FocusChamberV1(DeviceV1):
-    """Classic ophyd focus-chamber detector (same PVs as :class:`FocusChamber`)."""
+# signal -> (class, kind, options): the same signals as the ophyd-async FocusChamber
+_CHAMBER_V1 = {
+    "acquire": (EpicsSignal, "omitted", {"put_complete": True}),
+    "status": (EpicsSignalRO, "omitted", {"string": True}),
+    "message": (EpicsSignalRO, "omitted", {"string": True}),
+    **{k: (EpicsSignalRO, "normal", {"auto_monitor": False})
+       for k in ("hist_x", "hist_y", "total_counts", "array_counter", "image", "profile_x", "profile_y")},
+    "num_rays": (EpicsSignal, "config", {}),
+    "acquire_time": (EpicsSignal, "config", {}),
+    **{k: (EpicsSignalRO, "config", {}) for k in ("axis_x", "axis_y", "profile_axis_x", "profile_axis_y")},
+    **{k: (EpicsSignalRO, "config", {"string": True}) for k in ("truth_id", "table_version", "backend")},
+    "transmission": (EpicsSignalRO, "omitted", {}),
+}
 
-    acquire = Cpt(EpicsSignal, "Acquire", put_complete=True, kind="omitted")
-    status = Cpt(EpicsSignalRO, "Status", string=True, kind="omitted")
-    message = Cpt(EpicsSignalRO, "Message", string=True, kind="omitted")
-    hist_x = Cpt(EpicsSignalRO, "HistX", kind="normal", auto_monitor=False)
-    hist_y = Cpt(EpicsSignalRO, "HistY", kind="normal", auto_monitor=False)
-    total_counts = Cpt(EpicsSignalRO, "TotalCounts", kind="normal", auto_monitor=False)
-    array_counter = Cpt(EpicsSignalRO, "ArrayCounter", kind="normal", auto_monitor=False)
-    image = Cpt(EpicsSignalRO, "Image", kind="normal", auto_monitor=False)
-    profile_x = Cpt(EpicsSignalRO, "ProfileX", kind="normal", auto_monitor=False)
-    profile_y = Cpt(EpicsSignalRO, "ProfileY", kind="normal", auto_monitor=False)
-    num_rays = Cpt(EpicsSignal, "NumRays", kind="config")
-    acquire_time = Cpt(EpicsSignal, "AcquireTime", kind="config")
-    axis_x = Cpt(EpicsSignalRO, "AxisX", kind="config")
-    axis_y = Cpt(EpicsSignalRO, "AxisY", kind="config")
-    profile_axis_x = Cpt(EpicsSignalRO, "ProfileAxisX", kind="config")
-    profile_axis_y = Cpt(EpicsSignalRO, "ProfileAxisY", kind="config")
-    truth_id = Cpt(EpicsSignalRO, "TruthId", string=True, kind="config")
-    table_version = Cpt(EpicsSignalRO, "TableVersion", string=True, kind="config")
-    backend = Cpt(EpicsSignalRO, "Backend", string=True, kind="config")
+
+def _chamber_components(pvs: Mapping[str, str]) -> dict[str, Cpt]:
+    return {k: Cpt(cls, pvs[k], kind=kind, **kw) for k, (cls, kind, kw) in _CHAMBER_V1.items()}
+
+
+class ChamberV1Base(DeviceV1):
+    """The focus chamber's behaviour (a frame per ``trigger``); its signals come from
+    :data:`_CHAMBER_V1` with the PV names of :class:`FocusChamberV1` or :func:`make_chamber_v1`."""
 
     def __init__(self, prefix: str = "", *, name: str, acquire_timeout: float = 120.0, **kwargs):
         super().__init__(prefix, name=name, **kwargs)
@@ -131,3 +138,18 @@ class FocusChamberV1(DeviceV1):
 
         threading.Thread(target=check, daemon=True, name=f"{self.name}-trigger").start()
         return result
+
+
+FocusChamberV1 = create_device_from_components(
+    "FocusChamberV1", base_class=ChamberV1Base, **_chamber_components(CHAMBER_PVS),
+    docstring="Classic ophyd focus-chamber detector: the PVs of :class:`FocusChamber` after ``prefix``.")
+
+
+def make_chamber_v1(prefix: str = "", *, name: str = "chamber", pv_names: Mapping[str, str] | None = None,
+                    acquire_timeout: float = 120.0) -> ChamberV1Base:
+    """The focus chamber with full PV names (``pv_names``: signal -> PV, the others
+    ``prefix`` + the simulated IOC's suffix), e.g. from a :class:`bluesky_offsets.epics.pvmap.PVMap`."""
+    cls = create_device_from_components("FocusChamberV1", base_class=ChamberV1Base,
+                                        docstring=FocusChamberV1.__doc__,
+                                        **_chamber_components(chamber_pvs(prefix, pv_names)))
+    return cls("", name=name, acquire_timeout=acquire_timeout)

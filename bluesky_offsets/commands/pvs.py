@@ -1,0 +1,60 @@
+"""``bluesky-offsets pv-map`` and ``check-pvs``: the file that names the beamline's PVs, and a
+check of it against the control system (:mod:`bluesky_offsets.epics.pvmap`)."""
+
+from __future__ import annotations
+
+import json
+import sys
+
+
+def _cmd_pv_map(args) -> int:
+    from bluesky_offsets.epics.pvmap import PVMap
+    text = PVMap.simulated(args.prefix).to_toml()
+    if args.out:
+        with open(args.out, "w") as f:
+            f.write(text)
+        print(f"PV map of the simulated IOC (prefix {args.prefix}) written to {args.out}: edit it for another IOC, "
+              f"then bluesky-offsets check-pvs {args.out}")
+    else:
+        sys.stdout.write(text)
+    return 0
+
+
+def _cmd_check_pvs(args) -> int:
+    from bluesky_offsets.commands.cli import CliError
+    from bluesky_offsets.epics.pvmap import PVMap, PVMapError, check_pvs
+    if args.timeout <= 0:
+        raise CliError("--timeout must be positive")
+    try:
+        pv_map = PVMap.from_file(args.file)
+    except PVMapError as exc:
+        raise CliError(str(exc)) from None
+    n = len(pv_map.motors) + len(pv_map.chamber)
+    if not args.json:
+        print(f"checking {len(pv_map.motors)} motor records and {len(pv_map.chamber)} camera PVs of "
+              f"{pv_map.name or args.file} (timeout {args.timeout:g} s)", flush=True)
+    res = check_pvs(pv_map, timeout=args.timeout)
+    if args.json:
+        print(json.dumps({"file": args.file, "name": pv_map.name, "ok": res.ok, "checked": n, "passed": res.passed,
+                          "missing": [{"entry": k, "pv": pv} for k, pv in res.missing],
+                          "mismatched": [{"entry": k, "pv": pv, "why": w} for k, pv, w in res.mismatched]},
+                         indent=1))
+    else:
+        for line in res.lines():
+            print(line)
+        print(f"{res.ok} of {n} PVs as expected, {len(res.missing)} missing, {len(res.mismatched)} mismatched")
+    return 0 if res.passed else 1
+
+
+def add_cli(sub) -> None:
+    from bluesky_offsets.epics.pvmap import SIM_PREFIX
+    p = sub.add_parser("pv-map", help="write the PV map of the simulated IOC (a template for the real beamline)")
+    p.add_argument("--prefix", default=SIM_PREFIX, help="the simulated IOC's PV prefix (default %(default)s)")
+    p.add_argument("--out", default=None, help="file to write (default: standard output)")
+    p.set_defaults(func=_cmd_pv_map)
+
+    p = sub.add_parser("check-pvs", help="connect to every PV of a PV map; report missing and mismatched records")
+    p.add_argument("file", help="PV map (TOML: [motors] parameter = record, [chamber] signal = PV)")
+    p.add_argument("--timeout", type=float, default=3.0, help="seconds to wait for the PVs to connect (default 3)")
+    p.add_argument("--json", action="store_true", help="machine-readable output")
+    p.set_defaults(func=_cmd_check_pvs)

@@ -1,0 +1,296 @@
+"""The calibration session's steps as plans whose arguments are plain values.
+
+Device arguments are devices (bluesky-queueserver passes them by name: ``"metrixs"``,
+``"chamber"``); everything else is a number, a name, a list of them or a run uid, so that a
+queue item can carry it as JSON.  A uid argument also takes ``"last"``: the most recent run of
+that kind in the run store (``store``, default :func:`bluesky_offsets.store.shared_store`),
+which is how one queue measures, finds the offsets and analyses without knowing the uids
+in advance.
+
+* :func:`measure_bright` — find the beam from where the motors stand, find bright
+  configurations around it and measure them (and some again with the slits open).
+* :func:`find_offsets_in_store` — the shipped surrogate finder on a stored measurement.
+* :func:`analyse` — compare, fit the offsets, diagnose, add the winning effect, refit,
+  diagnose again (:func:`plans.diagnose.analyse_measurement`) on a stored measurement.
+
+Progress lines go to the ``bluesky_offsets.workflow`` logger (the queueserver's console,
+the demo's terminal).
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import asdict, dataclass
+
+import numpy as np
+from bluesky.utils import MsgGenerator
+
+from bluesky_offsets.model import diagnosis as D
+from bluesky_offsets.model.measurement import Measurement
+from bluesky_offsets.physics.parameters import METRIXS
+
+log = logging.getLogger("bluesky_offsets.workflow")
+
+__all__ = ["DarkBeamline", "MeasurementDesign", "Measured", "analyse", "find_offsets_in_store", "measure",
+           "measure_bright",
+           "measurement_design", "resolve_run"]
+
+
+# --------------------------------------------------------------------------- #
+# what is measured
+# --------------------------------------------------------------------------- #
+@dataclass(frozen=True, kw_only=True)
+class MeasurementDesign:
+    """How many configurations :func:`measure_bright` looks for and measures.
+
+    ``bright`` configurations (the paper's 16), the first ``reopened`` of them again with the slits
+    open (:func:`bluesky_offsets.model.diagnosis.open_aperture`: a source change shows there),
+    ``analysed`` of them fitted by the analysis (the first bright ones and all open ones);
+    ``candidates`` tried around the beam (:func:`bluesky_offsets.model.diagnosis.diagnostic_configurations`);
+    the beam search assumes offsets up to ``fraction`` of each range and takes at most
+    ``max_frames`` frames.
+    """
+
+    bright: int = 16
+    reopened: int = 4
+    analysed: int = 14
+    candidates: int = 40
+    fraction: float = 0.15
+    max_frames: int = 120
+    seed: int = 0
+
+    def __post_init__(self):
+        if self.bright < 2:
+            raise ValueError(f"bright must be at least 2 (the paper measures 16), got {self.bright}")
+        if not 0 <= self.reopened <= self.bright:
+            raise ValueError(f"reopened must lie in [0, bright={self.bright}], got {self.reopened}")
+        if self.analysed < 2:
+            raise ValueError(f"analysed must be at least 2, got {self.analysed}")
+        if self.candidates < self.bright - 1:
+            raise ValueError(f"candidates ({self.candidates}) cannot give {self.bright} bright configurations")
+        if not 0 < self.fraction <= 0.2:
+            raise ValueError(f"fraction must lie in (0, 0.2], got {self.fraction}")
+        if self.max_frames < 1:
+            raise ValueError(f"max_frames must be at least 1, got {self.max_frames}")
+
+
+def measurement_design(design: MeasurementDesign, bright: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """What is measured and what is analysed: the ``bright`` configurations, then the first
+    ``design.reopened`` of them again with the slits open; the indices the fits use: the first bright
+    ones and all open ones, ``design.analysed`` in all."""
+    n_open = min(design.reopened, len(bright))
+    configs = np.vstack([bright, D.open_aperture(bright[:n_open])]) if n_open else np.asarray(bright)
+    n_bright = max(0, min(len(bright), design.analysed - n_open))
+    return configs, np.r_[np.arange(n_bright), np.arange(len(bright), len(configs))].astype(int)
+
+
+@dataclass
+class Measured:
+    """What :func:`measure_bright` did: the beam search, the bright configurations, the measurement."""
+
+    beam: object                 # bluesky_offsets.offsets.beam_search.SearchResult
+    measurement: Measurement
+    n_open: int
+    analysed: np.ndarray         # indices of the configurations the analysis fits
+
+    @property
+    def uid(self) -> str | None:
+        return self.measurement.uid
+
+
+class DarkBeamline(RuntimeError):
+    """The beam search or the bright-configuration search came back without enough light."""
+
+
+def measure_bright(beamline, chamber, *, bright: int = 16, reopened: int = 4, analysed: int = 14,
+                   candidates: int = 40, fraction: float = 0.15, max_frames: int = 120, seed: int = 0,
+                   md: dict | None = None) -> MsgGenerator[Measured]:
+    """Find the beam, find bright configurations around it, measure them.
+
+    :func:`plans.find_beam` from where the motors stand (slits opened, the sensitive motors
+    scanned upstream first, as an operator does); then ``candidates`` configurations around the
+    beam (:func:`bluesky_offsets.model.diagnosis.diagnostic_configurations`, drawn from ``seed``)
+    until ``bright`` are bright (:func:`plans.find_high_ray_configurations`); then
+    :func:`plans.measure_configurations` of those and of the first ``reopened`` again with the
+    slits open.  The measurement run records the design (``design``) and which configurations the
+    analysis fits (``analysed_configurations``), so that :func:`analyse` needs only its uid.
+
+    Raises :class:`DarkBeamline` (before measuring) when the beam or enough bright
+    configurations cannot be found.
+
+    Returns
+    -------
+    Measured
+        The beam search, the bright search's uid, the measurement (``uid``), the analysed indices.
+    """
+    from plans import HIGH_RAY_THRESHOLD, find_beam, find_high_ray_configurations, measure_configurations
+
+    design = MeasurementDesign(bright=bright, reopened=reopened, analysed=analysed, candidates=candidates,
+                               fraction=fraction, max_frames=max_frames, seed=seed)
+    log.info("finding the beam (offsets up to ±%g of each range assumed)", fraction)
+    beam = yield from find_beam(beamline, chamber, fraction=fraction, max_frames=max_frames, table=METRIXS,
+                                md={"purpose": "beam search", **dict(md or {})})
+    for line in beam.log:
+        log.info("  %s", line)
+    if not beam.bright:
+        raise DarkBeamline(f"the beam search ended dim after {beam.frames} frames ({beam.intensity:.3g} of the "
+                           f"source rays on the screen, {HIGH_RAY_THRESHOLD:.3g} needed): check the shutter, the "
+                           f"source and the slits, or widen the search (fraction, max_frames)")
+    here = beam.configuration
+    cand = np.vstack([here, D.diagnostic_configurations(here, candidates, seed=seed, table=METRIXS)])
+    log.info("searching %d candidate configurations around it for %d bright ones (beam found in %d frames)",
+             len(cand), bright, beam.frames)
+    found = yield from find_high_ray_configurations(cand, beamline, chamber, n=bright, table=METRIXS)
+    if len(found) < bright:
+        raise DarkBeamline(f"only {len(found)} of {len(cand)} candidate configurations were bright; {bright} needed")
+    configs, idx = measurement_design(design, found)
+    n_open = len(configs) - len(found)
+    log.info("measuring %d bright configurations%s", len(found),
+             f" and {n_open} of them with the slits open (ASBL 4 x 4 mm, exit slit 100 µm)" if n_open else "")
+    m = yield from measure_configurations(configs, beamline, chamber, table=METRIXS, md={
+        "purpose": "calibration measurement", "design": asdict(design), "n_bright": len(found), "n_open": n_open,
+        "analysed_configurations": [int(i) for i in idx], "beam_search_uids": list(beam.uids), **dict(md or {})})
+    return Measured(beam, m, n_open, idx)
+
+
+def measure(beamline, chamber, configurations: list, *, md: dict | None = None) -> MsgGenerator[Measurement]:
+    """:func:`plans.measure_configurations` with plain values: ``configurations`` a list of
+    34-number lists (twin coordinates, table order) or of ``{parameter: value}`` dicts."""
+    from plans import measure_configurations
+    return (yield from measure_configurations(configurations, beamline, chamber, md=md))
+
+
+# --------------------------------------------------------------------------- #
+# runs by uid
+# --------------------------------------------------------------------------- #
+PLANS_OF_KIND = {
+    "measurement": ("measure_configurations",),
+    "offsets": ("find_offsets",),
+}
+
+
+def resolve_run(store, uid: str, kind: str, **match) -> str:
+    """``uid`` itself, or for ``"last"`` the most recent successful run of ``kind``
+    (:data:`PLANS_OF_KIND`) whose start document has ``match``'s values."""
+    if uid != "last":
+        if uid not in store:
+            raise KeyError(f"no run {uid!r} in the store at {store.location}")
+        return uid
+    found = store.latest(PLANS_OF_KIND[kind], **match)
+    if found is None:
+        what = ", ".join(f"{k} = {v}" for k, v in match.items())
+        raise LookupError(f"no {kind} run in the store at {store.location}" + (f" with {what}" if what else ""))
+    return found
+
+
+def _store(store):
+    from bluesky_offsets.store import shared_store
+    return shared_store() if store is None else store
+
+
+# --------------------------------------------------------------------------- #
+# offsets
+# --------------------------------------------------------------------------- #
+def find_offsets_in_store(measurement: str = "last", *, evaluations: int = 3000, seed: int = 0,
+                          checkpoint: str | None = None, store=None, md: dict | None = None) -> MsgGenerator:
+    """The surrogate finder (:class:`bluesky_offsets.offsets.calibration.OffsetFinder`,
+    ``evaluations`` of the surrogate, ``seed``) on a stored measurement's configurations inside the
+    surrogate's box (the slits-open ones are outside it).
+
+    ``measurement`` is a run uid or ``"last"``; ``checkpoint`` another surrogate (default the
+    shipped one).  Returns the :class:`plans.offsets.OffsetResult`; the run is a ``find_offsets``
+    run linked to the measurement (``measurement_uid``).
+    """
+    from bluesky_offsets.offsets.calibration import OffsetFinder
+    from bluesky_offsets.offsets.finder import Budget, load_forward_model
+    from plans import find_offsets
+
+    if evaluations < 1:
+        raise ValueError(f"evaluations must be at least 1, got {evaluations}")
+    store = _store(store)
+    m = measurement if isinstance(measurement, Measurement) else \
+        store.load_measurement(resolve_run(store, measurement, "measurement"), table=METRIXS)
+    inside = D.in_box(m.configurations, METRIXS)
+    if not inside.any():
+        raise ValueError(f"measurement {m.uid}: no configuration inside the surrogate's box")
+    finder = OffsetFinder(model=load_forward_model(checkpoint), budget=Budget(evaluations=evaluations), seed=seed)
+    log.info("finding the offsets with the surrogate on the %d configurations in its box (%d evaluations)",
+             int(inside.sum()), evaluations)
+    return (yield from find_offsets(finder, m if inside.all() else m.subset(inside), table=METRIXS,
+                                    md={"evaluations": int(evaluations), "seed": int(seed), **dict(md or {})}))
+
+
+# --------------------------------------------------------------------------- #
+# the analysis
+# --------------------------------------------------------------------------- #
+def analyse(measurement: str = "last", offsets: str | None = "last", *, candidates: list[str] | None = None,
+            rounds: int = 2, fit: dict | None = None, scan: dict | None = None, fit_top: int | None = D.FIT_TOP,
+            resolution: str = "camera", seed: int = 0, rays: int | None = None, scheduler: str | None = None,
+            store=None, md: dict | None = None) -> MsgGenerator:
+    """Compare, fit the offsets, diagnose, add the winner, refit, diagnose again, on a stored
+    measurement (:func:`plans.diagnose.analyse_measurement`; one run per step).
+
+    Parameters
+    ----------
+    measurement : str
+        Measurement run uid, or ``"last"``.  Its ``analysed_configurations`` (written by
+        :func:`measure_bright`) choose the configurations fitted; all of them otherwise.
+    offsets : str or None
+        A ``find_offsets`` run of this measurement whose offsets start the fit beside the bare
+        twin (``"last"``: the most recent one, if any; None: the bare twin only).
+    candidates : list of str, optional
+        Effects to rank (default: all).
+    fit, scan : mapping, optional
+        :class:`bluesky_offsets.model.fit.FitOptions` of the offsets fit and refits, and of the
+        diagnosis's candidate fits, as plain dicts (an unknown key is refused).
+    rays : int, optional
+        Rays per trace of the twin's comparisons (default 10,000).
+    scheduler : str, optional
+        Where the twin's RAYX traces run: None, a Dask LocalCluster; ``"inline"``, this process;
+        a scheduler address, a cluster.
+
+    Returns
+    -------
+    plans.diagnose.Analysis
+    """
+    from bluesky_offsets.model.fit import FitOptions
+    from bluesky_offsets.model.state import ModelState
+    from bluesky_offsets.physics.twin import Twin
+
+    from .diagnose import analyse_measurement
+
+    store = _store(store)
+    uid = resolve_run(store, measurement, "measurement")
+    m = store.load_measurement(uid, table=METRIXS)
+    fit_opts, scan_opts = FitOptions.resolve(fit, D.FIT), FitOptions.resolve(scan, D.SCAN)
+    for n in candidates or ():
+        from bluesky_offsets.physics import effects as E
+        E.get(n)  # an unknown name fails before anything runs
+    idx = m.metadata.get("analysed_configurations")
+    meas = m.for_analysis(resolution=resolution, table=METRIXS)
+    if idx is not None:
+        meas = meas.subset(np.asarray(idx, dtype=int))
+    starts = [ModelState(label="twin")]
+    off_uid = None
+    if offsets is not None:
+        try:
+            off_uid = resolve_run(store, offsets, "offsets", measurement_uid=uid)
+        except LookupError:
+            if offsets != "last":
+                raise
+        if off_uid is not None:
+            row = store[off_uid]["offsets"].read()
+            starts.append(ModelState(np.asarray(row["offsets"][0], float), {}, "surrogate offsets"))
+    log.info("analysing measurement %s: %d configurations, starts: %s", uid, meas.n,
+             ", ".join(s.label for s in starts))
+    twin = Twin(n_rays=int(rays or 10_000), scheduler=scheduler)
+    try:
+        out = yield from analyse_measurement(
+            meas, twin, store=store, starts=starts, candidates=candidates, rounds=rounds, fit_options=fit_opts,
+            scan_options=scan_opts, fit_top=fit_top, seed=seed, resolution=resolution, table=METRIXS,
+            md={"purpose": "calibration analysis", "offsets_uid": off_uid or "",
+                "analysed_configurations": [int(i) for i in idx] if idx is not None else [], **dict(md or {})})
+        log.info("verdict: %s", out.verdict)
+        return out
+    finally:
+        twin.close()
