@@ -47,11 +47,12 @@ SCENARIOS = {
 
 def _make(args) -> None:
     from bluesky_offsets.physics import effects as E
-    from bluesky_offsets.commands.demo import DemoSettings, candidate_configurations, measurement_design
+    from bluesky_offsets.commands.demo import DemoSettings
     from bluesky_offsets.model.state import ModelState, simulate
     from bluesky_offsets.physics.parameters import METRIXS
     from bluesky_offsets.physics.twin import CAMERA, Twin
     from plans import enough_rays
+    from plans.workflow import candidate_configurations, measurement_design
     from sim_iocs.truth import default_start
 
     out = Path(args.out)
@@ -68,10 +69,10 @@ def _make(args) -> None:
             truth = ModelState(off, {n: E.get(n).values(v) for n, v in effects.items()}, "truth")
             s = DemoSettings(seed=draw)
             start = default_start() - np.where(METRIXS.motorized, METRIXS.offsets_to_physical(off), 0.0)
-            cand = candidate_configurations(s, start)
+            cand = candidate_configurations(s.design, start)
             hx, hy = simulate(twin, cand, truth, 2000, [seed + i for i in range(len(cand))])
             bright = cand[enough_rays(hx, hy)][:s.configurations]
-            design, analysed = measurement_design(s, bright)
+            design, analysed = measurement_design(s.design, bright)
             design = design[analysed]
             mx, my = simulate(twin.with_hist(CAMERA), design, truth, args.rays,
                               [seed + 5000 + i for i in range(len(design))])

@@ -31,6 +31,10 @@ from bluesky_offsets.physics.parameters import METRIXS, ParameterTable
 ENV_STORE = "BLUESKY_OFFSETS_STORE"
 
 
+class StoreError(OSError):
+    """The run store cannot be opened or written (the message names the location)."""
+
+
 def default_store_location() -> str:
     """``$BLUESKY_OFFSETS_STORE`` or ``<user data dir>/bluesky-offsets/runs``."""
     env = os.environ.get(ENV_STORE)
@@ -155,7 +159,9 @@ class RunStore:
         try:
             (path / "data").mkdir(parents=True, exist_ok=True)
         except OSError as exc:
-            raise OSError(f"run store: cannot create {path}: {exc}") from None
+            raise StoreError(f"run store: cannot create {path}: {exc.strerror or exc}") from None
+        if not os.access(path / "data", os.W_OK):
+            raise StoreError(f"run store: {path} is not writable")
         db = path / "catalog.db"
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")  # tiled's in-process client warns about httpx/starlette
@@ -164,7 +170,15 @@ class RunStore:
                                        writable_storage=[str(path / "data"), f"duckdb:///{path / 'tables.duckdb'}"],
                                        init_if_not_exists=not db.exists())
             self._context = Context.from_app(build_app(adapter))
-        return from_context(self._context)
+            try:
+                client = from_context(self._context)
+            except Exception as exc:  # noqa: BLE001 - e.g. the DuckDB tables locked by another process
+                self._context.close()
+                self._context = None
+                first = str(exc).splitlines()[0][:300] if str(exc) else type(exc).__name__
+                raise StoreError(f"run store: cannot open {path}: {first} (an embedded store serves one process "
+                                 f"at a time; several need a tiled server: BLUESKY_OFFSETS_STORE=http://...)") from None
+        return client
 
     @property
     def writer(self):

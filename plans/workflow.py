@@ -31,8 +31,8 @@ from bluesky_offsets.physics.parameters import METRIXS
 
 log = logging.getLogger("bluesky_offsets.workflow")
 
-__all__ = ["DarkBeamline", "MeasurementDesign", "Measured", "analyse", "find_offsets_in_store", "measure",
-           "measure_bright",
+__all__ = ["DarkBeamline", "MeasurementDesign", "Measured", "analyse", "candidate_configurations",
+           "find_offsets_in_store", "measure", "measure_bright",
            "measurement_design", "resolve_run"]
 
 
@@ -72,6 +72,13 @@ class MeasurementDesign:
             raise ValueError(f"fraction must lie in (0, 0.2], got {self.fraction}")
         if self.max_frames < 1:
             raise ValueError(f"max_frames must be at least 1, got {self.max_frames}")
+
+
+def candidate_configurations(design: MeasurementDesign, start: np.ndarray) -> np.ndarray:
+    """The start (an operator begins where the beam is), then ``design.candidates``
+    configurations around it (:func:`bluesky_offsets.model.diagnosis.diagnostic_configurations`,
+    drawn from ``design.seed``)."""
+    return np.vstack([start, D.diagnostic_configurations(start, design.candidates, seed=design.seed, table=METRIXS)])
 
 
 def measurement_design(design: MeasurementDesign, bright: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -137,7 +144,7 @@ def measure_bright(beamline, chamber, *, bright: int = 16, reopened: int = 4, an
                            f"source rays on the screen, {HIGH_RAY_THRESHOLD:.3g} needed): check the shutter, the "
                            f"source and the slits, or widen the search (fraction, max_frames)")
     here = beam.configuration
-    cand = np.vstack([here, D.diagnostic_configurations(here, candidates, seed=seed, table=METRIXS)])
+    cand = candidate_configurations(design, here)
     log.info("searching %d candidate configurations around it for %d bright ones (beam found in %d frames)",
              len(cand), bright, beam.frames)
     found = yield from find_high_ray_configurations(cand, beamline, chamber, n=bright, table=METRIXS)
@@ -201,19 +208,27 @@ def find_offsets_in_store(measurement: str = "last", *, evaluations: int = 3000,
     shipped one).  Returns the :class:`plans.offsets.OffsetResult`; the run is a ``find_offsets``
     run linked to the measurement (``measurement_uid``).
     """
-    from bluesky_offsets.offsets.calibration import OffsetFinder
-    from bluesky_offsets.offsets.finder import Budget, load_forward_model
-    from plans import find_offsets
+    from bluesky_offsets.offsets.finder import load_forward_model
 
     if evaluations < 1:
         raise ValueError(f"evaluations must be at least 1, got {evaluations}")
     store = _store(store)
-    m = measurement if isinstance(measurement, Measurement) else \
-        store.load_measurement(resolve_run(store, measurement, "measurement"), table=METRIXS)
+    m = store.load_measurement(resolve_run(store, measurement, "measurement"), table=METRIXS)
+    return (yield from surrogate_offsets(m, load_forward_model(checkpoint), evaluations=evaluations, seed=seed,
+                                         md=md))
+
+
+def surrogate_offsets(m: Measurement, forward_model, *, evaluations: int = 3000, seed: int = 0,
+                      md: dict | None = None) -> MsgGenerator:
+    """:func:`find_offsets_in_store` on a :class:`Measurement` with a loaded surrogate."""
+    from bluesky_offsets.offsets.calibration import OffsetFinder
+    from bluesky_offsets.offsets.finder import Budget
+    from plans import find_offsets
+
     inside = D.in_box(m.configurations, METRIXS)
     if not inside.any():
         raise ValueError(f"measurement {m.uid}: no configuration inside the surrogate's box")
-    finder = OffsetFinder(model=load_forward_model(checkpoint), budget=Budget(evaluations=evaluations), seed=seed)
+    finder = OffsetFinder(model=forward_model, budget=Budget(evaluations=evaluations), seed=seed)
     log.info("finding the offsets with the surrogate on the %d configurations in its box (%d evaluations)",
              int(inside.sum()), evaluations)
     return (yield from find_offsets(finder, m if inside.all() else m.subset(inside), table=METRIXS,

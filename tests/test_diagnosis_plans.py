@@ -57,18 +57,27 @@ def _configs(n: int, seed: int = 5) -> np.ndarray:
 
 
 @pytest.fixture(scope="module")
-def measured(RE, metrixs_ioc, run_store):
+def live(tmp_path_factory):
+    """The live views, headless (Agg), writing their figures to a folder."""
+    from bluesky_offsets.live import LiveFitProgress, LiveFootprints
+    folder = tmp_path_factory.mktemp("live")
+    return LiveFootprints(folder, show=False), LiveFitProgress(folder, show=False), folder
+
+
+@pytest.fixture(scope="module")
+def measured(RE, metrixs_ioc, run_store, live):
     from ophyd_async.core import init_devices
 
     from bluesky_offsets.epics.devices import FocusChamber, MetrixsBeamline
     with init_devices():
         beamline = MetrixsBeamline(metrixs_ioc.prefix, name="metrixs")
         chamber = FocusChamber(metrixs_ioc.prefix + "chamber:", name="chamber")
-    token = run_store.subscribe(RE)
+    tokens = [run_store.subscribe(RE), RE.subscribe(live[0])]
     try:
         m = RE(measure_configurations(_configs(4), beamline, chamber)).plan_result
     finally:
-        RE.unsubscribe(token)
+        for t in tokens:
+            RE.unsubscribe(t)
     return m, (beamline, chamber)
 
 
@@ -116,15 +125,27 @@ def test_analysis_plans_store_runs_linked_to_the_measurement(RE, twin, measured,
     assert hist[1]["chi2_reduced"] == pytest.approx(a.comparisons[1].misfit.chi2_reduced_total)
 
 
-def test_add_effect_and_refit_stores_magnitude_and_error_history(RE, twin, measured, run_store):
+def test_add_effect_and_refit_stores_magnitude_and_error_history(RE, twin, measured, run_store, live):
     m, _ = measured
-    token = run_store.subscribe(RE)
+    footprints, progress, folder = live
+    tokens = [run_store.subscribe(RE), RE.subscribe(footprints), RE.subscribe(progress)]
     try:
         base = RE(compare_model(m, ModelState(), twin, show=False)).plan_result
         rf = RE(add_effect_and_refit(m, ModelState(), "intensity_scale", twin, history=[base.version()],
                                      options=FIT, show=False)).plan_result
     finally:
-        RE.unsubscribe(token)
+        for t in tokens:
+            RE.unsubscribe(t)
+    # the live views drew the frames as they came, the model over them, the fit's iterations
+    fig = footprints.figures[m.uid]
+    axes = fig.axes[:4]
+    assert all(len(ax.lines) == 4 for ax in axes)  # measured x, y (steps) and the latest model x, y
+    assert "intensity_scale: χ²/dof" in axes[0].get_title()
+    assert (folder / f"footprints-{m.uid[:8]}.png").stat().st_size > 10_000
+    (png,) = [p for p in progress.written if p.name.startswith("progress-add_effect_and_refit")]
+    assert png.stat().st_size > 5_000
+    import matplotlib.image
+    assert matplotlib.image.imread(png).shape[2] in (3, 4)
     res = load_results(run_store, rf.uid)
     assert res["start"]["effect"] == "intensity_scale" and res["start"]["measurement_uid"] == m.uid
     (eff,) = res["effect"]

@@ -16,6 +16,7 @@ import sys
 import numpy as np
 
 from bluesky_offsets.physics.parameters import METRIXS, ParameterError
+from bluesky_offsets.store import StoreError
 
 EXTENSIONS: list[str] = [
     # "module:function" pairs, each adding sub-commands.
@@ -23,6 +24,7 @@ EXTENSIONS: list[str] = [
     "bluesky_offsets.commands.surrogate:add_cli",
     "bluesky_offsets.commands.find:add_cli",
     "bluesky_offsets.commands.diagnose:add_cli",
+    "bluesky_offsets.commands.calibrate:add_cli",
     "bluesky_offsets.commands.pvs:add_cli",
     "bluesky_offsets.commands.queue:add_cli",
     "sim_iocs.metrixs:add_cli",
@@ -241,7 +243,7 @@ def main(argv: list[str] | None = None) -> int:
         parser.error("--rays must be positive")
     try:
         return int(args.func(args) or 0)
-    except (CliError, ParameterError, ValueError) as exc:
+    except (CliError, ParameterError, ValueError, StoreError) as exc:
         # user input the library refused (bad parameter, impossible geometry, bad file ...)
         if args.verbose:
             raise

@@ -20,6 +20,7 @@ The IOC is always stopped, also after an error or Ctrl-C.
 from __future__ import annotations
 
 import json
+import logging
 import math
 import os
 import socket
@@ -79,6 +80,14 @@ class DemoSettings:
     workers: int | None = None
 
     @property
+    def design(self):
+        """What :func:`plans.workflow.measure_bright` looks for and measures."""
+        from plans.workflow import MeasurementDesign
+        return MeasurementDesign(bright=self.configurations, reopened=self.open_configurations,
+                                 analysed=self.analysed_configurations, candidates=self.candidates,
+                                 fraction=self.search_fraction, max_frames=self.search_frames, seed=self.seed)
+
+    @property
     def hidden(self) -> dict[str, dict[str, float]]:
         return {name: dict(values) for name, values in self.effects if name}
 
@@ -101,22 +110,6 @@ def demo_truth(s: DemoSettings) -> dict:
     overrides = Truth.from_mapping({"overrides": E.twin_overrides(hidden) if hidden else {}}).overrides
     return {"offsets": demo_offsets(s), "overrides": overrides,
             "comment": f"bluesky-offsets demo: hidden effects {hidden or 'none'}"}
-
-
-def candidate_configurations(s: DemoSettings, start: np.ndarray) -> np.ndarray:
-    """The start (an operator begins where the beam is), then a diagnostic design around it."""
-    return np.vstack([start, D.diagnostic_configurations(start, s.candidates, seed=s.seed)])
-
-
-def measurement_design(s: DemoSettings, bright: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """What the demo measures and what it analyses: the ``bright`` configurations, then the first
-    ``s.open_configurations`` of them again with the slits open (:func:`diagnosis.open_aperture`);
-    the indices the fits use: the first bright ones and all open ones, ``s.analysed_configurations``
-    in all."""
-    n_open = min(s.open_configurations, len(bright))
-    design = np.vstack([bright, D.open_aperture(bright[:n_open])]) if n_open else np.asarray(bright)
-    n_bright = max(0, min(len(bright), s.analysed_configurations - n_open))
-    return design, np.r_[np.arange(n_bright), np.arange(len(bright), len(design))].astype(int)
 
 
 # --------------------------------------------------------------------------- #
@@ -177,6 +170,28 @@ class SimulatedBeamline:
         self._sink.close()
 
 
+class _StepLines(logging.Handler):
+    """The ``bluesky_offsets.workflow`` logger's lines through ``say``, indented under the step."""
+
+    def __init__(self, say):
+        super().__init__(logging.INFO)
+        self.say = say
+        self.logger = logging.getLogger("bluesky_offsets.workflow")
+        self._level, self._propagate = self.logger.level, self.logger.propagate
+        self.logger.setLevel(logging.INFO)
+        self.logger.propagate = False
+        self.logger.addHandler(self)
+
+    def emit(self, record):
+        self.say("      " + record.getMessage())
+
+    def close(self):
+        self.logger.removeHandler(self)
+        self.logger.setLevel(self._level)
+        self.logger.propagate = self._propagate
+        super().close()
+
+
 class ScanProgress:
     """RunEngine callback: a tqdm bar per measuring run (one tick per configuration)."""
 
@@ -215,53 +230,25 @@ class ScanProgress:
 # --------------------------------------------------------------------------- #
 def demo_plan(s: DemoSettings, beamline, chamber, twin, forward_model, store, log):
     """Find bright configurations, measure, find offsets, compare, diagnose, add the effect, refit."""
-    from bluesky_offsets.offsets.calibration import OffsetFinder
-    from bluesky_offsets.offsets.finder import Budget
+    from dataclasses import asdict
+
     from bluesky_offsets.model.state import ModelState
-    from plans import (
-        HIGH_RAY_THRESHOLD,
-        find_beam,
-        find_high_ray_configurations,
-        find_offsets,
-        measure_configurations,
-    )
     from plans.diagnose import analyse_measurement
+    from plans.workflow import measure_bright, surrogate_offsets
 
     t = {"start": time.perf_counter()}
-    log(f"[2/6] finding the beam (offsets up to ±{s.search_fraction:g} of each range assumed)")
-    beam = yield from find_beam(beamline, chamber, fraction=s.search_fraction, max_frames=s.search_frames)
-    for line in beam.log:
-        log(f"      {line}")
-    if not beam.bright:
-        raise RuntimeError(f"the beam search ended dim after {beam.frames} frames ({beam.intensity:.3g} of the source "
-                           f"rays on the screen, {HIGH_RAY_THRESHOLD:.3g} needed)")
-    here = beam.configuration
-    cand = candidate_configurations(s, here)
-    log(f"      searching {len(cand)} candidate configurations around it for {s.configurations} bright ones "
-        f"(beam found in {beam.frames} frames)")
-    bright = yield from find_high_ray_configurations(cand, beamline, chamber, n=s.configurations)
-    t["search"] = time.perf_counter()
-    if len(bright) < s.configurations:
-        raise RuntimeError(f"only {len(bright)} of {len(cand)} candidates were bright; {s.configurations} needed")
-    design, analysed = measurement_design(s, bright)
-    n_open = len(design) - len(bright)
-    log(f"[3/6] measuring {len(bright)} bright configurations" +
-        (f" and {n_open} of them with the slits open (ASBL 4 x 4 mm, exit slit 100 µm)" if n_open else "") +
-        f" at {s.n_rays} rays")
-    m = yield from measure_configurations(design, beamline, chamber, md={"purpose": "demo measurement"})
+    log("[2/5] finding the beam, bright configurations around it, measuring them")
+    measured = yield from measure_bright(beamline, chamber, **asdict(s.design), md={"purpose": "demo measurement"})
     t["measure"] = time.perf_counter()
-    meas = m.for_analysis(resolution=s.resolution)
-    inside = D.in_box(m.configurations)
-    meas = meas.subset(analysed)
+    m, analysed, n_open = measured.measurement, measured.analysed, measured.n_open
+    meas = m.for_analysis(resolution=s.resolution).subset(analysed)
     n_bright = len(analysed) - n_open
 
-    log(f"[4/6] finding the offsets with the surrogate on the {int(inside.sum())} configurations in its box "
-        f"({s.finder_evaluations} evaluations), then through the twin")
-    finder = OffsetFinder(model=forward_model, budget=Budget(evaluations=s.finder_evaluations), seed=s.seed)
-    found = yield from find_offsets(finder, m if inside.all() else m.subset(inside))
+    log("[3/5] finding the offsets with the surrogate, then through the twin")
+    found = yield from surrogate_offsets(m, forward_model, evaluations=s.finder_evaluations, seed=s.seed)
     t["finder"] = time.perf_counter()
     starts = [ModelState(label="twin"), ModelState(np.asarray(found.offsets, float), {}, "surrogate offsets")]
-    log(f"[5/6] compare → fit offsets (differentiable twin, exact Jacobians) → diagnose → add the winning effect "
+    log(f"[4/5] compare → fit offsets (differentiable twin, exact Jacobians) → diagnose → add the winning effect "
         f"→ refit → diagnose again ({n_bright} bright + {n_open} open configurations)")
     analysis = yield from analyse_measurement(meas, twin, starts=starts, candidates=s.candidates_effects,
                                               rounds=s.rounds, fit_options=s.fit, scan_options=s.scan,
@@ -269,7 +256,8 @@ def demo_plan(s: DemoSettings, beamline, chamber, twin, forward_model, store, lo
                                               md={"purpose": "bluesky-offsets demo",
                                                   "analysed_configurations": [int(i) for i in analysed]})
     t["analysis"] = time.perf_counter()
-    return {"measurement": m, "offsets": found, "analysis": analysis, "times": t, "n_open": n_open, "beam": beam}
+    return {"measurement": m, "offsets": found, "analysis": analysis, "times": t, "n_open": n_open,
+            "beam": measured.beam}
 
 
 def run_demo(out: Path, settings: DemoSettings | None = None, store_location: str | None = None) -> dict:
@@ -287,12 +275,12 @@ def run_demo(out: Path, settings: DemoSettings | None = None, store_location: st
     load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
     hidden = s.hidden
     offsets = truth["offsets"]
-    log(f"[1/6] starting the simulated METRIXS IOC (RAYX twin backend; hidden offsets in {len(offsets)} of "
+    log(f"[1/5] starting the simulated METRIXS IOC (RAYX twin backend; hidden offsets in {len(offsets)} of "
         f"{len(METRIXS)} parameters, hidden effects: {', '.join(hidden) or 'none'}); load average {load:.1f} on "
         f"{os.cpu_count()} cores")
     # seeded frame noise: the same settings give the same demo, --seed another draw of it
     ioc = SimulatedBeamline(truth, s.n_rays, work, noise_seed=s.seed + 2)
-    twin = RE = None
+    twin = RE = steps_log = None
     try:
         from bluesky import RunEngine
         from bluesky.utils import RunEngineInterrupted
@@ -306,6 +294,7 @@ def run_demo(out: Path, settings: DemoSettings | None = None, store_location: st
         from bluesky_offsets.physics.twin import Twin
 
         quiet_logs()
+        steps_log = _StepLines(log)  # the workflow plans' progress lines, indented under the step
         store = open_store(store_location)
         forward_model = load_forward_model()
         twin = Twin(n_rays=s.n_rays, n_workers=s.workers)
@@ -317,6 +306,10 @@ def run_demo(out: Path, settings: DemoSettings | None = None, store_location: st
             chamber = FocusChamber(ioc.prefix + "chamber:", name="chamber")
         store.subscribe(RE)
         RE.subscribe(ScanProgress())
+        from bluesky_offsets.live import LiveFitProgress, LiveFootprints
+        live = [LiveFootprints(out / "live"), LiveFitProgress(out / "live")]  # windows with a GUI backend
+        for cb in live:
+            RE.subscribe(cb)
         log(f"      IOC {ioc.prefix} on 127.0.0.1:{ioc.port}; run store {store.location}")
         try:
             result = RE(demo_plan(s, beamline, chamber, twin, forward_model, store, log))
@@ -335,7 +328,7 @@ def run_demo(out: Path, settings: DemoSettings | None = None, store_location: st
                  **{k: v for k, v in analysis.uids.items() if v}}
         t = res["times"]
 
-        log("[6/6] writing the report")
+        log("[5/5] writing the report")
         what = (f"hidden offsets in all {len(METRIXS)} parameters (uniform within ±{s.offsets_fraction:g} of each "
                 f"range)" if s.offsets_fraction > 0 else
                 f"hidden offsets in {len(offsets)} of the {len(METRIXS)} parameters ({', '.join(offsets)})")
@@ -351,7 +344,7 @@ def run_demo(out: Path, settings: DemoSettings | None = None, store_location: st
             ("Measurement", table_([{"configurations": len(m), "with open slits": n_open,
                                      "analysed": analysis.measurement.n, "rays per frame": s.n_rays,
                                      "measurement uid": m.uid, "truth id": m.truth_id or ""}]))]
-        timing = {"IOC up + search": t["search"] - t0, "measure": t["measure"] - t["search"],
+        timing = {"IOC up": t["start"] - t0, "beam search + measure": t["measure"] - t["start"],
                   "surrogate finder": t["finder"] - t["measure"], "compare/fit/diagnose/refit":
                   t["analysis"] - t["finder"]}
         report = write_analysis_report(out / "report.html", analysis, analysis.measurement.spec, title="bluesky-offsets demo",
@@ -369,12 +362,15 @@ def run_demo(out: Path, settings: DemoSettings | None = None, store_location: st
             "rankings": [[c.name for c in r.diagnosis.candidates] for r in analysis.rankings],
             "history": [c.total_row() for c in analysis.comparisons],
             "fitted_effects": {r.effect: r.magnitude() for r in analysis.refits},
-            "truth_id": m.truth_id, "ioc": {"prefix": ioc.prefix, "port": ioc.port, "pid": ioc.proc.pid}}
+            "truth_id": m.truth_id, "ioc": {"prefix": ioc.prefix, "port": ioc.port, "pid": ioc.proc.pid},
+            "live_views": [str(p) for cb in live for p in cb.written]}
         (out / "summary.json").write_text(json.dumps(summary, indent=1, default=float))
         _print_summary(summary, analysis, store.location)
         store.close()
         return summary
     finally:
+        if steps_log is not None:
+            steps_log.close()
         if twin is not None:
             twin.close()
         if RE is not None:
@@ -422,6 +418,8 @@ def _print_summary(summary: dict, analysis, location: str) -> None:
           f"s = open_store('{location}'); print(s.load_measurement('{first}').hist_x.shape); "
           f"print(load_results(s, '{summary['uids'].get('diagnose', first)}')['diagnosis'])\"")
     print(f"report: {summary['report']}")
+    if summary.get("live_views"):
+        print(f"live views: {len(summary['live_views'])} figures in {Path(summary['live_views'][0]).parent}")
     print(f"done in {summary['seconds']:.0f} s")
 
 

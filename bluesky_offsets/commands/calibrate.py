@@ -1,0 +1,190 @@
+"""``bluesky-offsets calibrate``: the session against a running beamline.
+
+The IOC is the simulated METRIXS (``--prefix``) or the real one (``--pvs FILE``, a PV map:
+:mod:`bluesky_offsets.epics.pvmap`).  In one RunEngine, every run written to the store: find the
+beam from where the motors stand, find bright configurations around it and measure them
+(:func:`plans.workflow.measure_bright`), find the offsets with the surrogate
+(:func:`plans.workflow.surrogate_offsets`), then compare, fit, diagnose, add the winning effect
+and refit (:func:`plans.workflow.analyse`); one HTML report.
+
+Everything a user can fix is refused in one line before a motor moves: the store, the
+surrogate checkpoint, the PV map, an IOC that does not answer.  A beamline on which the beam
+cannot be found ends in one line too, with the motors where the search left them.
+"""
+
+from __future__ import annotations
+
+import re
+import time
+from dataclasses import asdict
+from pathlib import Path
+
+from bluesky_offsets.commands.cli import CliError
+
+
+def connect_devices(pv_map, timeout: float):
+    """The ophyd-async beamline and chamber of ``pv_map``, connected; CliError naming the PVs
+    that did not answer within ``timeout`` seconds."""
+    from ophyd_async.core import NotConnectedError, init_devices
+    try:
+        with init_devices(timeout=timeout):
+            beamline = pv_map.beamline("metrixs")
+            chamber = pv_map.focus_chamber("chamber")
+    except NotConnectedError as exc:
+        # motor records appear once per field (.RBV, .EGU ...): count the records
+        pvs = sorted({pv.split(".")[0] for pv in re.findall(r"ca://([^\s:]+(?::[^\s:]+)*)", str(exc))})
+        shown = ", ".join(pvs[:3]) + (f" and {len(pvs) - 3} more" if len(pvs) > 3 else "")
+        raise CliError(f"cannot reach the beamline ({pv_map.name}): {len(pvs) or 'some'} records did not connect within "
+                       f"{timeout:g} s ({shown}); is the IOC running, is EPICS_CA_ADDR_LIST set? "
+                       f"bluesky-offsets check-pvs FILE lists what is missing") from None
+    return beamline, chamber
+
+
+def _cmd_calibrate(args) -> int:
+    from bluesky_offsets.commands.cli import check_analysis_options, quiet_logs
+    from bluesky_offsets.epics.pvmap import PVMap, PVMapError
+    from bluesky_offsets.offsets.finder import FinderError, load_forward_model
+    from bluesky_offsets.physics import effects as E
+    from bluesky_offsets.store import open_store
+    from plans.workflow import MeasurementDesign
+
+    check_analysis_options(args)
+    if args.evaluations < 1:
+        raise CliError("--evaluations must be at least 1")
+    if args.connect_timeout <= 0:
+        raise CliError("--connect-timeout must be positive")
+    try:
+        design = MeasurementDesign(bright=args.bright, reopened=args.reopened, analysed=args.analysed,
+                                   candidates=args.candidates, fraction=args.fraction, max_frames=args.max_frames,
+                                   seed=args.seed)
+    except ValueError as exc:
+        raise CliError(str(exc)) from None
+    effects = [n.strip() for n in args.effects.split(",")] if args.effects else None
+    for n in effects or ():
+        try:
+            E.get(n)
+        except ValueError as exc:
+            raise CliError(str(exc)) from None
+    try:
+        pv_map = PVMap.from_file(args.pvs) if args.pvs else PVMap.simulated(args.prefix)
+    except PVMapError as exc:
+        raise CliError(str(exc)) from None
+    quiet_logs()
+    try:
+        forward_model = load_forward_model(args.checkpoint)
+    except FinderError as exc:
+        raise CliError(str(exc)) from None
+    store = open_store(args.store)  # a store that cannot be written: StoreError, one line (cli.main)
+    try:
+        return _calibrate(args, design, effects, pv_map, forward_model, store)
+    finally:
+        store.close()
+
+
+def _calibrate(args, design, effects, pv_map, forward_model, store) -> int:
+    from bluesky import RunEngine
+    from bluesky.utils import RunEngineInterrupted
+
+    from bluesky_offsets.commands.demo import ScanProgress, _close_channels, _StepLines
+    from bluesky_offsets.commands.report import history_lines, paragraph, write_analysis_report
+    from plans.workflow import DarkBeamline, analyse, measure_bright, surrogate_offsets
+
+    t0 = time.perf_counter()
+
+    def say(msg):
+        print(f"{time.perf_counter() - t0:6.0f} s  {msg}", flush=True)
+
+    RE = RunEngine({}, call_returns_result=True)  # before the devices: they connect in its event loop
+    lines = _StepLines(say)
+    try:
+        say(f"connecting to {pv_map.name} ({len(pv_map.motors)} motors, the camera)")
+        beamline, chamber = connect_devices(pv_map, args.connect_timeout)
+        store.subscribe(RE)
+        RE.subscribe(ScanProgress())
+        from bluesky_offsets.live import LiveFitProgress, LiveFootprints
+        live = [LiveFootprints(Path(args.out) / "live"), LiveFitProgress(Path(args.out) / "live")]
+        for cb in live:
+            RE.subscribe(cb)
+
+        def session():
+            measured = yield from measure_bright(beamline, chamber, **asdict(design), md={"purpose": "calibrate"})
+            found = yield from surrogate_offsets(measured.measurement, forward_model, evaluations=args.evaluations,
+                                                 seed=args.seed)
+            analysis = yield from analyse(measured.uid, "last", candidates=effects, rounds=args.rounds,
+                                          fit_top=args.fit_top or None, resolution=args.resolution, seed=args.seed,
+                                          scheduler=args.scheduler, store=store,
+                                          **({"fit": {"rays": args.fit_rays}} if args.fit_rays else {}))
+            return measured, found, analysis
+
+        try:
+            measured, found, analysis = RE(session()).plan_result
+        except DarkBeamline as exc:
+            raise CliError(str(exc)) from None
+        except RunEngineInterrupted:
+            RE.abort("interrupted")
+            raise KeyboardInterrupt from None
+        out = Path(args.out)
+        out.mkdir(parents=True, exist_ok=True)
+        uids = {"measurement": measured.uid, "find_offsets": store.latest("find_offsets",
+                                                                          measurement_uid=measured.uid),
+                **analysis.uids}
+        report = write_analysis_report(
+            out / "report.html", analysis, analysis.measurement.spec, title=f"bluesky-offsets calibrate: {pv_map.name}",
+            intro=[("What this is", paragraph(
+                f"The calibration session on {pv_map.name}: the beam found in {measured.beam.frames} frames, "
+                f"{len(measured.measurement)} configurations measured ({measured.n_open} with the slits open), "
+                f"offsets found with the surrogate and fitted through the differentiable twin, the missing "
+                f"effects diagnosed, added and refitted."))],
+            uids=uids, store_location=store.location)
+        print()
+        print(f"verdict: {analysis.verdict}")
+        print("error history (a correct model: chi2/dof ≈ 1, MSE ≈ its noise expectation):")
+        for line in history_lines(analysis):
+            print(line)
+        print("runs in the store:")
+        for k, v in uids.items():
+            print(f"  {k:16s} {v}")
+        print(f"report: {report}")
+        print(f"live views: {sum(len(cb.written) for cb in live)} figures in {Path(args.out) / 'live'}")
+        print(f"done in {time.perf_counter() - t0:.0f} s")
+        return 0
+    finally:
+        lines.close()
+        _close_channels(RE)
+
+
+def add_cli(sub) -> None:
+    from bluesky_offsets.commands.cli import add_analysis_options
+    from bluesky_offsets.epics.pvmap import SIM_PREFIX
+    from bluesky_offsets.model import diagnosis as D
+    p = sub.add_parser("calibrate", help="the calibration session against a running beamline (simulated IOC or "
+                                         "the real one through a PV map)",
+                       description=__doc__.split("\n\n", 1)[1] if __doc__ else None)
+    where = p.add_mutually_exclusive_group()
+    where.add_argument("--pvs", default=None, help="PV map file of the beamline (bluesky-offsets pv-map writes one)")
+    where.add_argument("--prefix", default=SIM_PREFIX, help="the simulated IOC's PV prefix (default %(default)s)")
+    p.add_argument("--store", default=None, help="run store (default: the embedded store, $BLUESKY_OFFSETS_STORE)")
+    p.add_argument("--out", default="bluesky-offsets-calibrate", help="folder of the report (default ./%(default)s)")
+    p.add_argument("--bright", type=int, default=16, help="bright configurations to measure (default %(default)s)")
+    p.add_argument("--reopened", type=int, default=4,
+                   help="of them measured again with the slits open (default %(default)s)")
+    p.add_argument("--analysed", type=int, default=14, help="configurations the fits use (default %(default)s)")
+    p.add_argument("--candidates", type=int, default=40,
+                   help="candidate configurations tried around the beam (default %(default)s)")
+    p.add_argument("--fraction", type=float, default=0.15,
+                   help="offsets the beam search assumes, fraction of each range (default %(default)s)")
+    p.add_argument("--max-frames", type=int, default=120, help="frames the beam search may take (default %(default)s)")
+    p.add_argument("--evaluations", type=int, default=3000, help="surrogate evaluations of the finder (default 3000)")
+    p.add_argument("--checkpoint", default=None, help="surrogate checkpoint (default: the shipped one)")
+    p.add_argument("--effects", default=None, help="effects to rank, comma separated (default: all)")
+    add_analysis_options(p, fit_rays=None, fit_rays_help=f"model rays per configuration in the fits (default "
+                                                         f"{D.FIT.rays})",
+                         resolution_help="histograms the diagnosis fits: the camera's profiles (default) or the "
+                                         "paper's 50 x 50 bins")
+    p.add_argument("--scheduler", default=None,
+                   help="where the twin's RAYX traces run: a Dask scheduler address, 'inline' (this process) or "
+                        "default a LocalCluster")
+    p.add_argument("--connect-timeout", type=float, default=10.0,
+                   help="seconds the PVs may take to connect (default %(default)s)")
+    p.add_argument("--seed", type=int, default=0, help="candidate design and fit seeds (default %(default)s)")
+    p.set_defaults(func=_cmd_calibrate)

@@ -1,0 +1,97 @@
+"""Every reason a user can fix ends a command in one line and a non-zero exit status, never a
+traceback: a dark beamline, an IOC that does not answer, a store that cannot be written, a bad
+truth file, an unknown effect, a checkpoint that does not fit, a bad PV map.
+
+The commands run through ``bluesky_offsets.commands.cli.main``, the console script's entry point,
+in this process (a subprocess per case would cost seconds of imports each); the messages are
+checked on the captured stderr.
+"""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+import torch
+
+from bluesky_offsets.commands import cli
+
+from conftest import start_metrixs_ioc
+
+
+def refused(capfd, argv: list[str], *expected: str) -> str:
+    """Run the command; it must fail with one line naming each of ``expected``."""
+    code = cli.main(argv)
+    out, err = capfd.readouterr()
+    lines = [line for line in err.splitlines() if line.strip()]
+    assert code != 0, (out, err)
+    assert "Traceback" not in err + out
+    assert len(lines) == 1 and lines[0].startswith(f"bluesky-offsets {argv[0]}: error: "), err
+    for text in expected:
+        assert text in lines[0], lines[0]
+    return lines[0]
+
+
+def test_a_dark_beamline_ends_in_one_line(tmp_path, capfd):
+    # M1's pitch at the end of its travel sends the beam off the screen; three frames cannot find it
+    ioc = start_metrixs_ioc(tmp_path, {"start": {"M1_Cylinder.rotationXerror": 0.25}})
+    try:
+        refused(capfd, ["calibrate", "--prefix", ioc.prefix, "--store", str(tmp_path / "store"), "--out",
+                        str(tmp_path / "out"), "--max-frames", "3"], "beam search ended dim after", "frames")
+    finally:
+        ioc.stop()
+
+
+def test_an_ioc_that_does_not_answer_is_named(tmp_path, capfd):
+    refused(capfd, ["calibrate", "--prefix", "NOBODY:HOME:", "--store", str(tmp_path / "store"),
+                    "--connect-timeout", "1"], "cannot reach the beamline", "NOBODY:HOME:", "did not connect")
+
+
+def test_a_store_that_cannot_be_written(tmp_path, capfd):
+    (tmp_path / "a-file").write_text("")
+    bad = str(tmp_path / "a-file" / "store")
+    refused(capfd, ["calibrate", "--store", bad], "run store", bad)
+    refused(capfd, ["diagnose", "--uid", "x", "--store", bad], "run store", bad)
+
+
+def test_an_unknown_effect(tmp_path, capfd):
+    for argv in (["calibrate", "--effects", "chamber_z,warp_drive"], ["demo", "--effect", "warp_drive:z=1"],
+                 ["diagnose", "--uid", "x", "--effects", "warp_drive"]):
+        refused(capfd, argv + ["--store", str(tmp_path / "store")] if argv[0] != "demo" else argv, "warp_drive")
+
+
+def test_a_bad_truth_file(tmp_path, capfd):
+    bad = tmp_path / "truth.json"
+    bad.write_text(json.dumps({"offsets": {"E1.rotationXerror": 0.05, "E9.nothing": 1.0}}))
+    refused(capfd, ["ioc", "--truth", str(bad)], "E9.nothing")
+    bad.write_text("{not json")
+    refused(capfd, ["ioc", "--truth", str(bad)], "not valid JSON")
+
+
+def test_a_checkpoint_that_does_not_fit(tmp_path, capfd):
+    from bluesky_offsets.surrogate.network import default_checkpoint
+    blob = torch.load(default_checkpoint(), map_location="cpu", weights_only=False)
+    meta = json.loads(blob["meta"])
+    key = next(iter(meta["histogram"]))
+    meta["histogram"][key] = 7 if not isinstance(meta["histogram"][key], list) else [0.0, 7.0]
+    blob["meta"] = json.dumps(meta)
+    path = tmp_path / "other-camera.pt"
+    torch.save(blob, path)
+    refused(capfd, ["calibrate", "--checkpoint", str(path), "--store", str(tmp_path / "store")],
+            str(path), "different histogram spec")
+    (tmp_path / "notes.pt").write_text("not a checkpoint")
+    refused(capfd, ["calibrate", "--checkpoint", str(tmp_path / "notes.pt"), "--store", str(tmp_path / "store")],
+            "truncated or corrupt")
+
+
+@pytest.mark.parametrize("content, expected", [
+    ("name = 'x'\n[motors]\n'E1.rotationXerror' = 'A:e1:rx'\n", "no record for"),
+    ("[motors]\n'E1.radius' = 'A:x'\n", "not motorized"),
+    ("[cameras]\n", "unknown keys cameras"),
+    ("[motors\n", "not TOML"),
+])
+def test_a_bad_pv_map(tmp_path, capfd, content, expected):
+    path = tmp_path / "pvs.toml"
+    path.write_text(content)
+    refused(capfd, ["check-pvs", str(path)], str(path), expected)
+    refused(capfd, ["calibrate", "--pvs", str(path)], expected)
