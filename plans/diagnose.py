@@ -30,6 +30,7 @@ arrays of at most 16 numbers in its tables as text.
 from __future__ import annotations
 
 import json
+import logging
 from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass, field
 from typing import Any
@@ -140,6 +141,7 @@ class Analysis:
     refinement: Refinement | None = None
     refits: list[Refit] = field(default_factory=list)
     uids: dict[str, str] = field(default_factory=dict)
+    resumed: dict[str, str] = field(default_factory=dict)   # steps taken from earlier runs: step -> uid
 
     @property
     def ranking(self) -> Ranking | None:
@@ -294,7 +296,7 @@ def compare_model(measurement, state: ModelState, twin, *, label: str | None = N
     rays = int(model_rays or 4 * meas.n_rays)
     _md = {"plan_name": "compare_model", "purpose": "model vs. measurement", **link, **_state_md(state, table),
            "version_label": label, "n_configurations": meas.n, "n_rays": int(meas.n_rays), "model_rays": rays,
-           **dict(md or {})}
+           "model_seed": int(seed), **dict(md or {})}
 
     def body():
         c = yield from run_in_thread(lambda progress: _compare(meas, state, twin, label, rays, seed, effect_sigma,
@@ -339,6 +341,7 @@ def refine_offsets(measurement, state: ModelState, twin, forward_model=None, *, 
     opts = FitOptions.resolve(options, D.FIT)
     _md = {"plan_name": "refine_offsets", "purpose": "offsets through the differentiable twin", **link,
            **_state_md(state, table), "fit_options": _jsonable(asdict(opts)), "n_configurations": meas.n,
+           "version_label": label,
            "jacobian": "exact (torch twin)", **dict(md or {})}
 
     def body():
@@ -352,7 +355,11 @@ def refine_offsets(measurement, state: ModelState, twin, forward_model=None, *, 
                    offsets_sigma=np.asarray(res.offset_sigma, float),
                    accepted=int(sum(h["accepted"] for h in res.history if h["iteration"])),
                    effects_json=_json(st.effects), effect_sigma_json=_json(res.effect_sigma),
-                   history_json=_json(res.history))
+                   history_json=_json(res.history),
+                   # the fit's end, for an analysis that resumes after this step (restore_refinement)
+                   covariance=np.asarray(res.fit.covariance, float), fit_names_json=_json(res.fit.names),
+                   fit_chi2=float(res.fit.chi2), fit_dof=float(res.fit.dof), fit_inflation=float(res.fit.inflation),
+                   fit_stage=str(res.fit.stage), fit_traces=int(res.fit.n_traces))
         yield from emit_rows("offsets", [row])
         c = yield from compare_model(meas, st, twin, label=label, effect_sigma=res.effect_sigma, open_run=False,
                                      show=show, table=table)
@@ -423,7 +430,8 @@ def diagnose_effects(measurement, state: ModelState, twin, forward_model=None, *
         row = {"verdict": d.verdict, "best": d.best.name if d.best else "", "within_noise": bool(d.within_noise),
                "chi2_total": mf.chi2_total, "dof_total": mf.dof_total, "chi2_reduced_total": mf.chi2_reduced_total,
                "mse_total": mf.mse_total, "expected_mse_total": mf.expected_mse_total, "folds": d.folds,
-               "n_traces": int(d.n_traces), "notes_json": _json(d.notes)}
+               "n_traces": int(d.n_traces), "notes_json": _json(d.notes),
+               "record_json": _json(D.diagnosis_record(d))}  # all of it, for an analysis that resumes
         row.update({_sig_key("observed", k): float(v) for k, v in d.observed_signature.items()})
         yield from emit_rows("diagnosis", [row])
         return Ranking(d)
@@ -479,7 +487,7 @@ def add_effect_and_refit(measurement, state: ModelState, effect: str, twin, forw
     opts = FitOptions.resolve(options, D.FIT)
     _md = {"plan_name": "add_effect_and_refit", "purpose": "add the missing effect and refit", **link,
            **_state_md(state, table), "effect": effect, "effect_parameters": [p.name for p in eff.parameters],
-           "effect_start": start_values, "fit_options": _jsonable(asdict(opts)),
+           "effect_start": start_values, "fit_options": _jsonable(asdict(opts)), "version_label": label,
            "versions": [v.label for v in history] + [label], **dict(md or {})}
 
     def body():
@@ -514,6 +522,75 @@ def add_effect_and_refit(measurement, state: ModelState, effect: str, twin, forw
 
 
 # --------------------------------------------------------------------------- #
+# results back from their runs: what an interrupted analysis resumes from
+# --------------------------------------------------------------------------- #
+def _arr(rows: Sequence[Mapping], key: str) -> np.ndarray:
+    return np.asarray([r[key] for r in rows], dtype=float)
+
+
+def restore_comparison(res: Mapping, uid: str | None = None) -> Comparison:
+    """The :class:`Comparison` a ``compare_model`` run (or a run holding one) stored, as it was."""
+    rows, (total,) = res["misfit"], res["misfit_total"]
+    mf = Misfit(_arr(rows, "chi2"), _arr(rows, "dof"), _arr(rows, "mse"), _arr(rows, "expected_mse"),
+                _arr(rows, "pulls_x"), _arr(rows, "pulls_y"))
+    # "signature_x_centroid" holds the signature "x.centroid"
+    keys = [k for k in rows[0] if k.startswith("signature_")]
+    signature = {k[len("signature_"):].replace("_", ".", 1): _arr(rows, k) for k in keys}
+    state = ModelState(np.asarray(total["model_offsets"], float), total["effects"], str(total["label"]))
+    corr = [tuple(c) for c in total["correlations"]]
+    return Comparison(str(total["label"]), state, mf, _arr(rows, "model_hist_x"), _arr(rows, "model_hist_y"), signature,
+                      corr, list(total["failing"]), int(total["model_rays"]), dict(total["effect_sigma"]), uid)
+
+
+def restore_refinement(res: Mapping, uid: str | None = None) -> Refinement:
+    """The :class:`Refinement` of a ``refine_offsets`` run: the fit's end and its comparison."""
+    from bluesky_offsets.model.fit import FitResult
+    (row,) = res["offsets"]
+    c = restore_comparison(res, uid)
+    fit = FitResult(c.state, list(row["history"]), np.asarray(row["covariance"], float), list(row["fit_names"]),
+                    float(row["fit_chi2"]), float(row["fit_dof"]), float(row["fit_inflation"]),
+                    int(row["fit_traces"]), stage=str(row["fit_stage"]))
+    return Refinement(RefineResult(c.state, dict(row["effect_sigma"]), list(row["history"]), fit), c, uid)
+
+
+def restore_ranking(res: Mapping, uid: str | None = None) -> Ranking:
+    """The :class:`Ranking` of a ``diagnose_effects`` run: every candidate as it was fitted."""
+    (row,) = res["diagnosis"]
+    return Ranking(D.diagnosis_from(row["record"]), uid)
+
+
+def restore_refit(res: Mapping, history: Sequence[Version], uid: str | None = None) -> Refit:
+    """The :class:`Refit` of an ``add_effect_and_refit`` run, after the versions ``history``."""
+    c = restore_comparison(res, uid)
+    steps = [{k: v for k, v in r.items() if k not in ("time", "seq_num")} for r in res.get("progress", [])]
+    return Refit(str(res["start"]["effect"]), c.state, dict(c.effect_sigma), c, steps, [*history, c.version()], uid)
+
+
+def analysis_key(meas: Measurement, settings: Mapping) -> str:
+    """What makes two analyses the same: the measurement as fitted (its uid, configurations and
+    histograms) and every setting that changes a result.  Stored with each step's run."""
+    import hashlib
+    h = hashlib.sha256()
+    h.update(json.dumps(_jsonable({"uid": meas.uid, **settings}), sort_keys=True, default=str).encode())
+    for a in (meas.configurations, meas.hist_x, meas.hist_y):
+        h.update(np.ascontiguousarray(a, dtype=float).tobytes())
+    return h.hexdigest()[:20]
+
+
+def completed_steps(store, key: str) -> dict[str, str]:
+    """``{step: uid}`` of the runs of analysis ``key`` in ``store`` that ended successfully (the
+    latest run of each step)."""
+    from tiled.queries import Eq
+    runs = store.client.search(Eq("start.analysis_key", key))
+    done = {}
+    for uid in runs.keys():
+        md = runs[uid].metadata
+        if (md.get("stop") or {}).get("exit_status") == "success":
+            done[md["start"]["analysis_step"]] = uid
+    return done
+
+
+# --------------------------------------------------------------------------- #
 # the whole analysis
 # --------------------------------------------------------------------------- #
 def analyse_measurement(measurement, twin, forward_model=None, *, store=None,
@@ -521,7 +598,7 @@ def analyse_measurement(measurement, twin, forward_model=None, *, store=None,
                         candidates: Sequence[str] | None = None, add_best: bool = True, rounds: int = 2,
                         fit_options: FitOptions | Mapping | None = None,
                         scan_options: FitOptions | Mapping | None = None, fit_top: int | None = D.FIT_TOP,
-                        folds: int = 4, seed: int = 0,
+                        folds: int = 4, seed: int = 0, resume: bool = False,
                         md: Mapping | None = None, show: bool = True, resolution: str = "camera",
                         table: ParameterTable = METRIXS) -> MsgGenerator[Analysis]:
     """Compare, fit the offsets, diagnose, add the winning effect and refit, diagnose again — one
@@ -555,12 +632,18 @@ def analyse_measurement(measurement, twin, forward_model=None, *, store=None,
     resolution : {"camera", "paper"}
         Of a stored run: the camera-resolution profiles where it has them, or the 50 x 50
         histograms.
+    resume : bool
+        Take every step that an earlier run of the *same* analysis (same measurement, starts and
+        settings: :func:`analysis_key`) completed from the store (``store``, default
+        :func:`bluesky_offsets.store.shared_store`) instead of computing it again; the first step
+        it did not complete, and all after it, run.  After Ctrl-C, ``RE.abort()`` or a crash.
 
     Returns
     -------
     Analysis
         The comparisons of every model version (the error history), the rankings, the
-        refits and the uids of all runs (``analysis.uids``).
+        refits, the uids of all runs (``analysis.uids``) and the steps taken from earlier
+        runs (``analysis.resumed``: step -> uid).
     """
     meas, link = resolve_measurement(measurement, store, resolution=resolution, table=table)
     twin = twin.with_hist(meas.spec)  # the twin bins as the measurement does
@@ -569,26 +652,52 @@ def analyse_measurement(measurement, twin, forward_model=None, *, store=None,
     elif isinstance(starts, ModelState):
         starts = [starts]
     fopts = FitOptions.resolve(fit_options, D.FIT)
-    md = {**link, **dict(md or {})}
+    sopts = FitOptions.resolve(scan_options, D.SCAN)
+    key = analysis_key(meas, {
+        "starts": [(s.label, s.offsets, s.effects) for s in starts], "refine": refine, "candidates": candidates,
+        "add_best": add_best, "rounds": rounds, "fit": asdict(fopts), "scan": asdict(sopts), "fit_top": fit_top,
+        "folds": folds, "seed": seed, "spec": meas.spec.fingerprint(), "n_rays": meas.n_rays})
+    md = {**link, **dict(md or {}), "analysis_key": key}
+    done: dict[str, str] = {}
+    if resume:
+        from bluesky_offsets.store import shared_store
+        store = store if store is not None and not isinstance(store, str) else shared_store(store)
+        done = completed_steps(store, key)
     out = Analysis(meas, [])
+    fresh = False  # once a step is computed, the ones after it are too
+
+    def step(name: str, run, restore):
+        """``run(md)`` as a plan, or the result of this step's earlier run (``restore``)."""
+        nonlocal fresh
+        if not fresh and name in done:
+            res = restore(load_results(store, done[name]), done[name])
+            out.resumed[name] = done[name]
+            logging.getLogger("bluesky_offsets.workflow").info("resumed: %s from run %s", name, done[name])
+            return res
+        fresh = True
+        return (yield from run({**md, "analysis_step": name}))
+
     for k, st in enumerate(starts):
-        c = yield from compare_model(meas, st, twin, md=md, show=show, table=table)
+        name = "compare" if k == 0 else f"compare_{k}"
+        c = yield from step(name, lambda m, st=st: compare_model(meas, st, twin, md=m, show=show, table=table),
+                            restore_comparison)
         out.comparisons.append(c)
-        out.uids["compare" if k == 0 else f"compare_{k}"] = c.uid
+        out.uids[name] = c.uid
     best_start = min(out.comparisons, key=lambda c: c.misfit.chi2_reduced_total)
     current = best_start.state
     if refine:
-        r = yield from refine_offsets(meas, current, twin, options=fopts, md={**md, "start_label": best_start.label},
-                                      show=show, table=table)
+        r = yield from step("refine_offsets", lambda m: refine_offsets(
+            meas, current, twin, options=fopts, md={**m, "start_label": best_start.label}, show=show, table=table),
+            restore_refinement)
         out.uids["refine_offsets"] = r.uid
         out.refinement = r
         out.comparisons.append(r.comparison)
         current = r.state
     for round_ in range(max(1, rounds)):
         suffix = "" if round_ == 0 else f"_{round_ + 1}"
-        rk = yield from diagnose_effects(meas, current, twin, candidates=candidates, folds=folds,
-                                         seed=seed + round_, options=scan_options, fit_top=fit_top, md=md,
-                                         show=show, table=table)
+        rk = yield from step("diagnose" + suffix, lambda m: diagnose_effects(
+            meas, current, twin, candidates=candidates, folds=folds, seed=seed + round_, options=sopts,
+            fit_top=fit_top, md=m, show=show, table=table), restore_ranking)
         out.rankings.append(rk)
         out.uids["diagnose" + suffix] = rk.uid
         best = rk.diagnosis.best
@@ -596,9 +705,11 @@ def analyse_measurement(measurement, twin, forward_model=None, *, store=None,
             break
         # start where the diagnosis compensated the effect with the offsets
         start = ModelState(best.refined_state.offsets, current.effects, current.label)
-        rf = yield from add_effect_and_refit(meas, start, best.name, twin, values=best.values,
-                                             history=out.versions, options=fopts.replace(seed=fopts.seed + 1 + round_),
-                                             md=md, show=show, table=table)
+        history = out.versions
+        rf = yield from step("add_effect" + suffix, lambda m: add_effect_and_refit(
+            meas, start, best.name, twin, values=best.values, history=history,
+            options=fopts.replace(seed=fopts.seed + 1 + round_), md=m, show=show, table=table),
+            lambda res, uid: restore_refit(res, history, uid))
         out.refits.append(rf)
         out.comparisons.append(rf.comparison)
         out.uids["add_effect" + suffix] = rf.uid
@@ -606,7 +717,7 @@ def analyse_measurement(measurement, twin, forward_model=None, *, store=None,
         if rf.comparison.within_noise:
             break
     if not out.refits:
-        uid = yield from _history_run(out.versions, md)
+        uid = yield from _history_run(out.versions, {**md, "analysis_step": "error_history"})
         out.uids["error_history"] = uid
     return out
 

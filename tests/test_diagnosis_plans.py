@@ -9,6 +9,7 @@ clear refusals — not the physics (tests/test_diagnosis*.py).
 from __future__ import annotations
 
 import json
+import threading
 
 import bluesky.plan_stubs as bps
 import numpy as np
@@ -239,3 +240,54 @@ def test_diagnose_command_end_to_end_and_its_errors(RE, measured, tmp_path, caps
     with open_store(loc) as store:
         for uid in out["uids"].values():
             assert store[uid].metadata["start"]["measurement_uid"] == dim_uid
+
+
+def test_an_interrupted_analysis_resumes_from_the_store_to_the_same_verdict(RE, twin, measured, tmp_path):
+    """Ctrl-C during the diagnosis (the RunEngine pauses), then RE.abort(): the analysis run
+    again with resume=True takes the comparison and the offsets fit from the store, computes the
+    rest, and ends where an uninterrupted run of it ends."""
+    from bluesky.utils import RunEngineInterrupted
+
+    from bluesky_offsets.store import open_store
+    m, _ = measured
+    kw = dict(fit_options=FIT, scan_options=FIT, candidates=CANDIDATES, rounds=1, show=False, resolution="paper")
+
+    diagnosing = threading.Event()
+
+    def ctrl_c_at_the_diagnosis(name, doc):
+        if name == "start" and doc.get("plan_name") == "diagnose_effects":
+            diagnosing.set()
+
+    def operator():  # Ctrl-C: the RunEngine's SIGINT handler requests the pause from outside its loop
+        if diagnosing.wait(120):
+            RE.request_pause(defer=False)
+
+    with open_store(tmp_path / "runs") as store:
+        tokens = [store.subscribe(RE)]
+        try:
+            pause = RE.subscribe(ctrl_c_at_the_diagnosis)
+            threading.Thread(target=operator, daemon=True).start()
+            with pytest.raises(RunEngineInterrupted):
+                RE(analyse_measurement(m, twin, store=store, **kw))
+            RE.unsubscribe(pause)
+            RE.abort("stopped by the operator")
+            resumed = RE(analyse_measurement(m, twin, store=store, resume=True, **kw))
+            fresh = RE(analyse_measurement(m, twin, store=store, **kw)).plan_result
+        finally:
+            for t in tokens:
+                RE.unsubscribe(t)
+        runs = {u: store[u].metadata for u in store.uids()}
+    a = resumed.plan_result
+    assert list(a.resumed) == ["compare", "refine_offsets"]  # it says what it resumed
+    # nothing measured or compared again: only the diagnosis and what follows it ran
+    plans_run = [runs[u]["start"]["plan_name"] for u in resumed.run_start_uids]
+    assert plans_run[0] == "diagnose_effects" and "compare_model" not in plans_run
+    aborted = [u for u, md in runs.items() if md["start"]["plan_name"] == "diagnose_effects"
+               and md["stop"]["exit_status"] == "abort"]
+    assert len(aborted) == 1
+    # the same verdict, ranking and numbers as the uninterrupted analysis
+    assert a.verdict == fresh.verdict
+    assert [c.name for c in a.ranking.diagnosis.candidates] == [c.name for c in fresh.ranking.diagnosis.candidates]
+    np.testing.assert_array_equal(a.refinement.state.offsets, fresh.refinement.state.offsets)
+    assert [c.misfit.chi2_total for c in a.comparisons] == pytest.approx([c.misfit.chi2_total
+                                                                         for c in fresh.comparisons], rel=1e-12)

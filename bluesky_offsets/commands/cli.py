@@ -239,6 +239,10 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING,
                         format="%(levelname)s %(name)s: %(message)s")
+    if not args.verbose:
+        # the RunEngine logs a failed plan with its traceback before re-raising it; the error is
+        # reported here (one line for what a user can fix), so its log would only repeat it
+        logging.getLogger("bluesky").setLevel(logging.CRITICAL)
     if getattr(args, "rays", 1) is not None and getattr(args, "rays", 1) < 1:
         parser.error("--rays must be positive")
     try:

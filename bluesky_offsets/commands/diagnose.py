@@ -73,6 +73,7 @@ def summary_dict(analysis) -> dict:
         "fitted_effects": {r.effect: {k: {"value": v, "sigma": s} for k, (v, s) in r.magnitude().items()}
                            for r in analysis.refits},
         "uids": dict(analysis.uids),
+        "resumed": dict(analysis.resumed),
     }
 
 
@@ -110,8 +111,11 @@ def _cmd_diagnose(args) -> int:
             analysis = RE(analyse_measurement(
                 stored, twin, starts=starts, refine=not args.no_refine, candidates=candidates,
                 add_best=not args.no_add, rounds=args.rounds, fit_options=fit_options, seed=args.seed,
-                fit_top=args.fit_top or None,
+                fit_top=args.fit_top or None, resume=args.resume, store=store,
                 resolution=args.resolution, md={"purpose": "bluesky-offsets diagnose"})).plan_result
+            if analysis.resumed:
+                print(f"resumed {len(analysis.resumed)} completed steps from the store: "
+                      f"{', '.join(analysis.resumed)}", file=log)
             if args.report:
                 from bluesky_offsets.commands.report import write_analysis_report
                 path = write_analysis_report(args.report, analysis, analysis.measurement.spec,
@@ -151,6 +155,9 @@ def add_cli(sub) -> None:
     p.add_argument("--rays", type=int, default=None, help="ray budget of the measurement when the run lacks it")
     p.add_argument("--scheduler", default=None, help="Dask scheduler address, or 'inline' (default: local cluster)")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--resume", action="store_true",
+                   help="take the steps an interrupted run of the same analysis completed from the store, "
+                        "compute the rest (nothing is measured again)")
     p.add_argument("--report", type=Path, default=None, help="write a self-contained HTML report here")
     p.add_argument("--json", action="store_true", help="print the result as JSON (progress goes to stderr)")
     p.set_defaults(func=_cmd_diagnose)

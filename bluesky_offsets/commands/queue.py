@@ -105,7 +105,7 @@ def _cmd_queue_server(args) -> int:
         except RuntimeError as exc:
             raise CliError(str(exc)) from None
     cmd = manager_command(f"{host}:{port}", zmq_control_addr=args.zmq_control, zmq_info_addr=args.zmq_info,
-                          executable=_executable("start-re-manager"))
+                          executable=_executable("start-re-manager"), existing_plans_devices=args.existing_plans_devices)
     where = env.get(ENV_PVS) or f"the simulated IOC's names, prefix {env.get(ENV_PREFIX, 'SIM:METRIXS:')}"
     print(f"Redis {host}:{port} ({'started here' if redis else 'already running'}); devices on {where}; "
           f"run store {env.get(ENV_STORE, 'the embedded default')}", flush=True)
@@ -146,4 +146,7 @@ def add_cli(sub) -> None:
                    help="0MQ control address (default %(default)s, the queueserver's port on loopback)")
     p.add_argument("--zmq-info", default="tcp://127.0.0.1:60625",
                    help="0MQ address publishing the console output (default %(default)s)")
+    p.add_argument("--existing-plans-devices", default=None, metavar="FILE.yaml",
+                   help="a copy of the list of existing plans and devices that the manager regenerates from the "
+                        "startup module on every environment open (default: the shipped list, never rewritten)")
     p.set_defaults(func=_cmd_queue_server)

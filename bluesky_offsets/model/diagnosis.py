@@ -144,6 +144,64 @@ class Diagnosis:
                 "n_traces": self.n_traces, "notes": self.notes}
 
 
+# --------------------------------------------------------------------------- #
+# a diagnosis as plain data: what a run stores so that an interrupted analysis resumes
+# --------------------------------------------------------------------------- #
+def _state_record(st: ModelState | None) -> dict | None:
+    if st is None:
+        return None
+    return {"offsets": [float(v) for v in st.offsets], "label": st.label,
+            "effects": {k: {p: float(x) for p, x in v.items()} for k, v in st.effects.items()}}
+
+
+def _state_from(rec: dict | None) -> ModelState | None:
+    return None if rec is None else ModelState(np.asarray(rec["offsets"], float), rec["effects"], rec["label"])
+
+
+def misfit_record(mf: Misfit | None) -> dict | None:
+    """The per-configuration numbers of a misfit (not its pulls: a restored one has none)."""
+    if mf is None:
+        return None
+    return {k: np.asarray(getattr(mf, k), float).tolist() for k in ("chi2", "dof", "mse", "expected_mse")}
+
+
+def misfit_from(rec: dict | None) -> Misfit | None:
+    if rec is None:
+        return None
+    n = len(rec["chi2"])
+    return Misfit(*(np.asarray(rec[k], float) for k in ("chi2", "dof", "mse", "expected_mse")),
+                  pulls_x=np.zeros((n, 0)), pulls_y=np.zeros((n, 0)))
+
+
+def diagnosis_record(d: Diagnosis) -> dict:
+    """Everything of ``d`` but the misfits' pulls, as JSON-able data (:func:`diagnosis_from`)."""
+    cands = []
+    for c in d.candidates:
+        rec = {f: getattr(c, f) for f in ("name", "n_params", "values", "sigma", "delta_chi2_heldout",
+                                           "delta_chi2_all", "penalty", "significant", "predicted_signature",
+                                           "dispersion", "folds_improved", "folds_total", "folds_worse",
+                                           "delta_chi2_twin", "feature_penalty", "feature_dispersion", "absorbed",
+                                           "fitted")}
+        rec["refined_state"] = _state_record(c.refined_state)
+        cands.append(rec)
+    return {"base_misfit": misfit_record(d.base_misfit), "within_noise": bool(d.within_noise), "candidates": cands,
+            "observed_signature": dict(d.observed_signature), "folds": int(d.folds), "n_traces": int(d.n_traces),
+            "notes": list(d.notes), "reference": _state_record(d.reference),
+            "reference_misfit": misfit_record(d.reference_misfit)}
+
+
+def diagnosis_from(rec: Mapping) -> Diagnosis:
+    """The :class:`Diagnosis` a :func:`diagnosis_record` holds: same ranking, verdict and values."""
+    cands = []
+    for c in rec["candidates"]:
+        c = dict(c)
+        c["refined_state"] = _state_from(c.get("refined_state"))
+        cands.append(Candidate(**c))
+    return Diagnosis(misfit_from(rec["base_misfit"]), rec["within_noise"], cands, rec["observed_signature"],
+                     rec["folds"], rec["n_traces"], list(rec["notes"]), _state_from(rec.get("reference")),
+                     misfit_from(rec.get("reference_misfit")))
+
+
 def _signature(h: np.ndarray, ref: np.ndarray, spec) -> dict[str, float]:
     """Mean over configurations of moments(h) - moments(ref), per axis."""
     out = {}

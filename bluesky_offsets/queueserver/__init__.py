@@ -31,12 +31,18 @@ USER_GROUP_PERMISSIONS = HERE / "user_group_permissions.yaml"
 
 
 def manager_command(redis_addr: str = "127.0.0.1:6379", *, zmq_control_addr: str | None = None,
-                    zmq_info_addr: str | None = None, executable: str = "start-re-manager") -> list[str]:
-    """The ``start-re-manager`` command line for this project's startup module."""
+                    zmq_info_addr: str | None = None, executable: str = "start-re-manager",
+                    existing_plans_devices: str | None = None) -> list[str]:
+    """The ``start-re-manager`` command line for this project's startup module.
+
+    ``existing_plans_devices``: another copy of the list, which the manager then regenerates from
+    the startup module whenever it opens the environment (a check that the shipped one is current);
+    the shipped list itself is never rewritten."""
+    update = "NEVER" if existing_plans_devices is None else "ENVIRONMENT_OPEN"
     cmd = [executable, "--startup-module", STARTUP_MODULE,
-           "--existing-plans-devices", str(EXISTING_PLANS_AND_DEVICES),
+           "--existing-plans-devices", str(existing_plans_devices or EXISTING_PLANS_AND_DEVICES),
            "--user-group-permissions", str(USER_GROUP_PERMISSIONS),
-           "--update-existing-plans-devices", "NEVER", "--redis-addr", redis_addr]
+           "--update-existing-plans-devices", update, "--redis-addr", redis_addr]
     if zmq_control_addr:
         cmd += ["--zmq-control-addr", zmq_control_addr]
     if zmq_info_addr:
