@@ -1,7 +1,7 @@
 """Live views of a session: standard bluesky callbacks (``RE.subscribe(...)``), headless-safe.
 
-* :class:`LiveFootprints` — the measured x/y histograms, one panel per configuration, as the
-  frames arrive; the model of every later comparison of that measurement (``compare_model``,
+* :class:`LiveFootprints` — the measured x/y histograms (and the camera's profiles), one panel
+  per configuration, as the frames arrive; the model of every later comparison of that measurement (``compare_model``,
   ``refine_offsets``, ``add_effect_and_refit`` runs) drawn over them, with its χ²/dof.
 * :class:`LiveFitProgress` — the offset finder's loss per evaluation and each fit's χ²/dof
   per iteration (the ``finder`` and ``progress`` streams), one figure per run.
@@ -117,7 +117,8 @@ class LiveFootprints(CallbackBase):
             hx, hy = _value(data, "hist_x"), _value(data, "hist_y")
             i = data.get("config_index", doc.get("seq_num", 1) - 1)
             if hx is not None and hy is not None:
-                self._draw_measured(run["measurement"], int(i), hx, hy)
+                self._draw_measured(run["measurement"], int(i), hx, hy, _value(data, "profile_x"),
+                                    _value(data, "profile_y"))
         elif run["kind"] == "model" and stream == "misfit" and "model_hist_x" in data:
             i = int(data["config_index"])
             idx = run["analysed"]
@@ -140,12 +141,12 @@ class LiveFootprints(CallbackBase):
             ax.set_title(f"configuration {k}", fontsize=8)
             ax.tick_params(labelsize=6)
             ax.set_xlim(*self.range_x)
-        fig.suptitle(f"{title} {uid[:8]}: measured x (blue), y (orange), model dashed; density per mm against "
-                     f"position in mm", fontsize=9)
+        fig.suptitle(f"{title} {uid[:8]}: measured x (blue), y (orange) histograms, the camera's profiles faint, "
+                     f"the model dashed; density per mm against position in mm", fontsize=9)
         fig.tight_layout()
         self.figures[uid], self._axes[uid] = fig, axes
 
-    def _draw_measured(self, uid: str, i: int, hx, hy) -> None:
+    def _draw_measured(self, uid: str, i: int, hx, hy, px=None, py=None) -> None:
         axes = self._axes[uid]
         if not 0 <= i < len(axes):
             return
@@ -155,6 +156,11 @@ class LiveFootprints(CallbackBase):
             c, d = _density(h, *rng)
             ax.step(c, d, where="mid", color=color, lw=0.9)
             lit += list(c[np.asarray(h) > 0])
+        # the camera's own profiles (20 µm x 5 µm pixels), faint, where the detector publishes them
+        for p, rng, color in ((px, self.range_x, "C0"), (py, self.range_y, "C1")):
+            if p is not None and np.size(p) and np.sum(p) > 0:
+                c, d = _density(p, *rng)
+                ax.plot(c, d, color=color, lw=0.4, alpha=0.35)
         if lit:  # the spot is small on the 20 mm screen: zoom to where the light is
             lo, hi = min(lit), max(lit)
             pad = max(0.25 * (hi - lo), 0.5)

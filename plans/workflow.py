@@ -241,7 +241,7 @@ def surrogate_offsets(m: Measurement, forward_model, *, evaluations: int = 3000,
 def analyse(measurement: str = "last", offsets: str | None = "last", *, candidates: list[str] | None = None,
             rounds: int = 2, fit: dict | None = None, scan: dict | None = None, fit_top: int | None = D.FIT_TOP,
             resolution: str = "camera", seed: int = 0, rays: int | None = None, scheduler: str | None = None,
-            store=None, md: dict | None = None) -> MsgGenerator:
+            resume: bool = False, store=None, md: dict | None = None) -> MsgGenerator:
     """Compare, fit the offsets, diagnose, add the winner, refit, diagnose again, on a stored
     measurement (:func:`plans.diagnose.analyse_measurement`; one run per step).
 
@@ -263,6 +263,9 @@ def analyse(measurement: str = "last", offsets: str | None = "last", *, candidat
     scheduler : str, optional
         Where the twin's RAYX traces run: None, a Dask LocalCluster; ``"inline"``, this process;
         a scheduler address, a cluster.
+    resume : bool
+        Take the steps an interrupted run of the same analysis completed from the store
+        (:func:`plans.diagnose.analyse_measurement`); nothing is measured again.
 
     Returns
     -------
@@ -302,7 +305,7 @@ def analyse(measurement: str = "last", offsets: str | None = "last", *, candidat
     try:
         out = yield from analyse_measurement(
             meas, twin, store=store, starts=starts, candidates=candidates, rounds=rounds, fit_options=fit_opts,
-            scan_options=scan_opts, fit_top=fit_top, seed=seed, resolution=resolution, table=METRIXS,
+            scan_options=scan_opts, fit_top=fit_top, seed=seed, resolution=resolution, table=METRIXS, resume=resume,
             md={"purpose": "calibration analysis", "offsets_uid": off_uid or "",
                 "analysed_configurations": [int(i) for i in idx] if idx is not None else [], **dict(md or {})})
         log.info("verdict: %s", out.verdict)

@@ -113,13 +113,14 @@ class TestChamberZ(_HiddenEffect):
             assert np.allclose(m.configurations[-n_open:, 0], m.configurations[:n_open, 0])
             assert np.allclose(m.configurations[-n_open:, METRIXS.index("ExitSlit.totalHeight")], 0.1, atol=1e-6)
             assert store[uids["find_offsets"]].metadata["start"]["n_configurations"] == n - n_open  # its box only
-            for step in ("compare", "refine_offsets", "diagnose", "add_effect"):
-                res = load_results(store, uids[step])
+            back = {step: load_results(store, uids[step]) for step in ("compare", "refine_offsets", "diagnose",
+                                                                        "add_effect")}
+            for step, res in back.items():
                 assert res["start"]["measurement_uid"] == uids["measurement"], step
                 assert res["start"]["analysed_configurations"] == analysed, step
-            ranking = load_results(store, uids["diagnose"])["ranking"]
+            ranking = back["diagnose"]["ranking"]
             assert [r["effect"] for r in ranking] == summary["rankings"][0]
-            hist = load_results(store, uids["add_effect"])["error_history"]
+            hist = back["add_effect"]["error_history"]
             assert [h["label"] for h in hist] == labels
             assert hist[-1]["chi2_reduced"] == pytest.approx(summary["history"][-1]["chi2_reduced"])
 

@@ -140,7 +140,10 @@ def test_add_effect_and_refit_stores_magnitude_and_error_history(RE, twin, measu
     # the live views drew the frames as they came, the model over them, the fit's iterations
     fig = footprints.figures[m.uid]
     axes = fig.axes[:4]
-    assert all(len(ax.lines) == 4 for ax in axes)  # measured x, y (steps) and the latest model x, y
+    for ax in axes:  # measured x, y (steps), the camera's profiles, and only the latest model's x, y (dashed)
+        assert sum(line.get_drawstyle() == "steps-mid" for line in ax.lines) == 2
+        assert sum(line.get_linestyle() == "--" for line in ax.lines) == 2
+        assert len(ax.lines) == 6
     assert "intensity_scale: χ²/dof" in axes[0].get_title()
     assert (folder / f"footprints-{m.uid[:8]}.png").stat().st_size > 10_000
     (png,) = [p for p in progress.written if p.name.startswith("progress-add_effect_and_refit")]

@@ -61,8 +61,13 @@ def queue(tmp_path_factory):
                 RM.wait_for_idle(timeout=30)
         except Exception:  # noqa: BLE001 - the processes are stopped below either way
             pass
+        try:  # the manager stops itself (a signal would wait for its worker); the command then stops Redis
+            RM.manager_stop()
+            server.wait(30)
+        except Exception:  # noqa: BLE001 - killed below either way
+            pass
         RM.close()
-        stop_process_group(server, timeout=20)
+        stop_process_group(server, timeout=5)
         log.close()
         ioc.stop()
 
