@@ -71,7 +71,7 @@ def _make(args) -> None:
             start = default_start() - np.where(METRIXS.motorized, METRIXS.offsets_to_physical(off), 0.0)
             cand = candidate_configurations(s.design, start)
             hx, hy = simulate(twin, cand, truth, 2000, [seed + i for i in range(len(cand))])
-            bright = cand[enough_rays(hx, hy)][:s.configurations]
+            bright = cand[enough_rays(hx, hy)][:s.design.bright]
             design, analysed = measurement_design(s.design, bright)
             design = design[analysed]
             mx, my = simulate(twin.with_hist(CAMERA), design, truth, args.rays,

@@ -29,8 +29,9 @@ import sys
 import tempfile
 import time
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -38,6 +39,9 @@ from bluesky_offsets.model import diagnosis as D
 from bluesky_offsets.physics import effects as E
 from bluesky_offsets.model.fit import FitOptions
 from bluesky_offsets.physics.parameters import METRIXS
+
+if TYPE_CHECKING:  # plans (bluesky) load when the demo runs, not with every command
+    from plans.workflow import MeasurementDesign
 
 # Hidden truth: offsets in all 34 parameters, uniform within ±``offsets_fraction`` of each range
 # (drawn from the seed), and one physical effect.  With ``offsets_fraction = 0`` the offsets are
@@ -48,19 +52,17 @@ DEMO_OFFSETS = {"E1.rotationXerror": 0.015, "E2.rotationXerror": -0.015, "M1_Cyl
 DEMO_EFFECT = ("chamber_z", {"z": 20.0})
 
 
+def _design(**kw) -> MeasurementDesign:
+    from plans.workflow import MeasurementDesign
+    return MeasurementDesign(**kw)
+
+
 @dataclass
 class DemoSettings:
     n_rays: int = 5000                # per measured frame
-    configurations: int = 16
-    # that many of the bright ones measured again with the slits open (diagnosis.OPEN_APERTURE):
-    # a source change shows there; the surrogate finder uses only the configurations in its box
-    open_configurations: int = 4
-    # configurations the analysis fits (the first bright ones and the open ones)
-    analysed_configurations: int = 14
-    candidates: int = 40
-    # the beam search: offsets the motors may carry (normalized), and its frame budget
-    search_fraction: float = 0.15
-    search_frames: int = 120
+    # what is searched and measured: 16 bright configurations, 4 of them again with the slits open,
+    # 14 fitted, 40 candidates, the beam search's range and frames (its seed is the demo's ``seed``)
+    measurement: MeasurementDesign = field(default_factory=lambda: _design())
     # hidden effects, ((name, values), ...): found one after the other
     effects: tuple = (DEMO_EFFECT,)
     # offsets in all 34 parameters, uniform within ± this fraction of each range (drawn from
@@ -80,12 +82,9 @@ class DemoSettings:
     workers: int | None = None
 
     @property
-    def design(self):
-        """What :func:`plans.workflow.measure_bright` looks for and measures."""
-        from plans.workflow import MeasurementDesign
-        return MeasurementDesign(bright=self.configurations, reopened=self.open_configurations,
-                                 analysed=self.analysed_configurations, candidates=self.candidates,
-                                 fraction=self.search_fraction, max_frames=self.search_frames, seed=self.seed)
+    def design(self) -> MeasurementDesign:
+        """What :func:`plans.workflow.measure_bright` looks for and measures, drawn from ``seed``."""
+        return replace(self.measurement, seed=self.seed)
 
     @property
     def hidden(self) -> dict[str, dict[str, float]]:
@@ -511,8 +510,9 @@ def _cmd_demo(args) -> int:
     if any(E.get(n).level == "detector" for n in names):
         raise CliError("--effect: the simulated IOC hides twin-level effects only (detector-level ones: "
                        + ", ".join(n for n in names if E.get(n).level == "detector") + ")")
-    s = DemoSettings(n_rays=args.rays, configurations=args.configurations, open_configurations=n_open,
-                     analysed_configurations=args.analysed_configurations, effects=effects,
+    s = DemoSettings(n_rays=args.rays, effects=effects,
+                     measurement=_design(bright=args.configurations, reopened=n_open,
+                                         analysed=args.analysed_configurations),
                      offsets_fraction=args.offsets_fraction, rounds=args.rounds, seed=args.seed,
                      fit_top=args.fit_top or None, fit=D.FIT.replace(rays=args.fit_rays),
                      scan=D.SCAN.replace(rays=min(args.fit_rays, D.SCAN.rays)),
