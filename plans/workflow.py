@@ -93,7 +93,7 @@ def measurement_design(design: MeasurementDesign, bright: np.ndarray) -> tuple[n
 
 @dataclass
 class Measured:
-    """What :func:`measure_bright` did: the beam search, the bright configurations, the measurement."""
+    """What :func:`measure_bright` did: the beam search and the measurement."""
 
     beam: object                 # bluesky_offsets.offsets.beam_search.SearchResult
     measurement: Measurement
@@ -128,15 +128,15 @@ def measure_bright(beamline, chamber, *, bright: int = 16, reopened: int = 4, an
     Returns
     -------
     Measured
-        The beam search, the bright search's uid, the measurement (``uid``), the analysed indices.
+        The beam search, the measurement (``uid``), how many were measured with the slits open,
+        the analysed indices.  ``md`` goes into the measurement run's metadata.
     """
     from plans import HIGH_RAY_THRESHOLD, find_beam, find_high_ray_configurations, measure_configurations
 
     design = MeasurementDesign(bright=bright, reopened=reopened, analysed=analysed, candidates=candidates,
                                fraction=fraction, max_frames=max_frames, seed=seed)
     log.info("finding the beam (offsets up to ±%g of each range assumed)", fraction)
-    beam = yield from find_beam(beamline, chamber, fraction=fraction, max_frames=max_frames, table=METRIXS,
-                                md={"purpose": "beam search", **dict(md or {})})
+    beam = yield from find_beam(beamline, chamber, fraction=fraction, max_frames=max_frames, table=METRIXS)
     for line in beam.log:
         log.info("  %s", line)
     if not beam.bright:
