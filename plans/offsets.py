@@ -51,6 +51,7 @@ class OffsetResult:
     info: dict = field(default_factory=dict)
     table: ParameterTable = METRIXS
     raw: object = None  # the finder's own result object
+    uid: str | None = None  # the find_offsets run (None inside a run opened by the caller)
 
     @property
     def physical(self) -> np.ndarray:
@@ -203,5 +204,6 @@ def find_offsets(finder, measurement=None, *, store: RunStore | str | None = Non
     if m.truth_id:
         _md["truth_id"] = m.truth_id
     _md.update(md or {})
-    result, _ = yield from in_run(body, _md, open_run)
+    result, uid = yield from in_run(body, _md, open_run)
+    result.uid = uid
     return result

@@ -20,6 +20,7 @@ the demo's terminal).
 from __future__ import annotations
 
 import logging
+import time
 from dataclasses import asdict, dataclass
 
 import numpy as np
@@ -31,7 +32,7 @@ from bluesky_offsets.physics.parameters import METRIXS
 
 log = logging.getLogger("bluesky_offsets.workflow")
 
-__all__ = ["DarkBeamline", "MeasurementDesign", "Measured", "analyse", "candidate_configurations",
+__all__ = ["DarkBeamline", "MeasurementDesign", "Measured", "Session", "analyse", "calibration_session", "candidate_configurations",
            "find_offsets_in_store", "measure", "measure_bright",
            "measurement_design", "resolve_run"]
 
@@ -233,6 +234,53 @@ def surrogate_offsets(m: Measurement, forward_model, *, evaluations: int = 3000,
              int(inside.sum()), evaluations)
     return (yield from find_offsets(finder, m if inside.all() else m.subset(inside), table=METRIXS,
                                     md={"evaluations": int(evaluations), "seed": int(seed), **dict(md or {})}))
+
+
+# --------------------------------------------------------------------------- #
+# the whole session
+# --------------------------------------------------------------------------- #
+@dataclass
+class Session:
+    """What :func:`calibration_session` did, and when each part ended (``times``, perf_counter)."""
+
+    measured: Measured
+    offsets: object              # plans.offsets.OffsetResult (``uid``: its run)
+    analysis: object             # plans.diagnose.Analysis
+    times: dict
+
+
+def calibration_session(beamline, chamber, twin, forward_model, *, design: MeasurementDesign,
+                        evaluations: int = 3000, candidates: list[str] | None = None, rounds: int = 2,
+                        fit=None, scan=None, fit_top: int | None = D.FIT_TOP, resolution: str = "camera",
+                        measurement_md: dict | None = None, analysis_md: dict | None = None,
+                        step=log.info) -> MsgGenerator[Session]:
+    """The session on a beamline: :func:`measure_bright`, :func:`surrogate_offsets` on it, then
+    :func:`plans.diagnose.analyse_measurement` of the analysed configurations from the bare twin and
+    the surrogate's offsets.  ``step(text)`` announces each part (the demo numbers them).  What the
+    demo and ``bluesky-offsets calibrate`` run; seeds from ``design.seed``."""
+    from bluesky_offsets.model.state import ModelState
+
+    from .diagnose import analyse_measurement
+
+    t = {"start": time.perf_counter()}
+    step("finding the beam, bright configurations around it, measuring them")
+    measured = yield from measure_bright(beamline, chamber, **asdict(design), md=measurement_md)
+    t["measure"] = time.perf_counter()
+    m, analysed, n_open = measured.measurement, measured.analysed, measured.n_open
+    meas = m.for_analysis(resolution=resolution).subset(analysed)
+
+    step("finding the offsets with the surrogate, then through the twin")
+    found = yield from surrogate_offsets(m, forward_model, evaluations=evaluations, seed=design.seed)
+    t["finder"] = time.perf_counter()
+    starts = [ModelState(label="twin"), ModelState(np.asarray(found.offsets, float), {}, "surrogate offsets")]
+    step(f"compare → fit offsets (differentiable twin, exact Jacobians) → diagnose → add the winning effect "
+         f"→ refit → diagnose again ({len(analysed) - n_open} bright + {n_open} open configurations)")
+    analysis = yield from analyse_measurement(meas, twin, starts=starts, candidates=candidates, rounds=rounds,
+                                              fit_options=fit, scan_options=scan, fit_top=fit_top, seed=design.seed,
+                                              md={**dict(analysis_md or {}),
+                                                  "analysed_configurations": [int(i) for i in analysed]})
+    t["analysis"] = time.perf_counter()
+    return Session(measured, found, analysis, t)
 
 
 # --------------------------------------------------------------------------- #

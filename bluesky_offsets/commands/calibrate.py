@@ -5,7 +5,7 @@ The IOC is the simulated METRIXS (``--prefix``) or the real one (``--pvs FILE``,
 beam from where the motors stand, find bright configurations around it and measure them
 (:func:`plans.workflow.measure_bright`), find the offsets with the surrogate
 (:func:`plans.workflow.surrogate_offsets`), then compare, fit, diagnose, add the winning effect
-and refit (:func:`plans.workflow.analyse`); one HTML report.
+and refit: :func:`plans.workflow.calibration_session`, as the demo runs it; one HTML report.
 
 Everything a user can fix is refused in one line before a motor moves: the store, the
 surrogate checkpoint, the PV map, an IOC that does not answer.  A beamline on which the beam
@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import re
 import time
-from dataclasses import asdict
 from pathlib import Path
 
 from bluesky_offsets.commands.cli import CliError
@@ -87,7 +86,8 @@ def _calibrate(args, design, effects, pv_map, forward_model, store) -> int:
 
     from bluesky_offsets.commands.demo import ScanProgress, _close_channels, _StepLines
     from bluesky_offsets.commands.report import history_lines, paragraph, write_analysis_report
-    from plans.workflow import DarkBeamline, analyse, measure_bright, surrogate_offsets
+    from bluesky_offsets.physics.twin import Twin
+    from plans.workflow import DarkBeamline, calibration_session
 
     t0 = time.perf_counter()
 
@@ -106,28 +106,24 @@ def _calibrate(args, design, effects, pv_map, forward_model, store) -> int:
         for cb in live:
             RE.subscribe(cb)
 
-        def session():
-            measured = yield from measure_bright(beamline, chamber, **asdict(design), md={"purpose": "calibrate"})
-            found = yield from surrogate_offsets(measured.measurement, forward_model, evaluations=args.evaluations,
-                                                 seed=args.seed)
-            analysis = yield from analyse(measured.uid, "last", candidates=effects, rounds=args.rounds,
-                                          fit_top=args.fit_top or None, resolution=args.resolution, seed=args.seed,
-                                          scheduler=args.scheduler, store=store,
-                                          **({"fit": {"rays": args.fit_rays}} if args.fit_rays else {}))
-            return measured, found, analysis
-
+        twin = Twin(n_rays=10_000, scheduler=args.scheduler)
         try:
-            measured, found, analysis = RE(session()).plan_result
+            session = RE(calibration_session(
+                beamline, chamber, twin, forward_model, design=design, evaluations=args.evaluations,
+                candidates=effects, rounds=args.rounds, fit={"rays": args.fit_rays} if args.fit_rays else None,
+                fit_top=args.fit_top or None, resolution=args.resolution, measurement_md={"purpose": "calibrate"},
+                analysis_md={"purpose": "calibration analysis"}, step=say)).plan_result
         except DarkBeamline as exc:
             raise CliError(str(exc)) from None
         except RunEngineInterrupted:
             RE.abort("interrupted")
             raise KeyboardInterrupt from None
+        finally:
+            twin.close()
+        measured, analysis = session.measured, session.analysis
         out = Path(args.out)
         out.mkdir(parents=True, exist_ok=True)
-        uids = {"measurement": measured.uid, "find_offsets": store.latest("find_offsets",
-                                                                          measurement_uid=measured.uid),
-                **analysis.uids}
+        uids = {"measurement": measured.uid, "find_offsets": session.offsets.uid, **analysis.uids}
         report = write_analysis_report(
             out / "report.html", analysis, analysis.measurement.spec, title=f"bluesky-offsets calibrate: {pv_map.name}",
             intro=[("What this is", paragraph(

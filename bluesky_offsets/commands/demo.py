@@ -227,36 +227,19 @@ class ScanProgress:
 # --------------------------------------------------------------------------- #
 # the workflow as one plan
 # --------------------------------------------------------------------------- #
-def demo_plan(s: DemoSettings, beamline, chamber, twin, forward_model, store, log):
-    """Find bright configurations, measure, find offsets, compare, diagnose, add the effect, refit."""
-    from dataclasses import asdict
+def demo_plan(s: DemoSettings, beamline, chamber, twin, forward_model, log):
+    """The session (:func:`plans.workflow.calibration_session`) with the demo's settings; its steps
+    numbered 2 to 4 of the demo's five."""
+    import itertools
 
-    from bluesky_offsets.model.state import ModelState
-    from plans.diagnose import analyse_measurement
-    from plans.workflow import measure_bright, surrogate_offsets
+    from plans.workflow import calibration_session
 
-    t = {"start": time.perf_counter()}
-    log("[2/5] finding the beam, bright configurations around it, measuring them")
-    measured = yield from measure_bright(beamline, chamber, **asdict(s.design), md={"purpose": "demo measurement"})
-    t["measure"] = time.perf_counter()
-    m, analysed, n_open = measured.measurement, measured.analysed, measured.n_open
-    meas = m.for_analysis(resolution=s.resolution).subset(analysed)
-    n_bright = len(analysed) - n_open
-
-    log("[3/5] finding the offsets with the surrogate, then through the twin")
-    found = yield from surrogate_offsets(m, forward_model, evaluations=s.finder_evaluations, seed=s.seed)
-    t["finder"] = time.perf_counter()
-    starts = [ModelState(label="twin"), ModelState(np.asarray(found.offsets, float), {}, "surrogate offsets")]
-    log(f"[4/5] compare → fit offsets (differentiable twin, exact Jacobians) → diagnose → add the winning effect "
-        f"→ refit → diagnose again ({n_bright} bright + {n_open} open configurations)")
-    analysis = yield from analyse_measurement(meas, twin, starts=starts, candidates=s.candidates_effects,
-                                              rounds=s.rounds, fit_options=s.fit, scan_options=s.scan,
-                                              fit_top=s.fit_top, seed=s.seed,
-                                              md={"purpose": "bluesky-offsets demo",
-                                                  "analysed_configurations": [int(i) for i in analysed]})
-    t["analysis"] = time.perf_counter()
-    return {"measurement": m, "offsets": found, "analysis": analysis, "times": t, "n_open": n_open,
-            "beam": measured.beam}
+    number = itertools.count(2)
+    return (yield from calibration_session(
+        beamline, chamber, twin, forward_model, design=s.design, evaluations=s.finder_evaluations,
+        candidates=s.candidates_effects, rounds=s.rounds, fit=s.fit, scan=s.scan, fit_top=s.fit_top,
+        resolution=s.resolution, measurement_md={"purpose": "demo measurement"},
+        analysis_md={"purpose": "bluesky-offsets demo"}, step=lambda text: log(f"[{next(number)}/5] {text}")))
 
 
 def run_demo(out: Path, settings: DemoSettings | None = None, store_location: str | None = None) -> dict:
@@ -283,9 +266,9 @@ def run_demo(out: Path, settings: DemoSettings | None = None, store_location: st
     try:
         from bluesky import RunEngine
         from bluesky.utils import RunEngineInterrupted
-        from ophyd_async.core import init_devices
 
-        from bluesky_offsets.epics.devices import FocusChamber, MetrixsBeamline
+        from bluesky_offsets.commands.calibrate import connect_devices
+        from bluesky_offsets.epics.pvmap import PVMap
         from bluesky_offsets.offsets.finder import load_forward_model
         from bluesky_offsets.commands.cli import quiet_logs
         from bluesky_offsets.commands.report import paragraph, table_, write_analysis_report
@@ -300,9 +283,7 @@ def run_demo(out: Path, settings: DemoSettings | None = None, store_location: st
         twin.client  # start the Dask workers while the IOC comes up
         RE = RunEngine({}, call_returns_result=True)  # before the devices: they connect in its event loop
         ioc.wait_ready()
-        with init_devices():
-            beamline = MetrixsBeamline(ioc.prefix, name="metrixs")
-            chamber = FocusChamber(ioc.prefix + "chamber:", name="chamber")
+        beamline, chamber = connect_devices(PVMap.simulated(ioc.prefix), timeout=10.0)
         store.subscribe(RE)
         RE.subscribe(ScanProgress())
         from bluesky_offsets.live import LiveFitProgress, LiveFootprints
@@ -311,21 +292,18 @@ def run_demo(out: Path, settings: DemoSettings | None = None, store_location: st
             RE.subscribe(cb)
         log(f"      IOC {ioc.prefix} on 127.0.0.1:{ioc.port}; run store {store.location}")
         try:
-            result = RE(demo_plan(s, beamline, chamber, twin, forward_model, store, log))
+            result = RE(demo_plan(s, beamline, chamber, twin, forward_model, log))
         except RunEngineInterrupted:  # Ctrl-C paused it: end the run as aborted, then clean up
             RE.abort("interrupted")
             raise KeyboardInterrupt from None
-        res = result.plan_result
+        session = result.plan_result
         uids = list(result.run_start_uids)
-        analysis = res["analysis"]
-        m = res["measurement"]
-        n_open = res["n_open"]
-        # the first three runs: the search, the measurement, the surrogate finder
-        beam = res["beam"]
-        nb = len(beam.uids)  # the beam search's runs come first, then the search, the measurement, the finder
-        steps = {"find_beam": beam.uids[-1], "search": uids[nb], "measurement": m.uid, "find_offsets": uids[nb + 2],
-                 **{k: v for k, v in analysis.uids.items() if v}}
-        t = res["times"]
+        analysis, m, n_open = session.analysis, session.measured.measurement, session.measured.n_open
+        beam = session.measured.beam
+        # the beam search's runs come first, then the bright search's
+        steps = {"find_beam": beam.uids[-1], "search": uids[len(beam.uids)], "measurement": m.uid,
+                 "find_offsets": session.offsets.uid, **{k: v for k, v in analysis.uids.items() if v}}
+        t = session.times
 
         log("[5/5] writing the report")
         what = (f"hidden offsets in all {len(METRIXS)} parameters (uniform within ±{s.offsets_fraction:g} of each "
