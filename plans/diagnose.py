@@ -51,6 +51,7 @@ from bluesky_offsets.model.misfit import (
 from bluesky_offsets.model.fit import FitOptions
 from bluesky_offsets.model.measurement import Measurement
 from bluesky_offsets.model.state import (
+    CalibratedState,
     ModelState,
     RefineResult,
     refine,
@@ -124,6 +125,8 @@ class Refit:
     history: list[dict]
     versions: list[Version]
     uid: str | None = None
+    covariance: np.ndarray | None = None     # the refit's (normalized offsets, then effect parameters)
+    fit_names: list[str] | None = None       # its rows' names
 
     def magnitude(self) -> dict[str, tuple[float, float]]:
         """``{parameter: (value, sigma)}`` of the added effect."""
@@ -167,6 +170,18 @@ class Analysis:
     @property
     def versions(self) -> list[Version]:
         return [c.version() for c in self.comparisons]
+
+    @property
+    def calibrated(self) -> CalibratedState:
+        """The model the analysis ends with and the covariance of the fit that gave it (the last
+        refit's, else the offsets fit's): what :func:`plans.optimize.optimize_beam` optimizes on."""
+        if self.refits and self.refits[-1].covariance is not None:
+            r = self.refits[-1]
+            return CalibratedState(r.state, r.covariance, tuple(r.fit_names), r.uid)
+        if self.refinement is not None and not self.refits:
+            f = self.refinement.result.fit
+            return CalibratedState(self.refinement.state, f.covariance, tuple(f.names), self.refinement.uid)
+        return CalibratedState(self.final.state, None, None, self.final.uid)
 
     @property
     def final(self) -> Comparison:
@@ -499,12 +514,14 @@ def add_effect_and_refit(measurement, state: ModelState, effect: str, twin, forw
                 progress(d)
             res = D.add_effect_result(meas, state, effect, twin, values=start_values, options=opts, progress=record,
                                       table=table)
-            return res.state, res.effect_sigma
+            return res.state, res.effect_sigma, res.fit
 
-        st, sig = yield from run_in_thread(work, desc=f"add {effect} and refit", show=show)
+        st, sig, fit = yield from run_in_thread(work, desc=f"add {effect} and refit", show=show)
         st = ModelState(st.offsets, st.effects, label)
         row = {"effect": effect, "values_json": _json(st.effects[effect]), "sigma_json": _json(sig.get(effect, {})),
-               "units_json": _json({p.name: p.unit for p in eff.parameters})}
+               "units_json": _json({p.name: p.unit for p in eff.parameters}),
+               # the fit's covariance: what an optimization on this model propagates (restore_refit)
+               "covariance": np.asarray(fit.covariance, float), "fit_names_json": _json(fit.names)}
         for p in eff.parameters:
             row[p.name] = float(st.effects[effect][p.name])
             row[f"{p.name}_sigma"] = float(sig.get(effect, {}).get(p.name, float("nan")))
@@ -514,7 +531,8 @@ def add_effect_and_refit(measurement, state: ModelState, effect: str, twin, forw
                                      table=table)
         versions = [*history, c.version()]
         yield from record_error_history(versions)
-        return Refit(effect, st, sig, c, steps, versions)
+        return Refit(effect, st, sig, c, steps, versions, covariance=np.asarray(fit.covariance, float),
+                     fit_names=list(fit.names))
 
     r, uid = yield from in_run(body, _md, open_run)
     r.uid = r.comparison.uid = uid
@@ -563,7 +581,10 @@ def restore_refit(res: Mapping, history: Sequence[Version], uid: str | None = No
     """The :class:`Refit` of an ``add_effect_and_refit`` run, after the versions ``history``."""
     c = restore_comparison(res, uid)
     steps = [{k: v for k, v in r.items() if k not in ("time", "seq_num")} for r in res.get("progress", [])]
-    return Refit(str(res["start"]["effect"]), c.state, dict(c.effect_sigma), c, steps, [*history, c.version()], uid)
+    row = (res.get("effect") or [{}])[0]
+    cov = row.get("covariance")
+    return Refit(str(res["start"]["effect"]), c.state, dict(c.effect_sigma), c, steps, [*history, c.version()], uid,
+                 None if cov is None else np.asarray(cov, float), row.get("fit_names"))
 
 
 def analysis_key(meas: Measurement, settings: Mapping) -> str:

@@ -19,10 +19,10 @@ import bluesky.preprocessors as bpp
 import numpy as np
 from bluesky.utils import MsgGenerator
 
-from bluesky_offsets.physics.parameters import METRIXS, ParameterTable
 from bluesky_offsets.model.measurement import Measurement
-from bluesky_offsets.store import consistent_profiles
+from bluesky_offsets.physics.parameters import METRIXS, ParameterTable
 from bluesky_offsets.physics.twin import HistogramSpec
+from bluesky_offsets.store import consistent_profiles
 
 from .motion import (
     as_configurations,
@@ -86,11 +86,16 @@ def _reference_vector(reference, start: Mapping, table: ParameterTable) -> np.nd
 
 def scan_configurations(configurations, beamline, chamber, *, reference=None, table: ParameterTable = METRIXS,
                         md: Mapping | None = None, keep_going: Callable[[int, dict], bool] | None = None,
-                        read_motors: bool = True) -> MsgGenerator[Measurement]:
-    """Core of :func:`measure_configurations` and the on-beamline ray search.
+                        read_motors: bool = True, return_to_start: bool = True,
+                        finish: Callable[[Measurement], MsgGenerator[Any]] | None = None) -> MsgGenerator[Measurement]:
+    """Core of :func:`measure_configurations`, the on-beamline ray search and the beam optimizer.
 
     ``keep_going(index, reading)`` (optional) is called after each event and
-    ends the scan early when it returns False.
+    ends the scan early when it returns False.  ``return_to_start=False`` leaves the motors at
+    the last configuration when the scan succeeds (a move the plan means to keep:
+    :func:`plans.optimize.optimize_beam`), and returns them to the start when it fails;
+    ``finish(measurement)`` runs inside the run after the last frame (results of the frames as
+    streams of their own).
     """
     motors = resolve_motors(beamline, table)
     configs = as_configurations(configurations, table)
@@ -152,8 +157,14 @@ def scan_configurations(configurations, beamline, chamber, *, reference=None, ta
             readings.append(reading)
             if keep_going is not None and not keep_going(k, reading):
                 break
+        if finish is not None:
+            yield from finish(_measurement(readings, configs, table, None, _md))
 
-    uid = yield from bpp.finalize_wrapper(bpp.run_wrapper(body(), md=_md), return_to(motors, start))
+    run = bpp.run_wrapper(body(), md=_md)
+    if return_to_start:
+        uid = yield from bpp.finalize_wrapper(run, return_to(motors, start))
+    else:  # kept where the scan ends, unless it fails: then back where they started
+        uid = yield from bpp.contingency_wrapper(run, except_plan=lambda exc: return_to(motors, start))
     return _measurement(readings, configs, table, uid, _md)
 
 

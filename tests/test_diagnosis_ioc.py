@@ -43,10 +43,10 @@ SCENARIOS = {
 }
 
 
-def _demo(tmp_path: Path, effect: str) -> tuple[dict, subprocess.CompletedProcess]:
+def _demo(tmp_path: Path, effect: str, *extra: str) -> tuple[dict, subprocess.CompletedProcess]:
     exe = Path(sys.executable).parent / "bluesky-offsets"  # the console script, as a user runs it
     cmd = [str(exe) if exe.exists() else shutil.which("bluesky-offsets"), "demo", "--effect", effect,
-           "--out", str(tmp_path / "out"), "--store", str(tmp_path / "runs")]
+           "--out", str(tmp_path / "out"), "--store", str(tmp_path / "runs"), *extra]
     proc = subprocess.run(cmd, capture_output=True, text=True, timeout=1150,
                           env=dict(os.environ, PYTHONUNBUFFERED="1"))
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
@@ -56,13 +56,18 @@ def _demo(tmp_path: Path, effect: str) -> tuple[dict, subprocess.CompletedProces
 
 class _Scenario:
     """One scenario's demo, run once for the tests of its class: pytest-xdist (``--dist
-    loadscope``) runs a class on one worker, so the demos spread over the workers."""
+    loadscope``) runs a class on one worker, so the demos spread over the workers.  Only the
+    main job's scenario ends with the beam optimization (``optimize``); the others stop after
+    the diagnosis (``--no-optimize``), the step they test."""
+
+    optimize = False
 
     @pytest.fixture(scope="class")
     def demo(self, scenario, tmp_path_factory) -> tuple[Path, dict, subprocess.CompletedProcess]:
         """(folder, summary, process)"""
         tmp = tmp_path_factory.mktemp(scenario)
-        return (tmp, *_demo(tmp, SCENARIOS[scenario][0] if scenario in SCENARIOS else scenario))
+        return (tmp, *_demo(tmp, SCENARIOS[scenario][0] if scenario in SCENARIOS else scenario,
+                            *(() if self.optimize else ("--no-optimize",))))
 
 
 class _HiddenEffect(_Scenario):
@@ -87,6 +92,35 @@ def _scenario(name: str):
 
 @_scenario("chamber_z")
 class TestChamberZ(_HiddenEffect):
+    optimize = True
+
+    def test_the_main_job_ends_with_a_smaller_focus_as_predicted(self, demo):
+        """Issue 21: the smallest focus computed on the calibrated twin, moved to, measured; the run
+        holds the frames before and after with the prediction and loads back by uid."""
+        tmp_path, s, proc = demo
+        b = s["beam"]
+        before, after, pred, best = b["before"], b["after"], b["predicted"], b["true_best"]
+        for a in "xy":
+            assert after[f"rms_{a}"] < 0.6 * before[f"rms_{a}"], (a, before, after)
+            # measured as predicted, and as small as the hidden true beamline allows (10 % each: the
+            # acceptance; benchmarks/bench_optimize_beam.py checks five other draws)
+            assert abs(after[f"rms_{a}"] / pred[f"rms_{a}"] - 1) <= 0.10, (a, after, pred)
+            assert after[f"rms_{a}"] <= 1.10 * best[f"rms_{a}"], (a, after, best)
+            assert np.isfinite(b["predicted_sigma"][a]) and b["predicted_sigma"][a] > 0
+        assert after["intensity"] >= 0.9 * before["intensity"]
+        assert b["moved"] and all(n.startswith(("E1", "E2")) for n in b["moved"])
+        assert "smallest focus: before" in proc.stdout and "hidden truth's best" in proc.stdout
+        with open_store(tmp_path / "runs") as store:
+            m = store.load_measurement(b["uid"])
+            assert len(m) == 2 * b["frames"] and m.profile_x is not None
+            md = m.metadata
+            assert md["plan_name"] == "optimize_beam" and md["predicted"]["rms_x"] == pytest.approx(pred["rms_x"])
+            cur, new = np.asarray(md["current"]), np.asarray(md["settings"])
+            assert np.allclose(m.configurations[0], cur) and np.allclose(m.configurations[-1], new)
+            beam = load_results(store, b["uid"])["beam"]
+            assert [r["what"] for r in beam] == ["before", "predicted", "after"]
+        html = (tmp_path / "out" / "report.html").read_text()
+        assert "The smallest focus with the calibrated twin" in html and b["uid"] in html
     def test_the_main_job_s_runs_load_back_by_uid(self, demo):
         """The chamber_z scenario is the README's main job: every step a run in the store, linked to
         the measurement; the load-back line it prints works as printed; the report is self-contained."""

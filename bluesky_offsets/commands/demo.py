@@ -10,9 +10,12 @@ A whole calibration and diagnosis session against the simulated beamline:
    measure them (>= 16), find the offsets (surrogate finder, then a fit through the
    differentiable twin), compare model and measurement, diagnose the missing effect, add the
    winner, refit, diagnose again;
-3. write one self-contained HTML report and print a summary: run uids, the error history
-   (twin -> + offsets -> + effect), the fitted effect next to the hidden one, and how to load
-   the runs back.
+3. the smallest focus on the calibrated twin (:func:`plans.optimize.optimize_beam`): settings
+   computed, motors moved there, frames before and after; beside it the best the hidden true
+   beamline can reach (the same optimizer on the true state);
+4. write one self-contained HTML report and print a summary: run uids, the error history
+   (twin -> + offsets -> + effect), the fitted effect next to the hidden one, the focus before,
+   after and predicted, and how to load the runs back.
 
 The IOC is always stopped, also after an error or Ctrl-C.
 """
@@ -80,6 +83,14 @@ class DemoSettings:
     candidates_effects: Sequence[str] | None = None
     seed: int = 0
     workers: int | None = None
+    # the last step: the smallest focus with the calibrated twin (plans.optimize.optimize_beam),
+    # frames averaged before and after the move
+    optimize: bool = True
+    frames: int = 3
+
+    @property
+    def steps(self) -> int:
+        return 6 if self.optimize else 5
 
     @property
     def design(self) -> MeasurementDesign:
@@ -228,18 +239,30 @@ class ScanProgress:
 # the workflow as one plan
 # --------------------------------------------------------------------------- #
 def demo_plan(s: DemoSettings, beamline, chamber, twin, forward_model, log):
-    """The session (:func:`plans.workflow.calibration_session`) with the demo's settings; its steps
-    numbered 2 to 4 of the demo's five."""
+    """The session (:func:`plans.workflow.calibration_session`) with the demo's settings, then the
+    smallest focus on the calibrated twin (:func:`plans.optimize.optimize_beam`); steps numbered 2
+    to 5 of the demo's six.  Returns (session, beam result or None)."""
     import itertools
 
     from plans.workflow import calibration_session
 
+    from plans.optimize import optimize_beam
+
     number = itertools.count(2)
-    return (yield from calibration_session(
+    session = yield from calibration_session(
         beamline, chamber, twin, forward_model, design=s.design, evaluations=s.finder_evaluations,
         candidates=s.candidates_effects, rounds=s.rounds, fit=s.fit, scan=s.scan, fit_top=s.fit_top,
         resolution=s.resolution, measurement_md={"purpose": "demo measurement"},
-        analysis_md={"purpose": "bluesky-offsets demo"}, step=lambda text: log(f"[{next(number)}/5] {text}")))
+        analysis_md={"purpose": "bluesky-offsets demo"},
+        step=lambda text: log(f"[{next(number)}/{s.steps}] {text}"))
+    beam = None
+    if s.optimize:
+        log(f"[{next(number)}/{s.steps}] the smallest focus with the calibrated twin: settings for E1/E2 within "
+            f"their limits, moved there, {s.frames} frames before and after")
+        beam = yield from optimize_beam("smallest_focus", session.analysis, beamline, chamber, frames=s.frames,
+                                        options={"seed": s.seed + 11}, md={"purpose": "bluesky-offsets demo"})
+    session.times["optimize"] = time.perf_counter()
+    return session, beam
 
 
 def run_demo(out: Path, settings: DemoSettings | None = None, store_location: str | None = None) -> dict:
@@ -257,7 +280,7 @@ def run_demo(out: Path, settings: DemoSettings | None = None, store_location: st
     load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
     hidden = s.hidden
     offsets = truth["offsets"]
-    log(f"[1/5] starting the simulated METRIXS IOC (RAYX twin backend; hidden offsets in {len(offsets)} of "
+    log(f"[1/{s.steps}] starting the simulated METRIXS IOC (RAYX twin backend; hidden offsets in {len(offsets)} of "
         f"{len(METRIXS)} parameters, hidden effects: {', '.join(hidden) or 'none'}); load average {load:.1f} on "
         f"{os.cpu_count()} cores")
     # seeded frame noise: the same settings give the same demo, --seed another draw of it
@@ -296,7 +319,7 @@ def run_demo(out: Path, settings: DemoSettings | None = None, store_location: st
         except RunEngineInterrupted:  # Ctrl-C paused it: end the run as aborted, then clean up
             RE.abort("interrupted")
             raise KeyboardInterrupt from None
-        session = result.plan_result
+        session, beam_result = result.plan_result
         uids = list(result.run_start_uids)
         analysis, m, n_open = session.analysis, session.measured.measurement, session.measured.n_open
         beam = session.measured.beam
@@ -304,8 +327,17 @@ def run_demo(out: Path, settings: DemoSettings | None = None, store_location: st
         steps = {"find_beam": beam.uids[-1], "search": uids[len(beam.uids)], "measurement": m.uid,
                  "find_offsets": session.offsets.uid, **{k: v for k, v in analysis.uids.items() if v}}
         t = session.times
+        best = None
+        if beam_result is not None:
+            steps["optimize_beam"] = beam_result.uid
+            best = _true_best(truth, beam_result)
+            for line in beam_result.lines():
+                log("      " + line)
+            log(f"      the hidden true beamline's best (the same optimizer on the true state): "
+                f"{best.rms_x * 1e3:.1f} x {best.rms_y * 1e3:.1f} µm rms; after / best: "
+                f"x {beam_result.after.rms_x / best.rms_x:.2f}, y {beam_result.after.rms_y / best.rms_y:.2f}")
 
-        log("[5/5] writing the report")
+        log(f"[{s.steps}/{s.steps}] writing the report")
         what = (f"hidden offsets in all {len(METRIXS)} parameters (uniform within ±{s.offsets_fraction:g} of each "
                 f"range)" if s.offsets_fraction > 0 else
                 f"hidden offsets in {len(offsets)} of the {len(METRIXS)} parameters ({', '.join(offsets)})")
@@ -323,10 +355,15 @@ def run_demo(out: Path, settings: DemoSettings | None = None, store_location: st
                                      "measurement uid": m.uid, "truth id": m.truth_id or ""}]))]
         timing = {"IOC up": t["start"] - t0, "beam search + measure": t["measure"] - t["start"],
                   "surrogate finder": t["finder"] - t["measure"], "compare/fit/diagnose/refit":
-                  t["analysis"] - t["finder"]}
+                  t["analysis"] - t["finder"], **({"optimize, move, measure": t["optimize"] - t["analysis"]}
+                                                  if beam_result is not None else {})}
+        from bluesky_offsets.commands.report import beam_section
+        beam_secs = [] if beam_result is None else [
+            ("The smallest focus with the calibrated twin", beam_section(beam_result, out, best=best))]
         report = write_analysis_report(out / "report.html", analysis, analysis.measurement.spec, title="bluesky-offsets demo",
                                        intro=intro, truth=hidden, uids=steps, store_location=store.location,
-                                       extra=[("Timing", table_([{k: f"{v:.0f} s" for k, v in timing.items()}]))])
+                                       extra=[*beam_secs,
+                                              ("Timing", table_([{k: f"{v:.0f} s" for k, v in timing.items()}]))])
         seconds = time.perf_counter() - t0
         summary = {
             "seconds": seconds, "load_average_start": load, "timing_s": timing, "store": store.location,
@@ -340,7 +377,8 @@ def run_demo(out: Path, settings: DemoSettings | None = None, store_location: st
             "history": [c.total_row() for c in analysis.comparisons],
             "fitted_effects": {r.effect: r.magnitude() for r in analysis.refits},
             "truth_id": m.truth_id, "ioc": {"prefix": ioc.prefix, "port": ioc.port, "pid": ioc.proc.pid},
-            "live_views": [str(p) for cb in live for p in cb.written]}
+            "live_views": [str(p) for cb in live for p in cb.written],
+            "beam": None if beam_result is None else _beam_summary(beam_result, best)}
         (out / "summary.json").write_text(json.dumps(summary, indent=1, default=float))
         _print_summary(summary, analysis, store.location)
         store.close()
@@ -353,6 +391,25 @@ def run_demo(out: Path, settings: DemoSettings | None = None, store_location: st
         if RE is not None:
             _close_channels(RE)
         ioc.stop()
+
+
+def _true_best(truth: Mapping, beam):
+    """The hidden true beamline's smallest focus: the same optimizer, options and limits on the
+    true state (a simulation's check of the plan's result; the plan never sees it)."""
+    from bluesky_offsets.model.state import ModelState
+    from bluesky_offsets.optimize import optimize_settings
+    true = ModelState(METRIXS.from_mapping(truth["offsets"], base=np.zeros(len(METRIXS))), label="hidden truth")
+    o = beam.optimum
+    return optimize_settings(o.target, true, o.current, limits=beam.limits, constraints=beam.constraints,
+                             options=beam.options, overrides=truth.get("overrides") or None).predicted
+
+
+def _beam_summary(beam, best) -> dict:
+    o = beam.optimum
+    return {"uid": beam.uid, "target": o.target.name, "before": beam.before.as_dict(), "after": beam.after.as_dict(),
+            "predicted": o.predicted.as_dict(), "predicted_sigma": dict(o.sigma), "trusted": o.trusted,
+            "flags": [f.text() for f in o.flags], "moved": list(o.moved), "at_limit": list(o.at_limit),
+            "true_best": None if best is None else best.as_dict(), "frames": beam.frames}
 
 
 def _close_channels(RE) -> None:
@@ -394,6 +451,13 @@ def _print_summary(summary: dict, analysis, location: str) -> None:
     print(f"  python -c \"from bluesky_offsets.store import open_store; from plans.diagnose import load_results; "
           f"s = open_store('{location}'); print(s.load_measurement('{first}').hist_x.shape); "
           f"print(load_results(s, '{summary['uids'].get('diagnose', first)}')['diagnosis'])\"")
+    b = summary.get("beam")
+    if b:
+        def um(f):
+            return f"{f['rms_x'] * 1e3:.1f} x {f['rms_y'] * 1e3:.1f} µm rms"
+        print(f"smallest focus: before {um(b['before'])}; after {um(b['after'])}; predicted {um(b['predicted'])} "
+              f"(± {b['predicted_sigma']['x'] * 1e3:.1f}, ± {b['predicted_sigma']['y'] * 1e3:.1f}"
+              f"{'' if b['trusted'] else ', not trusted'}); the hidden truth's best {um(b['true_best'])}")
     print(f"report: {summary['report']}")
     if summary.get("live_views"):
         print(f"live views: {len(summary['live_views'])} figures in {Path(summary['live_views'][0]).parent}")
@@ -427,6 +491,9 @@ def add_cli(sub) -> None:
                                          "default) or the paper's 50 x 50 bins")
     p.add_argument("--seed", type=int, default=0,
                    help="another draw of the demo: candidate design, frame noise, fit seeds (default %(default)s)")
+    p.add_argument("--no-optimize", action="store_true",
+                   help="end after the diagnosis, without the last step (the smallest focus with the calibrated "
+                        "twin: computed, moved there, measured)")
     p.add_argument("--threads", type=int, default=1,
                    help="torch CPU threads of the analysis (default %(default)s: its operations on 10^4-10^5 rays "
                         "gain nothing from more while the IOC and the Dask workers share the cores)")
@@ -494,7 +561,7 @@ def _cmd_demo(args) -> int:
                      offsets_fraction=args.offsets_fraction, rounds=args.rounds, seed=args.seed,
                      fit_top=args.fit_top or None, fit=D.FIT.replace(rays=args.fit_rays),
                      scan=D.SCAN.replace(rays=min(args.fit_rays, D.SCAN.rays)),
-                     resolution=args.resolution,
+                     resolution=args.resolution, optimize=not args.no_optimize,
                      candidates_effects=[c.strip() for c in args.candidates.split(",")] if args.candidates else None)
     for n in s.candidates_effects or ():
         try:

@@ -323,3 +323,62 @@ def history_lines(analysis) -> list[str]:
 
 def _value(name: str, value: float, sigma: float) -> str:
     return f"{name} = {value:.3g}" + (f" ± {sigma:.2g}" if math.isfinite(sigma) else "")
+
+
+def beam_section(result, work: Path, *, best=None) -> str:
+    """The optimized beam (:class:`plans.optimize.BeamResult`): the footprints before, after and
+    as predicted, each axis zoomed to its light, and a table of their sizes (``best``: the hidden
+    true beamline's best, a simulation's check, as a :class:`~bluesky_offsets.optimize.Focus`)."""
+    import matplotlib
+    matplotlib.use("Agg", force=False)
+    import matplotlib.pyplot as plt
+
+    from bluesky_offsets.physics.twin import CAMERA
+
+    prof = result.profiles
+    fig, axes = plt.subplots(2, 2, figsize=(10, 6))
+    centers = {"x": CAMERA.centers_x, "y": CAMERA.centers_y}
+    rows = (("before", ("before",), result.before), ("after", ("after", "predicted"), result.after))
+    for r, (label, keys, focus) in enumerate(rows):
+        for c, axis in enumerate("xy"):
+            ax = axes[r, c]
+            centre, width = getattr(focus, axis), getattr(focus, f"rms_{axis}")
+            for k in keys:
+                if prof.get(k) is None:
+                    continue
+                h = prof[k][c]
+                ax.step(centers[axis] * 1e3, h, where="mid", lw=1.2 if k != "predicted" else 1.0,
+                        ls="-" if k != "predicted" else "--", label=k)
+            if np.isfinite(centre) and np.isfinite(width):
+                half = max(6 * width, 10 * (centers[axis][1] - centers[axis][0]))
+                ax.set_xlim((centre - half) * 1e3, (centre + half) * 1e3)
+            ax.set_xlabel(f"{axis} [µm]")
+            ax.set_title(f"{label}: {axis} rms {width * 1e3:.1f} µm")
+            ax.legend(fontsize=8)
+    fig.suptitle(f"{result.optimum.target.name}: footprints at the camera's resolution")
+    fig.tight_layout()
+    path = Path(work) / "beam.png"
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+    tab = [{"beam": "before (measured)", **_sizes(result.before)}]
+    for k, s in enumerate(result.steps):
+        tag = "" if len(result.steps) == 1 else f" {k + 1}"
+        o = s.optimum
+        tab.append({"beam": f"predicted{tag}", **_sizes(o.predicted),
+                    "± rms x [µm]": o.sigma["x"] * 1e3, "± rms y [µm]": o.sigma["y"] * 1e3,
+                    "trusted": "yes" if o.trusted else "no"})
+        tab.append({"beam": f"after{tag} (measured)", **_sizes(s.after)})
+    if best is not None:
+        tab.append({"beam": "hidden true beamline's best (same optimizer)", **_sizes(best)})
+    o = result.optimum
+    moved = ", ".join(o.moved) or "nothing"
+    flags = "".join(f"<li>{html.escape(f.text())}</li>" for f in o.flags[:6])
+    return (_img(path, "footprints before and after the move, and as the calibrated twin predicted")
+            + table(tab, fmt="{:.4g}") + paragraph(f"Moved: {moved}. At a limit: {', '.join(o.at_limit) or 'none'}. "
+                                                   f"Run {result.uid}.")
+            + (f"<p>Largest shares of the prediction's uncertainty:</p><ul>{flags}</ul>" if flags else ""))
+
+
+def _sizes(f) -> dict:
+    return {"rms x [µm]": f.rms_x * 1e3, "rms y [µm]": f.rms_y * 1e3, "FWHM x [µm]": f.fwhm_x * 1e3,
+            "FWHM y [µm]": f.fwhm_y * 1e3, "intensity": f.intensity}

@@ -14,9 +14,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from bluesky_offsets.physics import effects as E
 from bluesky_offsets.model.fit import FitOptions, FitResult, engine_for, fit
 from bluesky_offsets.model.measurement import Measurement
+from bluesky_offsets.physics import effects as E
 from bluesky_offsets.physics.parameters import MAX_OFFSET, METRIXS, ParameterTable
 
 
@@ -50,6 +50,30 @@ class ModelState:
 
     def effect_parameters(self) -> list[tuple[str, E.EffectParameter]]:
         return [(name, p) for name in self.effects for p in E.get(name).parameters]
+
+
+@dataclass(frozen=True)
+class CalibratedState:
+    """A model state and the covariance of the fit that gave it: normalized offsets, then the
+    state's effect parameters, ``names`` in that order (None: no uncertainty known).  ``uid``:
+    the run the state comes from."""
+
+    state: ModelState
+    covariance: np.ndarray | None = None
+    names: tuple[str, ...] | None = None
+    uid: str | None = None
+
+    @classmethod
+    def of(cls, model) -> CalibratedState:
+        """A :class:`CalibratedState` from itself, a :class:`ModelState` (no covariance) or an
+        analysis (``plans.diagnose.Analysis``: its ``calibrated`` model)."""
+        if isinstance(model, cls):
+            return model
+        if isinstance(model, ModelState):
+            return cls(model)
+        if hasattr(model, "calibrated"):
+            return model.calibrated
+        raise TypeError(f"expected a calibrated model, a model state or an analysis, got {type(model).__name__}")
 
 
 def solve_normal(a: np.ndarray, b: np.ndarray) -> np.ndarray:

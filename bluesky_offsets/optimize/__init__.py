@@ -1,0 +1,50 @@
+"""From a calibrated twin to a better beam: targets, the optimizer on the differentiable twin.
+
+The plan that drives the motors there is :func:`plans.optimize.optimize_beam`.
+"""
+
+from .optimizer import (
+                        BeamOptimum,
+                        DarkStart,
+                        OptimizeOptions,
+                        TargetUnreachable,
+                        bounds,
+                        optimize_settings,
+                        predict,
+)
+from .targets import (
+                        MONOCHROMATOR,
+                        REFOCUSING,
+                        SLITS,
+                        Constraints,
+                        Focus,
+                        FocusAt,
+                        MaxTransmission,
+                        SmallestFocus,
+                        SpotSize,
+                        Target,
+                        focus_from_profiles,
+                        target_from,
+)
+
+__all__ = [
+                        "MONOCHROMATOR",
+                        "REFOCUSING",
+                        "SLITS",
+                        "BeamOptimum",
+                        "Constraints",
+                        "DarkStart",
+                        "Focus",
+                        "FocusAt",
+                        "MaxTransmission",
+                        "OptimizeOptions",
+                        "SmallestFocus",
+                        "SpotSize",
+                        "Target",
+                        "TargetUnreachable",
+                        "bounds",
+                        "focus_from_profiles",
+                        "optimize_settings",
+                        "predict",
+                        "target_from",
+]

@@ -1,0 +1,482 @@
+"""Motor settings for a requested beam, computed on the calibrated differentiable twin.
+
+:func:`optimize_settings` takes a target (:mod:`bluesky_offsets.optimize.targets`), the
+calibrated model (offsets and effects, with the calibration's covariance) and where the motors
+stand, and returns the settings that give the target beam within the motors' limits, the beam
+the model predicts there and how far the calibration's uncertainty lets that prediction be
+trusted.
+
+How: Levenberg-Marquardt within the limits (the fit engine's step,
+:func:`bluesky_offsets.model.fit.lm_step`) on the target's residuals, from the current setting
+and ``starts - 1`` random ones around it, on one set of rays (common random numbers: the
+objective is a deterministic function of the settings).  The residuals' Jacobian in the motors
+is exact: every ray's derivatives from :meth:`TorchEngine.ray_jacobian`, pushed through the
+target's residual function by forward-mode differentiation.
+
+The prediction is the hard beam (RAYX's survival) traced with fresh rays and read as a frame is
+read (:func:`~bluesky_offsets.optimize.targets.focus_from_profiles` of the camera profiles,
+detector-level effects applied).  Its uncertainty propagates the calibration's covariance
+through each axis's variance, to first order and with the second-order widening that dominates
+at an optimum (where the first derivatives vanish): an offset known to ±σ leaves the motor that
+corrects it off by as much.  A state parameter whose uncertainty alone would change the predicted
+size by more than ``flag_above`` is flagged (for a motor: its setting is not pinned down), and
+the prediction is marked untrusted when the total exceeds ``trust_below``.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field, fields
+
+import numpy as np
+import torch
+
+from bluesky_offsets.physics import effects as E
+from bluesky_offsets.physics.parameters import MAX_OFFSET, METRIXS, ParameterTable
+from bluesky_offsets.physics.twin import CAMERA
+
+from .targets import Constraints, Focus, Rays, Target, focus_from_profiles, target_from
+
+
+class TargetUnreachable(ValueError):
+    """The model's best within the limits misses the target; nothing was moved.  The message
+    names the motors held at a limit that the target pushes against."""
+
+
+class DarkStart(ValueError):
+    """No light on the screen at the current setting: the beam must be found first."""
+
+
+@dataclass(frozen=True)
+class OptimizeOptions:
+    """How :func:`optimize_settings` runs (unknown keys are refused).
+
+    rays, seed : the model rays of the optimization (one set: common random numbers).
+    starts : the current setting and ``starts - 1`` random ones within ``spread`` of each free
+        motor's range around it.
+    iterations : Levenberg-Marquardt steps per start at most; ``tolerance`` the relative gain
+        below which a start ends.
+    check_rays, check_seed : the prediction: the hard beam, fresh rays.
+    flag_above : a state parameter whose uncertainty alone changes a predicted width by more
+        than this (relative) is flagged.
+    trust_below : the prediction is trusted while its relative uncertainty stays below this.
+    engine : torch engine options (:class:`~bluesky_offsets.physics.torch_engine.TorchOptions`).
+    """
+
+    rays: int = 20_000
+    seed: int = 11
+    starts: int = 3
+    spread: float = 0.03
+    iterations: int = 30
+    tolerance: float = 1e-4
+    check_rays: int = 100_000
+    check_seed: int = 12_345
+    flag_above: float = 0.02
+    trust_below: float = 0.10
+    engine: Mapping | None = None
+
+    def __post_init__(self):
+        for k in ("rays", "starts", "iterations", "check_rays"):
+            if int(getattr(self, k)) < 1:
+                raise ValueError(f"optimize option {k} must be at least 1, got {getattr(self, k)!r}")
+        for k in ("spread", "tolerance", "flag_above", "trust_below"):
+            v = getattr(self, k)
+            if not (math.isfinite(v) and v > 0):
+                raise ValueError(f"optimize option {k} must be a positive number, got {v!r}")
+
+    @classmethod
+    def resolve(cls, options: OptimizeOptions | Mapping | None) -> OptimizeOptions:
+        if isinstance(options, cls):
+            return options
+        options = dict(options or {})
+        known = {f.name for f in fields(cls)}
+        unknown = sorted(set(options) - known)
+        if unknown:
+            raise ValueError(f"unknown optimize option(s) {unknown}; known: {sorted(known)}")
+        return cls(**options)
+
+
+@dataclass
+class Flag:
+    """A state parameter the prediction depends on more than its calibration allows."""
+
+    parameter: str
+    sigma: float                 # its uncertainty, physical units
+    unit: str
+    effect: dict[str, float]     # its share of each width's ("x", "y") relative uncertainty
+    motorized: bool
+
+    def text(self) -> str:
+        worst = max(self.effect, key=lambda a: self.effect[a])
+        what = "its motor's setting is not pinned down" if self.motorized else "not pinned down"
+        return (f"{self.parameter} (± {self.sigma:.3g} {self.unit}, {what}): its share ± {self.effect[worst]:.1%} "
+                f"of the {worst} width")
+
+
+@dataclass
+class BeamOptimum:
+    """What :func:`optimize_settings` found."""
+
+    target: Target
+    settings: np.ndarray            # (P,) twin coordinates, table order
+    current: np.ndarray             # (P,) where the motors stood
+    moved: list[str]                # parameters whose setting changes
+    predicted: Focus                # the model's beam at ``settings`` (hard, fresh rays, as a frame is read)
+    predicted_before: Focus         # the model's beam at ``current``
+    sigma: dict[str, float]         # uncertainty of the predicted rms width per axis (mm); NaN: none given
+    flags: list[Flag]
+    trusted: bool
+    at_limit: list[str]             # free motors that end at a bound
+    cost: float
+    history: list[dict] = field(default_factory=list)
+    starts: list[dict] = field(default_factory=list)
+    profiles: tuple[np.ndarray, np.ndarray] | None = None   # predicted camera profiles at ``settings``
+
+    def relative_sigma(self, axis: str) -> float:
+        return self.sigma[axis] / getattr(self.predicted, f"rms_{axis}")
+
+    def summary(self) -> str:
+        p = self.predicted
+        s = f"predicted {p.rms_x * 1e3:.1f} x {p.rms_y * 1e3:.1f} µm rms"
+        if all(math.isfinite(self.sigma[a]) for a in "xy"):
+            s += f" (± {self.sigma['x'] * 1e3:.1f}, ± {self.sigma['y'] * 1e3:.1f})"
+        return s + ("" if self.trusted else " — not trusted: " + "; ".join(f.text() for f in self.flags[:3])
+                    if self.flags else " — not trusted: no calibration uncertainty given")
+
+
+# --------------------------------------------------------------------------- #
+# the model as a function of the settings
+# --------------------------------------------------------------------------- #
+class _Problem:
+    def __init__(self, target: Target, state, current, lo, hi, free, constraints: Constraints,
+                 options: OptimizeOptions, engine, overrides, table: ParameterTable):
+        self.target, self.state, self.o, self.engine, self.table = target, state, options, engine, table
+        self.current = np.asarray(current, float)
+        self.lo, self.hi, self.free = lo, hi, free
+        self.offsets = table.offsets_to_physical(np.clip(state.offsets, -MAX_OFFSET, MAX_OFFSET))
+        self.twin_effects = {n: v for n, v in state.effects.items() if E.get(n).level == "twin"}
+        self.extra = dict(overrides or {})
+        self.overrides = E.twin_overrides(self.twin_effects) if self.twin_effects else {}
+        for obj, flds in self.extra.items():
+            self.overrides.setdefault(obj, {}).update(flds)
+        self.span = table.span[free]
+        self.constraints = constraints
+        self.start: Focus | None = None
+        self.floor = 0.0
+
+    def config(self, u: np.ndarray) -> np.ndarray:
+        c = self.current.copy()
+        c[self.free] = self.current[self.free] + u * self.span
+        return c
+
+    def bounds_u(self):
+        return (self.lo[self.free] - self.current[self.free]) / self.span, \
+               (self.hi[self.free] - self.current[self.free]) / self.span
+
+    def values(self, cfg) -> np.ndarray:
+        return np.asarray(cfg, float) + self.offsets
+
+    def rays(self, cfg) -> Rays:
+        with torch.no_grad():
+            b = self.engine.beam(self.values(cfg)[None], self.overrides or None, n_rays=self.o.rays, seed=self.o.seed,
+                                 edge=self.engine.options.edge)
+        keep = b.weight[0] > 0
+        return Rays(b.x[0][keep], b.y[0][keep], b.weight[0][keep], self.o.rays)
+
+    def residuals(self, rays: Rays) -> torch.Tensor:
+        r = self.target.residuals(rays, self.start)
+        if self.floor > 0:  # the transmission floor, a steep wall
+            r = torch.cat([r, (30.0 * torch.relu(math.log(self.floor) - torch.log(rays.intensity.clamp(min=1e-300))))[None]])
+        return r
+
+    def cost(self, cfg) -> float:
+        rays = self.rays(cfg)
+        if float(rays.w.sum()) <= 0:
+            return math.inf
+        r = self.residuals(rays)
+        c = float(r @ r)
+        return c if math.isfinite(c) else math.inf
+
+    def ray_jacobian(self, cfg, effects: bool = False):
+        return self.engine.ray_jacobian(self.values(cfg)[None], self.twin_effects if effects else None,
+                                        n_rays=self.o.rays, seed=self.o.seed, overrides=self.overrides if not effects
+                                        else (self.extra or None))
+
+    def linearized(self, cfg, func: Callable[[Rays], torch.Tensor], columns=None, effects: bool = False):
+        """``func``'s residuals at the rays of ``cfg``, their Jacobian (m, n) in the inputs
+        ``columns`` (indices into the ray Jacobian's inputs; default the free motors) with the
+        rays' weights held, and the exact gradient (n,) of their sum of squares.
+
+        Why two: a ray in an aperture's soft edge has a weight derivative of the order of the
+        weight over the edge's width.  Summed over the rays (the gradient) these average into
+        the derivative of the light cut; squared ray by ray (a Gauss-Newton matrix) they would
+        not, and would swamp it.  So the curvature comes from the rays' moves, the slope from
+        everything."""
+        rj = self.ray_jacobian(cfg, effects)
+        rows = rj.rows
+        x, y, w = (t.reshape(-1)[rows].detach() for t in (rj.x, rj.y, rj.weight))
+        cols = np.flatnonzero(self.free) if columns is None else np.asarray(columns)
+        tx, ty, tw = (t[:, cols].T.contiguous() for t in (rj.rows_jx, rj.rows_jy, rj.rows_jw))
+        n = self.o.rays
+
+        def moved(a, b):
+            return func(Rays(a, b, w, n))
+
+        def total(a, b, c):
+            r = func(Rays(a, b, c, n))
+            return (r * r).sum()
+
+        value = moved(x, y)
+        jac = torch.func.vmap(lambda dx, dy: torch.func.jvp(moved, (x, y), (dx, dy))[1])(tx, ty)
+        grad = torch.func.vmap(lambda dx, dy, dw: torch.func.jvp(total, (x, y, w), (dx, dy, dw))[1])(tx, ty, tw)
+        return value.detach().numpy(), jac.T.detach().numpy(), grad.detach().numpy()
+
+
+def _step(A: np.ndarray, g: np.ndarray, lam: float) -> np.ndarray:
+    """The Levenberg-Marquardt step for curvature ``A`` (Gauss-Newton) and gradient ``g`` of the cost."""
+    d = np.diag(A).copy()
+    d[d <= 0] = 1.0
+    M = A + lam * np.diag(d) + 1e-12 * np.trace(A) / len(A) * np.eye(len(A))
+    try:
+        return -np.linalg.solve(M, g)
+    except np.linalg.LinAlgError:
+        return -np.linalg.lstsq(M, g, rcond=None)[0]
+
+
+# --------------------------------------------------------------------------- #
+# the optimizer
+# --------------------------------------------------------------------------- #
+def bounds(current, constraints: Constraints, limits=None, table: ParameterTable = METRIXS):
+    """Lower and upper bounds (P,) of the settings and the free mask: the motors' limits
+    (``limits`` (lo, hi) arrays, default each parameter's travel), narrowed by the constraints'
+    limits and travel; held and fixed parameters stay where they are."""
+    current = np.asarray(current, float)
+    if limits is None:
+        lo = np.array([p.limits[0] for p in table])
+        hi = np.array([p.limits[1] for p in table])
+    else:
+        lo, hi = (np.asarray(v, float).copy() for v in limits)
+    for name, (a, b) in constraints.limits.items():
+        i = table.index(name)
+        lo[i], hi[i] = max(lo[i], a), min(hi[i], b)
+    for name, t in constraints.travel.items():
+        i = table.index(name)
+        lo[i], hi[i] = max(lo[i], current[i] - t), min(hi[i], current[i] + t)
+    free = table.motorized.copy()
+    for name in constraints.hold:
+        free[table.index(name)] = False
+    # a hair inside: a setting reached as start + (setting - current) must not round past a limit
+    # (measured: 14.000000000000002 against E1 roll's 14, refused by the motor)
+    margin = 1e-9 * table.span
+    lo, hi = lo + margin, hi - margin
+    free &= hi > lo
+    lo = np.where(free, np.minimum(lo, np.maximum(current, lo)), current)
+    hi = np.where(free, np.maximum(hi, np.minimum(current, hi)), current)
+    return lo, hi, free
+
+
+def _soft_focus(rays: Rays) -> Focus:
+    return Focus(float(rays.intensity), float(rays.centroid("x")), float(rays.centroid("y")),
+                 float(rays.rms("x")), float(rays.rms("y")))
+
+
+def _lm(pb: _Problem, u0: np.ndarray, progress, label: str) -> tuple[np.ndarray, float, list[dict]]:
+    lo, hi = pb.bounds_u()
+    u = np.clip(u0, lo, hi)
+    cost = pb.cost(pb.config(u))
+    hist = [{"start": label, "iteration": 0, "cost": cost, "accepted": True}]
+    if not math.isfinite(cost):
+        return u, cost, hist
+    lam, small = 1e-3, 0
+
+    def linear(u):  # Gauss-Newton curvature and gradient of the cost, per unit of u
+        _, J, g = pb.linearized(pb.config(u), pb.residuals)
+        J = J * pb.span[None, :]
+        return 2.0 * J.T @ J, g * pb.span
+
+    A, g = linear(u)
+    for it in range(1, pb.o.iterations + 1):
+        # motors at a bound that the gradient pushes further out stay there; the step is
+        # solved for the others (a clipped full step wastes most iterations at a bound)
+        pinned = ((u - lo < 1e-9) & (g > 0)) | ((hi - u < 1e-9) & (g < 0))
+        step = np.zeros_like(u)
+        act = ~pinned
+        if act.any():
+            step[act] = _step(A[np.ix_(act, act)], g[act], lam)
+        uc = np.clip(u + step, lo, hi)
+        cc = pb.cost(pb.config(uc))
+        ok = cc < cost and bool(np.any(uc != u))
+        if ok:
+            gain = (cost - cc) / max(cost, 1e-300)
+            small = small + 1 if gain < pb.o.tolerance else 0
+            u, cost = uc, cc
+            A, g = linear(u)
+            lam = max(lam / 3.0, 1e-9)
+        else:
+            lam *= 4.0
+        hist.append({"start": label, "iteration": it, "cost": cost, "accepted": bool(ok), "damping": lam})
+        if progress:
+            progress(hist[-1])
+        if small >= 2 or lam > 1e6:
+            break
+    return u, cost, hist
+
+
+def predict(state, configuration, *, rays: int = 100_000, seed: int = 12_345, overrides=None, engine=None,
+            table: ParameterTable = METRIXS) -> tuple[Focus, np.ndarray, np.ndarray]:
+    """The model's footprint at ``configuration`` as a frame reads it: the hard beam (fresh rays),
+    camera profiles, the state's detector-level effects; its :class:`Focus` and the profiles."""
+    from bluesky_offsets.physics.torch_engine import TorchEngine, histograms
+    engine = engine or TorchEngine(table=table)
+    twin = {n: v for n, v in state.effects.items() if E.get(n).level == "twin"}
+    ov = E.twin_overrides(twin) if twin else {}
+    for obj, flds in (overrides or {}).items():
+        ov.setdefault(obj, {}).update(flds)
+    vals = np.asarray(configuration, float) + table.offsets_to_physical(np.clip(state.offsets, -MAX_OFFSET, MAX_OFFSET))
+    with torch.no_grad():
+        beam = engine.beam(vals[None], ov or None, n_rays=rays, seed=seed)
+        hx, hy = histograms(beam, CAMERA)
+    px, py = hx[0].numpy().astype(float), hy[0].numpy().astype(float)
+    det = {n: v for n, v in state.effects.items() if E.get(n).level == "detector"}
+    if det:
+        px, py = (a[0] for a in E.apply_detector_effects(px[None], py[None], det, CAMERA))
+    return focus_from_profiles(px, py, CAMERA), px, py
+
+
+def _uncertainty(pb: _Problem, cfg, covariance, names, o: OptimizeOptions, table: ParameterTable):
+    """Per-axis σ of the predicted rms width from the state's covariance, and the flags."""
+    nan = {"x": float("nan"), "y": float("nan")}
+    if covariance is None:
+        return nan, [], False
+    cov = np.asarray(covariance, float)
+    P = len(table)
+    n_eff = len(cov) - P
+    # the covariance in physical units: offsets are normalized (fractions of each range)
+    scale = np.r_[table.span, np.ones(n_eff)]
+    cov = cov * np.outer(scale, scale)
+    cov = np.where(np.isfinite(cov), cov, 0.0)
+    eff_names = [n for n in names[P:]] if names is not None else []
+    # effect columns the ray Jacobian knows (twin-level effects); detector ones enter nothing here
+    rj_cols = list(range(P))
+    cov_idx = list(range(P))
+    k = P
+    for e, vals in pb.state.effects.items():
+        for p in vals:
+            nm = f"{e}.{p}"
+            if E.get(e).level == "twin" and nm in eff_names:
+                rj_cols.append(k)
+                cov_idx.append(P + eff_names.index(nm))
+            k += 1 if E.get(e).level == "twin" else 0
+    C = cov[np.ix_(cov_idx, cov_idx)]
+    sig, contrib = {}, {}
+    for axis in "xy":
+        from .targets import per_ray
+
+        r, J, g = pb.linearized(cfg, lambda rays, a=axis: per_ray(rays, a), columns=rj_cols, effects=True)
+        var = float(r @ r)                     # g: d var / d state
+        JtJ = J.T @ J                          # half the Gauss-Newton Hessian of var
+        first = float(g @ C @ g)
+        second = float(np.trace(JtJ @ C))      # expected widening of var
+        sig[axis] = math.sqrt(first + second ** 2) / (2.0 * math.sqrt(var))
+        # each parameter's share of that variance (shares sum to it; correlated parameters that
+        # compensate each other share little even where each alone is poorly known)
+        share = g * (C @ g) + second * np.diag(JtJ @ C)
+        contrib[axis] = np.sqrt(np.abs(share)) / (2.0 * var)   # relative, on the rms width
+    flags = []
+    labels = list(table.names) + [names[i] for i in cov_idx[P:]] if names is not None else list(table.names)
+    for j, name in enumerate(labels):
+        eff = {a: float(contrib[a][j]) for a in "xy"}
+        if max(eff.values()) > o.flag_above and C[j, j] > 0:
+            is_param = j < P
+            unit = table[name].unit if is_param else ""
+            flags.append(Flag(name, float(math.sqrt(C[j, j])), unit, eff, bool(is_param and table[name].motorized)))
+    flags.sort(key=lambda f: -max(f.effect.values()))
+    return sig, flags, True
+
+
+def optimize_settings(target, state, current, *, limits=None, constraints: Constraints | Mapping | None = None,
+                      covariance=None, names=None, options: OptimizeOptions | Mapping | None = None, overrides=None,
+                      engine=None, progress: Callable[[dict], None] | None = None,
+                      table: ParameterTable = METRIXS) -> BeamOptimum:
+    """The motor settings that give ``target`` on the model ``state``, within the limits.
+
+    Parameters
+    ----------
+    target : Target, name or mapping (:func:`~bluesky_offsets.optimize.targets.target_from`).
+    state : ModelState
+        The calibrated model: normalized offsets and effects.
+    current : array_like (P,)
+        Where the motors stand (twin coordinates, table order).
+    limits : (lo, hi) arrays (P,), optional
+        The motors' limits in twin coordinates (default: each parameter's travel).
+    constraints : Constraints or mapping (held motors, travel, narrower limits, transmission).
+    covariance, names : the calibration's covariance (normalized offsets, then effect parameters,
+        ``names`` in that order); None: the prediction's uncertainty is unknown (not trusted).
+    overrides : extra RML overrides of the state (e.g. a hidden truth's effects).
+    progress : called with a dict per iteration.
+
+    Raises
+    ------
+    DarkStart : no light at ``current``.
+    TargetUnreachable : the best within the limits misses the target (naming the motors it pushes
+        against their limits).
+    """
+    from bluesky_offsets.physics.torch_engine import TorchEngine
+    target = target_from(target)
+    cons = constraints if isinstance(constraints, Constraints) else Constraints.from_mapping(constraints)
+    cons.check(table)
+    o = OptimizeOptions.resolve(options)
+    current = table.validate(current, "current setting").astype(float)
+    lo, hi, free = bounds(current, cons, limits, table)
+    engine = engine or TorchEngine(table=table, options=dict(o.engine or {}))
+    pb = _Problem(target, state, current, lo, hi, free, cons, o, engine, overrides, table)
+    start_rays = pb.rays(current)
+    if float(start_rays.w.sum()) <= 0 or float(start_rays.intensity) < 1e-4:
+        raise DarkStart(f"no light on the screen at the current setting ({float(start_rays.intensity):.2g} of the "
+                        f"source rays in the model): find the beam first (plans.find_beam)")
+    pb.start = _soft_focus(start_rays)
+    floors = [f for f in ((cons.keep_transmission or 0) * pb.start.intensity, cons.min_transmission or 0) if f]
+    pb.floor = max(floors) if floors else 0.0
+    if not free.any():
+        raise ValueError("no motor is free to move (all held, fixed or at zero travel)")
+
+    rng = np.random.default_rng(o.seed)
+    ulo, uhi = pb.bounds_u()
+    inits = [np.zeros(int(free.sum()))]
+    for _ in range(o.starts - 1):
+        inits.append(np.clip(rng.uniform(-o.spread, o.spread, int(free.sum())), ulo, uhi))
+    best, history, starts = None, [], []
+    for k, u0 in enumerate(inits):
+        u, cost, hist = _lm(pb, u0, progress, "current" if k == 0 else f"random {k}")
+        history += hist
+        starts.append({"start": hist[0]["start"], "cost_start": hist[0]["cost"], "cost": cost,
+                       "iterations": hist[-1]["iteration"]})
+        if best is None or cost < best[1]:
+            best = (u, cost)
+    u, cost = best
+    if not math.isfinite(cost):
+        raise DarkStart("every start lost the light in the model: find the beam first")
+    settings = pb.config(u)
+    predicted, px, py = predict(state, settings, rays=o.check_rays, seed=o.check_seed, overrides=overrides,
+                                engine=engine, table=table)
+    before, _, _ = predict(state, current, rays=o.check_rays, seed=o.check_seed, overrides=overrides, engine=engine,
+                           table=table)
+    at_lo, at_hi = (u - ulo) < 1e-6, (uhi - u) < 1e-6   # u: fractions of each range
+    names_free = np.asarray(table.names)[free]
+    at_limit = [str(n) for n, a, b in zip(names_free, at_lo, at_hi) if a or b]
+    why = target.unmet(predicted)
+    if why is not None:
+        g = pb.linearized(settings, pb.residuals)[2]      # the cost falls along -g
+        pushing = [f"{n} (at its {'low' if a else 'high'} limit {lo[free][i] if a else hi[free][i]:.6g} "
+                   f"{table[str(n)].unit})" for i, (n, a, b) in enumerate(zip(names_free, at_lo, at_hi))
+                   if (a and g[i] > 0) or (b and g[i] < 0)]
+        raise TargetUnreachable(f"{target.name}: {why} — " + (
+            "it needs " + ", ".join(pushing) + " beyond its limit; nothing was moved" if pushing else
+            "no motor within its limits gets there in the model; nothing was moved"))
+    sigma, flags, known = _uncertainty(pb, settings, covariance, names, o, table)
+    rel = max(sigma[a] / getattr(predicted, f"rms_{a}") for a in "xy") if known else math.inf
+    trusted = known and rel < o.trust_below
+    moved = [table.names[i] for i in np.flatnonzero(free) if abs(settings[i] - current[i]) > 1e-9 * table.span[i]]
+    return BeamOptimum(target, settings, current, moved, predicted, before, sigma, flags, trusted, at_limit, cost,
+                       history, starts, (px, py))

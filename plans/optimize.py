@@ -1,0 +1,265 @@
+"""From a calibrated twin to a better beam: compute the settings, move there, measure.
+
+:func:`optimize_beam` computes the motor settings for a target beam on the calibrated model
+(:func:`bluesky_offsets.optimize.optimize_settings`: the differentiable twin with the fitted
+offsets and effects), moves the motors there by differences from their readbacks, takes frames
+and records the predicted and the measured beam in one run.  A target the motors cannot reach
+within their limits is refused before anything moves.  ``closed_loop`` refits the model on the
+calibration measurement and the new frames and corrects once more.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Mapping
+from dataclasses import asdict, dataclass, field, is_dataclass
+
+import numpy as np
+from bluesky.utils import MsgGenerator
+
+from bluesky_offsets.model.measurement import Measurement
+from bluesky_offsets.model.state import CalibratedState
+from bluesky_offsets.optimize import (
+    BeamOptimum,
+    Constraints,
+    Focus,
+    OptimizeOptions,
+    focus_from_profiles,
+    optimize_settings,
+    target_from,
+)
+from bluesky_offsets.physics.parameters import METRIXS, ParameterTable
+
+from ._stubs import emit_rows, run_in_thread
+from .measure import scan_configurations
+from .motion import _limits, read_positions, resolutions, resolve_motors
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class BeamStep:
+    """One move: the settings computed, the beam predicted there and the beam measured."""
+
+    optimum: BeamOptimum
+    after: Focus
+    uid: str | None
+
+
+@dataclass
+class BeamResult:
+    """What :func:`optimize_beam` did: the beam measured before, each move (one, or two with the
+    closed loop), the frames as a measurement (``measurement.uid``: the run)."""
+
+    before: Focus
+    steps: list[BeamStep]
+    measurement: Measurement
+    model: CalibratedState
+    frames: int = 1
+    profiles: dict[str, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
+    limits: tuple[np.ndarray, np.ndarray] | None = None     # the motors' (one step inside), twin coordinates
+    constraints: Constraints | None = None
+    options: OptimizeOptions | None = None
+
+    @property
+    def optimum(self) -> BeamOptimum:
+        return self.steps[-1].optimum
+
+    @property
+    def after(self) -> Focus:
+        return self.steps[-1].after
+
+    @property
+    def uid(self) -> str | None:
+        return self.steps[-1].uid
+
+    def lines(self) -> list[str]:
+        """The before/after/predicted focus, one line each."""
+        def f(x: Focus) -> str:
+            return f"{x.rms_x * 1e3:7.1f} x {x.rms_y * 1e3:6.1f} µm rms, {x.intensity:.3f} of the source rays"
+        out = [f"focus before     {f(self.before)}"]
+        for k, s in enumerate(self.steps):
+            tag = "" if len(self.steps) == 1 else f" ({k + 1})"
+            o = s.optimum
+            sig = (f" (± {o.sigma['x'] * 1e3:.1f}, ± {o.sigma['y'] * 1e3:.1f} µm)"
+                   if all(np.isfinite(o.sigma[a]) for a in "xy") else "")
+            out.append(f"predicted{tag:5s}   {f(o.predicted)}{sig}{'' if o.trusted else '  NOT TRUSTED'}")
+            out.append(f"focus after{tag:4s}  {f(s.after)}")
+        return out
+
+
+def motor_limits(motors: Mapping, table: ParameterTable = METRIXS) -> MsgGenerator[tuple[np.ndarray, np.ndarray]]:
+    """Each motor's soft limits as (lo, hi) arrays in table order, intersected with its parameter's
+    travel (the twin's domain) and brought one motor step inside; fixed parameters at their design
+    values."""
+    lo = np.array([p.limits[0] if p.motorized else p.reference for p in table], float)
+    hi = np.array([p.limits[1] if p.motorized else p.reference for p in table], float)
+    steps = yield from resolutions(motors)
+    for name, m in motors.items():
+        lim = yield from _limits(m)
+        i = table.index(name)
+        if lim is not None:
+            lo[i], hi[i] = max(lo[i], lim[0]), min(hi[i], lim[1])
+        # one step inside: a controller rounds a target to its steps, and 14 - 1e-9 rounded to
+        # 1e-4 steps reads back as 14.000000000000002, past the limit (measured on E1 roll)
+        step = steps.get(name, 0.0)
+        if hi[i] - lo[i] > 2 * step:
+            lo[i], hi[i] = lo[i] + step, hi[i] - step
+    return lo, hi
+
+
+def _frames_focus(m: Measurement, rows: slice) -> tuple[Focus, np.ndarray, np.ndarray]:
+    """The focus of the frames ``rows`` summed, at the camera's resolution where the detector gives it."""
+    spec = m.profile_spec
+    if spec is not None:
+        px, py = m.profile_x[rows].mean(0), m.profile_y[rows].mean(0)
+    else:
+        spec, px, py = m.spec, m.hist_x[rows].mean(0), m.hist_y[rows].mean(0)
+    return focus_from_profiles(px, py, spec), px, py
+
+
+def _jsonable_target(target) -> dict:
+    d = asdict(target) if is_dataclass(target) else {}
+    return {"name": target.name, **{k: v for k, v in d.items() if k != "name"}}
+
+
+def _optimum_md(o: BeamOptimum, table: ParameterTable) -> dict:
+    return {"settings": [float(v) for v in o.settings], "current": [float(v) for v in o.current],
+            "moved": list(o.moved), "predicted": o.predicted.as_dict(), "predicted_before": o.predicted_before.as_dict(),
+            "predicted_sigma": {a: float(v) for a, v in o.sigma.items()}, "trusted": bool(o.trusted),
+            "flags": [f.text() for f in o.flags], "at_limit": list(o.at_limit), "cost": float(o.cost),
+            "starts": [{k: float(v) if isinstance(v, (int, float)) else v for k, v in s.items()} for s in o.starts]}
+
+
+def _beam_rows(before: Focus, o: BeamOptimum, after: Focus) -> list[dict]:
+    rows = []
+    for what, f in (("before", before), ("predicted", o.predicted), ("after", after)):
+        rows.append({"what": what, **f.as_dict(),
+                     "sigma_rms_x": float(o.sigma["x"]) if what == "predicted" else 0.0,
+                     "sigma_rms_y": float(o.sigma["y"]) if what == "predicted" else 0.0})
+    return rows
+
+
+def _move_and_measure(opt: BeamOptimum, beamline, chamber, frames: int, before_frames: bool, md: dict,
+                      table: ParameterTable, before: Focus | None):
+    """Frames at the current setting (``before_frames``), then at the optimum, where the motors stay."""
+    configs = ([opt.current] * frames if before_frames else []) + [opt.settings] * frames
+    box: dict = {}
+    n_before = frames if before_frames else 0
+
+    def finish(m: Measurement):
+        b = _frames_focus(m, slice(0, n_before))[0] if before_frames else before
+        a = _frames_focus(m, slice(n_before, None))[0]
+        box["before"], box["after"] = b, a
+        yield from emit_rows("beam", _beam_rows(b, opt, a))
+        moves = [{"parameter": n, "from": float(opt.current[table.index(n)]), "to": float(opt.settings[table.index(n)]),
+                  "unit": table[n].unit} for n in opt.moved]
+        if moves:
+            yield from emit_rows("settings", moves)
+
+    m = yield from scan_configurations(np.asarray(configs), beamline, chamber, table=table, md=md,
+                                       return_to_start=False, finish=finish)
+    return m, box["before"], box["after"]
+
+
+def optimize_beam(target, model, beamline, chamber, *, constraints: Constraints | Mapping | None = None,
+                  options: OptimizeOptions | Mapping | None = None, frames: int = 1, closed_loop: bool = False,
+                  measurement: Measurement | None = None, refit=None, table: ParameterTable = METRIXS,
+                  md: Mapping | None = None) -> MsgGenerator[BeamResult]:
+    """Compute the settings that give ``target`` on the calibrated ``model``, move there, measure.
+
+    Parameters
+    ----------
+    target : Target, name or mapping
+        :class:`~bluesky_offsets.optimize.SmallestFocus` (``"smallest_focus"``), ``FocusAt``,
+        ``SpotSize``, ``MaxTransmission``, or a class of one's own
+        (:mod:`bluesky_offsets.optimize.targets`).
+    model : CalibratedState, ModelState or plans.diagnose.Analysis
+        The calibrated twin: offsets, effects and the calibration's covariance (its uncertainty
+        propagates into the prediction; a plain state gives a prediction marked untrusted).
+    beamline, chamber : the motors (any of :mod:`plans.motion`'s forms) and the focus chamber.
+    constraints : motors held (default: all but the refocusing mirrors E1/E2), travel, narrower
+        limits, the transmission kept (:class:`~bluesky_offsets.optimize.Constraints`).
+    options : :class:`~bluesky_offsets.optimize.OptimizeOptions` (rays, starts, iterations ...).
+    frames : frames taken before and after the move (their profiles averaged).
+    closed_loop : refit the model on ``measurement`` (the calibration's, as analysed) and the
+        frames after the move (``refit``: FitOptions for it), optimize and move once more.
+
+    Returns
+    -------
+    BeamResult
+        Before, predicted and measured after (each move), the frames (``measurement``, one run:
+        ``uid``) with the settings and the prediction in its metadata and a ``beam`` stream.
+
+    Raises
+    ------
+    bluesky_offsets.optimize.TargetUnreachable
+        Before any motion, when the target needs a motor beyond its limits (named).
+    bluesky_offsets.optimize.DarkStart
+        When the model has no light at the current setting.
+    """
+    if int(frames) < 1:
+        raise ValueError(f"frames must be at least 1, got {frames!r}")
+    if closed_loop and measurement is None:
+        raise ValueError("closed_loop needs the calibration measurement (measurement=...) to refit on")
+    target = target_from(target)
+    cons = constraints if isinstance(constraints, Constraints) else Constraints.from_mapping(constraints)
+    o = OptimizeOptions.resolve(options)
+    cal = CalibratedState.of(model)
+    motors = resolve_motors(beamline, table)
+    start = yield from read_positions(motors)
+    limits = yield from motor_limits(motors, table)
+
+    def compute(cal: CalibratedState, current: np.ndarray):
+        return (yield from run_in_thread(
+            lambda progress: optimize_settings(target, cal.state, current, limits=limits, constraints=cons,
+                                               covariance=cal.covariance, names=cal.names, options=o,
+                                               progress=progress, table=table),
+            stream=None, desc=f"optimize the beam ({target.name}) on the calibrated twin"))
+
+    opt = yield from compute(cal, table.from_mapping(start))
+    base_md = {"plan_name": "optimize_beam", "purpose": "optimize the beam with the calibrated twin",
+               "target": _jsonable_target(target), "constraints": {"hold": list(cons.hold),
+                                                                   "keep_transmission": cons.keep_transmission,
+                                                                   "min_transmission": cons.min_transmission},
+               "model_uid": cal.uid, "model_label": cal.state.label, "frames": int(frames),
+               "plan_args": {"target": target.name, "frames": int(frames), "closed_loop": bool(closed_loop)},
+               **dict(md or {})}
+    m, before, after = yield from _move_and_measure(opt, beamline, chamber, int(frames), True,
+                                                    {**base_md, "step": 1, **_optimum_md(opt, table)}, table, None)
+    profiles = {"before": _frames_focus(m, slice(0, frames))[1:], "after": _frames_focus(m, slice(frames, None))[1:],
+                "predicted": opt.profiles}
+    steps = [BeamStep(opt, after, m.uid)]
+    result = BeamResult(before, steps, m, cal, int(frames), profiles, limits, cons, o)
+    if closed_loop:
+        from bluesky_offsets.model.diagnosis import FIT
+        from bluesky_offsets.model.state import refine
+
+        new = m.for_analysis(measurement.n_rays, table, resolution="camera" if measurement.spec.bins_x > 50
+                             else "paper").subset(slice(frames, None))
+        both = _joined(measurement, new)
+        res = yield from run_in_thread(lambda progress: refine(both, cal.state, options=refit or FIT, progress=progress,
+                                                               table=table),
+                                       stream=None, desc="refit the model with the frames after the move")
+        cal2 = CalibratedState(res.state, res.fit.covariance, tuple(res.fit.names), m.uid)
+        opt2 = yield from compute(cal2, opt.settings)
+        m2, _, after2 = yield from _move_and_measure(opt2, beamline, chamber, int(frames), False,
+                                                     {**base_md, "step": 2, "previous_uid": m.uid,
+                                                      **_optimum_md(opt2, table)}, table, after)
+        steps.append(BeamStep(opt2, after2, m2.uid))
+        result.model = cal2
+        result.profiles["after 2"] = _frames_focus(m2, slice(None))[1:]
+        result.profiles["predicted 2"] = opt2.profiles
+    for line in result.lines():
+        log.info(line)
+    return result
+
+
+def _joined(a: Measurement, b: Measurement) -> Measurement:
+    """The calibration measurement as analysed and the new frames, binned alike, as one."""
+    if a.spec != b.spec:
+        raise ValueError(f"the new frames are binned as {b.spec.fingerprint()}, the calibration measurement as "
+                         f"{a.spec.fingerprint()}")
+    return Measurement(np.vstack([a.configurations, b.configurations]), np.vstack([a.hist_x, b.hist_x]),
+                       np.vstack([a.hist_y, b.hist_y]), n_rays=a.n_rays, spec=a.spec, names=a.names, uid=a.uid,
+                       metadata=dict(a.metadata))

@@ -1,0 +1,84 @@
+"""The beam optimizer on the differentiable twin (issue 21): targets, constraints, refusals.
+
+Small configurations (a few thousand rays, one start, few iterations); the whole path against
+the simulated IOC, with the hidden truth's best for comparison, runs in the README's main job
+(tests/test_diagnosis_ioc.py, chamber_z) and, over five draws, in benchmarks/bench_optimize_beam.py.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from bluesky import RunEngine
+from ophyd.sim import SynAxis
+
+from bluesky_offsets.model.state import CalibratedState, ModelState
+from bluesky_offsets.optimize import (MONOCHROMATOR, Constraints, FocusAt, SmallestFocus, TargetUnreachable,
+                                      focus_from_profiles, optimize_settings, target_from)
+from bluesky_offsets.physics.parameters import METRIXS
+from bluesky_offsets.physics.twin import CAMERA
+
+SMALL = {"rays": 3000, "starts": 1, "iterations": 8, "check_rays": 20000}
+DEFOCUSED = {"ImagePlane": {"translationZerror": 20.0}}   # the screen 20 mm behind the focus
+
+
+def test_targets_and_constraints_refuse_bad_input_in_one_line():
+    assert isinstance(target_from("smallest_focus"), SmallestFocus)
+    assert target_from({"kind": "spot_size", "rms_x": 0.2, "rms_y": 0.05}).rms_x == 0.2
+    for bad, word in [("biggest", "unknown target"), ({"kind": "spot_size", "rms_x": 0.2, "rms_z": 1}, "rms_z"),
+                      ({"kind": "spot_size", "rms_x": -1, "rms_y": 0.05}, "rms_x"), ({"x": 1}, "kind")]:
+        with pytest.raises(ValueError, match=word) as e:
+            target_from(bad)
+        assert "\n" not in str(e.value)
+    with pytest.raises(ValueError, match="unknown key"):
+        Constraints.from_mapping({"hold": [], "keep": 0.9})
+    with pytest.raises(ValueError, match="has no motor"):
+        Constraints(travel={"E1.longHalfAxisA": 1.0}).check()
+    with pytest.raises(ValueError, match="keep_transmission"):
+        Constraints(keep_transmission=1.5)
+    # by default only the refocusing mirrors move
+    assert all(not n.startswith(("E1", "E2")) for n in MONOCHROMATOR) and "ExitSlit.totalHeight" in MONOCHROMATOR
+
+
+def test_focus_is_read_from_profiles_as_a_frame_is():
+    sx, sy = 0.068, 0.02
+    px = np.exp(-0.5 * ((CAMERA.centers_x - 0.5) / sx) ** 2)
+    py = np.exp(-0.5 * ((CAMERA.centers_y + 0.1) / sy) ** 2)
+    f = focus_from_profiles(px / px.sum() * 0.2, py / py.sum() * 0.2, CAMERA)
+    assert f.intensity == pytest.approx(0.2)
+    assert (f.x, f.y) == (pytest.approx(0.5, abs=1e-6), pytest.approx(-0.1, abs=1e-6))
+    assert f.rms_x == pytest.approx(sx, rel=2e-3) and f.rms_y == pytest.approx(sy, rel=2e-3)
+    assert f.fwhm_y == pytest.approx(2.3548 * sy, rel=0.03)
+
+
+def test_smallest_focus_on_a_defocused_twin_shrinks_within_limits():
+    start = METRIXS.reference.copy()
+    res = optimize_settings("smallest_focus", ModelState(), start, overrides=DEFOCUSED, options=SMALL)
+    before, after = res.predicted_before, res.predicted
+    assert after.rms_x < 0.8 * before.rms_x or after.rms_y < 0.8 * before.rms_y, (before, after)
+    assert after.intensity >= 0.97 * before.intensity   # the transmission kept (98 % by default, soft beam)
+    # only the refocusing mirrors moved, all within their limits
+    assert res.moved and all(n.startswith(("E1", "E2")) for n in res.moved)
+    lo, hi = np.array([p.limits for p in METRIXS]).T
+    assert np.all(res.settings >= lo) and np.all(res.settings <= hi)
+    # no calibration covariance: the prediction is not trusted and says why
+    assert not res.trusted and "no calibration uncertainty" in res.summary()
+    # the calibration's uncertainty propagates: a covariance gives a finite sigma per axis
+    cov = np.diag(np.full(len(METRIXS), 1e-4))
+    res2 = optimize_settings("smallest_focus", ModelState(), start, overrides=DEFOCUSED, options=SMALL,
+                             covariance=cov, names=METRIXS.names)
+    assert all(np.isfinite(res2.sigma[a]) and res2.sigma[a] > 0 for a in "xy")
+
+
+def test_a_target_beyond_the_limits_is_refused_before_anything_moves():
+    motors = {n: SynAxis(name=n.replace(".", "_")) for n in METRIXS.motorized_names}
+    start = METRIXS.reference.copy()
+    for n, m in motors.items():
+        m.set(start[METRIXS.index(n)]).wait()
+    RE = RunEngine({})
+    from plans.optimize import optimize_beam
+    with pytest.raises(TargetUnreachable, match=r"limit.*nothing was moved") as e:
+        RE(optimize_beam(FocusAt(x=9.0, y=0.0), CalibratedState(ModelState()), motors, object(), options=SMALL))
+    assert "\n" not in str(e.value) and any(n in str(e.value) for n in METRIXS.motorized_names)
+    for n, m in motors.items():
+        assert m.position == start[METRIXS.index(n)], n
