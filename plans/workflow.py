@@ -174,6 +174,7 @@ def measure(beamline, chamber, configurations: list, *, md: dict | None = None) 
 PLANS_OF_KIND = {
     "measurement": ("measure_configurations",),
     "offsets": ("find_offsets",),
+    "model": ("add_effect_and_refit", "refine_offsets"),   # a fitted model with its covariance
 }
 
 
@@ -360,3 +361,39 @@ def analyse(measurement: str = "last", offsets: str | None = "last", *, candidat
         return out
     finally:
         twin.close()
+
+
+# --------------------------------------------------------------------------- #
+# the better beam
+# --------------------------------------------------------------------------- #
+def calibrated_in_store(uid: str = "last", store=None):
+    """The calibrated state (:class:`bluesky_offsets.model.state.CalibratedState`) of a stored
+    ``add_effect_and_refit`` or ``refine_offsets`` run (``"last"``: the newest), with its fit's
+    covariance."""
+    from bluesky_offsets.model.state import CalibratedState
+
+    from .diagnose import load_results, restore_refinement, restore_refit
+    store = _store(store)
+    uid = resolve_run(store, uid, "model")
+    res = load_results(store, uid)
+    if res["start"]["plan_name"] == "add_effect_and_refit":
+        r = restore_refit(res, [])
+        names = tuple(r.fit_names) if r.fit_names is not None else None
+        return CalibratedState(r.state, r.covariance, names, uid)
+    f = restore_refinement(res).result.fit
+    return CalibratedState(f.state, f.covariance, tuple(f.names), uid)
+
+
+def optimize(beamline, chamber, target: dict | None = None, model: str = "last", *, frames: int = 1,
+             constraints: dict | None = None, options: dict | None = None, store=None,
+             md: dict | None = None) -> MsgGenerator:
+    """:func:`plans.optimize.optimize_beam` with plain values, for a queue: ``target`` a mapping
+    (``{"kind": "spot_size", "rms_x": 0.2, "rms_y": 0.05}``; default the smallest focus),
+    ``model`` the uid of a fitted model's run or ``"last"`` (:func:`calibrated_in_store`),
+    ``constraints``/``options`` mappings of :class:`bluesky_offsets.optimize.Constraints` /
+    :class:`~bluesky_offsets.optimize.OptimizeOptions` fields."""
+    from .optimize import optimize_beam
+    cal = calibrated_in_store(model, store)
+    return (yield from optimize_beam(target or "smallest_focus", cal, beamline, chamber, frames=frames,
+                                     constraints=constraints, options=options,
+                                     md={"model_uid": cal.uid, **dict(md or {})}))

@@ -11,7 +11,8 @@ What the worker's namespace holds:
 * the plans, whose arguments are plain values (device names, numbers, names, run uids or
   ``"last"``): :func:`~plans.workflow.measure_bright` (find the beam, find bright
   configurations, measure them), :func:`~plans.workflow.measure` (given configurations),
-  :func:`~plans.workflow.find_offsets_in_store`, :func:`~plans.workflow.analyse`.
+  :func:`~plans.workflow.find_offsets_in_store`, :func:`~plans.workflow.analyse`,
+  :func:`~plans.workflow.optimize` (the beam on the calibrated twin).
 """
 
 import logging
@@ -20,7 +21,7 @@ from bluesky import RunEngine
 
 from bluesky_offsets.epics.pvmap import PVMap
 from bluesky_offsets.store import shared_store
-from plans.workflow import analyse, find_offsets_in_store, measure, measure_bright  # noqa: F401 - the plans
+from plans.workflow import analyse, find_offsets_in_store, measure, measure_bright, optimize  # noqa: F401 - the plans
 
 logging.getLogger("bluesky_offsets.workflow").setLevel(logging.INFO)
 if not logging.getLogger().handlers:
