@@ -62,6 +62,9 @@ def main(argv=None) -> int:
             r[f"best_{a}"] = b["true_best"][f"rms_{a}"]
             r[f"after_over_best_{a}"] = r[f"after_{a}"] / r[f"best_{a}"]
             r[f"after_over_predicted_{a}"] = r[f"after_{a}"] / r[f"predicted_{a}"]
+            # after - predicted in units of both uncertainties (the calibration's, the rays counted)
+            r[f"noise_{a}"] = b["after"].get(f"sigma_rms_{a}", float("nan"))
+            r[f"pull_{a}"] = (r[f"after_{a}"] - r[f"predicted_{a}"]) / (r[f"sigma_{a}"] ** 2 + r[f"noise_{a}"] ** 2) ** 0.5
         r["intensity_before"], r["intensity_after"] = b["before"]["intensity"], b["after"]["intensity"]
         r["pass"] = all(r[f"after_over_best_{a}"] <= 1.10 and abs(r[f"after_over_predicted_{a}"] - 1) <= 0.10
                         for a in "xy")
@@ -71,18 +74,19 @@ def main(argv=None) -> int:
     print()
     print(machine())
     print("| seed | hidden effect | before x × y [µm] | after | predicted (± σ) | true best | after/best x, y | "
-          "after/predicted x, y | pass |")
-    print("|---:|---|---|---|---|---|---|---|---|")
+          "after/predicted x, y | (after − predicted)/σ x, y | pass |")
+    print("|---:|---|---|---|---|---|---|---|---|---|")
     for r in rows:
         if "error" in r:
-            print(f"| {r['seed']} | {r['effect']} | failed: {r['error']} | | | | | | no |")
+            print(f"| {r['seed']} | {r['effect']} | failed: {r['error']} | | | | | | | no |")
             continue
         def um(k):
             return f"{r[k + '_x'] * 1e3:.1f} × {r[k + '_y'] * 1e3:.1f}"
         print(f"| {r['seed']} | {r['effect']} | {um('before')} | {um('after')} | {um('predicted')} "
               f"(± {r['sigma_x'] * 1e3:.1f}, ± {r['sigma_y'] * 1e3:.1f}) | {um('best')} | "
               f"{r['after_over_best_x']:.3f}, {r['after_over_best_y']:.3f} | {r['after_over_predicted_x']:.3f}, "
-              f"{r['after_over_predicted_y']:.3f} | {'yes' if r['pass'] else 'no'} |")
+              f"{r['after_over_predicted_y']:.3f} | {r['pull_x']:+.1f}, {r['pull_y']:+.1f} | "
+              f"{'yes' if r['pass'] else 'no'} |")
     ok = sum(bool(r.get("pass")) for r in rows)
     print(f"\n{ok} of {len(rows)} draws pass")
     return 0

@@ -76,14 +76,18 @@ class BeamResult:
     def lines(self) -> list[str]:
         """The before/after/predicted focus, one line each."""
         def f(x: Focus) -> str:
-            return f"{x.rms_x * 1e3:7.1f} x {x.rms_y * 1e3:6.1f} µm rms, {x.intensity:.3f} of the source rays"
+            noise = (f" (± {x.sigma_rms_x * 1e3:.1f}, ± {x.sigma_rms_y * 1e3:.1f} µm from the rays counted)"
+                     if np.isfinite(x.sigma_rms_x) else "")
+            return f"{x.rms_x * 1e3:7.1f} x {x.rms_y * 1e3:6.1f} µm rms, {x.intensity:.3f} of the source rays{noise}"
         out = [f"focus before     {f(self.before)}"]
         for k, s in enumerate(self.steps):
             tag = "" if len(self.steps) == 1 else f" ({k + 1})"
             o = s.optimum
-            sig = (f" (± {o.sigma['x'] * 1e3:.1f}, ± {o.sigma['y'] * 1e3:.1f} µm)"
+            sig = (f" (± {o.sigma['x'] * 1e3:.1f}, ± {o.sigma['y'] * 1e3:.1f} µm from the calibration)"
                    if all(np.isfinite(o.sigma[a]) for a in "xy") else "")
-            out.append(f"predicted{tag:5s}   {f(o.predicted)}{sig}{'' if o.trusted else '  NOT TRUSTED'}")
+            p = o.predicted
+            out.append(f"predicted{tag:5s}   {p.rms_x * 1e3:7.1f} x {p.rms_y * 1e3:6.1f} µm rms, {p.intensity:.3f} of "
+                       f"the source rays{sig}{'' if o.trusted else '  NOT TRUSTED'}")
             out.append(f"focus after{tag:4s}  {f(s.after)}")
         return out
 
@@ -115,7 +119,8 @@ def _frames_focus(m: Measurement, rows: slice) -> tuple[Focus, np.ndarray, np.nd
         px, py = m.profile_x[rows].mean(0), m.profile_y[rows].mean(0)
     else:
         spec, px, py = m.spec, m.hist_x[rows].mean(0), m.hist_y[rows].mean(0)
-    return focus_from_profiles(px, py, spec), px, py
+    n = len(m.configurations[rows])
+    return focus_from_profiles(px, py, spec, n_rays=m.n_rays * n if m.n_rays else None), px, py
 
 
 def _jsonable_target(target) -> dict:

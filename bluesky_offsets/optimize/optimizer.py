@@ -15,11 +15,14 @@ target's residual function by forward-mode differentiation.
 
 The prediction is the hard beam (RAYX's survival) traced with fresh rays and read as a frame is
 read (:func:`~bluesky_offsets.optimize.targets.focus_from_profiles` of the camera profiles,
-detector-level effects applied).  Its uncertainty propagates the calibration's covariance
-through each axis's variance, to first order and with the second-order widening that dominates
-at an optimum (where the first derivatives vanish): an offset known to ±σ leaves the motor that
-corrects it off by as much.  A state parameter whose uncertainty alone would change the predicted
-size by more than ``flag_above`` is flagged (for a motor: its setting is not pinned down), and
+detector-level effects applied).  Its uncertainty comes from the calibration's covariance
+twice: propagated through each axis's variance, to first order and with the second-order
+widening that dominates at an optimum (where the first derivatives vanish: an offset known to
+±σ leaves the motor that corrects it off by as much), and as the spread of the predicted widths
+over states drawn from the covariance, each read as a frame is (a spot half a pixel wide
+changes its measured rms when its centroid moves across a pixel, which no derivative of the
+rays sees); the larger of the two is given.  A state parameter whose share of a width's
+uncertainty exceeds ``flag_above`` is flagged (for a motor: its setting is not pinned down), and
 the prediction is marked untrusted when the total exceeds ``trust_below``.
 """
 
@@ -36,7 +39,7 @@ from bluesky_offsets.physics import effects as E
 from bluesky_offsets.physics.parameters import MAX_OFFSET, METRIXS, ParameterTable
 from bluesky_offsets.physics.twin import CAMERA
 
-from .targets import Constraints, Focus, Rays, Target, focus_from_profiles, target_from
+from .targets import Constraints, Focus, Rays, Target, focus_from_profiles, per_ray, target_from
 
 
 class TargetUnreachable(ValueError):
@@ -61,6 +64,8 @@ class OptimizeOptions:
     flag_above : a state parameter whose uncertainty alone changes a predicted width by more
         than this (relative) is flagged.
     trust_below : the prediction is trusted while its relative uncertainty stays below this.
+    samples : states drawn from the calibration's covariance to read the prediction's spread as
+        frames would (:func:`sampled_sigma`); 0 or 1: the linear propagation alone.
     engine : torch engine options (:class:`~bluesky_offsets.physics.torch_engine.TorchOptions`).
     """
 
@@ -74,9 +79,12 @@ class OptimizeOptions:
     check_seed: int = 12_345
     flag_above: float = 0.02
     trust_below: float = 0.10
+    samples: int = 24
     engine: Mapping | None = None
 
     def __post_init__(self):
+        if int(self.samples) < 0:
+            raise ValueError(f"optimize option samples must be >= 0, got {self.samples!r}")
         for k in ("rays", "starts", "iterations", "check_rays"):
             if int(getattr(self, k)) < 1:
                 raise ValueError(f"optimize option {k} must be at least 1, got {getattr(self, k)!r}")
@@ -141,8 +149,11 @@ class BeamOptimum:
         s = f"predicted {p.rms_x * 1e3:.1f} x {p.rms_y * 1e3:.1f} µm rms"
         if all(math.isfinite(self.sigma[a]) for a in "xy"):
             s += f" (± {self.sigma['x'] * 1e3:.1f}, ± {self.sigma['y'] * 1e3:.1f})"
-        return s + ("" if self.trusted else " — not trusted: " + "; ".join(f.text() for f in self.flags[:3])
-                    if self.flags else " — not trusted: no calibration uncertainty given")
+        if self.trusted:
+            return s
+        if not all(math.isfinite(self.sigma[a]) for a in "xy"):
+            return s + " — not trusted: no calibration uncertainty given"
+        return s + " — not trusted: " + "; ".join(f.text() for f in self.flags[:3])
 
 
 # --------------------------------------------------------------------------- #
@@ -327,21 +338,66 @@ def predict(state, configuration, *, rays: int = 100_000, seed: int = 12_345, ov
             table: ParameterTable = METRIXS) -> tuple[Focus, np.ndarray, np.ndarray]:
     """The model's footprint at ``configuration`` as a frame reads it: the hard beam (fresh rays),
     camera profiles, the state's detector-level effects; its :class:`Focus` and the profiles."""
+    return predict_many([state], configuration, rays=rays, seed=seed, overrides=overrides, engine=engine,
+                        table=table)[0]
+
+
+def predict_many(states, configuration, *, rays: int = 100_000, seed: int = 12_345, overrides=None, engine=None,
+                 table: ParameterTable = METRIXS) -> list[tuple[Focus, np.ndarray, np.ndarray]]:
+    """:func:`predict` for several states (one batch, the same rays) at one configuration."""
     from bluesky_offsets.physics.torch_engine import TorchEngine, histograms
     engine = engine or TorchEngine(table=table)
-    twin = {n: v for n, v in state.effects.items() if E.get(n).level == "twin"}
-    ov = E.twin_overrides(twin) if twin else {}
-    for obj, flds in (overrides or {}).items():
-        ov.setdefault(obj, {}).update(flds)
-    vals = np.asarray(configuration, float) + table.offsets_to_physical(np.clip(state.offsets, -MAX_OFFSET, MAX_OFFSET))
+    vals, ovs = [], []
+    for st in states:
+        twin = {n: v for n, v in st.effects.items() if E.get(n).level == "twin"}
+        ov = E.twin_overrides(twin) if twin else {}
+        for obj, flds in (overrides or {}).items():
+            ov.setdefault(obj, {}).update(flds)
+        ovs.append(ov)
+        vals.append(np.asarray(configuration, float)
+                    + table.offsets_to_physical(np.clip(st.offsets, -MAX_OFFSET, MAX_OFFSET)))
+    shared = all(o == ovs[0] for o in ovs)
     with torch.no_grad():
-        beam = engine.beam(vals[None], ov or None, n_rays=rays, seed=seed)
+        beam = engine.beam(np.stack(vals), (ovs[0] or None) if shared else ovs, n_rays=rays, seed=seed)
         hx, hy = histograms(beam, CAMERA)
-    px, py = hx[0].numpy().astype(float), hy[0].numpy().astype(float)
-    det = {n: v for n, v in state.effects.items() if E.get(n).level == "detector"}
-    if det:
-        px, py = (a[0] for a in E.apply_detector_effects(px[None], py[None], det, CAMERA))
-    return focus_from_profiles(px, py, CAMERA), px, py
+    out = []
+    for k, st in enumerate(states):
+        px, py = hx[k].numpy().astype(float), hy[k].numpy().astype(float)
+        det = {n: v for n, v in st.effects.items() if E.get(n).level == "detector"}
+        if det:
+            px, py = (a[0] for a in E.apply_detector_effects(px[None], py[None], det, CAMERA))
+        out.append((focus_from_profiles(px, py, CAMERA), px, py))
+    return out
+
+
+def sampled_sigma(state, configuration, covariance, names, *, samples: int = 24, rays: int = 30_000, seed: int = 0,
+                  overrides=None, engine=None, table: ParameterTable = METRIXS) -> dict[str, float]:
+    """The spread of the predicted rms widths over states drawn from the calibration's covariance
+    (normalized offsets, then effect parameters, ``names`` in that order), each read as a frame is
+    (hard beam, camera pixels): what the linear propagation misses at an optimum, where a shifted
+    centroid lands the spot on other pixels, is in it."""
+    from bluesky_offsets.model.state import ModelState
+    P = len(table)
+    cov = np.where(np.isfinite(covariance), covariance, 0.0)
+    w, V = np.linalg.eigh(0.5 * (cov + cov.T))
+    root = V * np.sqrt(np.clip(w, 0, None))
+    eff_names = list(names[P:]) if names is not None else []
+    z0 = np.r_[state.offsets, [state.effects.get(n.split(".", 1)[0], {}).get(n.split(".", 1)[1], 0.0)
+                               for n in eff_names]]
+    rng = np.random.default_rng(seed)
+    draws = []
+    for _ in range(samples):
+        z = z0 + root @ rng.standard_normal(len(z0))
+        effects = {e: dict(v) for e, v in state.effects.items()}
+        for n, v in zip(eff_names, z[P:]):
+            e, p = n.split(".", 1)
+            if e in effects:
+                q = next(q for q in E.get(e).parameters if q.name == p)
+                effects[e][p] = float(np.clip(v, q.low, q.high))
+        draws.append(ModelState(z[:P], effects, state.label))
+    foci = [f for f, _, _ in predict_many(draws, configuration, rays=rays, seed=seed + 1, overrides=overrides,
+                                          engine=engine, table=table)]
+    return {a: float(np.nanstd([getattr(f, f"rms_{a}") for f in foci], ddof=1)) for a in "xy"}
 
 
 def _uncertainty(pb: _Problem, cfg, covariance, names, o: OptimizeOptions, table: ParameterTable):
@@ -371,8 +427,6 @@ def _uncertainty(pb: _Problem, cfg, covariance, names, o: OptimizeOptions, table
     C = cov[np.ix_(cov_idx, cov_idx)]
     sig, contrib = {}, {}
     for axis in "xy":
-        from .targets import per_ray
-
         r, J, g = pb.linearized(cfg, lambda rays, a=axis: per_ray(rays, a), columns=rj_cols, effects=True)
         var = float(r @ r)                     # g: d var / d state
         JtJ = J.T @ J                          # half the Gauss-Newton Hessian of var
@@ -475,6 +529,11 @@ def optimize_settings(target, state, current, *, limits=None, constraints: Const
             "it needs " + ", ".join(pushing) + " beyond its limit; nothing was moved" if pushing else
             "no motor within its limits gets there in the model; nothing was moved"))
     sigma, flags, known = _uncertainty(pb, settings, covariance, names, o, table)
+    if known and o.samples > 1:
+        # the spread over states drawn from the covariance, read as frames are, where it is larger
+        drawn = sampled_sigma(state, settings, covariance, names, samples=o.samples, seed=o.check_seed,
+                              overrides=overrides, engine=engine, table=table)
+        sigma = {a: max(sigma[a], drawn[a]) for a in "xy"}
     rel = max(sigma[a] / getattr(predicted, f"rms_{a}") for a in "xy") if known else math.inf
     trusted = known and rel < o.trust_below
     moved = [table.names[i] for i in np.flatnonzero(free) if abs(settings[i] - current[i]) > 1e-9 * table.span[i]]

@@ -88,7 +88,8 @@ def per_ray(rays: Rays, axis: str) -> torch.Tensor:
 @dataclass(frozen=True)
 class Focus:
     """A footprint's numbers: intensity (fraction of source rays on the screen), centroid and
-    rms width per axis (mm), FWHM per axis (mm)."""
+    rms width per axis (mm), FWHM per axis (mm), and the rms widths' statistical uncertainty
+    from the rays counted (mm; NaN when the ray count is not known)."""
 
     intensity: float
     x: float
@@ -97,6 +98,8 @@ class Focus:
     rms_y: float
     fwhm_x: float = float("nan")
     fwhm_y: float = float("nan")
+    sigma_rms_x: float = float("nan")
+    sigma_rms_y: float = float("nan")
 
     def as_dict(self) -> dict[str, float]:
         return {f.name: float(getattr(self, f.name)) for f in fields(self)}
@@ -121,20 +124,27 @@ def _fwhm(h: np.ndarray, centers: np.ndarray) -> float:
     return float(right - left)
 
 
-def focus_from_profiles(profile_x, profile_y, spec) -> Focus:
+def focus_from_profiles(profile_x, profile_y, spec, n_rays: int | None = None) -> Focus:
     """The :class:`Focus` of x/y profiles (fraction of source rays per bin) binned as ``spec``
     (a :class:`~bluesky_offsets.physics.twin.HistogramSpec`): moments over the bin centres.
-    Measured frames and the model's predictions are both read with this."""
+    Measured frames and the model's predictions are both read with this.  ``n_rays``: the source
+    rays behind the profiles (all frames), for the widths' statistical uncertainty (an rms of N
+    rays scatters by rms·√((κ−1)/4N), κ the profile's kurtosis)."""
     out = []
     for h, c in ((np.asarray(profile_x, float), spec.centers_x), (np.asarray(profile_y, float), spec.centers_y)):
         s = h.sum()
         if s <= 0:
-            out.append((0.0, float("nan"), float("nan"), float("nan")))
+            out.append((0.0, float("nan"), float("nan"), float("nan"), float("nan")))
             continue
         m = float((h * c).sum() / s)
-        out.append((float(s), m, float(np.sqrt((h * (c - m) ** 2).sum() / s)), _fwhm(h, c)))
-    (ix, mx, sx, fx), (iy, my, sy, fy) = out
-    return Focus(0.5 * (ix + iy), mx, my, sx, sy, fx, fy)
+        var = float((h * (c - m) ** 2).sum() / s)
+        sig = float("nan")
+        if n_rays and var > 0:
+            kurt = float((h * (c - m) ** 4).sum() / s) / var ** 2
+            sig = math.sqrt(var) * math.sqrt(max(kurt - 1.0, 0.0) / (4.0 * s * n_rays))
+        out.append((float(s), m, math.sqrt(var), _fwhm(h, c), sig))
+    (ix, mx, sx, fx, ex), (iy, my, sy, fy, ey) = out
+    return Focus(0.5 * (ix + iy), mx, my, sx, sy, fx, fy, ex, ey)
 
 
 # --------------------------------------------------------------------------- #
