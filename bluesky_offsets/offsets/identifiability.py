@@ -60,7 +60,9 @@ def jacobian(model, configurations: np.ndarray, offsets: np.ndarray) -> np.ndarr
     def f(x):
         return model(c + x)
 
-    J = torch.autograd.functional.jacobian(f, o, vectorize=True)
+    # forward mode: one pass per input (34) instead of one per output (configurations x 100 bins);
+    # measured 1.1 s instead of 5.4 s for 16 configurations on one core, equal to float32 rounding
+    J = torch.autograd.functional.jacobian(f, o, vectorize=True, strategy="forward-mode")
     return J.double().cpu().numpy()
 
 
