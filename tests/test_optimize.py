@@ -13,8 +13,16 @@ from bluesky import RunEngine
 from ophyd.sim import SynAxis
 
 from bluesky_offsets.model.state import CalibratedState, ModelState
-from bluesky_offsets.optimize import (MONOCHROMATOR, Constraints, FocusAt, SmallestFocus, TargetUnreachable,
-                                      focus_from_profiles, optimize_settings, target_from)
+from bluesky_offsets.optimize import (
+    MONOCHROMATOR,
+    Constraints,
+    FocusAt,
+    SmallestFocus,
+    TargetUnreachable,
+    focus_from_profiles,
+    optimize_settings,
+    target_from,
+)
 from bluesky_offsets.physics.parameters import METRIXS
 from bluesky_offsets.physics.twin import CAMERA
 

@@ -244,9 +244,8 @@ def demo_plan(s: DemoSettings, beamline, chamber, twin, forward_model, log):
     to 5 of the demo's six.  Returns (session, beam result or None)."""
     import itertools
 
-    from plans.workflow import calibration_session
-
     from plans.optimize import optimize_beam
+    from plans.workflow import calibration_session
 
     number = itertools.count(2)
     session = yield from calibration_session(

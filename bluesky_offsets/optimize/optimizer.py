@@ -39,7 +39,15 @@ from bluesky_offsets.physics import effects as E
 from bluesky_offsets.physics.parameters import MAX_OFFSET, METRIXS, ParameterTable
 from bluesky_offsets.physics.twin import CAMERA
 
-from .targets import Constraints, Focus, Rays, Target, focus_from_profiles, per_ray, target_from
+from .targets import (
+    Constraints,
+    Focus,
+    Rays,
+    Target,
+    focus_from_profiles,
+    per_ray,
+    target_from,
+)
 
 
 class TargetUnreachable(ValueError):
