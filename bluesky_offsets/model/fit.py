@@ -36,6 +36,7 @@ from dataclasses import dataclass, field, fields
 import numpy as np
 import torch
 
+from bluesky_offsets.options import refuse_unknown
 from bluesky_offsets.physics import effects as E
 from bluesky_offsets.model.misfit import beam_features, expected_pull2, feature_values
 from bluesky_offsets.physics.noise import bin_variance
@@ -116,10 +117,7 @@ class FitOptions:
     def from_mapping(cls, options: Mapping | None = None, **more) -> FitOptions:
         """Options from a mapping; an unknown key is an error naming the known ones."""
         opts = {**dict(options or {}), **more}
-        known = {f.name for f in fields(cls)}
-        unknown = sorted(set(opts) - known)
-        if unknown:
-            raise ValueError(f"unknown fit option(s) {unknown}; known: {sorted(known)}")
+        refuse_unknown(cls, opts, "unknown fit option(s)")
         if "stages" in opts:
             opts["stages"] = tuple((str(a), int(b)) for a, b in opts["stages"])
         if "profile_factor" in opts:

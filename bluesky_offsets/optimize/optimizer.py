@@ -30,11 +30,12 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field
 
 import numpy as np
 import torch
 
+from bluesky_offsets.options import refuse_unknown
 from bluesky_offsets.physics import effects as E
 from bluesky_offsets.physics.parameters import MAX_OFFSET, METRIXS, ParameterTable
 from bluesky_offsets.physics.twin import CAMERA
@@ -106,10 +107,7 @@ class OptimizeOptions:
         if isinstance(options, cls):
             return options
         options = dict(options or {})
-        known = {f.name for f in fields(cls)}
-        unknown = sorted(set(options) - known)
-        if unknown:
-            raise ValueError(f"unknown optimize option(s) {unknown}; known: {sorted(known)}")
+        refuse_unknown(cls, options, "unknown optimize option(s)")
         return cls(**options)
 
 

@@ -32,6 +32,7 @@ from typing import Protocol, runtime_checkable
 import numpy as np
 import torch
 
+from bluesky_offsets.options import refuse_unknown
 from bluesky_offsets.physics.parameters import METRIXS, ParameterTable
 
 SLITS = ("ASBL.totalWidth", "ASBL.totalHeight", "ExitSlit.totalHeight")
@@ -280,13 +281,6 @@ TARGETS = {"smallest_focus": SmallestFocus, "focus_at": FocusAt, "spot_size": Sp
            "max_transmission": MaxTransmission}
 
 
-def _refuse_unknown(cls, given: Mapping, what: str) -> None:
-    known = {f.name for f in fields(cls) if f.init}
-    unknown = sorted(set(given) - known)
-    if unknown:
-        raise ValueError(f"{what}: unknown key(s) {unknown}; known: {sorted(known)}")
-
-
 def target_from(spec) -> Target:
     """A target from a :class:`Target`, a name (``"smallest_focus"``) or a mapping with
     ``kind`` and the target's fields (``{"kind": "spot_size", "rms_x": 0.2, "rms_y": 0.05}``);
@@ -301,7 +295,7 @@ def target_from(spec) -> Target:
     if kind not in TARGETS:
         raise ValueError(f"unknown target {kind!r}; known: {sorted(TARGETS)}")
     args = {k: v for k, v in spec.items() if k != "kind"}
-    _refuse_unknown(TARGETS[kind], args, f"target {kind!r}")
+    refuse_unknown(TARGETS[kind], args, f"target {kind!r}: unknown key(s)")
     try:
         return TARGETS[kind](**{k: float(v) for k, v in args.items()})
     except (TypeError, ValueError) as exc:
@@ -355,7 +349,7 @@ class Constraints:
     @classmethod
     def from_mapping(cls, options: Mapping | None) -> Constraints:
         options = dict(options or {})
-        _refuse_unknown(cls, options, "constraints")
+        refuse_unknown(cls, options, "constraints: unknown key(s)")
         if "limits" in options:
             options["limits"] = {k: tuple(v) for k, v in options["limits"].items()}
         return cls(**options)

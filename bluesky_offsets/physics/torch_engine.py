@@ -44,6 +44,7 @@ from typing import Literal
 import numpy as np
 import torch
 
+from bluesky_offsets.options import refuse_unknown
 from bluesky_offsets.physics import torch_random as rnd
 from bluesky_offsets.physics.geometry import Misalignment, chain_frames
 from bluesky_offsets.physics.metrixs import beamline_state, check_physical, nominal_beamline
@@ -111,10 +112,7 @@ class TorchOptions:
     def from_mapping(cls, options: Mapping[str, object] | None) -> TorchOptions:
         """Options from a mapping; an unknown key is refused, naming the known ones."""
         options = dict(options or {})
-        known = {f.name for f in fields(cls)}
-        unknown = sorted(set(options) - known)
-        if unknown:
-            raise ValueError(f"unknown torch engine option(s) {unknown}; known: {sorted(known)}")
+        refuse_unknown(cls, options, "unknown torch engine option(s)")
         return cls(**options)
 
     @property

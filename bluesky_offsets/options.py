@@ -1,0 +1,15 @@
+"""Options as typed frozen dataclasses that refuse unknown keys: the one check they share."""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+from dataclasses import fields
+
+
+def refuse_unknown(cls, given: Iterable[str], what: str) -> None:
+    """Raise ``ValueError("<what> [unknown keys]; known: [fields]")`` when ``given`` names a key
+    that is not an init field of the dataclass ``cls``."""
+    known = {f.name for f in fields(cls) if f.init}
+    unknown = sorted(set(given) - known)
+    if unknown:
+        raise ValueError(f"{what} {unknown}; known: {sorted(known)}")
