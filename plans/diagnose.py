@@ -109,6 +109,12 @@ class Refinement:
     def state(self) -> ModelState:
         return self.result.state
 
+    @property
+    def calibrated(self) -> CalibratedState:
+        """The fitted state with the fit's covariance."""
+        f = self.result.fit
+        return CalibratedState(self.state, f.covariance, tuple(f.names), self.uid)
+
 
 @dataclass
 class Ranking:
@@ -127,6 +133,12 @@ class Refit:
     uid: str | None = None
     covariance: np.ndarray | None = None     # the refit's (normalized offsets, then effect parameters)
     fit_names: list[str] | None = None       # its rows' names
+
+    @property
+    def calibrated(self) -> CalibratedState:
+        """The refitted state with the refit's covariance (None when its run did not store one)."""
+        names = None if self.fit_names is None else tuple(self.fit_names)
+        return CalibratedState(self.state, self.covariance, names, self.uid)
 
     def magnitude(self) -> dict[str, tuple[float, float]]:
         """``{parameter: (value, sigma)}`` of the added effect."""
@@ -176,11 +188,9 @@ class Analysis:
         """The model the analysis ends with and the covariance of the fit that gave it (the last
         refit's, else the offsets fit's): what :func:`plans.optimize.optimize_beam` optimizes on."""
         if self.refits and self.refits[-1].covariance is not None:
-            r = self.refits[-1]
-            return CalibratedState(r.state, r.covariance, tuple(r.fit_names), r.uid)
+            return self.refits[-1].calibrated
         if self.refinement is not None and not self.refits:
-            f = self.refinement.result.fit
-            return CalibratedState(self.refinement.state, f.covariance, tuple(f.names), self.refinement.uid)
+            return self.refinement.calibrated
         return CalibratedState(self.final.state, None, None, self.final.uid)
 
     @property

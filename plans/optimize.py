@@ -147,16 +147,19 @@ def _beam_rows(before: Focus, o: BeamOptimum, after: Focus) -> list[dict]:
 
 def _move_and_measure(opt: BeamOptimum, beamline, chamber, frames: int, before_frames: bool, md: dict,
                       table: ParameterTable, before: Focus | None):
-    """Frames at the current setting (``before_frames``), then at the optimum, where the motors stay."""
+    """Frames at the current setting (``before_frames``), then at the optimum, where the motors stay.
+    Returns the measurement and ``{"before": ..., "after": ...}``, each (focus, profile x, profile y)
+    of its frames (no "before" without ``before_frames``: ``before`` is the focus to compare with)."""
     configs = ([opt.current] * frames if before_frames else []) + [opt.settings] * frames
-    box: dict = {}
+    read: dict = {}
     n_before = frames if before_frames else 0
 
     def finish(m: Measurement):
-        b = _frames_focus(m, slice(0, n_before))[0] if before_frames else before
-        a = _frames_focus(m, slice(n_before, None))[0]
-        box["before"], box["after"] = b, a
-        yield from emit_rows("beam", _beam_rows(b, opt, a))
+        if before_frames:
+            read["before"] = _frames_focus(m, slice(0, n_before))
+        read["after"] = _frames_focus(m, slice(n_before, None))
+        b = read["before"][0] if before_frames else before
+        yield from emit_rows("beam", _beam_rows(b, opt, read["after"][0]))
         moves = [{"parameter": n, "from": float(opt.current[table.index(n)]), "to": float(opt.settings[table.index(n)]),
                   "unit": table[n].unit} for n in opt.moved]
         if moves:
@@ -164,7 +167,7 @@ def _move_and_measure(opt: BeamOptimum, beamline, chamber, frames: int, before_f
 
     m = yield from scan_configurations(np.asarray(configs), beamline, chamber, table=table, md=md,
                                        return_to_start=False, finish=finish)
-    return m, box["before"], box["after"]
+    return m, read
 
 
 def optimize_beam(target, model, beamline, chamber, *, constraints: Constraints | Mapping | None = None,
@@ -230,10 +233,10 @@ def optimize_beam(target, model, beamline, chamber, *, constraints: Constraints 
                "model_uid": cal.uid, "model_label": cal.state.label, "frames": int(frames),
                "plan_args": {"target": target.name, "frames": int(frames), "closed_loop": bool(closed_loop)},
                **dict(md or {})}
-    m, before, after = yield from _move_and_measure(opt, beamline, chamber, int(frames), True,
-                                                    {**base_md, "step": 1, **_optimum_md(opt, table)}, table, None)
-    profiles = {"before": _frames_focus(m, slice(0, frames))[1:], "after": _frames_focus(m, slice(frames, None))[1:],
-                "predicted": opt.profiles}
+    m, read = yield from _move_and_measure(opt, beamline, chamber, int(frames), True,
+                                           {**base_md, "step": 1, **_optimum_md(opt, table)}, table, None)
+    (before, *before_profiles), (after, *after_profiles) = read["before"], read["after"]
+    profiles = {"before": tuple(before_profiles), "after": tuple(after_profiles), "predicted": opt.profiles}
     steps = [BeamStep(opt, after, m.uid)]
     result = BeamResult(before, steps, m, cal, int(frames), profiles, limits, cons, o)
     if closed_loop:
@@ -248,12 +251,13 @@ def optimize_beam(target, model, beamline, chamber, *, constraints: Constraints 
                                        stream=None, desc="refit the model with the frames after the move")
         cal2 = CalibratedState(res.state, res.fit.covariance, tuple(res.fit.names), m.uid)
         opt2 = yield from compute(cal2, opt.settings)
-        m2, _, after2 = yield from _move_and_measure(opt2, beamline, chamber, int(frames), False,
-                                                     {**base_md, "step": 2, "previous_uid": m.uid,
-                                                      **_optimum_md(opt2, table)}, table, after)
+        m2, read2 = yield from _move_and_measure(opt2, beamline, chamber, int(frames), False,
+                                                 {**base_md, "step": 2, "previous_uid": m.uid,
+                                                  **_optimum_md(opt2, table)}, table, after)
+        after2, *after2_profiles = read2["after"]
         steps.append(BeamStep(opt2, after2, m2.uid))
         result.model = cal2
-        result.profiles["after 2"] = _frames_focus(m2, slice(None))[1:]
+        result.profiles["after 2"] = tuple(after2_profiles)
         result.profiles["predicted 2"] = opt2.profiles
     for line in result.lines():
         log.info(line)

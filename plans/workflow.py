@@ -370,18 +370,13 @@ def calibrated_in_store(uid: str = "last", store=None):
     """The calibrated state (:class:`bluesky_offsets.model.state.CalibratedState`) of a stored
     ``add_effect_and_refit`` or ``refine_offsets`` run (``"last"``: the newest), with its fit's
     covariance."""
-    from bluesky_offsets.model.state import CalibratedState
-
     from .diagnose import load_results, restore_refinement, restore_refit
     store = _store(store)
     uid = resolve_run(store, uid, "model")
     res = load_results(store, uid)
     if res["start"]["plan_name"] == "add_effect_and_refit":
-        r = restore_refit(res, [])
-        names = tuple(r.fit_names) if r.fit_names is not None else None
-        return CalibratedState(r.state, r.covariance, names, uid)
-    f = restore_refinement(res).result.fit
-    return CalibratedState(f.state, f.covariance, tuple(f.names), uid)
+        return restore_refit(res, [], uid).calibrated
+    return restore_refinement(res, uid).calibrated
 
 
 def optimize(beamline, chamber, target: dict | None = None, model: str = "last", *, frames: int = 1,

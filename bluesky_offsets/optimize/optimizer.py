@@ -166,19 +166,16 @@ class BeamOptimum:
 # the model as a function of the settings
 # --------------------------------------------------------------------------- #
 class _Problem:
-    def __init__(self, target: Target, state, current, lo, hi, free, constraints: Constraints,
-                 options: OptimizeOptions, engine, overrides, table: ParameterTable):
+    def __init__(self, target: Target, state, current, lo, hi, free, options: OptimizeOptions, engine, overrides,
+                 table: ParameterTable):
         self.target, self.state, self.o, self.engine, self.table = target, state, options, engine, table
         self.current = np.asarray(current, float)
         self.lo, self.hi, self.free = lo, hi, free
         self.offsets = table.offsets_to_physical(np.clip(state.offsets, -MAX_OFFSET, MAX_OFFSET))
-        self.twin_effects = {n: v for n, v in state.effects.items() if E.get(n).level == "twin"}
+        self.twin_effects = _twin_effects(state)
         self.extra = dict(overrides or {})
-        self.overrides = E.twin_overrides(self.twin_effects) if self.twin_effects else {}
-        for obj, flds in self.extra.items():
-            self.overrides.setdefault(obj, {}).update(flds)
+        self.overrides = _rml_overrides(state, overrides)
         self.span = table.span[free]
-        self.constraints = constraints
         self.start: Focus | None = None
         self.floor = 0.0
 
@@ -250,6 +247,19 @@ class _Problem:
         return value.detach().numpy(), jac.T.detach().numpy(), grad.detach().numpy()
 
 
+def _twin_effects(state) -> dict:
+    return {n: v for n, v in state.effects.items() if E.get(n).level == "twin"}
+
+
+def _rml_overrides(state, extra) -> dict:
+    """The RML overrides the twin traces ``state`` with: its twin-level effects, then ``extra``."""
+    twin = _twin_effects(state)
+    ov = E.twin_overrides(twin) if twin else {}
+    for obj, flds in (extra or {}).items():
+        ov.setdefault(obj, {}).update(flds)
+    return ov
+
+
 def _step(A: np.ndarray, g: np.ndarray, lam: float) -> np.ndarray:
     """The Levenberg-Marquardt step for curvature ``A`` (Gauss-Newton) and gradient ``g`` of the cost."""
     d = np.diag(A).copy()
@@ -288,9 +298,7 @@ def bounds(current, constraints: Constraints, limits=None, table: ParameterTable
     margin = 1e-9 * table.span
     lo, hi = lo + margin, hi - margin
     free &= hi > lo
-    lo = np.where(free, np.minimum(lo, np.maximum(current, lo)), current)
-    hi = np.where(free, np.maximum(hi, np.minimum(current, hi)), current)
-    return lo, hi, free
+    return np.where(free, lo, current), np.where(free, hi, current), free
 
 
 def _soft_focus(rays: Rays) -> Focus:
@@ -355,11 +363,7 @@ def predict_many(states, configuration, *, rays: int = 100_000, seed: int = 12_3
     engine = engine or TorchEngine(table=table)
     vals, ovs = [], []
     for st in states:
-        twin = {n: v for n, v in st.effects.items() if E.get(n).level == "twin"}
-        ov = E.twin_overrides(twin) if twin else {}
-        for obj, flds in (overrides or {}).items():
-            ov.setdefault(obj, {}).update(flds)
-        ovs.append(ov)
+        ovs.append(_rml_overrides(st, overrides))
         vals.append(np.asarray(configuration, float)
                     + table.offsets_to_physical(np.clip(st.offsets, -MAX_OFFSET, MAX_OFFSET)))
     shared = all(o == ovs[0] for o in ovs)
@@ -490,9 +494,9 @@ def optimize_settings(target, state, current, *, limits=None, constraints: Const
     current = table.validate(current, "current setting").astype(float)
     lo, hi, free = bounds(current, cons, limits, table)
     engine = engine or TorchEngine(table=table, options=dict(o.engine or {}))
-    pb = _Problem(target, state, current, lo, hi, free, cons, o, engine, overrides, table)
+    pb = _Problem(target, state, current, lo, hi, free, o, engine, overrides, table)
     start_rays = pb.rays(current)
-    if float(start_rays.w.sum()) <= 0 or float(start_rays.intensity) < 1e-4:
+    if float(start_rays.intensity) < 1e-4:
         raise DarkStart(f"no light on the screen at the current setting ({float(start_rays.intensity):.2g} of the "
                         f"source rays in the model): find the beam first (plans.find_beam)")
     pb.start = _soft_focus(start_rays)

@@ -35,9 +35,6 @@ import torch
 from bluesky_offsets.options import refuse_unknown
 from bluesky_offsets.physics.parameters import METRIXS, ParameterTable
 
-SLITS = ("ASBL.totalWidth", "ASBL.totalHeight", "ExitSlit.totalHeight")
-"""The slit openings: they set flux and resolution, the operator's choice."""
-
 REFOCUSING = ("E1", "E2")
 """The refocusing mirrors: what an operator moves to focus."""
 
