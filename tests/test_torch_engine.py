@@ -22,7 +22,7 @@ from bluesky_offsets.physics.parameters import METRIXS
 from bluesky_offsets.physics.rml import read_rml
 from bluesky_offsets.physics.torch_engine import (FEATURES, TorchEngine, TorchOptions, compile_beamline,
                                           rays_from_arrays, sample_source, trace_rays)
-from bluesky_offsets.physics.twin import Twin, TraceRequest, _rayx_fix_seed, footprint
+from bluesky_offsets.physics.twin import HistogramSpec, RayxEngine, Twin, TraceRequest, _rayx_fix_seed, footprint
 
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "reference"
 RAYUI_FILES = sorted((SHARED / "rayui-misalignment").glob("*.rml"))
@@ -251,6 +251,49 @@ def test_histograms_agree_with_rayx_in_distribution():
             used = ca + cb > 0
             chi2 += (((ca - cb) ** 2)[used] / (ca + cb)[used]).sum()
             dof += used.sum() - 1
+    ratio = chi2 / dof
+    assert abs(ratio - 1) < 4 * math.sqrt(2 / dof), f"chi2/dof {ratio:.3f} over {dof:.0f} dof"
+
+
+@pytest.mark.parametrize("sampling", ["fast", "rayx"])
+def test_compacting_trace_is_the_dense_trace_bit_for_bit(sampling):
+    """Dropping the rays an element stopped (``compact``) changes no surviving ray: whole-box
+    draws (most rays stop at the exit slit), bright ones, slope errors on, the chamber moved."""
+    rng = np.random.default_rng(31)
+    values = np.concatenate([METRIXS.sample_uniform(300, rng), _bright_configurations(6, rng)])
+    chamber = {"ImagePlane": {"translationXerror": torch.as_tensor(rng.uniform(-1, 1, len(values))),
+                              "translationZerror": torch.as_tensor(rng.uniform(-30, 30, len(values)))}}
+    bl = compile_beamline(values, chamber)
+    rays, draws = sample_source(bl, 400, 9, sampling=sampling)
+    with torch.no_grad():
+        dense = trace_rays(bl, rays, draws)
+        compact = trace_rays(bl, rays, draws, compact=True)
+    alive = dense.alive
+    assert 0 < alive.sum() < alive.numel() // 20
+    assert torch.equal(compact.alive, alive)
+    assert torch.equal(compact.x[alive], dense.x[alive]) and torch.equal(compact.y[alive], dense.y[alive])
+    with pytest.raises(ValueError, match="hard beam"):
+        trace_rays(bl, rays, draws, edge=0.01, compact=True)
+
+
+def test_trace_batch_agrees_with_rayx_in_distribution():
+    """The dataset's batch trace (each configuration its own rays from one stream, kicks and
+    slope errors drawn as rays arrive, compacted): RAYX's histograms within counting noise."""
+    configs = _bright_configurations(30, np.random.default_rng(8))
+    n = 4000
+    spec = HistogramSpec(400, (-10.0, 10.0), 600, (-3.0, 3.0))  # 50 x 10 µm bins: the focus spans many
+    ours = TorchEngine(hist=spec).trace_batch(configs, n_rays=n, seed=77)
+    again = TorchEngine(hist=spec).trace_batch(configs, n_rays=n, seed=77)
+    np.testing.assert_array_equal(ours.hist_x, again.hist_x)
+    ref = Twin(RayxEngine(hist=spec), scheduler="inline").trace_batch(configs, n_rays=n, seed=9000, progress=False)
+    chi2 = dof = 0.0
+    for a, b in ((ours.hist_x, ref.hist_x), (ours.hist_y, ref.hist_y)):
+        # the bins, plus the rays that did not arrive (multinomial: one constraint per configuration)
+        ca = np.column_stack([np.rint(a * n), n - ours.n_hits])
+        cb = np.column_stack([np.rint(b * n), n - ref.n_hits])
+        used = ca + cb > 0
+        chi2 += (((ca - cb) ** 2)[used] / (ca + cb)[used]).sum()
+        dof += used.sum() - len(ca)
     ratio = chi2 / dof
     assert abs(ratio - 1) < 4 * math.sqrt(2 / dof), f"chi2/dof {ratio:.3f} over {dof:.0f} dof"
 

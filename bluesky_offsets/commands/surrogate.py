@@ -33,7 +33,8 @@ def _settings_from_args(args):
     try:
         scheme = DrawScheme(screen_rays=args.screen_rays, screen_min_hits=args.screen_min_hits,
                             keep_fraction=args.keep_fraction)
-        return GenerationSettings(n_rays=args.rays, seed=args.seed, block_size=args.block_size, scheme=scheme)
+        return GenerationSettings(n_rays=args.rays, seed=args.seed, block_size=args.block_size, scheme=scheme,
+                                  engine=args.engine, chamber=args.chamber)
     except ValueError as exc:
         raise CliError(str(exc)) from None
 
@@ -46,7 +47,7 @@ def _cmd_dataset_generate(args) -> int:
     _prepare_tracing(args)
     try:
         stats = generate(args.out, args.samples, settings, scheduler=args.scheduler, n_workers=args.workers,
-                         progress=not args.no_progress)
+                         progress=not args.no_progress, rayx_check=args.rayx_check)
     except DatasetError as exc:
         raise CliError(str(exc)) from None
     if args.json:
@@ -55,7 +56,32 @@ def _cmd_dataset_generate(args) -> int:
         print(f"dataset {args.out}: {stats['n_samples']} samples from {stats['n_draws']} draws "
               f"({stats['n_nonempty']} non-empty, {stats['n_good']} good >= 10 rays, "
               f"{stats['n_stratum1']} kept despite failing the screen), {stats['cpu_s']:.0f} CPU-s")
+        if "rayx_check" in stats:
+            print(_check_line(stats["rayx_check"]))
     return 0
+
+
+def _check_line(c: dict) -> str:
+    lo, hi = c["mse_ratio_ci95"]
+    hlo, hhi = c["hits_ratio_ci95"]
+    verdict = "consistent with RAYX" if c["consistent"] else "NOT consistent with RAYX"
+    return (f"RAYX check on {c['n_checked']} non-empty samples at {c['n_rays']} rays: MSE(store, RAYX) / "
+            f"MSE(RAYX, RAYX') = {c['mse_ratio']:.2f} [{lo:.2f}, {hi:.2f}], screen hits {c['hits_ratio']:.3f} "
+            f"[{hlo:.3f}, {hhi:.3f}] of RAYX's (95 %): {verdict}")
+
+
+def _cmd_dataset_check(args) -> int:
+    from bluesky_offsets.surrogate.dataset import DatasetError, check_against_rayx
+    if args.samples < 1:
+        raise CliError("--samples must be positive")
+    _prepare_tracing(args)
+    try:
+        out = check_against_rayx(args.path, args.samples, seed=args.seed, scheduler=args.scheduler,
+                                 n_workers=args.workers, progress=not args.no_progress)
+    except DatasetError as exc:
+        raise CliError(str(exc)) from None
+    print(json.dumps(out, indent=2) if args.json else _check_line(out))
+    return 0 if out["consistent"] else 1
 
 
 def _cmd_dataset_info(args) -> int:
@@ -79,6 +105,11 @@ def _add_generation_options(p: argparse.ArgumentParser, *, rays: int = 10_000) -
     p.add_argument("--keep-fraction", type=float, default=d.keep_fraction,
                    help=f"share of screened-out draws traced anyway, weight 1/f (default {d.keep_fraction})")
     p.add_argument("--block-size", type=int, default=256, help="draws per Dask task (default 256)")
+    p.add_argument("--engine", choices=["rayx", "torch"], default="rayx",
+                   help="the twin that traces: RAYX (the reference) draw by draw, or the torch engine a "
+                        "block at once (default rayx)")
+    p.add_argument("--chamber", action="store_true",
+                   help="draw the focus chamber's x, y, z too (the surrogate's inputs: 34 + 3)")
     p.add_argument("--scheduler", default=None,
                    help="Dask scheduler address (tcp://host:8786); 'inline' = no Dask; default: LocalCluster")
     p.add_argument("--workers", type=int, default=None, help="LocalCluster workers (default: all cores)")
@@ -207,8 +238,23 @@ def add_cli(sub) -> None:
     g.add_argument("--samples", type=int, required=True, help="number of samples the store must hold")
     g.add_argument("--seed", type=int, default=0, help="base seed of all draws (default 0)")
     _add_generation_options(g)
+    g.add_argument("--rayx-check", type=int, default=64, metavar="N",
+                   help="after another engine than RAYX: trace N of the store's non-empty samples again "
+                        "with RAYX and compare in distribution (default 64; 0: no check)")
     g.add_argument("--json", action="store_true", help="print the statistics as JSON")
     g.set_defaults(func=_cmd_dataset_generate)
+    k = dsub.add_parser("check", help="trace a random slice of a store again with RAYX (in distribution)",
+                        description="Trace N random non-empty samples of a store again with RAYX (same inputs, "
+                                    "two fresh seeds) and compare the store's histograms with RAYX's repeat "
+                                    "noise. Exits 1 when they are not consistent.")
+    k.add_argument("path")
+    k.add_argument("--samples", type=int, default=256, help="non-empty samples to check (default 256)")
+    k.add_argument("--seed", type=int, default=0, help="seed of the slice and the RAYX traces (default 0)")
+    k.add_argument("--scheduler", default=None, help="Dask scheduler address, or 'inline'")
+    k.add_argument("--workers", type=int, default=None, help="LocalCluster workers")
+    k.add_argument("--no-progress", action="store_true")
+    k.add_argument("--json", action="store_true")
+    k.set_defaults(func=_cmd_dataset_check)
     i = dsub.add_parser("info", help="settings, progress and statistics of a store")
     i.add_argument("path")
     i.set_defaults(func=_cmd_dataset_info)

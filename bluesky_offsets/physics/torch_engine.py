@@ -60,6 +60,9 @@ ARCSEC = math.pi / 180.0 / 3600.0
 # unit of an input, the exit slit's height), so below 1e-24: far beneath the rounding of any
 # product of the rays
 RAY_WEIGHT_FLOOR = 1e-30
+# a compacting trace gathers the rays still in flight once fewer than this share of those
+# traced are (a gather costs about one element's arithmetic on the survivors)
+COMPACT_BELOW = 0.8
 FEATURES = ("intensity", "centroid_x", "centroid_y", "width_x", "width_y")
 _MIS_KEYS = {"translationXerror": "tx", "translationYerror": "ty", "translationZerror": "tz",
              "rotationXerror": "rx", "rotationYerror": "ry", "rotationZerror": "rz"}
@@ -440,13 +443,16 @@ def _streams(seed, n_configs: int, common: bool) -> list[int | None]:
 
 
 def sample_source(bl: CompiledBeamline, n_rays: int, seed, *, sampling: str = "fast",
-                  common: bool = True) -> tuple[Rays, Draws | None]:
+                  common: bool = True, batch_stream: bool = False) -> tuple[Rays, Draws | None]:
     """Source rays (source frame) and, for the fast stream, every later draw.
 
     ``sampling="rayx"`` reproduces RAYX's point source for ``rayx::fixSeed(seed)``
     (RAYX-CONVENTIONS.md §3–4): 14 draws per ray in RAYX's order, counters carried on.
+    ``batch_stream`` (fast sampling, one seed): every configuration its own rays, all drawn
+    from one generator at once (a batch of many configurations pays one call per draw kind
+    instead of one per configuration: the dataset's blocks).
     """
-    units = source_units(bl, n_rays, seed, sampling=sampling, common=common)
+    units = source_units(bl, n_rays, seed, sampling=sampling, common=common, batch_stream=batch_stream)
     return source_rays(bl, units), units.draws
 
 
@@ -472,12 +478,16 @@ class SourceUnits:
 
 
 def source_units(bl: CompiledBeamline, n_rays: int, seed, *, sampling: str = "fast",
-                 common: bool = True) -> SourceUnits:
+                 common: bool = True, batch_stream: bool = False) -> SourceUnits:
     """The random part of :func:`sample_source`."""
     src = bl.source
     if src["type"] != "Point Source":
         raise RmlError(f"the torch engine samples point sources only ({src['type']!r}: pass rays)")
     dev, c = bl.device, bl.n_configs
+    if batch_stream:
+        if sampling != "fast" or isinstance(seed, Sequence):
+            raise ValueError("batch_stream draws the fast stream from one seed")
+        return _batch_units(bl, n_rays, seed)
     seeds = _streams(seed, c, common)
     dists = src["dists"]
     if sampling == "rayx":
@@ -521,6 +531,44 @@ def source_units(bl: CompiledBeamline, n_rays: int, seed, *, sampling: str = "fa
             slopes[opt.name] = torch.stack([torch.randn(2, n_rays, generator=g, device=dev,
                                                         dtype=torch.float64) for g in gens], 1)
     return SourceUnits(coord, Draws(slits, slopes))
+
+
+def _batch_units(bl: CompiledBeamline, n_rays: int, seed, lazy: bool = False) -> SourceUnits:
+    """The fast stream's draws of :func:`source_units`, (C, N) each, from one generator
+    (``seed``: a number or a generator); ``lazy``: the later draws as :class:`LazyDraws`."""
+    dev, c, dists = bl.device, bl.n_configs, bl.source["dists"]
+    g = seed if isinstance(seed, torch.Generator) else _generator(seed, dev)
+    nn = torch.randn(4, c, n_rays, generator=g, device=dev, dtype=torch.float64)
+    uu = torch.rand(6, c, n_rays, generator=g, device=dev, dtype=torch.float64)
+    coord = [nn[0] if dists[0] else uu[2] - 0.5, nn[1] if dists[1] else uu[3] - 0.5,
+             uu[0] - 0.5, uu[1] - 0.5,
+             nn[2] if dists[3] else uu[4] - 0.5, nn[3] if dists[2] else uu[5] - 0.5]
+    if lazy:
+        return SourceUnits(coord, LazyDraws(g))
+    slits, slopes = {}, {}
+    for opt in bl.optics:
+        if opt.behaviour == "slit":
+            slits[opt.name] = rnd.fraunhofer_uniform_fast(
+                torch.rand(2, c, n_rays, generator=g, device=dev, dtype=torch.float64))
+        if opt.slope is not None:
+            slopes[opt.name] = torch.randn(2, c, n_rays, generator=g, device=dev, dtype=torch.float64)
+    return SourceUnits(coord, Draws(slits, slopes))
+
+
+class LazyDraws:
+    """The fast stream's later draws (slit kicks, slope errors) made as a ray meets the element,
+    for the rays in flight only: in a compacting trace the rays stopped upstream draw nothing
+    (most of a dim batch's rays).  Same distributions as :class:`Draws`, other numbers."""
+
+    def __init__(self, generator: torch.Generator):
+        self.generator = generator
+
+    def slit(self, like: torch.Tensor) -> torch.Tensor:
+        return rnd.fraunhofer_uniform_fast(torch.rand(2, *like.shape, generator=self.generator,
+                                                      device=like.device, dtype=torch.float64))
+
+    def slope(self, like: torch.Tensor) -> torch.Tensor:
+        return torch.randn(2, *like.shape, generator=self.generator, device=like.device, dtype=torch.float64)
 
 
 def source_rays(bl: CompiledBeamline, units: SourceUnits) -> Rays:
@@ -736,15 +784,23 @@ def _inside_rect(x, z, w, length, edge):
 
 
 def trace_rays(bl: CompiledBeamline, rays: Rays, draws: Draws | None = None, *, edge: float = 0.0,
-               keep_hits: bool = False) -> Beam:
+               keep_hits: bool = False, compact: bool = False) -> Beam:
     """Trace source-frame rays through the optics in order (see the module doc).
 
     ``edge > 0`` makes the beam soft (weights, for gradients); the hard ``alive`` mask is
-    RAYX's survival either way.
+    RAYX's survival either way.  ``compact`` (hard beam only) drops the rays an element
+    stopped before the next one, once they are more than :data:`COMPACT_BELOW` of those
+    traced: each survivor goes on as a configuration of its own (its fields gathered), so
+    a batch pays for the rays that are still in flight.  Element by element the arithmetic
+    is the same, so the surviving rays and their positions are bit for bit the dense
+    trace's; the stopped rays' positions are 0.
     """
+    if compact and (edge > 0 or keep_hits):
+        raise ValueError("compact traces the hard beam only (edge = 0, no hit points)")
     n = rays.x.shape[-1]
     c = bl.n_configs
     dt = bl.dtype
+    index = owner = None  # once compacted: each ray's flat (C * N) place and its configuration
     x, y, z = _apply(bl.source_rot, bl.source_shift, rays.x, rays.y, rays.z)
     dx, dy, dz = _apply(bl.source_rot, None, rays.dx, rays.dy, rays.dz)
     energy = rays.energy
@@ -756,6 +812,8 @@ def trace_rays(bl: CompiledBeamline, rays: Rays, draws: Draws | None = None, *, 
     dirs: dict[str, torch.Tensor] = {}
     wavelength = HC_EV_NM / energy  # nm
     for i, opt in enumerate(bl.optics):
+        if owner is not None:  # compacted: this element's fields for the rays in flight
+            opt = _take_optic(opt, c, owner)
         if i:
             x, y, z = _apply(opt.rot, opt.shift, x, y, z)
             dx, dy, dz = _apply(opt.rot, None, dx, dy, dz)
@@ -788,7 +846,8 @@ def trace_rays(bl: CompiledBeamline, rays: Rays, draws: Draws | None = None, *, 
                 # only candidates draw: a forward hit inside the outline
                 ctr = torch.where(ok & (True if inside is None else inside), ctr + 6, ctr)
             else:
-                ga, gb = draws.slopes[opt.name][0].to(dt), draws.slopes[opt.name][1].to(dt)
+                gab = draws.slope(dx) if isinstance(draws, LazyDraws) else draws.slopes[opt.name]
+                ga, gb = gab[0].to(dt), gab[1].to(dt)
             a, b = ga * sag, gb * mer
             cb, sb, ca, sa = torch.cos(b), torch.sin(b), torch.cos(a), torch.sin(a)
             ny1 = _poly((ny, cb), (nz, sb))
@@ -815,7 +874,7 @@ def trace_rays(bl: CompiledBeamline, rays: Rays, draws: Draws | None = None, *, 
                 u_h, ctr_h = rnd.fraunhofer_uniform_rayx(ctr_w, _detach(h), wavelength)
                 ctr = torch.where(ok & inside, ctr_h, ctr)  # absorbed rays draw no kick
             else:
-                u_w, u_h = draws.slits[opt.name]
+                u_w, u_h = draws.slit(dx) if isinstance(draws, LazyDraws) else draws.slits[opt.name]
                 if not torch.is_tensor(w) and w == 0:
                     u_w = torch.full_like(u_w, 0.5)
                 if not torch.is_tensor(h) and h == 0:
@@ -837,6 +896,38 @@ def trace_rays(bl: CompiledBeamline, rays: Rays, draws: Draws | None = None, *, 
             hits[opt.name] = torch.stack(torch.broadcast_tensors(*(torch.zeros_like(hx) if _zero(v) else v
                                                                    for v in (hx, hy, hz))), -1)
             dirs[opt.name] = torch.stack(torch.broadcast_tensors(dx, dy, dz), -1)
+        if compact and i + 1 < len(bl.optics):
+            in_flight = alive.reshape(-1)
+            k = int(in_flight.sum())
+            if k < COMPACT_BELOW * in_flight.numel():
+                if k == 0:
+                    break
+                sel = torch.nonzero(in_flight).squeeze(1)
+                cc, nn = alive.shape
+                ray = sel % nn
+
+                def pick(t):  # (..., C|1, N) -> (..., K, 1); index_select: 5x faster than t[..., conf, ray]
+                    if not torch.is_tensor(t):
+                        return t
+                    lead = t.shape[:-2]
+                    if t.shape[-2] == 1:
+                        return t.reshape(*lead, nn).index_select(-1, ray)[..., None]
+                    t = t.expand(*lead, cc, nn) if t.shape[-1] == 1 and nn > 1 else t
+                    return t.reshape(*lead, cc * nn).index_select(-1, sel)[..., None]
+                x, y, z, dx, dy, dz, wavelength, ctr = (pick(t) for t in (x, y, z, dx, dy, dz, wavelength, ctr))
+                if isinstance(draws, Draws):
+                    draws = Draws({kk: pick(v) for kk, v in draws.slits.items()},
+                                  {kk: pick(v) for kk, v in draws.slopes.items()})
+                alive = valid = torch.ones((k, 1), dtype=torch.bool, device=bl.device)
+                owner = sel // nn if owner is None else owner.index_select(0, sel)
+                index = sel if index is None else index.index_select(0, sel)
+    if index is not None:  # back to (C, N): the compacted survivors in their places
+        def scatter(v, fill):
+            out = torch.full((c * n,), fill, dtype=v.dtype, device=v.device)
+            out[index] = v.reshape(-1)
+            return out.reshape(c, n)
+        alive_full = scatter(alive, False)
+        return Beam(scatter(x, 0.0), scatter(z, 0.0), alive_full, alive_full.to(dt), n)
     w_final = alive.to(dt) if weight is None else weight * valid.to(dt)
     return Beam(x.expand(c, n), z.expand(c, n), alive, w_final, n, hits if keep_hits else None,
                 dirs if keep_hits else None)
@@ -956,6 +1047,17 @@ def features_from_moments(m: torch.Tensor, n_rays: int) -> torch.Tensor:
     return torch.where(keep, out, nan)
 
 
+@dataclass(frozen=True)
+class TraceBatch:
+    """Hard histograms of a batch (:meth:`TorchEngine.trace_batch`): fractions of the
+    ``n_rays`` source rays per bin, (C, bins), and the rays on the screen, (C,)."""
+
+    hist_x: np.ndarray
+    hist_y: np.ndarray
+    n_hits: np.ndarray
+    n_rays: int
+
+
 # --------------------------------------------------------------------------- #
 # the engine
 # --------------------------------------------------------------------------- #
@@ -1056,6 +1158,39 @@ class TorchEngine:
         hx, hy = hx.cpu().numpy().astype(float), hy.cpu().numpy().astype(float)
         return [TraceResult(hx[k], hy[k], int(n_hits[k]), int(n_rays), np.asarray(values[k], float),
                             np.concatenate(kept[k]) if keep_rays else None) for k in range(c)]
+
+    def trace_batch(self, values, overrides=None, *, n_rays: int, seed=None) -> TraceBatch:
+        """Hard histograms of many configurations, each traced with rays of its own.
+
+        For datasets: every configuration gets independent rays (no common random numbers),
+        all drawn from one generator seeded with ``seed``; slit kicks and slope errors are
+        drawn as the rays in flight meet their element (:class:`LazyDraws`), and the trace
+        compacts (``trace_rays(compact=True)``), so rays stopped upstream cost nothing more.
+        A configuration's histograms are the same for the same batch, ``seed`` and
+        ``max_batch``; they follow RAYX's in distribution (``sampling="fast"`` only).
+        """
+        o = self.options
+        if o.sampling != "fast":
+            raise ValueError("trace_batch draws the fast stream (sampling='fast')")
+        if n_rays < 1:
+            raise ValueError(f"n_rays must be positive, got {n_rays}")
+        bl = self.compile(values, overrides)
+        c = bl.n_configs
+        g = _generator(seed, bl.device)
+        step = max(1, o.max_batch // max(c, 1))
+        hx = torch.zeros(c, self.hist.bins_x, dtype=torch.float64)
+        hy = torch.zeros(c, self.hist.bins_y, dtype=torch.float64)
+        n_hits = torch.zeros(c, dtype=torch.int64)
+        with torch.no_grad():
+            for a in range(0, n_rays, step):
+                units = _batch_units(bl, min(n_rays, a + step) - a, g, lazy=True)
+                beam = trace_rays(bl, source_rays(bl, units), units.draws, compact=True)
+                bx, by = histograms(beam, self.hist)
+                # histograms() divides by the chunk's rays: weigh the chunk back to counts
+                hx += bx.cpu().double() * beam.n_rays
+                hy += by.cpu().double() * beam.n_rays
+                n_hits += beam.alive.sum(-1).cpu()
+        return TraceBatch((hx / n_rays).numpy(), (hy / n_rays).numpy(), n_hits.numpy(), n_rays)
 
     def trace(self, request: TraceRequest, n_rays: int, keep_rays: bool = False) -> TraceResult:
         return self.trace_many([request], n_rays, keep_rays)[0]
@@ -1279,6 +1414,21 @@ class TorchEngine:
             order = torch.argsort(torch.cat([p[4] for p in parts]))  # configuration-major again
             rows, jx, jy, jw = (torch.cat([p[k] for p in parts])[order] for k in range(4, 8))
         return RayJacobian(x, y, alive, weight, rows, jx, jy, jw, n_rays=n_rays, names=names)
+
+
+def _take_optic(opt: Optic, c: int, owner: torch.Tensor) -> Optic:
+    """``opt`` with its configuration fields (leading axis ``c``) taken for each of the rays
+    ``owner`` (K,): every ray a configuration of its own (a compacting trace)."""
+    def take(v):
+        if torch.is_tensor(v) and v.is_floating_point() and v.ndim >= 1 and v.shape[0] == c and c > 1:
+            return v.index_select(0, owner)
+        if isinstance(v, tuple):
+            return tuple(take(x) for x in v)
+        if isinstance(v, dict):
+            return {k: take(x) for k, x in v.items()}
+        return v
+    return Optic(opt.name, opt.type, opt.behaviour, opt.surface, take(opt.rot), take(opt.shift),
+                 take(opt.quadric), take(opt.cutout), take(opt.opening), take(opt.slope), take(opt.grating))
 
 
 def _compiled_tensors(bl: CompiledBeamline, c: int) -> list[torch.Tensor]:

@@ -47,6 +47,8 @@ from pathlib import Path
 
 import numpy as np
 
+from bluesky_offsets.physics.effects import ChamberTranslation
+from bluesky_offsets.physics.metrixs import IMAGE_PLANE
 from bluesky_offsets.physics.parameters import METRIXS, ParameterTable
 from bluesky_offsets.physics.twin import SOURCE_FRAME, HistogramSpec, TraceRequest, Twin
 
@@ -56,6 +58,10 @@ FORMAT = "bluesky-offsets-dataset/1"
 GOOD_MIN_RAYS = 10  # the paper's "good" threshold (rays on the screen at full ray count)
 _ROW_CHUNK = 1024
 _STRATA = {0: "passed pre-screen", 1: "failed pre-screen, kept by lottery"}
+# the focus chamber's translation as inputs beside the 34 parameters: the box of its effect
+CHAMBER_INPUTS = tuple(f"chamber_{p.name}" for p in ChamberTranslation.parameters)
+CHAMBER_LOW = np.array([p.low for p in ChamberTranslation.parameters])
+CHAMBER_HIGH = np.array([p.high for p in ChamberTranslation.parameters])
 
 
 class DatasetError(RuntimeError):
@@ -102,20 +108,38 @@ class DrawScheme:
                 f"(weight {1 / self.keep_fraction:g}), the rest dropped")
 
 
+ENGINES = ("rayx", "torch")
+
+
 @dataclass(frozen=True)
 class GenerationSettings:
-    """Everything that determines the samples of a store (apart from how many)."""
+    """Everything that determines the samples of a store (apart from how many).
+
+    Attributes
+    ----------
+    engine : {"rayx", "torch"}
+        The twin that traces: RAYX one draw at a time, or the torch engine a block at once
+        (:meth:`~bluesky_offsets.physics.torch_engine.TorchEngine.trace_batch`: the block's
+        draws share one random stream, so a draw's rays depend on its block).
+    chamber : bool
+        Draw the focus chamber's translation (x, y, z; :data:`CHAMBER_INPUTS`) with the
+        parameters: the samples' inputs are then the 34 parameters and the chamber's 3.
+    """
 
     n_rays: int = 10_000
     seed: int = 0
     block_size: int = 256
     scheme: DrawScheme = field(default_factory=DrawScheme)
+    engine: str = "rayx"
+    chamber: bool = False
 
     def __post_init__(self):
         if self.n_rays < 1:
             raise ValueError(f"n_rays must be positive, got {self.n_rays}")
         if self.block_size < 1:
             raise ValueError(f"block_size must be positive, got {self.block_size}")
+        if self.engine not in ENGINES:
+            raise ValueError(f"engine must be one of {', '.join(ENGINES)}, not {self.engine!r}")
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -132,43 +156,43 @@ class GenerationSettings:
 # --------------------------------------------------------------------------- #
 def draw(table: ParameterTable, seed: int, index: int) -> tuple[np.ndarray, float, int, int]:
     """Parameter vector, keep-lottery number and the two RAYX seeds of draw ``index``."""
+    return _draw(table, seed, index)[:4]
+
+
+def _draw(table: ParameterTable, seed: int, index: int):
+    """:func:`draw` and the chamber's translation (drawn after, so that the first four are
+    the same with and without the chamber)."""
     rng = np.random.default_rng([int(seed), int(index)])
     values = table.low + rng.random(len(table)) * table.span
     lottery = float(rng.random())
     screen_seed, full_seed = (int(s) for s in rng.integers(0, 2**32, size=2))
-    return values, lottery, screen_seed, full_seed
+    chamber = CHAMBER_LOW + rng.random(len(CHAMBER_INPUTS)) * (CHAMBER_HIGH - CHAMBER_LOW)
+    return values, lottery, screen_seed, full_seed, chamber
+
+
+def chamber_overrides(chamber) -> dict:
+    """RML overrides that put the focus chamber at ``chamber`` (x, y, z in mm; (3,) for one
+    draw, or (C, 3) for a batch of the torch engine)."""
+    ch = chamber if isinstance(chamber, np.ndarray) else np.asarray(chamber, float)
+    if ch.ndim == 2:
+        import torch
+        cols = [torch.as_tensor(ch[:, k], dtype=torch.float64) for k in range(3)]
+    else:
+        cols = [float(v) for v in ch]
+    return {IMAGE_PLANE: {f"translation{a}error": v for a, v in zip("XYZ", cols)}}
 
 
 def generate_block(engine, settings: GenerationSettings, block: int) -> dict:
     """Draw, screen and trace the draws of one block; returns its accepted samples."""
     t0, c0 = time.perf_counter(), time.process_time()
-    table, sch = engine.table, settings.scheme
+    table = engine.table
     first = block * settings.block_size
     indices = np.arange(first, first + settings.block_size, dtype=np.int64)
-    screen_hits = np.full(len(indices), -1, dtype=np.int32)
-    rows: dict[str, list] = {k: [] for k in ("index", "params", "hist_x", "hist_y", "n_hits",
-                                             "screen_hits", "stratum", "weight")}
-    n_failed = 0
-    for j, i in enumerate(indices):
-        values, lottery, s_seed, f_seed = draw(table, settings.seed, int(i))
-        stratum, weight = 0, 1.0
-        try:
-            if sch.screened:
-                hits = engine.trace(TraceRequest(values, {}, s_seed), sch.screen_rays).n_hits
-                screen_hits[j] = hits
-                if hits < sch.screen_min_hits:
-                    if lottery >= sch.keep_fraction:
-                        continue
-                    stratum, weight = 1, 1.0 / sch.keep_fraction
-            res = engine.trace(TraceRequest(values, {}, f_seed), settings.n_rays)
-        except Exception as exc:  # a failed simulation is counted, never stored
-            n_failed += 1
-            log.warning("draw %d failed: %s", i, exc)
-            continue
-        for k, v in (("index", i), ("params", values), ("hist_x", res.hist_x), ("hist_y", res.hist_y),
-                     ("n_hits", res.n_hits), ("screen_hits", screen_hits[j]), ("stratum", stratum),
-                     ("weight", weight)):
-            rows[k].append(v)
+    drawn = [_draw(table, settings.seed, int(i)) for i in indices]
+    if hasattr(engine, "trace_batch"):
+        rows, screen_hits, n_failed = _trace_block_batched(engine, settings, block, indices, drawn)
+    else:
+        rows, screen_hits, n_failed = _trace_block(engine, settings, indices, drawn)
     nb = table.__len__()
     out = {
         "block": block,
@@ -185,10 +209,92 @@ def generate_block(engine, settings: GenerationSettings, block: int) -> dict:
         "cpu_s": time.process_time() - c0,
         "wall_s": time.perf_counter() - t0,
     }
+    if settings.chamber:
+        out["chamber"] = np.asarray(rows["chamber"], dtype=np.float64).reshape(-1, len(CHAMBER_INPUTS))
     return out
 
 
+def _accept(sch: DrawScheme, hits: int, lottery: float) -> tuple[int, float] | None:
+    """(stratum, weight) of a screened draw, or None: dropped."""
+    if hits >= sch.screen_min_hits:
+        return 0, 1.0
+    if lottery < sch.keep_fraction:
+        return 1, 1.0 / sch.keep_fraction
+    return None
+
+
+def _trace_block(engine, settings: GenerationSettings, indices, drawn):
+    """One draw at a time (RAYX)."""
+    sch = settings.scheme
+    screen_hits = np.full(len(indices), -1, dtype=np.int32)
+    rows: dict[str, list] = {k: [] for k in _row_fields(settings)}
+    n_failed = 0
+    for j, (i, (values, lottery, s_seed, f_seed, chamber)) in enumerate(zip(indices, drawn)):
+        ov = chamber_overrides(chamber) if settings.chamber else {}
+        stratum, weight = 0, 1.0
+        try:
+            if sch.screened:
+                hits = engine.trace(TraceRequest(values, ov, s_seed), sch.screen_rays).n_hits
+                screen_hits[j] = hits
+                kept = _accept(sch, hits, lottery)
+                if kept is None:
+                    continue
+                stratum, weight = kept
+            res = engine.trace(TraceRequest(values, ov, f_seed), settings.n_rays)
+        except Exception as exc:  # a failed simulation is counted, never stored
+            n_failed += 1
+            log.warning("draw %d failed: %s", i, exc)
+            continue
+        _add_row(rows, i, values, chamber, res.hist_x, res.hist_y, res.n_hits, screen_hits[j], stratum, weight)
+    return rows, screen_hits, n_failed
+
+
+def _trace_block_batched(engine, settings: GenerationSettings, block: int, indices, drawn):
+    """The whole block at once (the torch engine): one screen batch, one full batch, each
+    from a stream of the block's own (seeded by the base seed and the block)."""
+    sch = settings.scheme
+    values = np.stack([d[0] for d in drawn])
+    chamber = np.stack([d[4] for d in drawn])
+    s_seed, f_seed = (int(v) for v in np.random.default_rng([int(settings.seed), int(block), 1]).integers(
+        0, 2**62, size=2))
+    screen_hits = np.full(len(indices), -1, dtype=np.int32)
+    rows: dict[str, list] = {k: [] for k in _row_fields(settings)}
+
+    def overrides(sel):
+        return chamber_overrides(chamber[sel]) if settings.chamber else None
+    try:
+        everyone = np.arange(len(indices))
+        if sch.screened:
+            hits = engine.trace_batch(values, overrides(everyone), n_rays=sch.screen_rays, seed=s_seed).n_hits
+            screen_hits[:] = hits
+            kept = [_accept(sch, int(h), d[1]) for h, d in zip(hits, drawn)]
+        else:
+            kept = [(0, 1.0)] * len(indices)
+        sel = np.array([j for j, k in enumerate(kept) if k is not None], dtype=np.int64)
+        if len(sel):
+            res = engine.trace_batch(values[sel], overrides(sel), n_rays=settings.n_rays, seed=f_seed)
+    except Exception as exc:  # a failed batch is counted draw by draw, never stored
+        log.warning("block %d failed: %s", block, exc)
+        return rows, screen_hits, len(indices)
+    for r, j in enumerate(sel):
+        _add_row(rows, indices[j], values[j], chamber[j], res.hist_x[r], res.hist_y[r], res.n_hits[r],
+                 screen_hits[j], *kept[j])
+    return rows, screen_hits, 0
+
+
+def _add_row(rows, index, values, chamber, hist_x, hist_y, n_hits, screen_hits, stratum, weight) -> None:
+    for k, v in (("index", index), ("params", values), ("hist_x", hist_x), ("hist_y", hist_y),
+                 ("n_hits", n_hits), ("screen_hits", screen_hits), ("stratum", stratum), ("weight", weight)):
+        rows[k].append(v)
+    if "chamber" in rows:
+        rows["chamber"].append(chamber)
+
+
 _ROW_FIELDS = ("index", "params", "hist_x", "hist_y", "n_hits", "screen_hits", "stratum", "weight")
+
+
+def _row_fields(settings: GenerationSettings) -> tuple[str, ...]:
+    return _ROW_FIELDS + (("chamber",) if settings.chamber else ())
 
 
 @contextlib.contextmanager
@@ -319,8 +425,11 @@ class DatasetStore:
         ident = _identity(settings, twin)
         if self.exists():
             prog = self.read_progress()
+            stored = dict(prog["identity"])
+            # a store written before a setting existed has its default (the settings' form now)
+            stored["settings"] = GenerationSettings.from_dict(stored.get("settings", {})).to_dict()
             mismatch = [k for k in ("format", "settings", "table", "histogram")
-                        if json.dumps(prog["identity"].get(k), sort_keys=True) != json.dumps(ident[k], sort_keys=True)]
+                        if json.dumps(stored.get(k), sort_keys=True) != json.dumps(ident[k], sort_keys=True)]
             if mismatch:
                 details = "; ".join(f"{k}: store {prog['identity'].get(k)} vs requested {ident[k]}"
                                     for k in mismatch)
@@ -332,7 +441,7 @@ class DatasetStore:
         g = self._group("w")
         raw = g.require_group("raw")
         nb, bx, by = len(twin.table), twin.hist.bins_x, twin.hist.bins_y
-        for name, shape, dtype in _row_specs(nb, bx, by):
+        for name, shape, dtype in _row_specs(nb, bx, by, settings.chamber):
             raw.create_array(name, shape=(0, *shape), chunks=(_ROW_CHUNK, *shape), dtype=dtype)
         g.require_group("draws").create_array("screen_hits", shape=(0,), chunks=(65536,), dtype="i4",
                                               fill_value=-1)
@@ -347,7 +456,7 @@ class DatasetStore:
         raw = g["raw"]
         r0, k = prog["rows"], len(res["index"])
         if k:
-            for name in _ROW_FIELDS:
+            for name in _row_fields(_settings_of(prog)):
                 arr = raw[name]
                 if arr.shape[0] < r0 + k:
                     arr.resize((max(r0 + k, 2 * arr.shape[0], _ROW_CHUNK), *arr.shape[1:]))
@@ -390,7 +499,7 @@ class DatasetStore:
             _write_json_atomic(self.progress_path, prog)
         if len(np.unique(index[order])) != n_samples:  # cannot happen by construction; never ship it
             raise DatasetError("duplicate draw indices among committed rows")
-        for name in _ROW_FIELDS:
+        for name in _row_fields(_settings_of(prog)):
             data = raw[name][:prog["rows"]][sel]
             if name in g and name not in ("raw", "draws"):
                 del g[name]
@@ -434,9 +543,14 @@ class DatasetStore:
         return st
 
 
-def _row_specs(nb: int, bx: int, by: int):
+def _row_specs(nb: int, bx: int, by: int, chamber: bool = False):
     return [("index", (), "i8"), ("params", (nb,), "f8"), ("hist_x", (bx,), "f4"), ("hist_y", (by,), "f4"),
-            ("n_hits", (), "i4"), ("screen_hits", (), "i4"), ("stratum", (), "i1"), ("weight", (), "f4")]
+            ("n_hits", (), "i4"), ("screen_hits", (), "i4"), ("stratum", (), "i1"), ("weight", (), "f4")] + (
+        [("chamber", (len(CHAMBER_INPUTS),), "f8")] if chamber else [])
+
+
+def _settings_of(prog: dict) -> GenerationSettings:
+    return GenerationSettings.from_dict(prog["identity"]["settings"])
 
 
 def _now() -> str:
@@ -448,11 +562,13 @@ def _now() -> str:
 # --------------------------------------------------------------------------- #
 def generate(path: str | os.PathLike, n_samples: int, settings: GenerationSettings | None = None, *,
              twin: Twin | None = None, scheduler: str | None = None, n_workers: int | None = None,
-             progress: bool = True) -> dict:
+             progress: bool = True, rayx_check: int = 64) -> dict:
     """Generate (or resume, or extend) a dataset store with exactly ``n_samples`` samples.
 
     Returns the dataset statistics.  Killed at any point and called again with
-    the same settings, it carries on from the last committed block.
+    the same settings, it carries on from the last committed block.  A store traced by
+    another engine than RAYX ends with :func:`check_against_rayx` on ``rayx_check`` of
+    its non-empty samples (0: no check); the statistics carry its result.
     """
     from tqdm.auto import tqdm
 
@@ -460,7 +576,7 @@ def generate(path: str | os.PathLike, n_samples: int, settings: GenerationSettin
         raise ValueError(f"n_samples must be positive, got {n_samples}")
     settings = settings or GenerationSettings()
     own = twin is None
-    twin = twin or Twin(n_rays=settings.n_rays, scheduler=scheduler, n_workers=n_workers)
+    twin = twin or Twin(settings.engine, n_rays=settings.n_rays, scheduler=scheduler, n_workers=n_workers)
     store = DatasetStore(path)
     try:
         prog = store.open_for_generation(settings, twin)
@@ -500,10 +616,59 @@ def generate(path: str | os.PathLike, n_samples: int, settings: GenerationSettin
                     _run_blocks(twin, settings, iter([n_pref]), on_result)
             finally:
                 bar.close()
-        return store.finalize(prog, n_samples)
+        stats = store.finalize(prog, n_samples)
     finally:
         if own:
             twin.close()
+    if settings.engine != "rayx" and rayx_check > 0:
+        stats["rayx_check"] = check_against_rayx(path, rayx_check, scheduler=scheduler, n_workers=n_workers,
+                                                 progress=progress)
+    return stats
+
+
+def check_against_rayx(path: str | os.PathLike, n_check: int = 64, *, seed: int = 0,
+                       scheduler: str | None = None, n_workers: int | None = None, progress: bool = True) -> dict:
+    """Trace a random slice of a store's non-empty samples again with RAYX: the same inputs
+    and ray count, two fresh RAYX seeds each.
+
+    A sample of another engine is checked *in distribution*: its histograms must differ
+    from RAYX's by RAYX's own repeat noise, no more.  ``mse_ratio`` is the mean over the
+    slice of MSE(store, RAYX) over the mean of MSE(RAYX, RAYX') (1 when the two engines
+    draw from the same distribution), ``hits_ratio`` the mean screen hits of the store
+    over RAYX's; each with a 95 % bootstrap interval over the slice.  The result is
+    stored in the store's attributes (``rayx_check``) and returned.
+    """
+    data = load(path, allow_partial=True)
+    s = GenerationSettings.from_dict(data.meta["settings"])
+    rng = np.random.default_rng([int(seed), 0x5A7])
+    nonempty = np.nonzero(data.n_hits > 0)[0]
+    if not len(nonempty):
+        raise DatasetError(f"{path}: no non-empty sample to check")
+    pick = np.sort(rng.choice(nonempty, size=min(int(n_check), len(nonempty)), replace=False))
+    ovs = [chamber_overrides(data.chamber[i]) if data.chamber is not None else {} for i in pick]
+    seeds = rng.integers(0, 2**31, size=(2, len(pick)))
+    t0 = time.perf_counter()
+    with Twin("rayx", n_rays=s.n_rays, scheduler=scheduler, n_workers=n_workers) as rayx:
+        a, b = (rayx.trace_batch(data.params[pick], overrides=ovs, seed=[int(v) for v in sd], progress=progress,
+                                 raise_on_error=True) for sd in seeds)
+    h = data.hist[pick].astype(float)
+    ha, hb = (np.concatenate([r.hist_x, r.hist_y], axis=1) for r in (a, b))
+    mse_store, mse_repeat = ((h - ha) ** 2).mean(1), ((ha - hb) ** 2).mean(1)
+    hits_store, hits_rayx = data.n_hits[pick].astype(float), a.n_hits.astype(float)
+    boot = rng.integers(0, len(pick), size=(2000, len(pick)))
+
+    def ci(num, den):
+        r = num[boot].mean(1) / np.maximum(den[boot].mean(1), 1e-300)
+        return [float(np.quantile(r, 0.025)), float(np.quantile(r, 0.975))]
+    out = {"n_checked": int(len(pick)), "n_rays": s.n_rays, "seed": int(seed),
+           "mse_ratio": float(mse_store.mean() / mse_repeat.mean()), "mse_ratio_ci95": ci(mse_store, mse_repeat),
+           "hits_ratio": float(hits_store.mean() / hits_rayx.mean()), "hits_ratio_ci95": ci(hits_store, hits_rayx),
+           "mse_store_rayx": float(mse_store.mean()), "mse_rayx_repeat": float(mse_repeat.mean()),
+           "wall_s": round(time.perf_counter() - t0, 1)}
+    out["consistent"] = bool(out["mse_ratio_ci95"][0] <= 1.0 <= out["mse_ratio_ci95"][1]
+                             and out["hits_ratio_ci95"][0] <= 1.0 <= out["hits_ratio_ci95"][1])
+    DatasetStore(path)._group().attrs["rayx_check"] = out
+    return out
 
 
 def draw_in_memory(twin: Twin, settings: GenerationSettings, *, min_samples: int, min_nonempty: int = 0,
@@ -535,7 +700,7 @@ def draw_in_memory(twin: Twin, settings: GenerationSettings, *, min_samples: int
     finally:
         bar.close()
     results.sort(key=lambda r: r["block"])
-    out = {k: np.concatenate([r[k] for r in results]) for k in _ROW_FIELDS}
+    out = {k: np.concatenate([r[k] for r in results]) for k in _row_fields(settings)}
     out["draw_screen_hits"] = np.concatenate([r["draw_screen_hits"] for r in results])
     out["n_draws"] = len(out["draw_screen_hits"])
     out["cpu_s"] = float(sum(r["cpu_s"] for r in results))
@@ -558,9 +723,15 @@ class Dataset:
     weight: np.ndarray
     index: np.ndarray
     meta: dict
+    chamber: np.ndarray | None = None  # (N, 3) the focus chamber's x, y, z (mm), if drawn
 
     def __len__(self) -> int:
         return len(self.index)
+
+    @property
+    def inputs(self) -> np.ndarray:
+        """(N, 34 [+ 3]): the parameters, then the chamber's translation where drawn."""
+        return self.params if self.chamber is None else np.concatenate([self.params, self.chamber], axis=1)
 
     @property
     def hist(self) -> np.ndarray:
@@ -588,14 +759,15 @@ def load(path: str | os.PathLike, *, allow_partial: bool = False,
     settings = GenerationSettings.from_dict(ident["settings"])
     meta = {"path": str(path), "settings": settings.to_dict(), "scheme": settings.scheme.describe(),
             "engine": prog["engine"], "source_frame": prog.get("source_frame", "mirrored"),
-            "table_version": ident["table_version"], "histogram": ident["histogram"]}
+            "table_version": ident["table_version"], "histogram": ident["histogram"],
+            "inputs": list(table.names) + (list(CHAMBER_INPUTS) if settings.chamber else [])}
     try:
         if prog.get("complete"):
-            data = {k: g[k][:] for k in _ROW_FIELDS}
+            data = {k: g[k][:] for k in _row_fields(settings)}
             meta.update(complete=True, stats=dict(g.attrs.get("stats", {})))
         elif allow_partial:
             raw = g["raw"]
-            data = {k: raw[k][:prog["rows"]] for k in _ROW_FIELDS}
+            data = {k: raw[k][:prog["rows"]] for k in _row_fields(settings)}
             order = np.argsort(data["index"], kind="stable")
             data = {k: v[order] for k, v in data.items()}
             meta.update(complete=False, stats={"n_samples": int(len(order)),
@@ -613,7 +785,7 @@ def load(path: str | os.PathLike, *, allow_partial: bool = False,
     meta["n_samples"] = int(len(data["index"]))
     return Dataset(params=data["params"], hist_x=data["hist_x"], hist_y=data["hist_y"],
                    n_hits=data["n_hits"], stratum=data["stratum"], weight=data["weight"],
-                   index=data["index"], meta=meta)
+                   index=data["index"], meta=meta, chamber=data.get("chamber"))
 
 
 def info(path: str | os.PathLike) -> dict:
