@@ -138,3 +138,34 @@ def test_grown_split_keeps_the_old_samples_where_they_were():
     assert training._size_chain({"n_samples": 150, "init": {"n_samples": 100}}) == [100, 150]
     with pytest.raises(TrainingError, match="trained on 200"):
         training.grown_split_indices(150, [200], (0.8, 0.1, 0.1), 0)
+
+
+def test_chamber_inputs_torch_data_train_and_evaluate_against_rayx(tmp_path, capsys):
+    """A store from the torch engine with the chamber drawn trains a surrogate of 37 inputs;
+    it predicts from the 34 plus a chamber position, refuses what does not fit, and is
+    evaluated on fresh RAYX traces drawn with the chamber."""
+    path = tmp_path / "torch.zarr"
+    assert main(["dataset", "generate", str(path), "--samples", "120", "--engine", "torch", "--chamber",
+                 "--rayx-check", "0", *GEN]) == 0
+    model = training.train(dataset.load(path), tmp_path / "run", _small(decoder="factored"), progress=False)
+    assert model.chamber and model.arch.n_inputs == 37
+    assert model.inputs[-3:] == ["chamber_x", "chamber_y", "chamber_z"]
+    assert model.provenance["engine"] == "torch" and model.provenance["twin"].startswith("torch")
+    ref = dataset.load(path).params[0]
+    np.testing.assert_allclose(model.predict(ref), model.predict(np.append(ref, [0.0, 0.0, 0.0])), rtol=1e-6)
+    np.testing.assert_allclose(model.predict(ref, chamber=[0.1, 0.0, 9.0]),
+                               model.predict(np.append(ref, [0.1, 0.0, 9.0])), rtol=1e-6)
+    with pytest.raises(ValueError, match="length 34 or 37"):
+        model.predict(ref[:30])
+    model.save(tmp_path / "m.pt")
+    assert surrogate.load(tmp_path / "m.pt").chamber
+    capsys.readouterr()
+    assert main(["surrogate", "evaluate", "--checkpoint", str(tmp_path / "m.pt"), "--samples", "12",
+                 "--min-nonempty", "4", "--seed", "5", "--scheduler", "inline", "--no-progress", "--json"]) == 0
+    res = json.loads(capsys.readouterr().out)
+    assert res["engine"].startswith("rayx") and res["n_nonempty"] >= 4 and np.isfinite(res["mse_nonempty"])
+    # the shipped surrogate (34 inputs) knows the chamber at its nominal place only
+    shipped = surrogate.load()
+    assert not shipped.chamber
+    with pytest.raises(ValueError, match="without the focus chamber"):
+        shipped.predict(ref, chamber=[0.0, 0.0, 5.0])

@@ -180,6 +180,13 @@ class ChamberTranslation(Effect):
                               "translationZerror": v["z"]}}
 
 
+# The focus chamber's translation as a surrogate's inputs beside the 34 parameters (datasets
+# drawn with ``chamber``): names and the box of :class:`ChamberTranslation`
+CHAMBER_INPUTS = tuple(f"chamber_{p.name}" for p in ChamberTranslation.parameters)
+CHAMBER_LOW = np.array([p.low for p in ChamberTranslation.parameters])
+CHAMBER_HIGH = np.array([p.high for p in ChamberTranslation.parameters])
+
+
 class ChamberShift(Effect):
     """The focus-measurement chamber displaced across the beam: the whole footprint moves, as
     offsets of the last mirrors move it too, so a fit starts it at zero."""

@@ -47,7 +47,7 @@ from pathlib import Path
 
 import numpy as np
 
-from bluesky_offsets.physics.effects import ChamberTranslation
+from bluesky_offsets.physics.effects import CHAMBER_HIGH, CHAMBER_INPUTS, CHAMBER_LOW
 from bluesky_offsets.physics.metrixs import IMAGE_PLANE
 from bluesky_offsets.physics.parameters import METRIXS, ParameterTable
 from bluesky_offsets.physics.twin import SOURCE_FRAME, HistogramSpec, TraceRequest, Twin
@@ -58,10 +58,6 @@ FORMAT = "bluesky-offsets-dataset/1"
 GOOD_MIN_RAYS = 10  # the paper's "good" threshold (rays on the screen at full ray count)
 _ROW_CHUNK = 1024
 _STRATA = {0: "passed pre-screen", 1: "failed pre-screen, kept by lottery"}
-# the focus chamber's translation as inputs beside the 34 parameters: the box of its effect
-CHAMBER_INPUTS = tuple(f"chamber_{p.name}" for p in ChamberTranslation.parameters)
-CHAMBER_LOW = np.array([p.low for p in ChamberTranslation.parameters])
-CHAMBER_HIGH = np.array([p.high for p in ChamberTranslation.parameters])
 
 
 class DatasetError(RuntimeError):

@@ -27,7 +27,8 @@ from dataclasses import replace
 
 import numpy as np
 
-from bluesky_offsets.surrogate.dataset import GOOD_MIN_RAYS, DrawScheme, GenerationSettings, openmp_threads, draw_in_memory
+from bluesky_offsets.surrogate.dataset import (GOOD_MIN_RAYS, DrawScheme, GenerationSettings, chamber_overrides,
+                                               draw_in_memory, openmp_threads)
 from bluesky_offsets.surrogate.network import Surrogate
 from bluesky_offsets.physics.twin import Twin
 
@@ -68,8 +69,9 @@ def _trace_set(twin: Twin, settings: GenerationSettings, min_samples: int, min_n
     data = draw_in_memory(twin, s, min_samples=min_samples, min_nonempty=min_nonempty, progress=progress)
     # repeat traces with seeds no draw uses (the draws' seeds come from their own streams)
     rs = np.random.default_rng([seed, 2**40 + 17]).integers(0, 2**32, size=len(data["index"]))
+    ovs = [chamber_overrides(c) for c in data["chamber"]] if settings.chamber else None
     with openmp_threads(1) if twin.scheduler == "inline" else contextlib.nullcontext():
-        rep = twin.trace_batch(data["params"], n_rays=settings.n_rays, seed=[int(x) for x in rs],
+        rep = twin.trace_batch(data["params"], overrides=ovs, n_rays=settings.n_rays, seed=[int(x) for x in rs],
                                progress=progress)
     ok = rep.ok
     data["hist2"] = np.concatenate([rep.hist_x, rep.hist_y], axis=1)
@@ -108,11 +110,13 @@ def evaluate(model: Surrogate, *, n_samples: int = 500, min_nonempty: int = 100,
     t0 = time.perf_counter()
     sets = {}
     try:
-        settings = GenerationSettings(n_rays=n_rays, seed=seed, block_size=block_size, scheme=scheme)
+        # fresh draws of the same inputs the model was trained on (the chamber too), traced by RAYX
+        settings = GenerationSettings(n_rays=n_rays, seed=seed, block_size=block_size, scheme=scheme,
+                                      chamber=model.chamber)
         sets["screened"] = _trace_set(twin, settings, n_samples, min_nonempty, seed, progress)
         if n_uniform:
             u = GenerationSettings(n_rays=n_rays, seed=seed + 1, block_size=block_size,
-                                   scheme=DrawScheme(screen_rays=0))
+                                   scheme=DrawScheme(screen_rays=0), chamber=model.chamber)
             sets["uniform"] = _trace_set(twin, u, n_uniform, 0, seed + 1, progress)
     finally:
         if own:
@@ -128,7 +132,8 @@ def evaluate(model: Surrogate, *, n_samples: int = 500, min_nonempty: int = 100,
     for name, d in sets.items():
         ok = d["repeat_ok"] & np.isfinite(d["hist2"]).all(axis=1)
         hist1 = np.concatenate([d["hist_x"], d["hist_y"]], axis=1)[ok]
-        pred = model.predict(d["params"][ok])
+        inputs = np.concatenate([d["params"], d["chamber"]], axis=1) if model.chamber else d["params"]
+        pred = model.predict(inputs[ok])
         se_m = _mse_rows(pred, hist1)
         se_n = _mse_rows(d["hist2"][ok], hist1)
         se_0 = (hist1.astype(float) ** 2).mean(axis=1)
@@ -141,7 +146,7 @@ def evaluate(model: Surrogate, *, n_samples: int = 500, min_nonempty: int = 100,
             res["n_stratum1"] = int((d["stratum"][ok] == 1).sum())
         out[name] = res
         if keep_data:
-            out.setdefault("_data", {})[name] = {"params": d["params"][ok], "hist": hist1, "pred": pred,
+            out.setdefault("_data", {})[name] = {"params": inputs[ok], "hist": hist1, "pred": pred,
                                                  "hist2": d["hist2"][ok], "n_hits": d["n_hits"][ok]}
     main = out["screened"]["as_drawn"]
     out["mse"], out["mse_nonempty"] = main["mse"], main["mse_nonempty"]

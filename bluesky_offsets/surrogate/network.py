@@ -1,4 +1,5 @@
-"""The neural surrogate of the twin: 34 beamline parameters -> x and y histograms.
+"""The neural surrogate of the twin: 34 beamline parameters (and the focus chamber's x, y, z)
+-> x and y histograms.
 
 Paper Sec. 3.1: min-max normalized inputs and outputs, seven linear layers,
 Mish after every layer but the last, 100 outputs (50 x bins then 50 y bins,
@@ -28,6 +29,7 @@ import numpy as np
 import torch
 from torch import nn
 
+from bluesky_offsets.physics.effects import CHAMBER_HIGH, CHAMBER_INPUTS, CHAMBER_LOW
 from bluesky_offsets.physics.parameters import METRIXS, ParameterTable
 from bluesky_offsets.physics.twin import SOURCE_FRAME, HistogramSpec
 
@@ -180,7 +182,9 @@ class Normalization:
     mode: str = "global"
 
     @classmethod
-    def fit(cls, table: ParameterTable, hist: np.ndarray, mode: str = "global") -> Normalization:
+    def fit(cls, table: ParameterTable, hist: np.ndarray, mode: str = "global",
+            chamber: bool = False) -> Normalization:
+        """``chamber``: the inputs end with the focus chamber's x, y, z (its box)."""
         hist = np.asarray(hist, dtype=np.float64)
         if mode == "global":
             lo = np.full(hist.shape[1], hist.min())
@@ -192,7 +196,10 @@ class Normalization:
         else:
             raise ValueError(f"output normalization must be 'global', 'per-bin' or 'none', got {mode!r}")
         span = np.where(hi - lo > 0, hi - lo, 1.0)
-        return cls(table.low.copy(), table.span.copy(), lo, span, mode)
+        in_low, in_span = table.low.copy(), table.span.copy()
+        if chamber:
+            in_low, in_span = np.concatenate([in_low, CHAMBER_LOW]), np.concatenate([in_span, CHAMBER_HIGH - CHAMBER_LOW])
+        return cls(in_low, in_span, lo, span, mode)
 
     def to_dict(self) -> dict:
         return {"in_low": self.in_low.tolist(), "in_span": self.in_span.tolist(),
@@ -241,10 +248,21 @@ class Surrogate:
     def new(cls, arch: Architecture, norm: Normalization, table: ParameterTable = METRIXS,
             hist: HistogramSpec | None = None, **kw) -> Surrogate:
         hist = hist or HistogramSpec()
-        if arch.n_inputs != len(table) or arch.n_outputs != hist.bins_x + hist.bins_y:
-            raise ValueError(f"architecture {arch} does not fit {len(table)} parameters and "
-                             f"{hist.bins_x}+{hist.bins_y} bins")
+        if arch.n_inputs not in (len(table), len(table) + len(CHAMBER_INPUTS)) \
+                or arch.n_outputs != hist.bins_x + hist.bins_y or len(norm.in_low) != arch.n_inputs:
+            raise ValueError(f"architecture {arch} does not fit {len(table)} parameters (and the chamber's "
+                             f"{len(CHAMBER_INPUTS)}) and {hist.bins_x}+{hist.bins_y} bins")
         return cls(SurrogateNet(arch), arch, norm, table.fingerprint(), hist.fingerprint(), **kw)
+
+    @property
+    def chamber(self) -> bool:
+        """Whether the focus chamber's x, y, z are inputs (after the table's parameters)."""
+        return self.arch.n_inputs == len(self.table["names"]) + len(CHAMBER_INPUTS)
+
+    @property
+    def inputs(self) -> list[str]:
+        """The inputs' names, in order."""
+        return list(self.table["names"]) + (list(CHAMBER_INPUTS) if self.chamber else [])
 
     # -- inference --------------------------------------------------------------
     @property
@@ -264,16 +282,21 @@ class Surrogate:
             self._cache = cache
         return cache[1:]
 
-    def predict(self, params, *, normalized: bool = False, chunk_size: int = 65536, device=None,
+    def predict(self, params, *, chamber=None, normalized: bool = False, chunk_size: int = 65536, device=None,
                 clamp: bool = True):
         """Histograms for a batch of parameter vectors.
 
         Parameters
         ----------
-        params : array-like or Tensor, shape (..., n_params)
+        params : array-like or Tensor, shape (..., n_params) or (..., n_inputs)
             Physical values in table order, or normalized coordinates (box ->
             [0, 1]) with ``normalized=True``.  Any leading shape, e.g.
-            (candidates, configurations, 34).
+            (candidates, configurations, 34).  A surrogate with the chamber's inputs
+            (:attr:`chamber`) also takes the 34 and 3 together.
+        chamber : array-like or Tensor, shape (3,) or (..., 3), optional
+            The focus chamber's x, y, z in mm (physical, also with ``normalized``), for
+            a surrogate with the chamber's inputs given the 34 alone (default: 0, its
+            nominal place).  A surrogate without them refuses a chamber away from 0.
         chunk_size : int
             Rows per forward pass (bounds memory; gradients flow through all chunks).
         device : str or torch.device, optional
@@ -294,14 +317,25 @@ class Surrogate:
         if dev != self.device:
             self.net.to(dev)
         x = torch.as_tensor(np.asarray(params, dtype=np.float32) if as_numpy else params)
-        if x.shape[-1] != self.arch.n_inputs:
-            raise ValueError(f"expected parameter vectors of length {self.arch.n_inputs} "
-                             f"(table order), got shape {tuple(x.shape)}")
+        n_table = len(self.table["names"])
+        if x.shape[-1] not in (n_table, self.arch.n_inputs):
+            raise ValueError(f"expected parameter vectors of length {n_table}"
+                             + (f" or {self.arch.n_inputs} (with the chamber's x, y, z)" if self.chamber else "")
+                             + f" (table order), got shape {tuple(x.shape)}")
         dtype = next(self.net.parameters()).dtype
         x = x.to(device=dev, dtype=dtype)
+        in_low, in_span, out_low, out_span = self._norm_tensors(dev, dtype)
+        if x.shape[-1] == n_table and self.chamber:
+            ch = torch.zeros(3, dtype=dtype, device=dev) if chamber is None else \
+                torch.as_tensor(chamber, dtype=dtype).to(dev)
+            if normalized:  # the chamber is given in mm: onto the box like the parameters
+                ch = (ch - in_low[n_table:]) / in_span[n_table:]
+            x = torch.cat([x, ch.expand(*x.shape[:-1], 3)], -1)
+        elif chamber is not None and not self.chamber and bool(torch.as_tensor(chamber).ne(0).any()):
+            raise ValueError("this surrogate was trained without the focus chamber's inputs: it knows the "
+                             "chamber at its nominal place only")
         lead = x.shape[:-1]
         x = x.reshape(-1, x.shape[-1])
-        in_low, in_span, out_low, out_span = self._norm_tensors(dev, dtype)
         if not normalized:
             x = (x - in_low) / in_span
         x = self._as_trained(x)
@@ -340,7 +374,7 @@ class Surrogate:
     # -- persistence --------------------------------------------------------------
     def metadata(self) -> dict:
         n_par = sum(p.numel() for p in self.net.parameters())
-        return {"format": FORMAT, "arch": self.arch.__dict__, "n_weights": int(n_par),
+        return {"format": FORMAT, "arch": self.arch.__dict__, "n_weights": int(n_par), "inputs": self.inputs,
                 "table": self.table, "table_version": _table_version(self.table),
                 "histogram": self.histogram, "normalization": self.norm.to_dict(),
                 # a model that does not say otherwise was made with the twin as it is now

@@ -288,20 +288,23 @@ def train(data: Dataset, run_dir: str | os.PathLike, config: TrainConfig | None 
         tr, va, te = grown_split_indices(len(data), _size_chain(init_prov), config.split, config.seed)
     else:
         tr, va, te = split_indices(len(data), config.split, config.seed)
-    norm = Normalization.fit(table, Y[tr], config.output_norm)
-    X = torch.as_tensor(table.normalize(data.params), dtype=torch.float32, device=device)
+    chamber = data.chamber is not None
+    norm = Normalization.fit(table, Y[tr], config.output_norm, chamber=chamber)
+    table.validate(data.params)
+    X = torch.as_tensor((data.inputs - norm.in_low) / norm.in_span, dtype=torch.float32, device=device)
     Yn = torch.as_tensor((Y - norm.out_low) / norm.out_span, dtype=torch.float32, device=device)
     Yt = torch.as_tensor(Y, device=device)
     good_tr = tr[data.n_hits[tr] >= config.good_min_rays]
     bad_tr = tr[data.n_hits[tr] < config.good_min_rays]
 
-    arch = Architecture(len(table), hist.bins_x + hist.bins_y, config.width, config.n_layers, config.decoder, hist.bins_x,
+    arch = Architecture(X.shape[1], hist.bins_x + hist.bins_y, config.width, config.n_layers, config.decoder, hist.bins_x,
                         config.members)
     provenance = {"dataset": data.meta.get("path"), "n_samples": len(data),
                   "n_train": len(tr), "n_val": len(va), "n_test": len(te),
                   "n_good": int((data.n_hits >= config.good_min_rays).sum()),
                   "n_nonempty": int((data.n_hits > 0).sum()),
                   "n_rays": data.meta["settings"]["n_rays"], "scheme": data.meta["settings"]["scheme"],
+                  "chamber": chamber, "engine": data.meta["settings"].get("engine", "rayx"),
                   "scheme_text": data.meta.get("scheme"), "dataset_seed": data.meta["settings"]["seed"],
                   "twin": data.meta.get("engine"), "source_frame": data.meta.get("source_frame", "mirrored"),
                   "table_version": data.meta.get("table_version"),
