@@ -300,29 +300,40 @@ class SurrogateBackend:
     path : str, optional
         Checkpoint (default: the one shipped with the package).
     overrides : mapping, optional
-        Must be empty: the surrogate knows only the table's parameters.
+        Hidden effects as RML overrides: only the focus chamber's translation (the
+        ``chamber_x``/``_y``/``_z`` effects), and only for a checkpoint with the chamber's
+        inputs; the surrogate knows nothing else.
     """
 
     def __init__(self, path: str | None = None, overrides: Mapping | None = None,
                  hist: HistogramSpec | None = None, noise_seed: int | None = None):
-        if overrides:
-            raise ValueError("the surrogate backend cannot apply hidden physical effects "
-                             f"({sorted(overrides)}); use the twin backend")
         from pathlib import Path
 
+        from bluesky_offsets.physics.metrixs import IMAGE_PLANE
         from bluesky_offsets.surrogate.network import SurrogateError, load
+        fields = dict((overrides or {}).get(IMAGE_PLANE, {}))
+        self.chamber = np.array([float(fields.pop(f"translation{a}error", 0.0)) for a in "XYZ"])
+        rest = sorted(k for k in (overrides or {}) if k != IMAGE_PLANE) + [f"{IMAGE_PLANE}.{k}" for k in fields]
+        if rest:
+            raise ValueError("the surrogate backend cannot apply hidden physical effects other than the "
+                             f"chamber's translation ({rest}); use the twin backend")
         self.hist = hist or HistogramSpec()
         try:
             self.model = load(path, hist=self.hist)
         except SurrogateError as exc:
             raise ValueError(str(exc)) from None
+        if self.chamber.any() and not self.model.chamber:
+            raise ValueError("this surrogate checkpoint was trained without the focus chamber's inputs: it "
+                             "cannot move the chamber; use one trained on a store drawn with --chamber, or the "
+                             "twin backend")
         self.name = f"surrogate ({Path(path).name if path else 'shipped'})"
         self._rng = np.random.default_rng(noise_seed)  # None: fresh from the OS
         self._pool = cf.ThreadPoolExecutor(max_workers=1, thread_name_prefix="surrogate")
 
     def _frame(self, values: np.ndarray, n_rays: int) -> Frame:
         t0 = time.perf_counter()
-        pred = np.asarray(self.model.predict(np.asarray(values, float)[None, :]))[0]
+        pred = np.asarray(self.model.predict(np.asarray(values, float)[None, :],
+                                             chamber=self.chamber if self.model.chamber else None))[0]
         px, py = pred[:self.hist.bins_x], pred[self.hist.bins_x:]
         cx, cy = finite_ray_sample(px, n_rays, self._rng), finite_ray_sample(py, n_rays, self._rng)
         n = max(int(n_rays), 1)

@@ -497,7 +497,9 @@ def test_surrogate_backend_draws_finite_ray_noise(tmp_path):
         assert dark.n_hits == 0 and not dark.hist_x.any()
     finally:
         backend.close()
-    with pytest.raises(ValueError, match="cannot apply hidden physical effects"):
+    with pytest.raises(ValueError, match="cannot apply hidden physical effects other than the chamber"):
+        make_backend(f"surrogate:{path}", overrides={"M1-Cylinder": {"slopeErrorSag": 1.0}})
+    with pytest.raises(ValueError, match="trained without the focus chamber's inputs"):
         make_backend(f"surrogate:{path}", overrides={"ImagePlane": {"translationZerror": 1.0}})
     with pytest.raises(ValueError, match="does not exist"):
         make_backend(f"surrogate:{tmp_path / 'none.pt'}")

@@ -164,6 +164,16 @@ def test_chamber_inputs_torch_data_train_and_evaluate_against_rayx(tmp_path, cap
                  "--min-nonempty", "4", "--seed", "5", "--scheduler", "inline", "--no-progress", "--json"]) == 0
     res = json.loads(capsys.readouterr().out)
     assert res["engine"].startswith("rayx") and res["n_nonempty"] >= 4 and np.isfinite(res["mse_nonempty"])
+    # the IOC's surrogate backend moves the chamber of such a model (the hidden chamber_* effects)
+    from sim_iocs.backends import make_backend
+    backend = make_backend(f"surrogate:{tmp_path / 'm.pt'}", overrides={"ImagePlane": {"translationZerror": 9.0}},
+                           noise_seed=1)
+    try:
+        frame = backend.submit(ref, 10**9).result(timeout=30)
+    finally:
+        backend.close()
+    expect = model.predict(ref, chamber=[0.0, 0.0, 9.0])
+    np.testing.assert_allclose(np.concatenate([frame.hist_x, frame.hist_y]), expect, atol=1e-3)
     # the shipped surrogate (34 inputs) knows the chamber at its nominal place only
     shipped = surrogate.load()
     assert not shipped.chamber
