@@ -147,7 +147,8 @@ def test_chamber_inputs_torch_data_train_and_evaluate_against_rayx(tmp_path, cap
     path = tmp_path / "torch.zarr"
     assert main(["dataset", "generate", str(path), "--samples", "120", "--engine", "torch", "--chamber",
                  "--rayx-check", "0", *GEN]) == 0
-    model = training.train(dataset.load(path), tmp_path / "run", _small(decoder="factored"), progress=False)
+    model = training.train(dataset.load(path), tmp_path / "run", _small(decoder="factored", activation="silu"),
+                           progress=False)
     assert model.chamber and model.arch.n_inputs == 37
     assert model.inputs[-3:] == ["chamber_x", "chamber_y", "chamber_z"]
     assert model.provenance["engine"] == "torch" and model.provenance["twin"].startswith("torch")
@@ -158,7 +159,9 @@ def test_chamber_inputs_torch_data_train_and_evaluate_against_rayx(tmp_path, cap
     with pytest.raises(ValueError, match="length 34 or 37"):
         model.predict(ref[:30])
     model.save(tmp_path / "m.pt")
-    assert surrogate.load(tmp_path / "m.pt").chamber
+    assert surrogate.load(tmp_path / "m.pt").chamber and surrogate.load(tmp_path / "m.pt").arch.activation == "silu"
+    with pytest.raises(ValueError, match="activation must be one of mish, silu"):
+        TrainConfig(activation="tanh")
     capsys.readouterr()
     assert main(["surrogate", "evaluate", "--checkpoint", str(tmp_path / "m.pt"), "--samples", "12",
                  "--min-nonempty", "4", "--seed", "5", "--scheduler", "inline", "--no-progress", "--json"]) == 0

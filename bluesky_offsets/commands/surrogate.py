@@ -129,6 +129,7 @@ def _cmd_train(args) -> int:
                              good_fraction=None if args.good_fraction <= 0 else args.good_fraction,
                              split=tuple(args.split), width=args.width, n_layers=args.layers,
                              output_norm=args.output_norm, decoder=args.decoder, members=args.members,
+                             activation=args.activation,
                              patience=args.patience, min_delta=args.min_delta,
                              epoch_samples=args.epoch_samples, device=args.device, seed=args.seed,
                              threads=args.threads, max_minutes=args.max_minutes, init=args.init)
@@ -279,6 +280,8 @@ def add_cli(sub) -> None:
     t.add_argument("--split", type=float, nargs=3, default=list(c.split), metavar=("TRAIN", "VAL", "TEST"))
     t.add_argument("--width", type=int, default=c.width, help=f"hidden width (default {c.width})")
     t.add_argument("--layers", type=int, default=c.n_layers, help=f"linear layers (default {c.n_layers})")
+    t.add_argument("--activation", choices=["mish", "silu"], default=c.activation,
+                   help=f"between the layers: Mish (the paper's) or SiLU, 2.3x cheaper on a CPU (default {c.activation})")
     t.add_argument("--output-norm", choices=["global", "per-bin"], default=c.output_norm)
     t.add_argument("--decoder", choices=["bins", "factored"], default=c.decoder,
                    help="bins: the paper's net (MSE on the bins); factored: transmission x shape per axis "

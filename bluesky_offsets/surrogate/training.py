@@ -27,7 +27,7 @@ import torch
 
 from bluesky_offsets.surrogate.dataset import GOOD_MIN_RAYS, Dataset
 from bluesky_offsets.physics.parameters import METRIXS, ParameterTable
-from bluesky_offsets.surrogate.network import DECODERS, Architecture, Normalization, Surrogate
+from bluesky_offsets.surrogate.network import ACTIVATIONS, DECODERS, Architecture, Normalization, Surrogate
 from bluesky_offsets.physics.twin import HistogramSpec
 
 log = logging.getLogger(__name__)
@@ -101,6 +101,7 @@ class TrainConfig:
     output_norm: str = "global"
     decoder: str = "bins"
     members: int = 1
+    activation: str = "mish"
     patience: int = 30
     min_delta: float = 0.0
     epoch_samples: int | None = None
@@ -123,6 +124,8 @@ class TrainConfig:
             raise ValueError("lr must be > 0 and gamma in (0, 1]")
         if self.decoder not in DECODERS:
             raise ValueError(f"decoder must be one of {DECODERS}, got {self.decoder!r}")
+        if self.activation not in ACTIVATIONS:
+            raise ValueError(f"activation must be one of {', '.join(ACTIVATIONS)}, got {self.activation!r}")
         if self.members < 1 or (self.members > 1 and self.decoder != "factored"):
             raise ValueError("members > 1 (an ensemble) needs decoder 'factored'")
         if self.decoder == "factored":
@@ -147,7 +150,7 @@ class TrainConfig:
 
 # the keys that must agree to resume a run
 _RESUME_KEYS = ("batch_size", "lr", "gamma", "good_min_rays", "good_fraction", "split", "width", "n_layers",
-                "output_norm", "decoder", "members", "epoch_samples", "seed", "init")
+                "output_norm", "decoder", "members", "activation", "epoch_samples", "seed", "init")
 
 
 def split_indices(n: int, fractions, seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -298,7 +301,7 @@ def train(data: Dataset, run_dir: str | os.PathLike, config: TrainConfig | None 
     bad_tr = tr[data.n_hits[tr] < config.good_min_rays]
 
     arch = Architecture(X.shape[1], hist.bins_x + hist.bins_y, config.width, config.n_layers, config.decoder, hist.bins_x,
-                        config.members)
+                        config.members, config.activation)
     provenance = {"dataset": data.meta.get("path"), "n_samples": len(data),
                   "n_train": len(tr), "n_val": len(va), "n_test": len(te),
                   "n_good": int((data.n_hits >= config.good_min_rays).sum()),
