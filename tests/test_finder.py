@@ -156,10 +156,13 @@ def test_the_shipped_surrogate_is_a_forward_model():
     fm = F.load_forward_model()
     assert isinstance(fm, F.ForwardModel) and fm.test_mse > 0
     rng = np.random.default_rng(0)
-    x = rng.random((5, 3, 34))
+    # bright inputs (whole-box draws are dark, where any two models agree), the source's own
+    # offsets among them: a checkpoint trained with the mirrored source frame sees them reflected
+    x = METRIXS.normalize(METRIXS.reference) + rng.uniform(-0.05, 0.05, (5, 3, 34))
     ours = fm(torch.as_tensor(x, dtype=torch.float32)).numpy()
     theirs = load().predict(METRIXS.denormalize(x))
-    np.testing.assert_allclose(ours, theirs, rtol=1e-4, atol=1e-7)
+    assert theirs.sum(-1).min() > 0.05
+    np.testing.assert_allclose(ours, theirs, rtol=1e-4, atol=1e-6)
     assert ours.shape == (5, 3, 100) and (ours >= 0).all()
     with pytest.raises(F.FinderError, match="does not exist"):
         F.load_forward_model("/nonexistent/surrogate.pt")

@@ -8,6 +8,7 @@ import os
 import numpy as np
 import pytest
 
+from bluesky_offsets.physics.parameters import METRIXS
 from bluesky_offsets.surrogate import dataset
 from bluesky_offsets.surrogate import network as surrogate
 from bluesky_offsets.surrogate import training
@@ -167,6 +168,12 @@ def test_chamber_inputs_torch_data_train_and_evaluate_against_rayx(tmp_path, cap
                  "--min-nonempty", "4", "--seed", "5", "--scheduler", "inline", "--no-progress", "--json"]) == 0
     res = json.loads(capsys.readouterr().out)
     assert res["engine"].startswith("rayx") and res["n_nonempty"] >= 4 and np.isfinite(res["mse_nonempty"])
+    # the finder's forward model sees the chamber where it is known to be; its unknowns stay 34
+    import torch
+    from bluesky_offsets.offsets.finder import load_forward_model
+    fm = load_forward_model(tmp_path / "m.pt", chamber=[0.1, 0.0, 9.0])
+    ours = fm(torch.as_tensor(METRIXS.normalize(ref), dtype=torch.float32)).numpy()
+    np.testing.assert_allclose(ours, model.predict(ref, chamber=[0.1, 0.0, 9.0]), rtol=1e-5, atol=1e-7)
     # the IOC's surrogate backend moves the chamber of such a model (the hidden chamber_* effects)
     from sim_iocs.backends import make_backend
     backend = make_backend(f"surrogate:{tmp_path / 'm.pt'}", overrides={"ImagePlane": {"translationZerror": 9.0}},

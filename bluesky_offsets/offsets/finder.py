@@ -112,7 +112,7 @@ class SurrogateForwardModel(torch.nn.Module):
     buffers so that ``.to(device)`` moves everything.  Weights are frozen.
     """
 
-    def __init__(self, surrogate):
+    def __init__(self, surrogate, chamber=None):
         super().__init__()
         self.surrogate = surrogate
         self.net = surrogate.net
@@ -122,20 +122,38 @@ class SurrogateForwardModel(torch.nn.Module):
         norm = surrogate.norm
         self.register_buffer("out_low", torch.as_tensor(np.asarray(norm.out_low), dtype=torch.float32))
         self.register_buffer("out_span", torch.as_tensor(np.asarray(norm.out_span), dtype=torch.float32))
+        # a surrogate with the chamber's inputs sees the chamber where it is known to be (default:
+        # its nominal place); the finder's unknowns stay the 34 offsets
+        n = len(surrogate.table["names"])
+        ch = np.zeros(3) if chamber is None else np.asarray(chamber, float)
+        if chamber is not None and not surrogate.chamber and ch.any():
+            raise FinderError("this surrogate was trained without the focus chamber's inputs")
+        self.register_buffer("chamber", torch.as_tensor(
+            (ch - norm.in_low[n:]) / norm.in_span[n:] if surrogate.chamber else np.zeros(0), dtype=torch.float32))
+        # a checkpoint trained with the mirrored source frame sees the four source inputs
+        # reflected in their boxes, as Surrogate.predict shows them (Surrogate._as_trained)
+        mirrored = [i for i, name in enumerate(surrogate.table["names"]) if name.startswith("U41_318eV.")] \
+            if surrogate.source_mirrored else []
+        self.register_buffer("mirrored", torch.as_tensor(mirrored, dtype=torch.long))
         test = (surrogate.metrics or {}).get("test") or {}
         # the model's own error on bright histograms: what the identifiability analysis adds per bin
         self.test_mse = float(test.get("mse_nonempty", test.get("mse", 0.0)) or 0.0)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
+        if self.mirrored.numel():
+            x = x.index_copy(-1, self.mirrored, 1.0 - x.index_select(-1, self.mirrored))
+        if self.chamber.numel():
+            x = torch.cat([x, self.chamber.to(x.dtype).expand(*x.shape[:-1], -1)], -1)
         return (self.net(x) * self.out_span + self.out_low).clamp_min(0.0)
 
 
-def load_forward_model(path=None, device: str | torch.device | None = None) -> SurrogateForwardModel:
+def load_forward_model(path=None, device: str | torch.device | None = None, chamber=None) -> SurrogateForwardModel:
     """The surrogate checkpoint at ``path`` (default: the one shipped in
-    ``bluesky_offsets/data``) as a :class:`ForwardModel` ready for the finder."""
+    ``bluesky_offsets/data``) as a :class:`ForwardModel` ready for the finder; ``chamber``
+    (x, y, z in mm) places the focus chamber for a checkpoint with the chamber's inputs."""
     from bluesky_offsets.surrogate.network import SurrogateError, load
     try:
-        model = SurrogateForwardModel(load(path))
+        model = SurrogateForwardModel(load(path), chamber)
     except SurrogateError as exc:
         raise FinderError(str(exc)) from None
     if device is not None:
