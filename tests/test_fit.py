@@ -43,6 +43,12 @@ def test_ray_jacobian_gives_the_soft_histograms_exact_jacobian():
     assert all(torch.equal(getattr(rj, k), getattr(soft, k)) for k in ("x", "y", "alive", "weight"))
     assert torch.equal(rj.rows, torch.nonzero(soft.weight.reshape(-1) > RAY_WEIGHT_FLOOR).squeeze(1))
     assert 0 < rj.rows.numel() < soft.weight.numel()
+    # the derivatives in a few inputs alone (the beam optimizer's E1/E2): the same columns
+    cols = [names.index("E1.rotationXerror"), names.index("E2.translationZerror"), names.index("chamber_z.z")]
+    sub = eng.ray_jacobian(cfg, eff, n_rays=1500, seed=5, chunk=1000, columns=cols)
+    assert sub.names == [names[c] for c in cols] and torch.equal(sub.rows, rj.rows)
+    for full, part in ((rj.rows_jx, sub.rows_jx), (rj.rows_jy, sub.rows_jy), (rj.rows_jw, sub.rows_jw)):
+        assert float((full[:, cols] - part).abs().max()) <= 1e-12 * max(float(full.abs().max()), 1.0)
 
 
 def test_pitch_moves_the_focus_along_x():

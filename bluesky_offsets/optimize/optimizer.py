@@ -212,10 +212,10 @@ class _Problem:
         c = float(r @ r)
         return c if math.isfinite(c) else math.inf
 
-    def ray_jacobian(self, cfg, effects: bool = False):
+    def ray_jacobian(self, cfg, effects: bool = False, columns=None):
         return self.engine.ray_jacobian(self.values(cfg)[None], self.twin_effects if effects else None,
                                         n_rays=self.o.rays, seed=self.o.seed, overrides=self.overrides if not effects
-                                        else (self.extra or None))
+                                        else (self.extra or None), columns=columns)
 
     def linearized(self, cfg, func: Callable[[Rays], torch.Tensor], columns=None, effects: bool = False):
         """``func``'s residuals at the rays of ``cfg``, their Jacobian (m, n) in the inputs
@@ -227,11 +227,11 @@ class _Problem:
         the derivative of the light cut; squared ray by ray (a Gauss-Newton matrix) they would
         not, and would swamp it.  So the curvature comes from the rays' moves, the slope from
         everything."""
-        rj = self.ray_jacobian(cfg, effects)
+        cols = np.flatnonzero(self.free) if columns is None else np.asarray(columns)
+        rj = self.ray_jacobian(cfg, effects, cols)  # the derivatives in these inputs only
         rows = rj.rows
         x, y, w = (t.reshape(-1)[rows].detach() for t in (rj.x, rj.y, rj.weight))
-        cols = np.flatnonzero(self.free) if columns is None else np.asarray(columns)
-        tx, ty, tw = (t[:, cols].T.contiguous() for t in (rj.rows_jx, rj.rows_jy, rj.rows_jw))
+        tx, ty, tw = (t.T.contiguous() for t in (rj.rows_jx, rj.rows_jy, rj.rows_jw))
         n = self.o.rays
 
         def moved(a, b):

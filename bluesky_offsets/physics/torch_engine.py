@@ -1322,7 +1322,7 @@ class TorchEngine:
 
     # -- per-ray derivatives ---------------------------------------------------------
     def ray_jacobian(self, values, effects=None, *, n_rays: int, seed=0, overrides=None,
-                     chunk: int = 1 << 16) -> RayJacobian:
+                     chunk: int = 1 << 16, columns=None) -> RayJacobian:
         """Every ray's screen position and soft weight with their derivatives in the inputs.
 
         The inputs are the 34 parameters and the twin-level effect parameters of ``effects``
@@ -1337,6 +1337,10 @@ class TorchEngine:
         only the rays whose soft weight is above :data:`RAY_WEIGHT_FLOOR` are traced again for
         theirs (about a fifth of a bright configuration's rays: the rest end far outside a
         slit).  ``chunk`` bounds the rays × configurations traced at once (memory ~5 kB each).
+        ``columns`` (indices into the inputs) keeps the derivatives in those inputs only: the
+        fields they do not move are no leaves, so nothing upstream of the first field they
+        move is traced with a graph (the beam optimizer moves E1 and E2 alone: 0.12 s instead of
+        0.96 s at 20,000 rays).
         """
         o = self.options
         vals, leaves, names = self.inputs(values, effects)
@@ -1349,6 +1353,9 @@ class TorchEngine:
         # d field / d input per configuration: (C, F, P), one batched backward pass
         flat = torch.cat([t.reshape(c, -1) for t in fields], 1)
         dfield = _batched_grad(flat, inputs)
+        if columns is not None:
+            columns = [int(i) for i in np.asarray(columns).reshape(-1)]
+            dfield, names = dfield[:, :, columns], [names[i] for i in columns]
         sizes = [t[0].numel() for t in fields]
         # only the fields the inputs move are leaves of the per-ray traces
         bounds = np.cumsum([0] + sizes)
