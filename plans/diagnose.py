@@ -346,9 +346,10 @@ def _offsets_row(state: ModelState, table: ParameterTable) -> dict:
 
 def refine_offsets(measurement, state: ModelState, twin, forward_model=None, *, store=None,
                    options: FitOptions | Mapping | None = None, label: str = "+ offsets", open_run: bool = True,
-                   md: Mapping | None = None, show: bool = True,
+                   md: Mapping | None = None, show: bool = True, also_from: Sequence[ModelState] = (),
                    table: ParameterTable = METRIXS) -> MsgGenerator[Refinement]:
-    """Fit the offsets (and the state's effects), starting from ``state``.
+    """Fit the offsets (and the state's effects), starting from ``state`` (and from each of
+    ``also_from``: the fit that ends lowest is kept).
 
     :func:`bluesky_offsets.model.state.refine`: the one fit engine (the differentiable twin, exact
     Jacobians; features, then profiles, then bins), options :class:`~bluesky_offsets.model.fit.FitOptions`
@@ -366,16 +367,18 @@ def refine_offsets(measurement, state: ModelState, twin, forward_model=None, *, 
     opts = FitOptions.resolve(options, D.FIT)
     _md = {"plan_name": "refine_offsets", "purpose": "offsets through the differentiable twin", **link,
            **_state_md(state, table), "fit_options": _jsonable(asdict(opts)), "n_configurations": meas.n,
-           "version_label": label,
+           "version_label": label, "also_from": [st.label for st in also_from],
            "jacobian": "exact (torch twin)", **dict(md or {})}
 
     def body():
         res: RefineResult = yield from run_in_thread(
-            lambda progress: refine(meas, state, twin, options=opts, progress=progress, table=table),
+            lambda progress: refine(meas, state, twin, options=opts, progress=progress, table=table,
+                                    also_from=also_from),
             desc="fit the offsets through the differentiable twin", show=show)
         st = ModelState(res.state.offsets, res.state.effects, label)
         row = _offsets_row(st, table)
-        last = [h for h in res.history if h["stage"] == res.history[-1]["stage"]]
+        end = res.history[-1]  # the kept start's last stage (a fit from several starts: model.fit.fit)
+        last = [h for h in res.history if h["stage"] == end["stage"] and h.get("start") == end.get("start")]
         row.update(chi2_reduced_start=float(last[0]["chi2_reduced"]), chi2_reduced_end=float(last[-1]["chi2_reduced"]),
                    offsets_sigma=np.asarray(res.offset_sigma, float),
                    accepted=int(sum(h["accepted"] for h in res.history if h["iteration"])),
@@ -641,8 +644,8 @@ def analyse_measurement(measurement, twin, forward_model=None, *, store=None,
         The measurement or its run uid in ``store``.
     starts : ModelState or sequence of ModelState, optional
         Model versions to compare first (e.g. the bare twin and the surrogate finder's
-        offsets); the offsets are fitted from each, and the fit that ends lowest (χ²/dof with
-        fresh rays) is kept.  Default: the bare twin.
+        offsets); the offsets are fitted from each in one run, and the fit that ends lowest is
+        kept (:func:`bluesky_offsets.model.fit.fit`, ``also_from``).  Default: the bare twin.
     refine : bool
         Fit the offsets before the diagnosis (False: diagnose the best start as it is).
     candidates : sequence of str, optional
@@ -685,7 +688,7 @@ def analyse_measurement(measurement, twin, forward_model=None, *, store=None,
     fopts = FitOptions.resolve(fit_options, D.FIT)
     sopts = FitOptions.resolve(scan_options, D.SCAN)
     key = analysis_key(meas, {
-        "starts": [(s.label, s.offsets, s.effects) for s in starts], "refine": refine and "every start",
+        "starts": [(s.label, s.offsets, s.effects) for s in starts], "refine": refine and "from every start",
         "candidates": candidates,
         "add_best": add_best, "rounds": rounds, "fit": asdict(fopts), "scan": asdict(sopts), "fit_top": fit_top,
         "folds": folds, "seed": seed, "spec": meas.spec.fingerprint(), "n_rays": meas.n_rays})
@@ -718,20 +721,14 @@ def analyse_measurement(measurement, twin, forward_model=None, *, store=None,
     order = sorted(out.comparisons, key=lambda c: c.misfit.chi2_reduced_total)
     current = order[0].state
     if refine:
-        # The offsets are fitted from every start, the one the measurement likes best first
-        # ("refine_offsets", then "refine_offsets_1" ...); the fit that ends lowest is kept.  Why:
-        # where the surrogate cannot represent the beamline (a hidden defocus) its finder's
-        # offsets lie far off (measured: at the box's edge, 0.18 of the ranges rms against 0.03
-        # for no offsets at all) while their χ² is a little lower, and the fit ends where it starts.
-        fits = []
-        for k, c0 in enumerate(order):
-            name = "refine_offsets" if k == 0 else f"refine_offsets_{k}"
-            r = yield from step(name, lambda m, c0=c0: refine_offsets(
-                meas, c0.state, twin, options=fopts, md={**m, "start_label": c0.label}, show=show, table=table),
-                restore_refinement)
-            out.uids[name] = r.uid
-            fits.append(r)
-        r = min(fits, key=lambda f: f.comparison.misfit.chi2_reduced_total)
+        # The offsets are fitted from every start and the fit that ends lowest is kept.  Why: where
+        # the surrogate cannot represent the beamline (a hidden defocus) its finder's offsets lie
+        # far off (measured: at the box's edge, 0.18 of the ranges rms against 0.03 for no offsets
+        # at all) while their χ² is a little lower, and the fit ends near where it starts.
+        r = yield from step("refine_offsets", lambda m: refine_offsets(
+            meas, current, twin, options=fopts, md={**m, "start_label": order[0].label}, show=show,
+            also_from=[c.state for c in order[1:]], table=table), restore_refinement)
+        out.uids["refine_offsets"] = r.uid
         out.refinement = r
         out.comparisons.append(r.comparison)
         current = r.state

@@ -372,22 +372,11 @@ def calibrated_in_store(uid: str = "last", store=None):
     covariance."""
     from .diagnose import load_results, restore_refinement, restore_refit
     store = _store(store)
-    last = uid == "last"
     uid = resolve_run(store, uid, "model")
     res = load_results(store, uid)
     if res["start"]["plan_name"] == "add_effect_and_refit":
         return restore_refit(res, [], uid).calibrated
-    key = res["start"].get("analysis_key")
-    if not last or key is None:
-        return restore_refinement(res, uid).calibrated
-    # an analysis fits the offsets from every start and keeps the fit that ends lowest
-    # (plans.diagnose.analyse_measurement): "last" is that one, not the newest of them
-    from tiled.queries import Eq
-    fits = []
-    for u in store.client.search(Eq("start.plan_name", "refine_offsets")).search(Eq("start.analysis_key", key)):
-        if (store[u].metadata.get("stop") or {}).get("exit_status") == "success":
-            fits.append(restore_refinement(load_results(store, u), u))
-    return min(fits, key=lambda f: f.comparison.misfit.chi2_reduced_total).calibrated
+    return restore_refinement(res, uid).calibrated
 
 
 def optimize(beamline, chamber, target: dict | None = None, model: str = "last", *, frames: int = 1,

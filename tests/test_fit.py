@@ -173,6 +173,26 @@ def test_screen_is_a_cheap_look_that_only_goes_down(defocus_case):
     assert res.n_traces == 6 * meas.n  # one Jacobian, four steps, the bins
 
 
+def test_a_fit_from_several_starts_keeps_the_one_that_ends_lowest(defocus_case):
+    """``also_from``: the whole fit from each start; the lowest end is kept, its iterations last,
+    each tagged with its start; the same as fitting from that start alone.  The jackknife widens
+    an uncertainty, never narrows it."""
+    meas, truth, twin = defocus_case
+    opts = FitOptions(rays=1500, seed=3, stages=(("bins", 3),))
+    eng = TorchEngine(hist=CAMERA)
+    near = ModelState(truth.offsets * 0.8, {"chamber_z": {"z": 12.0}})
+    far = ModelState(np.clip(-truth.offsets * 4, -0.2, 0.2), {"chamber_z": {"z": -5.0}})
+    both = fit(meas, far, eng, opts, also_from=[near])
+    alone = [fit(meas, st, eng, opts) for st in (far, near)]
+    kept = int(np.argmin([a.history[-1]["chi2"] for a in alone]))
+    assert kept == 1 and {h["start"] for h in both.history} == {0, 1} and both.history[-1]["start"] == kept
+    assert np.array_equal(both.state.offsets, alone[kept].state.offsets)
+    assert np.allclose(both.covariance, alone[kept].covariance)
+    assert np.all(both.widened >= 1.0) and np.all(np.isfinite(both.sigma))
+    with pytest.raises(ValueError, match="same effects"):
+        fit(meas, far, eng, opts, also_from=[ModelState(truth.offsets)])
+
+
 def test_a_parameter_the_data_do_not_see_has_no_uncertainty():
     """A thermal bump below its threshold is no bump (its column is zero): its σ is NaN, never
     the pseudo-inverse's 0 that would print "± 0"."""

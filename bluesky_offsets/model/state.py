@@ -152,7 +152,7 @@ class RefineResult:
 
 def refine(meas: Measurement, state: ModelState, twin=None, forward_model=None, *,
            options: FitOptions | Mapping | None = None, progress=None, engine=None,
-           table: ParameterTable = METRIXS) -> RefineResult:
+           table: ParameterTable = METRIXS, also_from: Sequence[ModelState] = ()) -> RefineResult:
     """Fit the offsets and the state's effects to ``meas`` with :func:`bluesky_offsets.model.fit.fit`.
 
     ``twin`` names the parameter table (the fit traces the torch twin, ``engine``, made for
@@ -161,5 +161,5 @@ def refine(meas: Measurement, state: ModelState, twin=None, forward_model=None, 
     """
     o = FitOptions.resolve(options)
     engine = engine or engine_for(meas, o, table)
-    res = fit(meas, state, engine, o, progress=progress, table=table)
+    res = fit(meas, state, engine, o, progress=progress, table=table, also_from=also_from)
     return RefineResult(res.state, res.effect_sigma(), res.history, res)
