@@ -37,10 +37,14 @@ def test_ray_jacobian_gives_the_soft_histograms_exact_jacobian():
     from bluesky_offsets.physics.torch_engine import histograms
     hx, hy = histograms(eng.beam(cfg, E.twin_overrides(eff), n_rays=1500, seed=5), HistogramSpec())
     assert torch.equal(h, torch.cat([hx, hy], 1))
-    # every ray's values bit for bit the soft beam's; derivatives only for the rays with weight
+    # every ray's position and survival bit for bit the soft beam's, its weight to the last bit:
+    # the chunks put other rays in the vectorized transcendental functions' scalar tails, which may
+    # round differently (measured on a fresh clone: 1 of 3,000 weights, 8.956316390313382e-268
+    # against ...381e-268); derivatives only for the rays with weight
     from bluesky_offsets.physics.torch_engine import RAY_WEIGHT_FLOOR
     soft = eng.beam(cfg, E.twin_overrides(eff), n_rays=1500, seed=5, edge=eng.options.edge)
-    assert all(torch.equal(getattr(rj, k), getattr(soft, k)) for k in ("x", "y", "alive", "weight"))
+    assert all(torch.equal(getattr(rj, k), getattr(soft, k)) for k in ("x", "y", "alive"))
+    torch.testing.assert_close(rj.weight, soft.weight, rtol=2.0**-52, atol=0.0)
     assert torch.equal(rj.rows, torch.nonzero(soft.weight.reshape(-1) > RAY_WEIGHT_FLOOR).squeeze(1))
     assert 0 < rj.rows.numel() < soft.weight.numel()
     # the derivatives in a few inputs alone (the beam optimizer's E1/E2): the same columns
@@ -174,9 +178,9 @@ def test_screen_is_a_cheap_look_that_only_goes_down(defocus_case):
 
 
 def test_a_fit_from_several_starts_keeps_the_one_that_ends_lowest(defocus_case):
-    """``also_from``: the whole fit from each start; the lowest end is kept, its iterations last,
-    each tagged with its start; the same as fitting from that start alone.  The jackknife widens
-    an uncertainty, never narrows it."""
+    """``also_from``: the whole fit from each start; the end lowest on rays none of them traced
+    (seed + 1) is kept, its iterations last, each tagged with its start; the same as fitting from
+    that start alone.  The jackknife widens an uncertainty, never narrows it."""
     meas, truth, twin = defocus_case
     opts = FitOptions(rays=1500, seed=3, stages=(("bins", 3),))
     eng = TorchEngine(hist=CAMERA)
@@ -184,7 +188,9 @@ def test_a_fit_from_several_starts_keeps_the_one_that_ends_lowest(defocus_case):
     far = ModelState(np.clip(-truth.offsets * 4, -0.2, 0.2), {"chamber_z": {"z": -5.0}})
     both = fit(meas, far, eng, opts, also_from=[near])
     alone = [fit(meas, st, eng, opts) for st in (far, near)]
-    kept = int(np.argmin([a.history[-1]["chi2"] for a in alone]))
+    fresh = [fit(meas, a.state, eng, opts.replace(seed=4, stages=(("bins", 0),))).history[-1]["chi2"]
+             for a in alone]
+    kept = int(np.argmin(fresh))
     assert kept == 1 and {h["start"] for h in both.history} == {0, 1} and both.history[-1]["start"] == kept
     assert np.array_equal(both.state.offsets, alone[kept].state.offsets)
     assert np.allclose(both.covariance, alone[kept].covariance)
