@@ -260,6 +260,7 @@ def add_cli(sub) -> None:
     i.add_argument("path")
     i.set_defaults(func=_cmd_dataset_info)
 
+    from bluesky_offsets.surrogate.network import DECODERS
     from bluesky_offsets.surrogate.training import TrainConfig
     c = TrainConfig()
     t = sub.add_parser("train", help="train the surrogate on a dataset store (paper recipe by default)",
@@ -283,11 +284,12 @@ def add_cli(sub) -> None:
     t.add_argument("--activation", choices=["mish", "silu"], default=c.activation,
                    help=f"between the layers: Mish (the paper's) or SiLU, 2.3x cheaper on a CPU (default {c.activation})")
     t.add_argument("--output-norm", choices=["global", "per-bin"], default=c.output_norm)
-    t.add_argument("--decoder", choices=["bins", "factored"], default=c.decoder,
+    t.add_argument("--decoder", choices=list(DECODERS), default=c.decoder,
                    help="bins: the paper's net (MSE on the bins); factored: transmission x shape per axis "
-                        "trained on the ray-count likelihood (default %(default)s)")
+                        "trained on the ray-count likelihood, two nets; joint: the same from one net, "
+                        "half the cost (default %(default)s)")
     t.add_argument("--members", type=int, default=c.members,
-                   help="ensemble size, factored decoder only (default %(default)s)")
+                   help="ensemble size, factored and joint decoders only (default %(default)s)")
     t.add_argument("--patience", type=int, default=c.patience, help="early-stop patience in epochs (0: off)")
     t.add_argument("--min-delta", type=float, default=0.0, help="relative val-MSE gain that counts (default 0)")
     t.add_argument("--epoch-samples", type=int, default=None, help="samples per epoch (default: good/0.75)")

@@ -44,7 +44,9 @@ class SurrogateError(RuntimeError):
 # --------------------------------------------------------------------------- #
 # network
 # --------------------------------------------------------------------------- #
-DECODERS = ("bins", "factored")
+DECODERS = ("bins", "factored", "joint")
+#: the decoders that predict transmission x shape and train on the ray-count likelihood
+LIKELIHOOD_DECODERS = ("factored", "joint")
 
 
 @dataclass(frozen=True)
@@ -61,8 +63,11 @@ class Architecture:
       axis' bins).  Trained on the likelihood of the ray counts (binomial for
       the transmission, multinomial for the shape), whose gradients do not
       vanish on the mostly dark box (docs/surrogate.md says why this matters).
+    * ``"joint"``: the same factors and loss from one net whose last layer gives
+      the two transmission logits and the shape logits together: half the
+      cost of "factored" per evaluation (what a CPU finder pays for).
 
-    ``members`` > 1 (factored only) averages the histograms of that many such
+    ``members`` > 1 (factored or joint) averages the histograms of that many such
     pairs of nets, trained together from different initializations: the
     members' errors partly cancel.
 
@@ -88,8 +93,8 @@ class Architecture:
             raise ValueError("width must be positive")
         if self.decoder not in DECODERS:
             raise ValueError(f"decoder must be one of {DECODERS}, got {self.decoder!r}")
-        if self.members < 1 or (self.members > 1 and self.decoder != "factored"):
-            raise ValueError("members > 1 (an ensemble) needs the factored decoder")
+        if self.members < 1 or (self.members > 1 and self.decoder not in LIKELIHOOD_DECODERS):
+            raise ValueError("members > 1 (an ensemble) needs the factored or joint decoder")
         if self.bins_x is None:
             object.__setattr__(self, "bins_x", self.n_outputs // 2)
         if not 0 < self.bins_x < self.n_outputs:
@@ -112,7 +117,7 @@ def _mlp(n_in: int, n_out: int, width: int, n_layers: int, activation: str = "mi
 class SurrogateNet(nn.Module):
     """The bare network(s): normalized inputs -> normalized outputs.
 
-    The factored decoder's outputs are the histograms themselves (its
+    The likelihood decoders' outputs are the histograms themselves (their
     :class:`Normalization` is the identity).
     """
 
@@ -123,6 +128,9 @@ class SurrogateNet(nn.Module):
         act = arch.activation
         if arch.decoder == "bins":
             self.layers = _mlp(arch.n_inputs, arch.n_outputs, arch.width, arch.n_layers, act)
+        elif arch.decoder == "joint":  # 2 transmission logits, then the shape logits
+            self.joint_members = nn.ModuleList(_mlp(arch.n_inputs, 2 + arch.n_outputs, arch.width, arch.n_layers, act)
+                                               for _ in range(arch.members))
         elif arch.members == 1:  # (flat attribute names keep single-model checkpoints simple)
             self.transmission = _mlp(arch.n_inputs, 2, arch.width, arch.n_layers, act)
             self.shape = _mlp(arch.n_inputs, arch.n_outputs, arch.width, arch.n_layers, act)
@@ -132,31 +140,38 @@ class SurrogateNet(nn.Module):
             self.shape_members = nn.ModuleList(_mlp(arch.n_inputs, arch.n_outputs, arch.width, arch.n_layers, act)
                                                for _ in range(arch.members))
 
-    def _pairs(self):
+    def _members(self) -> list[tuple[nn.Module, ...]]:
+        """The ensemble's members: (transmission net, shape net) or (joint net,)."""
+        if hasattr(self, "joint_members"):
+            return [(net,) for net in self.joint_members]
         if hasattr(self, "transmission"):
             return [(self.transmission, self.shape)]
         return list(zip(self.transmission_members, self.shape_members))
 
-    def _factors(self, x: torch.Tensor, pair):
-        z = pair[1](x)
+    def _factors(self, x: torch.Tensor, member):
+        if len(member) == 1:
+            out = member[0](x)
+            logit_t, z = out[..., :2], out[..., 2:]
+        else:
+            logit_t, z = member[0](x), member[1](x)
         bx = self.bins_x
-        return pair[0](x), torch.log_softmax(z[..., :bx], -1), torch.log_softmax(z[..., bx:], -1)
+        return logit_t, torch.log_softmax(z[..., :bx], -1), torch.log_softmax(z[..., bx:], -1)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         if self.decoder == "bins":
             return self.layers(x)
-        pairs = self._pairs()
+        members = self._members()
         out = 0.0
-        for pair in pairs:
-            logit_t, log_sx, log_sy = self._factors(x, pair)
+        for member in members:
+            logit_t, log_sx, log_sy = self._factors(x, member)
             t = torch.sigmoid(logit_t)
             out = out + torch.cat([t[..., :1] * log_sx.exp(), t[..., 1:] * log_sy.exp()], -1)
-        return out / len(pairs)
+        return out / len(members)
 
     def loss(self, x: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
         """Training loss of a batch (``target`` in the net's output units).
 
-        "bins": the MSE.  "factored": per axis, the binomial cross-entropy of
+        "bins": the MSE.  "factored" and "joint": per axis, the binomial cross-entropy of
         the in-range fraction plus the multinomial cross-entropy of the shape
         weighted by that fraction: together the negative log-likelihood of the
         ray counts per source ray (up to a constant); summed over the members
@@ -168,8 +183,8 @@ class SurrogateNet(nn.Module):
         hx, hy = target[..., :bx], target[..., bx:]
         frac = torch.stack([hx.sum(-1), hy.sum(-1)], -1).clamp(0.0, 1.0)
         loss = 0.0
-        for pair in self._pairs():
-            logit_t, log_sx, log_sy = self._factors(x, pair)
+        for member in self._members():
+            logit_t, log_sx, log_sy = self._factors(x, member)
             loss = loss + 2 * nn.functional.binary_cross_entropy_with_logits(logit_t, frac)
             loss = loss - ((hx * log_sx).sum(-1) + (hy * log_sy).sum(-1)).mean()
         return loss
@@ -182,7 +197,7 @@ class Normalization:
     ``out_low``/``out_span`` have one entry per output bin; a "global" output
     normalization simply repeats one value (keeps the loss proportional to the
     histogram MSE, which is what the finder compares); "none" is the identity
-    (the factored decoder's outputs are histograms already).
+    (the likelihood decoders' outputs are histograms already).
     """
 
     in_low: np.ndarray
@@ -201,7 +216,7 @@ class Normalization:
             hi = np.full(hist.shape[1], hist.max())
         elif mode == "per-bin":
             lo, hi = hist.min(axis=0), hist.max(axis=0)
-        elif mode == "none":  # the factored decoder predicts histograms directly
+        elif mode == "none":  # the likelihood decoders predict histograms directly
             lo, hi = np.zeros(hist.shape[1]), np.ones(hist.shape[1])
         else:
             raise ValueError(f"output normalization must be 'global', 'per-bin' or 'none', got {mode!r}")

@@ -27,7 +27,8 @@ import torch
 
 from bluesky_offsets.surrogate.dataset import GOOD_MIN_RAYS, Dataset
 from bluesky_offsets.physics.parameters import METRIXS, ParameterTable
-from bluesky_offsets.surrogate.network import ACTIVATIONS, DECODERS, Architecture, Normalization, Surrogate
+from bluesky_offsets.surrogate.network import (ACTIVATIONS, DECODERS, LIKELIHOOD_DECODERS, Architecture,
+                                               Normalization, Surrogate)
 from bluesky_offsets.physics.twin import HistogramSpec
 
 log = logging.getLogger(__name__)
@@ -63,13 +64,13 @@ class TrainConfig:
         given there, 512 here).
     output_norm : str
         "global" (one min/max for all bins: the loss stays proportional to the
-        histogram MSE) or "per-bin".  The factored decoder needs none ("none").
+        histogram MSE) or "per-bin".  The likelihood decoders need none ("none").
     decoder : str
-        "bins" (the paper: the net outputs the bins, MSE loss) or "factored"
-        (transmission x shape per axis, ray-count likelihood loss; see
-        :class:`~bluesky_offsets.surrogate.network.Architecture`).
+        "bins" (the paper: the net outputs the bins, MSE loss), "factored"
+        (transmission x shape per axis, ray-count likelihood loss) or "joint" (the
+        same from one net; see :class:`~bluesky_offsets.surrogate.network.Architecture`).
     members : int
-        Ensemble size (factored decoder only; 1: a single model).
+        Ensemble size (factored and joint decoders only; 1: a single model).
     patience : int
         Early stop after this many epochs without a better validation MSE (0: never).
     min_delta : float
@@ -126,12 +127,12 @@ class TrainConfig:
             raise ValueError(f"decoder must be one of {DECODERS}, got {self.decoder!r}")
         if self.activation not in ACTIVATIONS:
             raise ValueError(f"activation must be one of {', '.join(ACTIVATIONS)}, got {self.activation!r}")
-        if self.members < 1 or (self.members > 1 and self.decoder != "factored"):
-            raise ValueError("members > 1 (an ensemble) needs decoder 'factored'")
-        if self.decoder == "factored":
+        if self.members < 1 or (self.members > 1 and self.decoder not in LIKELIHOOD_DECODERS):
+            raise ValueError("members > 1 (an ensemble) needs decoder 'factored' or 'joint'")
+        if self.decoder in LIKELIHOOD_DECODERS:
             self.output_norm = "none"
         elif self.output_norm == "none":
-            raise ValueError("output_norm 'none' is only for the factored decoder")
+            raise ValueError("output_norm 'none' is only for the factored and joint decoders")
         if self.device not in ("auto", "cpu", "cuda"):
             raise ValueError(f"device must be auto, cpu or cuda, got {self.device!r}")
 
@@ -247,11 +248,11 @@ def _init_provenance(src: Surrogate, path: str) -> dict:
 
 
 def _warm_start(model: Surrogate, src: Surrogate, path: str) -> None:
-    # The normalization stays the new dataset's; for the factored decoder there is none,
+    # The normalization stays the new dataset's; for the likelihood decoders there is none,
     # for "bins" a changed min/max would silently rescale the start, so it must agree.
     if src.arch != model.arch:
         raise TrainingError(f"cannot start from {path}: its architecture {src.arch} differs from {model.arch}")
-    if model.arch.decoder != "factored" and not (np.allclose(src.norm.out_low, model.norm.out_low)
+    if model.arch.decoder not in LIKELIHOOD_DECODERS and not (np.allclose(src.norm.out_low, model.norm.out_low)
                                                  and np.allclose(src.norm.out_span, model.norm.out_span)):
         raise TrainingError(f"cannot start from {path}: its output normalization differs from this dataset's")
     model.net.load_state_dict(src.net.state_dict())
