@@ -77,7 +77,8 @@ def bench_training(width: int, batches=(32, 256), seconds: float = 8.0, threads:
 
 
 def bench_inference(model, device: str, n: int, seconds: float = 5.0) -> dict:
-    x = torch.rand(n, 34, device=device)
+    """Rows (one configuration each) per second; an evaluation of the finder is 16 rows."""
+    x = torch.rand(n, model.arch.n_inputs, device=device)
     model.to(device)
     with torch.no_grad():
         model.predict(x[:1000], normalized=True)
@@ -102,13 +103,29 @@ def main() -> None:
     ap.add_argument("--screen-rays", type=int, default=300)
     ap.add_argument("--keep-fraction", type=float, default=0.02)
     ap.add_argument("--draws", type=int, default=1536, help="uniform draws per generator measurement")
-    ap.add_argument("--checkpoint", default=None, help="surrogate for the inference benchmark (default: shipped)")
+    ap.add_argument("--checkpoint", default=None, nargs="+",
+                    help="surrogate(s) for the inference benchmark (default: shipped)")
+    ap.add_argument("--inference-only", action="store_true", help="only the inference table (1 thread)")
     args = ap.parse_args()
     draws = 256 if args.quick else args.draws
     secs = 2.0 if args.quick else 8.0
 
     from bluesky_offsets.surrogate import network as surrogate
-    model = surrogate.load(args.checkpoint)
+    models = [surrogate.load(c) for c in (args.checkpoint or [None])]
+    if args.inference_only:
+        torch.set_num_threads(1)
+        print(f"Machine: {_machine()}; 1 torch thread. An evaluation (the finder's) is 16 rows.\n")
+        print("| checkpoint | decoder | members | width x layers | activation | inputs | batch | rows/s | "
+              "evaluations (16 rows)/s |")
+        print("|---|---|---:|---|---|---:|---:|---:|---:|")
+        for c, m in zip(args.checkpoint or ["shipped"], models):
+            for n in (1_000, 100_000):
+                r = bench_inference(m, "cpu", n, seconds=secs / 2)
+                a = m.arch
+                print(f"| {os.path.basename(c)} | {a.decoder} | {a.members} | {a.width} x {a.n_layers} | "
+                      f"{a.activation} | {a.n_inputs} | {n} | {r['evals_per_s']:.3g} | {r['evals_per_s'] / 16:.3g} |")
+        return
+    model = models[0]
     width = model.arch.width
     gen = bench_generator(args.rays, draws, args.screen_rays, args.keep_fraction)
     tr = bench_training(width, seconds=secs) + bench_training(width, batches=(256,), seconds=secs, threads=2)
