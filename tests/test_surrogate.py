@@ -127,6 +127,21 @@ def test_shipped_checkpoint_loads_with_provenance():
     assert meta["weights_sha256"] and meta["table_version"] == METRIXS.version
 
 
+def test_shipped_chamber_candidate_loads_with_provenance():
+    """The 37-input candidate (issue 18) ships beside the default with where it came from."""
+    path = surrogate.default_checkpoint(surrogate.CHAMBER_CHECKPOINT)
+    assert path.stat().st_size < 20 * 2**20
+    m = surrogate.load(path)
+    prov = m.provenance
+    assert m.chamber and m.arch.n_inputs == 37 and m.arch.decoder == "joint"
+    assert prov["engine"] == "torch" and prov["n_rays"] == 10_000 and prov["n_good"] > 100_000
+    assert prov["twin"].startswith("torch") and m.metrics["test"]["mse_nonempty"] > 0
+    x = METRIXS.denormalize(np.full((2, 34), 0.5))
+    at = m.predict(x, chamber=(0.0, 0.0, 20.0))
+    assert at.shape == (2, 100) and np.isfinite(at).all()
+    assert np.array_equal(at, m.predict(np.concatenate([x, [[0.0, 0.0, 20.0]] * 2], 1)))
+
+
 def test_factored_decoder_is_transmission_times_shape(tmp_path):
     torch.manual_seed(0)
     norm = Normalization.fit(METRIXS, np.zeros((3, 100)), "none")

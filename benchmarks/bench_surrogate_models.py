@@ -1,0 +1,66 @@
+"""Several surrogates scored on one fresh RAYX set (issue 18): the ratio to the twin's repeat noise.
+
+Usage::
+
+    python benchmarks/bench_surrogate_models.py CHECKPOINT [CHECKPOINT ...] [--seeds 3] [--samples 500]
+
+The set is drawn once per seed exactly as ``bluesky-offsets surrogate evaluate`` draws it for the
+first checkpoint (its training scheme, its ray count, the chamber's inputs where it has them),
+each configuration traced twice by RAYX; every checkpoint with the same inputs is then scored on
+those very traces, so the models differ by their own error only, not by the set's draw.  Prints
+a Markdown table for docs/benchmarks.md.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+
+os.environ.setdefault("OMP_NUM_THREADS", "1")
+
+import numpy as np  # noqa: E402
+
+from _machine import machine  # noqa: E402
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("checkpoints", nargs="+")
+    ap.add_argument("--seeds", type=int, default=3, help="fresh sets, seeds 1..N (default 3)")
+    ap.add_argument("--samples", type=int, default=500, help="samples per set (default 500, >= 100 non-empty)")
+    ap.add_argument("--workers", type=int, default=None)
+    args = ap.parse_args()
+
+    from bluesky_offsets.surrogate.evaluate import _mse_rows, _summary, evaluate
+    from bluesky_offsets.surrogate.network import load
+
+    models = [load(c) for c in args.checkpoints]
+    first = models[0]
+    if any(m.arch.n_inputs != first.arch.n_inputs for m in models):
+        raise SystemExit("the checkpoints must take the same inputs (34, or 37 with the chamber)")
+    rows = []
+    for seed in range(1, args.seeds + 1):
+        res = evaluate(first, n_samples=args.samples, seed=seed, n_workers=args.workers, keep_data=True,
+                       progress=False)
+        d = res["_data"]["screened"]
+        se_noise = _mse_rows(d["hist2"], d["hist"])
+        for path, m in zip(args.checkpoints, models):
+            s = _summary(_mse_rows(m.predict(d["params"]), d["hist"]), se_noise, d["n_hits"])
+            rows.append((seed, os.path.basename(path), m, s, res["n_rays"]))
+    print(f"Machine: {machine()}. Command: `python benchmarks/bench_surrogate_models.py "
+          f"{' '.join(args.checkpoints)} --seeds {args.seeds} --samples {args.samples}`\n")
+    print("| seed | checkpoint | trained on (samples, good, rays) | samples / non-empty | MSE non-empty | "
+          "repeat noise non-empty | ratio |")
+    print("|---:|---|---|---|---:|---:|---:|")
+    for seed, name, m, s, n_rays in rows:
+        p = m.provenance
+        print(f"| {seed} | {name} | {p.get('n_samples')}, {p.get('n_good')}, {p.get('n_rays')} | "
+              f"{s['n']} / {s['n_nonempty']} | {s['mse_nonempty']:.3g} | {s['noise_mse_nonempty']:.3g} | "
+              f"**{s['ratio_nonempty']:.2f}** |")
+    for name in dict.fromkeys(r[1] for r in rows):
+        r = [x[3]["ratio_nonempty"] for x in rows if x[1] == name]
+        print(f"\n{name}: ratio mean {np.mean(r):.2f}, max {np.max(r):.2f} over {len(r)} sets at {rows[0][4]} rays")
+
+
+if __name__ == "__main__":
+    main()
