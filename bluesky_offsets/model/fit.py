@@ -503,6 +503,7 @@ def fit(meas, state, engine, options: FitOptions | Mapping | None = None, *,
         for i, (_, k, z, *rest) in enumerate(ends):
             r = fresh.residuals(last, fresh.products(last, z, False))[0]
             ends[i] = (float(r @ r) + float((ridge * z * z).sum()), k, z, *rest)
+        mdl.n_traces += fresh.n_traces
     kept = min(ends, key=lambda e: (e[0], e[1]))
     _, _, z, pr, exact, _ = kept
     for e in sorted(ends, key=lambda e: e is kept):  # the kept run's iterations last
