@@ -390,6 +390,11 @@ def _lm_step(G: np.ndarray, r: np.ndarray, z: np.ndarray, lam: float, ridge: np.
         return np.linalg.lstsq(M, g, rcond=None)[0]
 
 
+def _objective(r: np.ndarray, z: np.ndarray, ridge: np.ndarray) -> float:
+    """What a fit minimizes: χ² of the residuals plus the offsets' prior."""
+    return float(r @ r) + float((ridge * z * z).sum())
+
+
 def _ridge(mdl: _Model, o: FitOptions) -> np.ndarray:
     """The prior's diagonal in the normal matrix: the offsets' Gaussian prior, none on effects."""
     prior = 0.0 if o.prior_sigma is None else o.prior_sigma ** -2.0
@@ -406,7 +411,7 @@ def _stage(mdl: _Model, stage: str, z: np.ndarray, pr: _Products, iterations: in
     lo, hi = mdl.bounds()
     exact = True  # the Jacobian is the twin's at z (not a secant update of it)
     r, G, dof, _ = mdl.residuals(stage, pr)
-    chi2 = float(r @ r) + float((ridge * z * z).sum())
+    chi2 = _objective(r, z, ridge)
     lam = mdl.o.damping
 
     def record(it: int, accepted: bool) -> None:
@@ -421,7 +426,7 @@ def _stage(mdl: _Model, stage: str, z: np.ndarray, pr: _Products, iterations: in
         zc = np.clip(z + _lm_step(G, r, z, lam, ridge), lo, hi)
         pc = mdl.products(stage, zc, False)
         rc = mdl.residuals(stage, pc)[0]
-        cc = float(rc @ rc) + float((ridge * zc * zc).sum())
+        cc = _objective(rc, zc, ridge)
         accepted = bool(cc < chi2) and bool(np.any(zc != z))
         if accepted:
             gain = (chi2 - cc) / max(chi2, 1e-300)
@@ -502,7 +507,7 @@ def fit(meas, state, engine, options: FitOptions | Mapping | None = None, *,
         last = o.stages[-1][0]
         for i, (_, k, z, *rest) in enumerate(ends):
             r = fresh.residuals(last, fresh.products(last, z, False))[0]
-            ends[i] = (float(r @ r) + float((ridge * z * z).sum()), k, z, *rest)
+            ends[i] = (_objective(r, z, ridge), k, z, *rest)
         mdl.n_traces += fresh.n_traces
     kept = min(ends, key=lambda e: (e[0], e[1]))
     _, _, z, pr, exact, _ = kept
