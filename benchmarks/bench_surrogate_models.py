@@ -31,7 +31,7 @@ def main() -> None:
     ap.add_argument("--workers", type=int, default=None)
     args = ap.parse_args()
 
-    from bluesky_offsets.surrogate.evaluate import _mse_rows, _summary, evaluate
+    from bluesky_offsets.surrogate.evaluate import evaluate, score
     from bluesky_offsets.surrogate.network import load
 
     models = [load(c) for c in args.checkpoints]
@@ -42,10 +42,8 @@ def main() -> None:
     for seed in range(1, args.seeds + 1):
         res = evaluate(first, n_samples=args.samples, seed=seed, n_workers=args.workers, keep_data=True,
                        progress=False)
-        d = res["_data"]["screened"]
-        se_noise = _mse_rows(d["hist2"], d["hist"])
         for path, m in zip(args.checkpoints, models):
-            s = _summary(_mse_rows(m.predict(d["params"]), d["hist"]), se_noise, d["n_hits"])
+            s = score(m, res["_data"]["screened"])
             rows.append((seed, os.path.basename(path), m, s, res["n_rays"]))
     print(f"Machine: {machine()}. Command: `python benchmarks/bench_surrogate_models.py "
           f"{' '.join(args.checkpoints)} --seeds {args.seeds} --samples {args.samples}`\n")

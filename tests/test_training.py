@@ -168,6 +168,12 @@ def test_chamber_inputs_torch_data_train_and_evaluate_against_rayx(tmp_path, cap
                  "--min-nonempty", "4", "--seed", "5", "--scheduler", "inline", "--no-progress", "--json"]) == 0
     res = json.loads(capsys.readouterr().out)
     assert res["engine"].startswith("rayx") and res["n_nonempty"] >= 4 and np.isfinite(res["mse_nonempty"])
+    # another model scored on the very set evaluate kept gives evaluate's own numbers for this one
+    from bluesky_offsets.surrogate.evaluate import evaluate, score
+    kept = evaluate(model, n_samples=12, min_nonempty=4, seed=5, scheduler="inline", progress=False, keep_data=True)
+    again = score(model, kept["_data"]["screened"])
+    assert again["mse_nonempty"] == pytest.approx(kept["mse_nonempty"], rel=1e-12)
+    assert again["ratio_nonempty"] == pytest.approx(kept["ratio_nonempty"], rel=1e-12)
     # the finder's forward model sees the chamber where it is known to be; its unknowns stay 34
     import torch
     from bluesky_offsets.offsets.finder import load_forward_model

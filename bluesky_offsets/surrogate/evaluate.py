@@ -63,6 +63,14 @@ def _summary(se_model, se_noise, n_hits, weight=None, se_zero=None) -> dict:
     return out
 
 
+def score(model: Surrogate, kept: dict) -> dict:
+    """``model`` on a set that :func:`evaluate` kept (``keep_data=True``: ``out["_data"][name]``),
+    as drawn: MSE, repeat noise and their ratio (all and non-empty).  Several models scored on one
+    set differ by their own error only, not by the set's draw."""
+    return _summary(_mse_rows(model.predict(kept["params"]), kept["hist"]),
+                    _mse_rows(kept["hist2"], kept["hist"]), kept["n_hits"])
+
+
 def _trace_set(twin: Twin, settings: GenerationSettings, min_samples: int, min_nonempty: int, seed: int,
                progress: bool) -> dict:
     s = replace(settings, seed=seed)
