@@ -176,9 +176,14 @@ def test_feature_stage_then_diagnosis_find_a_hidden_defocus(camera_case):
     twin, meas, truth, fit = camera_case
     features = [h["chi2"] for h in fit.history if h["stage"] == "features"]
     assert features[-1] < 0.5 * features[0]  # the offsets alone explain part of it ...
-    at_truth = evaluate(meas, truth, twin).chi2_reduced_total
+    truth_mf = evaluate(meas, truth, twin)
+    at_truth = truth_mf.chi2_reduced_total
     offsets_only = evaluate(meas, fit.state, twin).chi2_reduced_total
-    assert offsets_only > 2 * at_truth  # ... not all of it
+    # ... not all of it: the rest is beyond what the noise gives, by the diagnosis's own 3σ (Δχ²
+    # in σ of a χ² of dof degrees of freedom; measured: 1.14 against the truth's 0.83 over 448.5
+    # dof, 4.6σ; the fit's rays a stream per configuration, and before that 2× the truth's)
+    dof = truth_mf.dof_total
+    assert (offsets_only - at_truth) * dof > 3 * np.sqrt(2 * dof), dof
     d = diagnose(meas, fit.state, twin, candidates=["chamber_z", "detector_blur", "intensity_scale"], options=SCAN)
     assert d.best is not None and d.best.name == "chamber_z", d.as_dict()
     assert d.candidates[0].refined and d.candidates[0].delta_chi2_twin > 0
@@ -186,4 +191,5 @@ def test_feature_stage_then_diagnosis_find_a_hidden_defocus(camera_case):
     res = add_effect_result(meas, start, "chamber_z", twin, values=d.best.values, options=FIT)
     z, sz = res.state.effects["chamber_z"]["z"], res.effect_sigma["chamber_z"]["z"]
     assert abs(z - 20.0) <= max(3 * sz, 5.0), (z, sz)  # downstream, as hidden
-    assert evaluate(meas, res.state, twin).chi2_reduced_total < 0.6 * offsets_only
+    # adding it gives back most of what the offsets could not explain (measured: 0.88)
+    assert evaluate(meas, res.state, twin).chi2_reduced_total < at_truth + 0.3 * (offsets_only - at_truth)

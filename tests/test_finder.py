@@ -156,12 +156,14 @@ def test_the_shipped_surrogate_is_a_forward_model():
     fm = F.load_forward_model()
     assert isinstance(fm, F.ForwardModel) and fm.test_mse > 0
     rng = np.random.default_rng(0)
-    # bright inputs (whole-box draws are dark, where any two models agree), the source's own
-    # offsets among them: a checkpoint trained with the mirrored source frame sees them reflected
-    x = METRIXS.normalize(METRIXS.reference) + rng.uniform(-0.05, 0.05, (5, 3, 34))
+    # bright inputs (most whole-box draws are dark, where any two models agree): the reference
+    # (the RML's, outside the box in its slit sizes and E1/E2 rotation Z) moved into the box, the
+    # source's own offsets among them: a checkpoint trained with the mirrored source frame sees
+    # them reflected
+    x = np.clip(METRIXS.normalize(METRIXS.reference) + rng.uniform(-0.02, 0.02, (5, 3, 34)), 0.0, 1.0)
     ours = fm(torch.as_tensor(x, dtype=torch.float32)).numpy()
     theirs = load().predict(METRIXS.denormalize(x))
-    assert theirs.sum(-1).min() > 0.05
+    assert theirs.sum(-1).min() > 0.01
     np.testing.assert_allclose(ours, theirs, rtol=1e-4, atol=1e-6)
     assert ours.shape == (5, 3, 100) and (ours >= 0).all()
     with pytest.raises(F.FinderError, match="does not exist"):

@@ -114,24 +114,11 @@ def test_truncated_and_corrupt_files_give_clear_errors(tmp_path):
 
 
 def test_shipped_checkpoint_loads_with_provenance():
+    """The shipped model knows the focus chamber (34 + 3 inputs) and says where it came from."""
     path = surrogate.default_checkpoint()
     assert path.exists(), "the package ships bluesky_offsets/data/surrogate.pt"
-    assert path.stat().st_size < 12 * 2**20
-    m = surrogate.load()
-    prov, metrics = m.provenance, m.metrics
-    assert prov["n_samples"] > 1000 and prov["n_rays"] > 0 and prov["twin"].startswith("rayx")
-    assert metrics["test"]["mse_nonempty"] > 0
-    out = m.predict(METRIXS.denormalize(np.full((2, 34), 0.5)))
-    assert out.shape == (2, 100) and np.isfinite(out).all()
-    meta = json.loads(path.with_suffix(".json").read_text())
-    assert meta["weights_sha256"] and meta["table_version"] == METRIXS.version
-
-
-def test_shipped_chamber_candidate_loads_with_provenance():
-    """The 37-input candidate (issue 18) ships beside the default with where it came from."""
-    path = surrogate.default_checkpoint(surrogate.CHAMBER_CHECKPOINT)
     assert path.stat().st_size < 20 * 2**20
-    m = surrogate.load(path)
+    m = surrogate.load()
     prov = m.provenance
     assert m.chamber and m.arch.n_inputs == 37 and m.arch.decoder == "joint"
     assert prov["engine"] == "torch" and prov["n_rays"] == 10_000 and prov["n_good"] > 100_000
@@ -140,6 +127,8 @@ def test_shipped_chamber_candidate_loads_with_provenance():
     at = m.predict(x, chamber=(0.0, 0.0, 20.0))
     assert at.shape == (2, 100) and np.isfinite(at).all()
     assert np.array_equal(at, m.predict(np.concatenate([x, [[0.0, 0.0, 20.0]] * 2], 1)))
+    meta = json.loads(path.with_suffix(".json").read_text())
+    assert meta["weights_sha256"] and meta["table_version"] == METRIXS.version
 
 
 def _check_likelihood_model(m, x, tmp_path):

@@ -58,6 +58,11 @@ def test_recipe_end_to_end_cli_loss_goes_down(store, tmp_path, capsys):
     assert hist[-1]["train_loss"] < 0.7 * hist[0]["train_loss"]
     assert min(h["val_mse"] for h in hist[1:]) < hist[0]["val_mse"]
     assert metrics["test"]["n"] == 20 and np.isfinite(metrics["test"]["mse"])
+    # a store drawn without the chamber gives 34 inputs: the chamber at its nominal place only
+    model = surrogate.load(out)
+    assert not model.chamber
+    with pytest.raises(ValueError, match="without the focus chamber"):
+        model.predict(METRIXS.reference, chamber=[0.0, 0.0, 5.0])
     m = surrogate.load(out)
     assert m.provenance["n_samples"] == 200 and m.provenance["n_rays"] == 500
     assert m.training["lr"] == 1e-4 and m.training["batch_size"] == 32 and m.training["gamma"] == 0.999
@@ -190,8 +195,5 @@ def test_chamber_inputs_torch_data_train_and_evaluate_against_rayx(tmp_path, cap
         backend.close()
     expect = model.predict(ref, chamber=[0.0, 0.0, 9.0])
     np.testing.assert_allclose(np.concatenate([frame.hist_x, frame.hist_y]), expect, atol=1e-3)
-    # the shipped surrogate (34 inputs) knows the chamber at its nominal place only
-    shipped = surrogate.load()
-    assert not shipped.chamber
-    with pytest.raises(ValueError, match="without the focus chamber"):
-        shipped.predict(ref, chamber=[0.0, 0.0, 5.0])
+    # so does the shipped one
+    assert surrogate.load().chamber

@@ -115,10 +115,9 @@ def twin_polish(problem: F.OffsetProblem, twin, offsets, *, iterations: int = 4,
     counting noise of a 1e5-ray measurement (~4e-8).  Returns the offsets and the twin's MSE
     to the observations at the start and at the end (the fit's rays).
     """
-    from bluesky_offsets.model.fit import FitOptions, fit
+    from bluesky_offsets.model.fit import FitOptions, engine_for, fit
     from bluesky_offsets.model.measurement import Measurement
     from bluesky_offsets.model.state import ModelState
-    from bluesky_offsets.physics.torch_engine import TorchEngine
     from bluesky_offsets.physics.twin import HistogramSpec
     N = int(n_rays or problem.n_rays or 100_000)
     spec = HistogramSpec()
@@ -126,12 +125,12 @@ def twin_polish(problem: F.OffsetProblem, twin, offsets, *, iterations: int = 4,
     cfg = problem.physical_configurations()
     meas = Measurement(cfg, obs[:, :spec.bins_x], obs[:, spec.bins_x:], N, spec,
                        metadata={"parameter_table_version": problem.table.version})
-    engine = TorchEngine(table=problem.table, hist=spec)
     # the features first: in the paper's bins a focus fills a bin or two, and from the surrogate's
     # solution the bins alone refused every step (measured: chi2/dof 10.1 held for 4 iterations)
     rays = max(int(round(N * oversample)), 1)
     opts = FitOptions(rays=rays, feature_rays=None, seed=seed, offset_bound=problem.limit,
                       stages=(("features", int(iterations)), ("bins", int(iterations))))
+    engine = engine_for(meas, opts, problem.table)  # the fits' engine: a random stream per configuration
 
     def mse(o) -> float:
         res = _twin_histograms(engine, cfg + problem.table.offsets_to_physical(o), opts.rays, seed)
@@ -150,7 +149,7 @@ def twin_polish(problem: F.OffsetProblem, twin, offsets, *, iterations: int = 4,
 
 
 def _twin_histograms(engine, values: np.ndarray, n_rays: int, seed: int) -> np.ndarray:
-    """Histograms (n, 100) of the torch twin at ``values`` (one set of rays)."""
+    """Histograms (n, 100) of the torch twin at ``values`` (the fit's rays)."""
     from bluesky_offsets.physics.twin import Twin
     res = Twin(engine).trace_batch(values, n_rays=n_rays, seed=seed, progress=False, raise_on_error=True)
     return np.concatenate([res.hist_x, res.hist_y], axis=1)

@@ -34,10 +34,9 @@ from bluesky_offsets.physics.parameters import METRIXS, ParameterTable
 from bluesky_offsets.physics.twin import SOURCE_FRAME, HistogramSpec
 
 FORMAT = "bluesky-offsets-surrogate/1"
+#: the shipped model: 34 parameters and the focus chamber's x, y, z in, torch-engine data at 1e4
+#: rays (docs/surrogate.md says how it was made and how close to the twin's noise it is)
 DEFAULT_CHECKPOINT = "surrogate.pt"
-#: the 37-input candidate (the chamber's x, y, z; torch-engine data at 1e4 rays; issue 18), shipped
-#: beside the default until it reaches the twin's noise (docs/surrogate.md)
-CHAMBER_CHECKPOINT = "surrogate-chamber.pt"
 
 
 class SurrogateError(RuntimeError):
