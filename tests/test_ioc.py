@@ -146,6 +146,11 @@ def test_put_completion_waits_for_done_moving(metrixs_ioc, ca):
         assert elapsed >= 0.2 / 0.25 * 0.9  # the put completed only after the motion
         assert ca.get(rec + ".DMOV") == 1 and abs(ca.get(rec + ".RBV") - target) <= mres
         assert ca.get(rec + ".DRBV") == pytest.approx(ca.get(rec + ".RBV"))
+        # the monitor of the move's last DMOV (1) can arrive after the put has completed (seen on a
+        # fresh clone's CI: [1, 0] where [0, 1] was asked, the 1 being this move's): wait for it
+        deadline = time.monotonic() + 5.0
+        while not (dmov_seen and dmov_seen[-1] == 1) and time.monotonic() < deadline:
+            time.sleep(0.01)
         n = len(dmov_seen)
         ca.put(rec, target, wait=True)  # zero-length move: DMOV still pulses
         time.sleep(0.2)
