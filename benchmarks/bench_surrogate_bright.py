@@ -42,6 +42,7 @@ def main() -> None:
     paths = args.checkpoints or [str(default_checkpoint())]
     models = [load(p) for p in paths]
     twin = Twin("rayx", n_rays=args.rays, scheduler="inline")
+    bx = twin.hist.bins_x  # transmission: one axis's histogram summed
     rng = np.random.default_rng(args.seed)
     ref = METRIXS.normalize(METRIXS.reference)
     rows = []
@@ -57,7 +58,7 @@ def main() -> None:
         for path, m in zip(paths, models):
             p = m.predict(values)
             mse = np.mean((p[nonempty] - ha[nonempty]) ** 2)
-            rows.append((f, os.path.basename(path), ha[:, :50].sum(1), p[:, :50].sum(1), int(nonempty.sum()),
+            rows.append((f, os.path.basename(path), ha[:, :bx].sum(1), p[:, :bx].sum(1), int(nonempty.sum()),
                          mse, noise))
     print(f"Machine: {machine()}. Command: `python benchmarks/bench_surrogate_bright.py {' '.join(args.checkpoints)} "
           f"--fractions {' '.join(map(str, args.fractions))} --samples {args.samples} --rays {args.rays}`\n")

@@ -438,9 +438,9 @@ def _table_version(fp: Mapping) -> str:
     return hashlib.sha256(json.dumps(dict(fp), sort_keys=True).encode()).hexdigest()[:12]
 
 
-def default_checkpoint(name: str = DEFAULT_CHECKPOINT) -> Path:
-    """A checkpoint shipped with the package (default: the one everything loads by default)."""
-    return Path(str(resources.files("bluesky_offsets") / "data" / name))
+def default_checkpoint() -> Path:
+    """The checkpoint shipped with the package."""
+    return Path(str(resources.files("bluesky_offsets") / "data" / DEFAULT_CHECKPOINT))
 
 
 def read_metadata(path: str | os.PathLike) -> dict:
