@@ -120,7 +120,7 @@ def _add_generation_options(p: argparse.ArgumentParser, *, rays: int = 10_000) -
 # train
 # --------------------------------------------------------------------------- #
 def _cmd_train(args) -> int:
-    from bluesky_offsets.surrogate.dataset import DatasetError, load
+    from bluesky_offsets.surrogate.dataset import DatasetError, load_many
     from bluesky_offsets.surrogate.network import SurrogateError
     from bluesky_offsets.surrogate.training import TrainConfig, TrainingError, train
     try:
@@ -136,7 +136,7 @@ def _cmd_train(args) -> int:
     except ValueError as exc:
         raise CliError(str(exc)) from None
     try:
-        data = load(args.dataset, allow_partial=args.allow_partial)
+        data = load_many(args.dataset, allow_partial=args.allow_partial)
         model = train(data, args.run_dir, config, resume=not args.restart, progress=not args.no_progress)
     except (DatasetError, TrainingError, SurrogateError) as exc:
         raise CliError(str(exc)) from None
@@ -267,7 +267,9 @@ def add_cli(sub) -> None:
                        description="Train the surrogate (min-max normalization, 7 linear layers with Mish, "
                                    "Adam, ExponentialLR, good:bad 3:1, 80/10/10 split). Checkpoints every "
                                    "epoch into RUN_DIR and resumes from there.")
-    t.add_argument("dataset", help="dataset store from `bluesky-offsets dataset generate`")
+    t.add_argument("dataset", nargs="+",
+                   help="dataset store(s) from `bluesky-offsets dataset generate`; several: their union, "
+                        "in this order (same ray count, scheme and chamber; distinct seeds)")
     t.add_argument("run_dir", help="run directory (state.pt, best.pt, history.json)")
     t.add_argument("--out", help="also write the final checkpoint here (plus .json metadata)")
     t.add_argument("--epochs", type=int, default=c.epochs, help=f"maximum epochs (default {c.epochs})")

@@ -784,6 +784,87 @@ def load(path: str | os.PathLike, *, allow_partial: bool = False,
                    index=data["index"], meta=meta, chamber=data.get("chamber"))
 
 
+def concat(parts) -> Dataset:
+    """Several stores' samples as one dataset, in the order given (a store grown by another).
+
+    The stores must describe the same samples: ray count, draw scheme, chamber, parameter
+    table and histograms.  Their draws must be distinct, i.e. each store has its own base
+    seed (a draw is keyed by (seed, index)).  ``meta["path"]`` joins the paths with
+    ``" + "``, so a model trained on the first store can be fine-tuned on the union and keep
+    its split (:func:`~bluesky_offsets.surrogate.training.train`); ``meta["parts"]`` lists
+    each store's path, size, seed, engine and statistics.
+    """
+    parts = list(parts)
+    if not parts:
+        raise DatasetError("no dataset to concatenate")
+    if len(parts) == 1:
+        return parts[0]
+    first = parts[0].meta
+    for d in parts[1:]:
+        m = d.meta
+        for key in ("table_version", "histogram", "source_frame"):
+            if m.get(key) != first.get(key):
+                raise DatasetError(f"{m['path']} has {key} {m.get(key)!r}, {first['path']} has {first.get(key)!r}")
+        for key in ("n_rays", "scheme", "chamber"):
+            if m["settings"].get(key) != first["settings"].get(key):
+                raise DatasetError(f"{m['path']} was drawn with {key} {m['settings'].get(key)!r}, "
+                                   f"{first['path']} with {first['settings'].get(key)!r}")
+    seeds = [d.meta["settings"]["seed"] for d in parts]
+    if len(set(seeds)) != len(seeds):
+        raise DatasetError(f"the stores share a base seed ({seeds}): their draws would repeat")
+    meta = {**first, "path": " + ".join(d.meta["path"] for d in parts), "n_samples": sum(len(d) for d in parts),
+            "complete": all(d.meta.get("complete") for d in parts),
+            "engine": "; ".join(dict.fromkeys(d.meta["engine"] for d in parts)),
+            "parts": [{"path": d.meta["path"], "n_samples": len(d), "seed": d.meta["settings"]["seed"],
+                       "engine": d.meta["engine"], "stats": d.meta.get("stats", {})} for d in parts]}
+    meta["stats"] = {"cpu_s": sum(float(d.meta.get("stats", {}).get("cpu_s") or 0.0) for d in parts)}
+    cat = {k: np.concatenate([getattr(d, k) for d in parts]) for k in
+           ("params", "hist_x", "hist_y", "n_hits", "stratum", "weight", "index")}
+    chamber = None if parts[0].chamber is None else np.concatenate([d.chamber for d in parts])
+    return Dataset(**cat, meta=meta, chamber=chamber)
+
+
+def load_many(paths, **kw) -> Dataset:
+    """:func:`load` each store and :func:`concat` them."""
+    return concat([load(p, **kw) for p in paths])
+
+
+# --------------------------------------------------------------------------- #
+# a compact form for moving samples between machines
+# --------------------------------------------------------------------------- #
+def compact_rows(res: Mapping, n_rays: int) -> dict:
+    """A block's or a dataset's rows without what the draw recomputes: the parameters and the
+    chamber follow from (seed, index) (:func:`draw`), and a histogram bin is a ray count over
+    ``n_rays``, so it travels as an integer (uint16: at most 65,535 rays in a bin)."""
+    out = {}
+    for axis in ("x", "y"):
+        counts = np.rint(np.asarray(res[f"hist_{axis}"], dtype=np.float64) * n_rays)
+        if counts.size and counts.max() > np.iinfo(np.uint16).max:
+            raise DatasetError("a bin holds more than 65,535 rays: the compact form cannot carry it")
+        out[f"counts_{axis}"] = counts.astype(np.uint16)
+    for k, dt in (("index", np.int64), ("n_hits", np.int32), ("screen_hits", np.int32), ("stratum", np.int8),
+                  ("weight", np.float32)):
+        out[k] = np.asarray(res[k], dtype=dt)
+    return out
+
+
+def expand_rows(rows: Mapping, settings: GenerationSettings, table: ParameterTable = METRIXS) -> dict:
+    """The inverse of :func:`compact_rows`: the full row fields of ``settings``'s store."""
+    drawn = [_draw(table, settings.seed, int(i)) for i in rows["index"]]
+    nb = len(table)
+    out = {"index": np.asarray(rows["index"], dtype=np.int64),
+           "params": np.asarray([d[0] for d in drawn], dtype=np.float64).reshape(-1, nb),
+           "hist_x": (rows["counts_x"].astype(np.float64) / settings.n_rays).astype(np.float32),
+           "hist_y": (rows["counts_y"].astype(np.float64) / settings.n_rays).astype(np.float32),
+           "n_hits": np.asarray(rows["n_hits"], dtype=np.int32),
+           "screen_hits": np.asarray(rows["screen_hits"], dtype=np.int32),
+           "stratum": np.asarray(rows["stratum"], dtype=np.int8),
+           "weight": np.asarray(rows["weight"], dtype=np.float32)}
+    if settings.chamber:
+        out["chamber"] = np.asarray([d[4] for d in drawn], dtype=np.float64).reshape(-1, len(CHAMBER_INPUTS))
+    return out
+
+
 def info(path: str | os.PathLike) -> dict:
     """Settings, progress and statistics of a store (finished or not)."""
     store = DatasetStore(path)

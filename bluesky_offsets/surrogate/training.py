@@ -179,6 +179,11 @@ def grown_split_indices(n: int, sizes, fractions, seed: int) -> tuple[np.ndarray
     return tuple(np.concatenate([p[i] for p in parts]).astype(int) for i in range(3))
 
 
+def _grown_from(path: str, init_path: str) -> bool:
+    """Whether dataset ``path`` begins with the samples of ``init_path`` (itself or a union)."""
+    return path == init_path or path.startswith(init_path + " + ")
+
+
 def _size_chain(init_prov: dict) -> list[int]:
     """Store sizes the chain of starting models was trained on, oldest first."""
     chain, p = [], init_prov
@@ -286,7 +291,9 @@ def train(data: Dataset, run_dir: str | os.PathLike, config: TrainConfig | None 
         if list(it.get("split", [])) != list(config.split) or it.get("seed") != config.seed:
             raise TrainingError(f"cannot start from {config.init}: it was trained with split {it.get('split')} "
                                 f"and seed {it.get('seed')}, this run has {list(config.split)} and {config.seed}")
-        if init_prov.get("dataset") != data.meta.get("path"):
+        # the same store (grown), or that store followed by others (dataset.concat): either way
+        # the starting model's samples come first, in its order, and keep its split
+        if not _grown_from(str(data.meta.get("path")), str(init_prov.get("dataset"))):
             raise TrainingError(f"cannot start from {config.init}: it was trained on {init_prov.get('dataset')}, "
                                 f"not {data.meta.get('path')} (its validation/test samples would leak)")
         tr, va, te = grown_split_indices(len(data), _size_chain(init_prov), config.split, config.seed)
@@ -309,7 +316,10 @@ def train(data: Dataset, run_dir: str | os.PathLike, config: TrainConfig | None 
                   "n_nonempty": int((data.n_hits > 0).sum()),
                   "n_rays": data.meta["settings"]["n_rays"], "scheme": data.meta["settings"]["scheme"],
                   "chamber": chamber, "engine": data.meta["settings"].get("engine", "rayx"),
-                  "scheme_text": data.meta.get("scheme"), "dataset_seed": data.meta["settings"]["seed"],
+                  "scheme_text": data.meta.get("scheme"),
+                  "dataset_seed": ([p["seed"] for p in data.meta["parts"]] if data.meta.get("parts")
+                                   else data.meta["settings"]["seed"]),
+                  "parts": data.meta.get("parts"),
                   "twin": data.meta.get("engine"), "source_frame": data.meta.get("source_frame", "mirrored"),
                   "table_version": data.meta.get("table_version"),
                   "dataset_complete": data.meta.get("complete"),
