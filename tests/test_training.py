@@ -13,6 +13,7 @@ from bluesky_offsets.surrogate import dataset
 from bluesky_offsets.surrogate import network as surrogate
 from bluesky_offsets.surrogate import training
 from bluesky_offsets.commands.cli import main
+from bluesky_offsets.surrogate.dataset import DatasetError
 from bluesky_offsets.surrogate.training import TrainConfig, TrainingError
 
 os.environ.setdefault("OMP_NUM_THREADS", "1")
@@ -197,3 +198,37 @@ def test_chamber_inputs_torch_data_train_and_evaluate_against_rayx(tmp_path, cap
     np.testing.assert_allclose(np.concatenate([frame.hist_x, frame.hist_y]), expect, atol=1e-3)
     # so does the shipped one
     assert surrogate.load().chamber
+
+
+def test_a_store_grown_by_another_fine_tunes_with_the_old_split(store, tmp_path):
+    """`train A B`: the union of two stores (distinct seeds) fine-tunes a model trained on A,
+    A's samples first and split as before; the compact form that carries a store to a GPU
+    machine gives the same samples back."""
+    a = dataset.load(store)
+    other = tmp_path / "other.zarr"
+    s = dataset.GenerationSettings.from_dict(a.meta["settings"])
+    dataset.generate(other, 40, dataset.GenerationSettings(**{**s.to_dict(), "scheme": s.scheme, "seed": s.seed + 1}),
+                     scheduler="inline", progress=False)
+    b = dataset.load(other)
+    both = dataset.load_many([store, other])
+    assert len(both) == len(a) + 40 and both.meta["path"] == f"{store} + {other}"
+    assert [p["seed"] for p in both.meta["parts"]] == [s.seed, s.seed + 1]
+    assert np.array_equal(both.params[len(a):], b.params)
+    first = training.train(a, tmp_path / "a", _small(epochs=1, decoder="factored"), progress=False)
+    ckpt = tmp_path / "a" / "best.pt"
+    tuned = training.train(both, tmp_path / "b", _small(epochs=1, decoder="factored", init=str(ckpt)),
+                           progress=False)
+    assert tuned.provenance["dataset"] == both.meta["path"] and tuned.provenance["dataset_seed"] == [s.seed, s.seed + 1]
+    assert tuned.provenance["n_test"] == first.provenance["n_test"] + 4  # A's test samples plus 10 % of B's
+    with pytest.raises(TrainingError, match="validation/test samples would leak"):
+        training.train(dataset.concat([b, a]), tmp_path / "c", _small(epochs=1, decoder="factored", init=str(ckpt)),
+                       progress=False)
+    with pytest.raises(DatasetError, match="share a base seed"):
+        dataset.concat([a, a])
+    # the compact form: integer bin counts and the draw index; parameters recomputed from the draw
+    rows = dataset.compact_rows({"hist_x": b.hist_x, "hist_y": b.hist_y, "index": b.index, "n_hits": b.n_hits,
+                                 "screen_hits": np.zeros(len(b)), "stratum": b.stratum, "weight": b.weight},
+                                s.n_rays)
+    back = dataset.expand_rows(rows, dataset.GenerationSettings.from_dict(b.meta["settings"]))
+    for k in ("params", "hist_x", "hist_y", "n_hits", "stratum", "weight", "index"):
+        assert np.array_equal(back[k], getattr(b, k)), k
