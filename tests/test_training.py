@@ -232,3 +232,30 @@ def test_a_store_grown_by_another_fine_tunes_with_the_old_split(store, tmp_path)
     back = dataset.expand_rows(rows, dataset.GenerationSettings.from_dict(b.meta["settings"]))
     for k in ("params", "hist_x", "hist_y", "n_hits", "stratum", "weight", "index"):
         assert np.array_equal(back[k], getattr(b, k)), k
+
+
+def test_a_student_learns_the_teachers_predictions(store, tmp_path):
+    """`train --teacher`: a smaller net distilled from a trained one sees the teacher's histograms
+    at the training inputs; it is validated and tested against the traced ones, on the
+    teacher's own split, and a teacher of other data is refused."""
+    data = dataset.load(store)
+    teacher = training.train(data, tmp_path / "t", _small(epochs=3, decoder="joint", lr=1e-3), progress=False)
+    ckpt = tmp_path / "t" / "best.pt"
+    student = training.train(data, tmp_path / "s", _small(epochs=2, decoder="joint", width=16, lr=1e-3,
+                                                          teacher=str(ckpt)), progress=False)
+    assert student.provenance["teacher"]["path"] == str(ckpt)
+    assert student.provenance["n_test"] == teacher.provenance["n_test"]
+    assert student.arch.width == 16 and np.isfinite(student.metrics["test"]["mse"])
+    with pytest.raises(TrainingError, match="cannot distil"):
+        training.train(dataset.concat([data, _other(store, tmp_path)]), tmp_path / "x",
+                       _small(epochs=1, decoder="joint", teacher=str(ckpt)), progress=False)
+    with pytest.raises(ValueError, match="init and teacher"):
+        _small(init=str(ckpt), teacher=str(ckpt))
+
+
+def _other(store, tmp_path):
+    s = dataset.GenerationSettings.from_dict(dataset.load(store).meta["settings"])
+    path = tmp_path / "o.zarr"
+    dataset.generate(path, 12, dataset.GenerationSettings(**{**s.to_dict(), "scheme": s.scheme, "seed": s.seed + 7}),
+                     scheduler="inline", progress=False)
+    return dataset.load(path)

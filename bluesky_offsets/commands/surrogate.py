@@ -132,7 +132,8 @@ def _cmd_train(args) -> int:
                              activation=args.activation,
                              patience=args.patience, min_delta=args.min_delta,
                              epoch_samples=args.epoch_samples, device=args.device, seed=args.seed,
-                             threads=args.threads, max_minutes=args.max_minutes, init=args.init)
+                             threads=args.threads, max_minutes=args.max_minutes, init=args.init,
+                             teacher=args.teacher)
     except ValueError as exc:
         raise CliError(str(exc)) from None
     try:
@@ -301,6 +302,9 @@ def add_cli(sub) -> None:
     t.add_argument("--max-minutes", type=float, default=None, help="stop after this wall time (after an epoch)")
     t.add_argument("--init", default=None, metavar="CHECKPOINT",
                    help="start from this checkpoint's weights (fine-tune on a grown dataset; same architecture)")
+    t.add_argument("--teacher", default=None, metavar="CHECKPOINT",
+                   help="distil: learn this checkpoint's predictions at the training inputs (trained on the same "
+                        "data and split); validation and test stay against the traced histograms")
     t.add_argument("--restart", action="store_true", help="ignore RUN_DIR/state.pt and start over")
     t.add_argument("--allow-partial", action="store_true", help="train on an unfinished store's committed rows")
     t.add_argument("--no-progress", action="store_true")

@@ -88,6 +88,12 @@ class TrainConfig:
     init : str, optional
         Checkpoint to start from instead of random weights (fine-tuning on a grown
         dataset): its architecture and normalization must match these options.
+    teacher : str, optional
+        Distillation: train on this checkpoint's predictions at the training samples'
+        inputs instead of their traced histograms (a smaller, faster net learns the larger
+        one's smooth function, not the counting noise).  Validation, early stopping and the
+        test metrics stay against the traced histograms.  The teacher must have been
+        trained on the same dataset with the same split and seed (its test samples unseen).
     """
 
     epochs: int = 300
@@ -111,6 +117,7 @@ class TrainConfig:
     threads: int | None = None
     max_minutes: float | None = None
     init: str | None = None
+    teacher: str | None = None
 
     def __post_init__(self):
         self.split = tuple(float(s) for s in self.split)
@@ -133,6 +140,8 @@ class TrainConfig:
             self.output_norm = "none"
         elif self.output_norm == "none":
             raise ValueError("output_norm 'none' is only for the factored and joint decoders")
+        if self.init and self.teacher:
+            raise ValueError("init and teacher together are not supported: a student starts from random weights")
         if self.device not in ("auto", "cpu", "cuda"):
             raise ValueError(f"device must be auto, cpu or cuda, got {self.device!r}")
 
@@ -151,7 +160,7 @@ class TrainConfig:
 
 # the keys that must agree to resume a run
 _RESUME_KEYS = ("batch_size", "lr", "gamma", "good_min_rays", "good_fraction", "split", "width", "n_layers",
-                "output_norm", "decoder", "members", "activation", "epoch_samples", "seed", "init")
+                "output_norm", "decoder", "members", "activation", "epoch_samples", "seed", "init", "teacher")
 
 
 def split_indices(n: int, fractions, seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -299,12 +308,31 @@ def train(data: Dataset, run_dir: str | os.PathLike, config: TrainConfig | None 
         tr, va, te = grown_split_indices(len(data), _size_chain(init_prov), config.split, config.seed)
     else:
         tr, va, te = split_indices(len(data), config.split, config.seed)
+    teacher_prov = None
+    if config.teacher:
+        teacher = _load_init(config.teacher, table, hist)
+        teacher_prov = _init_provenance(teacher, config.teacher)
+        tt = teacher_prov["training"]
+        if (not _grown_from(str(data.meta.get("path")), str(teacher_prov.get("dataset")))
+                or teacher_prov.get("n_samples") != len(data) or list(tt.get("split", [])) != list(config.split)
+                or tt.get("seed") != config.seed):
+            raise TrainingError(f"cannot distil from {config.teacher}: it was trained on {teacher_prov.get('dataset')} "
+                                f"({teacher_prov.get('n_samples')} samples, split {tt.get('split')}, seed "
+                                f"{tt.get('seed')}), this run has {data.meta.get('path')} ({len(data)}, "
+                                f"{list(config.split)}, {config.seed}): its validation/test samples would leak")
+        # the teacher's split is the one to keep (its chain of grown stores, if any)
+        earlier = _size_chain(teacher_prov)[:-1]
+        tr, va, te = (grown_split_indices(len(data), earlier, config.split, config.seed) if earlier
+                      else split_indices(len(data), config.split, config.seed))
+        # the teacher's histograms at the training inputs replace the traced ones there
+        Y = Y.copy()
+        Y[tr] = teacher.predict(data.inputs[tr]).astype(np.float32)
     chamber = data.chamber is not None
     norm = Normalization.fit(table, Y[tr], config.output_norm, chamber=chamber)
     table.validate(data.params)
     X = torch.as_tensor((data.inputs - norm.in_low) / norm.in_span, dtype=torch.float32, device=device)
     Yn = torch.as_tensor((Y - norm.out_low) / norm.out_span, dtype=torch.float32, device=device)
-    Yt = torch.as_tensor(Y, device=device)
+    Yt = torch.as_tensor(data.hist.astype(np.float32), device=device)  # metrics: always the traced histograms
     good_tr = tr[data.n_hits[tr] >= config.good_min_rays]
     bad_tr = tr[data.n_hits[tr] < config.good_min_rays]
 
@@ -327,6 +355,8 @@ def train(data: Dataset, run_dir: str | os.PathLike, config: TrainConfig | None 
     torch.manual_seed(config.seed)
     if config.init:
         provenance["init"] = init_prov
+    if teacher_prov:
+        provenance["teacher"] = teacher_prov
     model = Surrogate.new(arch, norm, table, hist, provenance=provenance, training=config.to_dict())
     if config.init:
         _warm_start(model, init_src, config.init)
