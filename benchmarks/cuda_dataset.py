@@ -106,29 +106,6 @@ def _expand_parallel(rows: dict, settings, workers: int | None = None) -> dict:
 # --------------------------------------------------------------------------- #
 # device (there)
 # --------------------------------------------------------------------------- #
-def _check_cuda_rays() -> dict:
-    """tests/test_torch_engine.py::test_cuda_traces_the_same_rays_as_the_cpu, here run where CUDA is."""
-    import torch
-
-    from bluesky_offsets.physics.parameters import METRIXS
-    from bluesky_offsets.physics.torch_engine import TorchEngine
-
-    values = METRIXS.reference + 0.005 * METRIXS.span * np.random.default_rng(8).uniform(-1, 1, (4, 34))
-    values[:, [METRIXS.index("E1.rotationZerror"), METRIXS.index("E2.rotationZerror")]] = 0.0
-    beams = []
-    for device in ("cpu", "cuda"):
-        with torch.no_grad():
-            beams.append(TorchEngine(options={"device": device, "sampling": "rayx"}).beam(values, n_rays=20_000,
-                                                                                         seed=3))
-    a, b = beams
-    same_alive = bool(torch.equal(a.alive, b.alive.cpu()))
-    both = a.alive
-    dx = float((a.x - b.x.cpu())[both].abs().max())
-    dy = float((a.y - b.y.cpu())[both].abs().max())
-    return {"same_survivors": same_alive, "max_dx_mm": dx, "max_dy_mm": dy, "survivors": int(both.sum()),
-            "passed": same_alive and dx < 1e-9 and dy < 1e-9}
-
-
 def _worker(wid: int, n_workers: int, first: int, deadline: float, tmp: str, max_batch: int, dev: str,
             block_size: int) -> None:
     import torch
@@ -208,7 +185,10 @@ def device(args) -> int:
             report["error"] = "no CUDA device"
             save_report()
             return 1
-        report["ray_check"] = _check_cuda_rays()
+        from bluesky_offsets.physics.torch_engine import device_agreement
+        r = device_agreement("cuda")  # tests/test_torch_engine.py::test_cuda_traces_the_same_rays_as_the_cpu
+        r["passed"] = r["same_survivors"] and r["max_dx_mm"] < 1e-9 and r["max_dy_mm"] < 1e-9
+        report["ray_check"] = r
         print("CUDA vs CPU, same rays:", report["ray_check"], flush=True)
         save_report()
 

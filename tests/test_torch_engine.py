@@ -21,7 +21,7 @@ from bluesky_offsets.physics.metrixs import build_beamline
 from bluesky_offsets.physics.parameters import METRIXS
 from bluesky_offsets.physics.rml import read_rml
 from bluesky_offsets.physics.torch_engine import (FEATURES, TorchEngine, TorchOptions, compile_beamline,
-                                          rays_from_arrays, sample_source, trace_rays)
+                                          device_agreement, rays_from_arrays, sample_source, trace_rays)
 from bluesky_offsets.physics.twin import HistogramSpec, RayxEngine, Twin, TraceRequest, _rayx_fix_seed, footprint
 
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "reference"
@@ -406,14 +406,6 @@ def test_simulate_compares_both_engines(capsys):
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device here")
 def test_cuda_traces_the_same_rays_as_the_cpu():
-    values = METRIXS.reference + 0.005 * METRIXS.span * np.random.default_rng(8).uniform(-1, 1, (4, 34))
-    values[:, [METRIXS.index("E1.rotationZerror"), METRIXS.index("E2.rotationZerror")]] = 0.0
-    beams = []
-    for device in ("cpu", "cuda"):
-        with torch.no_grad():
-            beams.append(TorchEngine(options={"device": device, "sampling": "rayx"}).beam(values, n_rays=20_000,
-                                                                                         seed=3))
-    a, b = beams
-    assert torch.equal(a.alive, b.alive.cpu())
-    both = a.alive
-    assert (a.x - b.x.cpu())[both].abs().max() < 1e-9 and (a.y - b.y.cpu())[both].abs().max() < 1e-9
+    r = device_agreement("cuda")
+    assert r["same_survivors"] and r["survivors"] > 0
+    assert r["max_dx_mm"] < 1e-9 and r["max_dy_mm"] < 1e-9

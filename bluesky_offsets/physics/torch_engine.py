@@ -1423,6 +1423,21 @@ class TorchEngine:
         return RayJacobian(x, y, alive, weight, rows, jx, jy, jw, n_rays=n_rays, names=names)
 
 
+def device_agreement(device: str = "cuda", *, n_rays: int = 20_000, seed: int = 3) -> dict:
+    """The same four configurations near the reference traced with RAYX's random stream on the
+    CPU and on ``device``: whether the same rays survive and how far their screen positions
+    differ (mm).  The check a lent GPU runs before it traces anything for the record."""
+    values = METRIXS.reference + 0.005 * METRIXS.span * np.random.default_rng(8).uniform(-1, 1, (4, len(METRIXS)))
+    values[:, [METRIXS.index("E1.rotationZerror"), METRIXS.index("E2.rotationZerror")]] = 0.0
+    with torch.no_grad():
+        a, b = (TorchEngine(options={"device": d, "sampling": "rayx"}).beam(values, n_rays=n_rays, seed=seed)
+                for d in ("cpu", device))
+    both = a.alive
+    return {"device": str(device), "same_survivors": bool(torch.equal(a.alive, b.alive.cpu())),
+            "survivors": int(both.sum()), "max_dx_mm": float((a.x - b.x.cpu())[both].abs().max()),
+            "max_dy_mm": float((a.y - b.y.cpu())[both].abs().max())}
+
+
 def _take_optic(opt: Optic, c: int, owner: torch.Tensor) -> Optic:
     """``opt`` with its configuration fields (leading axis ``c``) taken for each of the rays
     ``owner`` (K,): every ray a configuration of its own (a compacting trace)."""
