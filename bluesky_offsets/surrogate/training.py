@@ -313,8 +313,8 @@ def train(data: Dataset, run_dir: str | os.PathLike, config: TrainConfig | None 
         teacher = _load_init(config.teacher, table, hist)
         teacher_prov = _init_provenance(teacher, config.teacher)
         tt = teacher_prov["training"]
-        if (not _grown_from(str(data.meta.get("path")), str(teacher_prov.get("dataset")))
-                or teacher_prov.get("n_samples") != len(data) or list(tt.get("split", [])) != list(config.split)
+        if (teacher_prov.get("dataset") != data.meta.get("path") or teacher_prov.get("n_samples") != len(data)
+                or list(tt.get("split", [])) != list(config.split)
                 or tt.get("seed") != config.seed):
             raise TrainingError(f"cannot distil from {config.teacher}: it was trained on {teacher_prov.get('dataset')} "
                                 f"({teacher_prov.get('n_samples')} samples, split {tt.get('split')}, seed "
