@@ -417,8 +417,9 @@ def _beam_summary(beam, best) -> dict:
             "predicted": o.predicted.as_dict(), "predicted_sigma": dict(o.sigma), "trusted": o.trusted,
             "flags": [f.text() for f in o.flags], "moved": list(o.moved), "at_limit": list(o.at_limit),
             "true_best": None if best is None else best.as_dict(), "frames": beam.frames,
-            "steps": [{"uid": st.uid, "predicted": st.optimum.predicted.as_dict(), "predicted_sigma": dict(st.optimum.sigma),
-                       "after": st.after.as_dict(), "moved": list(st.optimum.moved)} for st in beam.steps]}
+            "steps": [{"uid": st.uid, "predicted": st.optimum.predicted.as_dict(),
+                       "predicted_sigma": dict(st.optimum.sigma), "after": st.after.as_dict(),
+                       "moved": list(st.optimum.moved)} for st in beam.steps]}
 
 
 def _close_channels(RE) -> None:
