@@ -112,20 +112,25 @@ def _worker(wid: int, n_workers: int, first: int, deadline: float, tmp: str, max
 
     from bluesky_offsets.physics.parameters import METRIXS
     from bluesky_offsets.physics.torch_engine import TorchEngine
-    from bluesky_offsets.surrogate.dataset import compact_rows, generate_block
+    from bluesky_offsets.surrogate.dataset import generate_block
 
     torch.set_num_threads(1)
     s = _settings(block_size)
     eng = TorchEngine(METRIXS, options={"device": dev, "max_batch": max_batch})
     b = first + wid
     while time.time() < deadline:
-        res = generate_block(eng, s, b)
-        rows = compact_rows(res, s.n_rays)
-        tmp_path = Path(tmp) / f"block_{b:07d}.tmp.npz"
-        np.savez(tmp_path, block=b, draw_screen_hits=res["draw_screen_hits"], n_failed=res["n_failed"],
-                 cpu_s=res["cpu_s"], wall_s=res["wall_s"], **rows)
-        os.replace(tmp_path, Path(tmp) / f"block_{b:07d}.npz")
+        _save_block(Path(tmp), generate_block(eng, s, b), s.n_rays)
         b += n_workers
+
+
+def _save_block(tmp: Path, res: dict, n_rays: int) -> None:
+    """A finished block in compact form, written atomically (a file that exists is whole)."""
+    from bluesky_offsets.surrogate.dataset import compact_rows
+    b = int(res["block"])
+    part = tmp / f"block_{b:07d}.tmp.npz"
+    np.savez(part, block=b, draw_screen_hits=res["draw_screen_hits"], n_failed=res["n_failed"],
+             cpu_s=res["cpu_s"], wall_s=res["wall_s"], **compact_rows(res, n_rays))
+    os.replace(part, tmp / f"block_{b:07d}.npz")
 
 
 def _read_blocks(tmp: Path) -> list[dict]:
@@ -195,7 +200,7 @@ def device(args) -> int:
     # one block in this process first: a failing engine shows here, not as silently empty blocks
     from bluesky_offsets.physics.parameters import METRIXS
     from bluesky_offsets.physics.torch_engine import TorchEngine
-    from bluesky_offsets.surrogate.dataset import compact_rows, generate_block
+    from bluesky_offsets.surrogate.dataset import GOOD_MIN_RAYS, generate_block
 
     s = _settings(args.block_size)
     tmp = Path(args.tmp)
@@ -205,14 +210,13 @@ def device(args) -> int:
     tb = time.time()
     res = generate_block(eng, s, 0)
     report["first_block"] = {"wall_s": time.time() - tb, "rows": len(res["index"]), "failed": res["n_failed"],
-                             "good": int((res["n_hits"] >= 10).sum())}
+                             "good": int((res["n_hits"] >= GOOD_MIN_RAYS).sum())}
     print("first block:", report["first_block"], flush=True)
     if res["n_failed"]:
         report["error"] = "the first block failed on CUDA"
         save_report()
         return 1
-    np.savez(tmp / "block_0000000.npz", block=0, draw_screen_hits=res["draw_screen_hits"], n_failed=res["n_failed"],
-             cpu_s=res["cpu_s"], wall_s=res["wall_s"], **compact_rows(res, s.n_rays))
+    _save_block(tmp, res, s.n_rays)
     del eng
     if dev == "cuda":
         torch.cuda.empty_cache()
@@ -238,7 +242,7 @@ def device(args) -> int:
     prefix = next((i for i, b in enumerate(ids) if b != i), len(ids))
     blocks = [b for b in blocks if int(b["block"]) < prefix]  # the contiguous prefix: what a store keeps
     n_samples = sum(len(b["index"]) for b in blocks)
-    n_good = sum(int((b["n_hits"] >= 10).sum()) for b in blocks)
+    n_good = sum(int((b["n_hits"] >= GOOD_MIN_RAYS).sum()) for b in blocks)
     report["generation"] = {"workers": args.workers, "wall_s": gen_wall, "blocks": prefix,
                             "blocks_beyond_prefix": len(ids) - prefix, "draws": prefix * s.block_size,
                             "samples": n_samples, "good": n_good,
@@ -265,14 +269,13 @@ def device(args) -> int:
 def _train_union(args, blocks: list[dict], s, out: Path, engine: str) -> dict:
     import torch
 
-    from bluesky_offsets.surrogate.dataset import Dataset, concat
+    from bluesky_offsets.surrogate.dataset import COMPACT_FIELDS, Dataset, concat
     from bluesky_offsets.surrogate.network import load
     from bluesky_offsets.surrogate.training import TrainConfig, train
 
     tl = time.time()
     base = load_compact(args.base_compact)
-    rows = {k: np.concatenate([b[k] for b in blocks]) for k in
-            ("index", "counts_x", "counts_y", "n_hits", "screen_hits", "stratum", "weight")}
+    rows = {k: np.concatenate([b[k] for b in blocks]) for k in COMPACT_FIELDS}
     order = np.argsort(rows["index"], kind="stable")
     rows = {k: v[order] for k, v in rows.items()}
     full = _expand_parallel(rows, s)
@@ -289,7 +292,7 @@ def _train_union(args, blocks: list[dict], s, out: Path, engine: str) -> dict:
     init = load(args.init)
     tr = init.training
     budget = max(30.0, args.train_s - (time.time() - tl))
-    epochs = _epochs_for(budget, data, args.batch_size, args.device)
+    epochs = _epochs_for(budget, data, args.batch_size, args.device, init.arch)
     gamma = math.exp(math.log(args.lr_end / args.lr) / epochs)
     cfg = TrainConfig(epochs=epochs, batch_size=args.batch_size, lr=args.lr, gamma=gamma,
                       good_fraction=tr["good_fraction"], split=tuple(tr["split"]), width=tr["width"],
@@ -308,16 +311,15 @@ def _train_union(args, blocks: list[dict], s, out: Path, engine: str) -> dict:
             "checkpoint": str(path), "torch": torch.__version__}
 
 
-def _epochs_for(budget_s: float, data, batch_size: int, dev: str) -> int:
-    """Epochs that fit ``budget_s``, from a timed burst of training steps of the same network."""
+def _epochs_for(budget_s: float, data, batch_size: int, dev: str, arch) -> int:
+    """Epochs that fit ``budget_s``, from a timed burst of training steps of a network of ``arch``."""
     import torch
 
-    from bluesky_offsets.surrogate.network import load
-    m = load(None, device=dev)
-    net = m.net.train()
+    from bluesky_offsets.surrogate.network import SurrogateNet
+    net = SurrogateNet(arch).to(dev).train()
     opt = torch.optim.Adam(net.parameters(), lr=1e-6)
-    x = torch.rand(batch_size, m.arch.n_inputs, device=dev)
-    y = torch.rand(batch_size, m.arch.n_outputs, device=dev) * 1e-3
+    x = torch.rand(batch_size, arch.n_inputs, device=dev)
+    y = torch.rand(batch_size, arch.n_outputs, device=dev) * 1e-3
     sync = torch.cuda.synchronize if dev == "cuda" else (lambda: None)
     for i in range(230):
         if i == 30:
@@ -343,8 +345,8 @@ def import_blocks(src: str, store: str, rayx_check: int) -> None:
 
     from bluesky_offsets.physics.parameters import METRIXS
     from bluesky_offsets.physics.twin import HistogramSpec
-    from bluesky_offsets.surrogate.dataset import (DatasetStore, GenerationSettings, check_against_rayx,
-                                                   expand_rows)
+    from bluesky_offsets.surrogate.dataset import (COMPACT_FIELDS, DatasetStore, GenerationSettings,
+                                                   check_against_rayx, expand_rows)
 
     files = sorted(Path(src).glob("blocks_*.npz"))
     if not files:
@@ -366,8 +368,7 @@ def import_blocks(src: str, store: str, rayx_check: int) -> None:
             if str(block) in prog["blocks"]:
                 r0 += int(n)
                 continue
-            rows = {key: z[key][r0:r0 + n] for key in ("index", "counts_x", "counts_y", "n_hits", "screen_hits",
-                                                        "stratum", "weight")}
+            rows = {key: z[key][r0:r0 + n] for key in COMPACT_FIELDS}
             res = expand_rows(rows, s)
             res.update(block=block, draw_screen_hits=z["draw_screen_hits"][k * bs:(k + 1) * bs],
                        n_failed=int(z["n_failed"][k]), cpu_s=float(z["cpu_s"][k]), wall_s=float(z["wall_s"][k]))
@@ -399,7 +400,12 @@ def main(argv=None) -> int:
     d.add_argument("--block-size", type=int, default=None, help="draws per block (default: the store's)")
     d.add_argument("--base-compact", default="data/t1e4.compact.npz")
     d.add_argument("--store-name", default="data/t1e4_cuda.zarr")
-    d.add_argument("--init", default="bluesky_offsets/data/surrogate.pt")
+    d.add_argument("--init", default="bluesky_offsets/data/surrogate.pt",
+                   help="the model to fine-tune: one trained on the carried store (the union is refused "
+                        "otherwise). The shipped model was made from the 600,000-sample one, "
+                        "`git show f81250b:bluesky_offsets/data/surrogate.pt`; the shipped model itself was "
+                        "trained on data/t1e4.zarr + data/t1e4_cuda.zarr: growing it further needs that union carried, "
+                        "which export (one store) does not do yet")
     d.add_argument("--batch-size", type=int, default=1024)
     d.add_argument("--lr", type=float, default=1e-3)
     d.add_argument("--lr-end", type=float, default=2e-5)

@@ -205,11 +205,9 @@ def test_a_store_grown_by_another_fine_tunes_with_the_old_split(store, tmp_path)
     A's samples first and split as before; the compact form that carries a store to a GPU
     machine gives the same samples back."""
     a = dataset.load(store)
-    other = tmp_path / "other.zarr"
     s = dataset.GenerationSettings.from_dict(a.meta["settings"])
-    dataset.generate(other, 40, dataset.GenerationSettings(**{**s.to_dict(), "scheme": s.scheme, "seed": s.seed + 1}),
-                     scheduler="inline", progress=False)
-    b = dataset.load(other)
+    b = _other(store, tmp_path, 40, seed_offset=1)
+    other = b.meta["path"]
     both = dataset.load_many([store, other])
     assert len(both) == len(a) + 40 and both.meta["path"] == f"{store} + {other}"
     assert [p["seed"] for p in both.meta["parts"]] == [s.seed, s.seed + 1]
@@ -247,15 +245,16 @@ def test_a_student_learns_the_teachers_predictions(store, tmp_path):
     assert student.provenance["n_test"] == teacher.provenance["n_test"]
     assert student.arch.width == 16 and np.isfinite(student.metrics["test"]["mse"])
     with pytest.raises(TrainingError, match="cannot distil"):
-        training.train(dataset.concat([data, _other(store, tmp_path)]), tmp_path / "x",
+        training.train(dataset.concat([data, _other(store, tmp_path, 12, seed_offset=7)]), tmp_path / "x",
                        _small(epochs=1, decoder="joint", teacher=str(ckpt)), progress=False)
     with pytest.raises(ValueError, match="init and teacher"):
         _small(init=str(ckpt), teacher=str(ckpt))
 
 
-def _other(store, tmp_path):
+def _other(store, tmp_path, n: int, seed_offset: int):
+    """Another store drawn like ``store``, from the base seed ``seed_offset`` further on."""
     s = dataset.GenerationSettings.from_dict(dataset.load(store).meta["settings"])
-    path = tmp_path / "o.zarr"
-    dataset.generate(path, 12, dataset.GenerationSettings(**{**s.to_dict(), "scheme": s.scheme, "seed": s.seed + 7}),
-                     scheduler="inline", progress=False)
+    path = tmp_path / f"other{seed_offset}.zarr"
+    moved = dataset.GenerationSettings(**{**s.to_dict(), "scheme": s.scheme, "seed": s.seed + seed_offset})
+    dataset.generate(path, n, moved, scheduler="inline", progress=False)
     return dataset.load(path)

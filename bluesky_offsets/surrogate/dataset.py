@@ -832,6 +832,10 @@ def load_many(paths, **kw) -> Dataset:
 # --------------------------------------------------------------------------- #
 # a compact form for moving samples between machines
 # --------------------------------------------------------------------------- #
+#: the fields of :func:`compact_rows`'s result
+COMPACT_FIELDS = ("index", "counts_x", "counts_y", "n_hits", "screen_hits", "stratum", "weight")
+
+
 def compact_rows(res: Mapping, n_rays: int) -> dict:
     """A block's or a dataset's rows without what the draw recomputes: the parameters and the
     chamber follow from (seed, index) (:func:`draw`), and a histogram bin is a ray count over
