@@ -21,6 +21,17 @@ only small files come back, so the work is split in three steps:
 
     python benchmarks/cuda_dataset.py import OUTDIR data/t1e4_cuda.zarr
 
+Two more device steps use the lent minutes without tracing (issue 18, inference and search)::
+
+    python benchmarks/cuda_dataset.py distill --out $OUT --students 128x5,128x6,160x5 --train-s 360
+    python benchmarks/cuda_dataset.py walker --out $OUT --candidates 1000000 --runs 10 --budget-s 400
+
+``distill`` trains small students of the shipped model (``train --teacher``) on the union of the
+two carried stores (``export`` of each); ``walker`` runs the paper's comparison (smart walker
+vs Monte Carlo, the same seeds and budgets as ``bluesky-offsets find``) with the paper's
+m = 1e6 candidates on the GPU and writes ``results.json`` for
+``python benchmarks/bench_finder.py --markdown-only --out DIR``.
+
 Every number the device step measures (blocks, samples, GPU wall time, training epochs and
 metrics) is written to ``cuda_run.json`` beside the packed blocks.
 """
@@ -337,6 +348,116 @@ def _epochs_for(budget_s: float, data, batch_size: int, dev: str, arch) -> int:
     return max(1, int(budget_s / per_epoch))
 
 
+def _student(spec: str, data, args, out: str, q) -> None:
+    """One student (``WIDTHxLAYERS``) of ``args.teacher`` on ``data``, in its own process."""
+    import torch
+
+    from bluesky_offsets.surrogate.network import Architecture, load
+    from bluesky_offsets.surrogate.training import TrainConfig, train
+
+    try:
+        torch.set_num_threads(2)
+        width, layers = (int(v) for v in spec.split("x"))
+        t0 = time.time()
+        tr = load(args.teacher).training
+        arch = Architecture(n_inputs=data.inputs.shape[1], n_outputs=data.hist.shape[1], width=width,
+                            n_layers=layers, decoder=tr["decoder"], members=1, activation=tr["activation"])
+        # epochs from this process's measured step (the others already share the GPU), with room for the
+        # teacher's labels and the validations, so that the learning rate decays within the budget
+        budget = args.train_s - (time.time() - args.t0)
+        epochs = max(1, int(0.8 * _epochs_for(budget, data, args.batch_size, args.device, arch)))
+        gamma = math.exp(math.log(args.lr_end / args.lr) / epochs)
+        cfg = TrainConfig(epochs=epochs, batch_size=args.batch_size, lr=args.lr, gamma=gamma,
+                          good_fraction=tr["good_fraction"], split=tuple(tr["split"]), width=width, n_layers=layers,
+                          output_norm=tr["output_norm"], decoder=tr["decoder"], members=1,
+                          activation=tr["activation"], patience=0, device=args.device, seed=tr["seed"],
+                          max_minutes=max(0.5, (args.train_s - (time.time() - args.t0)) / 60), teacher=args.teacher)
+        print(f"student {spec}: {epochs} epochs (gamma {gamma:.4f}), budget {budget:.0f} s", flush=True)
+        model = train(data, Path(out) / f"train_{spec}", cfg, resume=False, progress=False)
+        path = Path(out) / f"student_{spec}.pt"
+        model.save(path)
+        hist = json.loads((Path(out) / f"train_{spec}" / "history.json").read_text())
+        shutil.rmtree(Path(out) / f"train_{spec}")
+        q.put({"student": spec, "epochs": epochs, "gamma": gamma, "wall_s": time.time() - t0,
+               "metrics": model.metrics, "history": hist, "checkpoint": str(path)})
+    except Exception as exc:  # the report says which student failed and why; the others go on
+        q.put({"student": spec, "error": f"{type(exc).__name__}: {exc}"})
+
+
+def distill(args) -> int:
+    """Students of the shipped model, trained side by side on the GPU (the carried union)."""
+    import multiprocessing as mp
+
+    from bluesky_offsets.surrogate.dataset import concat
+
+    args.t0 = time.time()
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    # the union as the teacher saw it: its stores in its order (its split follows from that)
+    data = concat([load_compact(p) for p in args.compact])
+    load_s = time.time() - args.t0
+    print(f"union: {len(data)} samples from {data.meta['path']} in {load_s:.0f} s", flush=True)
+    # fork before any CUDA call here: each child makes its own context and shares the arrays
+    ctx = mp.get_context("fork")
+    q = ctx.Queue()
+    procs = [ctx.Process(target=_student, args=(spec, data, args, str(out), q))
+             for spec in args.students.split(",")]
+    for p in procs:
+        p.start()
+    results = [q.get() for _ in procs]
+    for p in procs:
+        p.join()
+    report = {"load_s": load_s, "samples": len(data), "dataset": data.meta["path"], "teacher": args.teacher,
+              "batch_size": args.batch_size, "lr": args.lr, "lr_end": args.lr_end, "students": results,
+              "total_s": time.time() - args.t0}
+    (out / "distill.json").write_text(json.dumps(report, indent=1, default=str))
+    for r in results:
+        m = r.get("metrics", {}).get("test", {})
+        print(r["student"], r.get("error") or f"{r['epochs']} epochs, test non-empty MSE {m.get('mse_nonempty'):.3e}",
+              flush=True)
+    return 0
+
+
+def walker(args) -> int:
+    """Smart walker vs Monte Carlo at the paper's m on the GPU: ``find``'s problems, budgets and seeds."""
+    import torch
+
+    from bluesky_offsets.offsets import evaluate as E
+    from bluesky_offsets.offsets import finder as F
+
+    t0 = time.time()
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    model = F.load_forward_model(args.model, device=args.device)
+    evaluations = args.candidates * (args.iterations + 1)  # find's paper budget
+    budgets = {m: F.Budget(evaluations=evaluations) for m in ("smart-walker", "monte-carlo")}
+    problems, results = [], {m: [] for m in budgets}
+    for seed in range(args.seed, args.seed + args.runs):
+        if time.time() - t0 > args.budget_s:  # whole seeds only: both methods on every problem kept
+            break
+        p = F.make_problem(model, seed=seed, progress=False)
+        rs = {m: F.find_offsets(p, model, m, budgets[m], seed=seed, progress=False, max_rows=args.max_rows,
+                                candidates=args.candidates) for m in budgets}
+        if time.time() - t0 > args.budget_s + args.grace_s:
+            print(f"seed {seed} ended past the budget: kept", flush=True)
+        problems.append(p)
+        for m, r in rs.items():
+            results[m].append(r)
+            print(f"{m} seed {seed}: MSE {r.loss:.3e} after {r.evaluations} evaluations, {r.seconds:.1f} s, "
+                  f"parameter RMSE {r.parameter_rmse(p.true_offsets):.3f}", flush=True)
+        summary = E.summarize(problems, results)
+        seeds = list(range(args.seed, args.seed + len(problems)))
+        res = {"model": str(args.model or "shipped"), "device": f"{args.device} ({torch.cuda.get_device_name(0)})"
+               if args.device == "cuda" else args.device, "threads": torch.get_num_threads(), "observe": "surrogate",
+               "seeds": seeds, "budgets": {m: {"evaluations": b.evaluations, "seconds": None} for m, b in budgets.items()},
+               "problem": problems[0].summary(), "summary": summary,
+               "reach_smart_walker_mse": E.reach_table(results, summary["smart-walker"]["mse_mean"]),
+               "results": {m: [r.to_dict() for r in rs] for m, rs in results.items()},
+               "wall_seconds": time.time() - t0, "torch": torch.__version__}
+        (out / "results.json").write_text(json.dumps(res, default=float))
+    return 0
+
+
 # --------------------------------------------------------------------------- #
 # import (here)
 # --------------------------------------------------------------------------- #
@@ -409,6 +530,28 @@ def main(argv=None) -> int:
     d.add_argument("--batch-size", type=int, default=1024)
     d.add_argument("--lr", type=float, default=1e-3)
     d.add_argument("--lr-end", type=float, default=2e-5)
+    st = sub.add_parser("distill")
+    st.add_argument("--out", required=True)
+    st.add_argument("--compact", nargs="+", default=["data/t1e4.compact.npz", "data/t1e4_cuda.compact.npz"],
+                    help="the teacher's stores in its order (export of each)")
+    st.add_argument("--teacher", default="bluesky_offsets/data/surrogate.pt")
+    st.add_argument("--students", default="128x5,128x6,160x5", help="WIDTHxLAYERS, comma-separated")
+    st.add_argument("--train-s", type=float, default=360.0, help="from the start, loading included (s)")
+    st.add_argument("--device", default="cuda")
+    st.add_argument("--batch-size", type=int, default=2048)
+    st.add_argument("--lr", type=float, default=2e-3)
+    st.add_argument("--lr-end", type=float, default=1e-5)
+    w = sub.add_parser("walker")
+    w.add_argument("--out", required=True)
+    w.add_argument("--model", default=None)
+    w.add_argument("--candidates", type=int, default=1_000_000)
+    w.add_argument("--iterations", type=int, default=200)
+    w.add_argument("--runs", type=int, default=10)
+    w.add_argument("--seed", type=int, default=0)
+    w.add_argument("--budget-s", type=float, default=400.0, help="no new seed after this (s)")
+    w.add_argument("--grace-s", type=float, default=120.0)
+    w.add_argument("--max-rows", type=int, default=1 << 20)
+    w.add_argument("--device", default="cuda")
     i = sub.add_parser("import")
     i.add_argument("src")
     i.add_argument("store")
@@ -418,6 +561,10 @@ def main(argv=None) -> int:
         export(a.store, a.out)
     elif a.cmd == "device":
         return device(a)
+    elif a.cmd == "distill":
+        return distill(a)
+    elif a.cmd == "walker":
+        return walker(a)
     else:
         import_blocks(a.src, a.store, a.rayx_check)
     return 0

@@ -247,8 +247,15 @@ def test_a_student_learns_the_teachers_predictions(store, tmp_path):
     with pytest.raises(TrainingError, match="cannot distil"):
         training.train(dataset.concat([data, _other(store, tmp_path, 12, seed_offset=7)]), tmp_path / "x",
                        _small(epochs=1, decoder="joint", teacher=str(ckpt)), progress=False)
-    with pytest.raises(ValueError, match="init and teacher"):
-        _small(init=str(ckpt), teacher=str(ckpt))
+    # a student goes on from an earlier student of the same teacher, never from another model
+    student.save(tmp_path / "s.pt")
+    longer = training.train(data, tmp_path / "s2", _small(epochs=1, decoder="joint", width=16, lr=1e-4,
+                                                          teacher=str(ckpt), init=str(tmp_path / "s.pt")),
+                            progress=False)
+    assert longer.provenance["init"]["path"] == str(tmp_path / "s.pt")
+    with pytest.raises(TrainingError, match="not a student of that teacher"):
+        training.train(data, tmp_path / "s3", _small(epochs=1, decoder="joint", teacher=str(ckpt), init=str(ckpt)),
+                       progress=False)
 
 
 def _other(store, tmp_path, n: int, seed_offset: int):

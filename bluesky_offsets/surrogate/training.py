@@ -28,7 +28,7 @@ import torch
 from bluesky_offsets.surrogate.dataset import GOOD_MIN_RAYS, Dataset
 from bluesky_offsets.physics.parameters import METRIXS, ParameterTable
 from bluesky_offsets.surrogate.network import (ACTIVATIONS, DECODERS, LIKELIHOOD_DECODERS, Architecture,
-                                               Normalization, Surrogate)
+                                               Normalization, Surrogate, _weights_digest)
 from bluesky_offsets.physics.twin import HistogramSpec
 
 log = logging.getLogger(__name__)
@@ -87,7 +87,8 @@ class TrainConfig:
         Stop (cleanly, after an epoch) when this wall time is used up.
     init : str, optional
         Checkpoint to start from instead of random weights (fine-tuning on a grown
-        dataset): its architecture and normalization must match these options.
+        dataset): its architecture and normalization must match these options.  With
+        ``teacher``, an earlier student of the same teacher (a longer schedule).
     teacher : str, optional
         Distillation: train on this checkpoint's predictions at the training samples'
         inputs instead of their traced histograms (a smaller, faster net learns the larger
@@ -140,8 +141,6 @@ class TrainConfig:
             self.output_norm = "none"
         elif self.output_norm == "none":
             raise ValueError("output_norm 'none' is only for the factored and joint decoders")
-        if self.init and self.teacher:
-            raise ValueError("init and teacher together are not supported: a student starts from random weights")
         if self.device not in ("auto", "cpu", "cuda"):
             raise ValueError(f"device must be auto, cpu or cuda, got {self.device!r}")
 
@@ -261,6 +260,14 @@ def _init_provenance(src: Surrogate, path: str) -> dict:
             "training": src.training}
 
 
+def _same_teacher(recorded: dict, teacher: dict) -> bool:
+    """Whether a student's recorded teacher is ``teacher``: by its weights' digest, or, for a
+    student recorded before the digest was kept, by the teacher's data and training options."""
+    if "weights_sha256" in recorded:
+        return recorded["weights_sha256"] == teacher["weights_sha256"]
+    return bool(recorded) and all(recorded.get(k) == teacher.get(k) for k in ("dataset", "n_samples", "training"))
+
+
 def _warm_start(model: Surrogate, src: Surrogate, path: str) -> None:
     # The normalization stays the new dataset's; for the likelihood decoders there is none,
     # for "bins" a changed min/max would silently rescale the start, so it must agree.
@@ -312,6 +319,12 @@ def train(data: Dataset, run_dir: str | os.PathLike, config: TrainConfig | None 
     if config.teacher:
         teacher = _load_init(config.teacher, table, hist)
         teacher_prov = _init_provenance(teacher, config.teacher)
+        teacher_prov["weights_sha256"] = _weights_digest(teacher.net.state_dict())
+        if config.init and not _same_teacher(init_src.provenance.get("teacher") or {}, teacher_prov):
+            # a student goes on from an earlier student of the same teacher (a new learning-rate
+            # schedule), never from a model that learned other targets
+            raise TrainingError(f"cannot start a student of {config.teacher} from {config.init}: it is not a "
+                                "student of that teacher (the same weights)")
         tt = teacher_prov["training"]
         if (teacher_prov.get("dataset") != data.meta.get("path") or teacher_prov.get("n_samples") != len(data)
                 or list(tt.get("split", [])) != list(config.split)
