@@ -129,9 +129,9 @@ class TestChamberZ(_HiddenEffect):
         # 21's acceptance; benchmarks/bench_optimize_beam.py checks five other draws), after the
         # closed loop. The first move's prediction rests on offsets that reproduce the frames
         # within noise but are not the truth's (pulls up to 11 sigma; issue 17): measured
-        # (2026-11-27, this draw) 10.8 x 7.0 µm against 12.6 x 8.1 predicted (0.86, 0.86); refitted
-        # with the frames taken there, the second move's 9.7 x 6.4 predicted, 10.1 x 6.9 measured
-        # (1.04, 1.08), the truth's best 9.9 x 6.6 (1.02, 1.04).
+        # (2026-11-27, this draw) 9.6 x 6.8 µm against 12.0 x 7.7 predicted (0.80, 0.88); refitted
+        # with the frames taken there, the second move's 11.1 x 6.8 predicted, 10.7 x 6.8 measured
+        # (0.97, 1.00), the truth's best 10.2 x 6.6 (1.05, 1.03).
         over = {a: after[f"rms_{a}"] / best[f"rms_{a}"] for a in "xy"}
         ratio = {a: after[f"rms_{a}"] / pred[f"rms_{a}"] for a in "xy"}
         for a in "xy":

@@ -133,6 +133,26 @@ def test_shipped_checkpoint_loads_with_provenance():
     assert meta["weights_sha256"] and meta["table_version"] == METRIXS.version
 
 
+def test_the_fast_checkpoint_is_a_student_of_the_default():
+    """The second shipped checkpoint, by name: a smaller net distilled from the default one, on the
+    same data and split (its test samples unseen by either), for the CPU's evaluations per second."""
+    fast, default = surrogate.load("fast"), surrogate.load("default")
+    path = surrogate.resolve_checkpoint("fast")
+    assert path.name == "surrogate_fast.pt" and path.stat().st_size < 20 * 2**20
+    teacher = fast.provenance["teacher"]
+    assert teacher["weights_sha256"] == json.loads(surrogate.default_checkpoint().with_suffix(".json")
+                                                   .read_text())["weights_sha256"]
+    assert fast.provenance["dataset"] == default.provenance["dataset"]
+    assert fast.provenance["n_test"] == default.provenance["n_test"]
+    assert fast.chamber and fast.arch.n_inputs == default.arch.n_inputs
+    # fewer multiply-adds a row than the default: what makes it fast
+    def macs(a):
+        return a.n_inputs * a.width + (a.n_layers - 2) * a.width ** 2 + a.width * (a.n_outputs + 2)
+    assert macs(fast.arch) < 0.5 * macs(default.arch)
+    x = METRIXS.denormalize(np.full((2, 34), 0.5))
+    assert np.isfinite(fast.predict(x, chamber=(0.0, 0.0, 20.0))).all()
+
+
 def _check_likelihood_model(m, x, tmp_path):
     """A likelihood decoder's histograms, loss and checkpoint round trip at inputs ``x``."""
     h = m.predict(x)

@@ -184,7 +184,8 @@ def add_cli(sub) -> None:
                                    "mean ± std, loss curves (Fig. 5), evaluations/seconds to reach the smart "
                                    "walker's MSE, identifiability, and optionally the twin re-simulation "
                                    "(Sinkhorn, footprints, Fig. 6).")
-    p.add_argument("--model", default=None, help="surrogate checkpoint (default: the shipped one)")
+    p.add_argument("--model", default=None,
+                   help="surrogate checkpoint: a path or a shipped name, default or fast (default: default)")
     p.add_argument("--methods", default=DEFAULT_METHODS, help=f"comma-separated (default {DEFAULT_METHODS})")
     p.add_argument("--runs", type=int, default=10, help="seeded runs per method (default 10)")
     p.add_argument("--seed", type=int, default=0, help="first seed (default 0)")

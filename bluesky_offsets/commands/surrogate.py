@@ -168,8 +168,8 @@ def _load_model(path):
 
 
 def _cmd_surrogate_info(args) -> int:
-    from bluesky_offsets.surrogate.network import SurrogateError, default_checkpoint, read_metadata
-    path = args.checkpoint or default_checkpoint()
+    from bluesky_offsets.surrogate.network import SurrogateError, read_metadata, resolve_checkpoint
+    path = resolve_checkpoint(args.checkpoint)
     _load_model(path)  # full check: table, histogram spec, checksum
     try:
         meta = read_metadata(path)
@@ -204,7 +204,8 @@ def _cmd_surrogate_evaluate(args) -> int:
     if args.plot and data:
         plot_comparison(model, data["screened"], args.plot)
         res["plot"] = args.plot
-    res["checkpoint"]["path"] = str(args.checkpoint or "shipped (bluesky_offsets/data/surrogate.pt)")
+    from bluesky_offsets.surrogate.network import resolve_checkpoint
+    res["checkpoint"]["path"] = str(resolve_checkpoint(args.checkpoint))
     if args.json:
         print(json.dumps(res, indent=2))
         return 0
@@ -317,7 +318,7 @@ def add_cli(sub) -> None:
                         description="Draw a fresh held-out set with the training data's recorded scheme, "
                                     "trace every configuration twice with the twin, and report the "
                                     "surrogate's MSE next to the twin's repeat-noise MSE.")
-    e.add_argument("--checkpoint", help="checkpoint (default: the shipped one)")
+    e.add_argument("--checkpoint", help="checkpoint: a path or a shipped name, default or fast (default: default)")
     e.add_argument("--samples", type=int, default=500, help="at least this many samples (default 500)")
     e.add_argument("--min-nonempty", type=int, default=100, help="at least this many non-empty (default 100)")
     e.add_argument("--uniform", type=int, default=0, help="also evaluate on N plain uniform draws")
@@ -332,5 +333,5 @@ def add_cli(sub) -> None:
     e.add_argument("--json", action="store_true", help="machine-readable output")
     e.set_defaults(func=_cmd_surrogate_evaluate)
     i = ssub.add_parser("info", help="metadata of a checkpoint (after checking it loads)")
-    i.add_argument("--checkpoint", help="checkpoint (default: the shipped one)")
+    i.add_argument("--checkpoint", help="checkpoint: a path or a shipped name, default or fast (default: default)")
     i.set_defaults(func=_cmd_surrogate_info)

@@ -37,6 +37,9 @@ FORMAT = "bluesky-offsets-surrogate/1"
 #: the shipped model: 34 parameters and the focus chamber's x, y, z in, torch-engine data at 1e4
 #: rays (docs/surrogate.md says how it was made and how close to the twin's noise it is)
 DEFAULT_CHECKPOINT = "surrogate.pt"
+# The checkpoints shipped in bluesky_offsets/data, by name: the default is the accurate one; "fast"
+# is its distilled student, sized for the CPU's evaluations per second (docs/surrogate.md)
+SHIPPED = {"default": DEFAULT_CHECKPOINT, "fast": "surrogate_fast.pt"}
 
 
 class SurrogateError(RuntimeError):
@@ -451,9 +454,19 @@ def _table_version(fp: Mapping) -> str:
     return hashlib.sha256(json.dumps(dict(fp), sort_keys=True).encode()).hexdigest()[:12]
 
 
-def default_checkpoint() -> Path:
-    """The checkpoint shipped with the package."""
-    return Path(str(resources.files("bluesky_offsets") / "data" / DEFAULT_CHECKPOINT))
+def default_checkpoint(name: str = "default") -> Path:
+    """A checkpoint shipped with the package (:data:`SHIPPED`: "default" or "fast")."""
+    return Path(str(resources.files("bluesky_offsets") / "data" / SHIPPED[name]))
+
+
+def resolve_checkpoint(path: str | os.PathLike | None) -> Path:
+    """A checkpoint's file: a path, a shipped name ("default", "fast") where no such file is here, or
+    the default for ``None``."""
+    if path is None:
+        return default_checkpoint()
+    if str(path) in SHIPPED and not Path(path).exists():
+        return default_checkpoint(str(path))
+    return Path(path)
 
 
 def read_metadata(path: str | os.PathLike) -> dict:
@@ -482,7 +495,8 @@ def _read(path: Path) -> tuple[dict, dict]:
 
 def load(path: str | os.PathLike | None = None, *, table: ParameterTable = METRIXS,
          hist: HistogramSpec | None = None, device=None) -> Surrogate:
-    """Load a checkpoint (default: the shipped one) after checking it fits ``table`` and ``hist``.
+    """Load a checkpoint (a path, or a shipped one by name: "default", the default, or "fast")
+    after checking it fits ``table`` and ``hist``.
 
     Raises
     ------
@@ -490,7 +504,7 @@ def load(path: str | os.PathLike | None = None, *, table: ParameterTable = METRI
         Missing, truncated or corrupt file; parameter table or histogram spec
         mismatch (the message names what differs).
     """
-    path = Path(path) if path is not None else default_checkpoint()
+    path = resolve_checkpoint(path)
     hist = hist or HistogramSpec()
     meta, state = _read(path)
     problems = table.diff(meta.get("table", {}))
