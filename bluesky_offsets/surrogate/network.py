@@ -383,9 +383,9 @@ class Surrogate:
         x = self._as_trained(x)
         chunk_size = chunk_size or (CPU_CHUNK_ROWS if dev.type == "cpu" else 65536)
         # a likelihood decoder's outputs are the histograms themselves (transmission x softmax:
-        # never negative, normalization the identity), so the de-normalization and the clamp
-        # would be passes over every row that change no bit
-        bare = self.arch.decoder in LIKELIHOOD_DECODERS
+        # never negative) and its normalization is the identity, so the de-normalization and the
+        # clamp would be passes over every row that change no bit
+        bare = self.arch.decoder in LIKELIHOOD_DECODERS and self.norm.mode == "none"
         outs = []
         with torch.no_grad() if as_numpy else contextlib.nullcontext():
             for i in range(0, max(x.shape[0], 1), chunk_size):
@@ -394,7 +394,7 @@ class Surrogate:
                     y = y * out_span + out_low
                     y = y.clamp_min(0.0) if clamp else y
                 outs.append(y)
-        y = torch.cat(outs) if len(outs) > 1 else outs[0] if outs else x.new_zeros((0, self.arch.n_outputs))
+        y = torch.cat(outs) if len(outs) > 1 else outs[0]  # the loop runs at least once (also for 0 rows)
         y = y.reshape(*lead, self.arch.n_outputs)
         return y.detach().cpu().numpy() if as_numpy else y
 
