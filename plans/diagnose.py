@@ -147,6 +147,27 @@ class Refit:
 
 
 @dataclass
+class Pruning:
+    """The backward step after effects were added: each tested with the others in, the weakest
+    dropped where it no longer earns its place (:func:`bluesky_offsets.model.diagnosis.retest_effects`)."""
+
+    tests: list[dict]                       # per effect: gain, price, kept (EffectTest.as_dict)
+    dropped: str | None
+    state: ModelState                       # the model after the step (its input when nothing was dropped)
+    sigma: dict[str, dict[str, float]]      # of the refit without the dropped effect
+    comparison: Comparison | None           # of that model (None when nothing was dropped)
+    versions: list[Version]
+    uid: str | None = None
+    covariance: np.ndarray | None = None
+    fit_names: list[str] | None = None
+
+    @property
+    def calibrated(self) -> CalibratedState:
+        names = None if self.fit_names is None else tuple(self.fit_names)
+        return CalibratedState(self.state, self.covariance, names, self.uid)
+
+
+@dataclass
 class Analysis:
     """Everything one analysis produced, with the uids of its runs."""
 
@@ -155,6 +176,7 @@ class Analysis:
     rankings: list[Ranking] = field(default_factory=list)
     refinement: Refinement | None = None
     refits: list[Refit] = field(default_factory=list)
+    pruning: Pruning | None = None          # the backward step, when two or more effects were added
     uids: dict[str, str] = field(default_factory=dict)
     resumed: dict[str, str] = field(default_factory=dict)   # steps taken from earlier runs: step -> uid
 
@@ -169,14 +191,36 @@ class Analysis:
         return self.refits[0] if self.refits else None
 
     @property
+    def dropped(self) -> str | None:
+        """The added effect the backward step took out again (None: every one kept)."""
+        return self.pruning.dropped if self.pruning is not None else None
+
+    def magnitudes(self) -> dict[str, dict[str, tuple[float, float]]]:
+        """``{effect: {parameter: (value, sigma)}}`` of the effects the analysis ends with, in
+        the order they were added, from the last fit (the pruning's, else the last refit's)."""
+        if not self.refits:
+            return {}
+        if self.dropped is not None:
+            state, sigma = self.pruning.state, self.pruning.sigma
+        else:
+            state, sigma = self.refits[-1].state, self.refits[-1].sigma
+        return {r.effect: {k: (float(v), float(sigma.get(r.effect, {}).get(k, float("nan"))))
+                           for k, v in state.effects[r.effect].items()}
+                for r in self.refits if r.effect in state.effects}
+
+    @property
     def verdict(self) -> str:
-        """What the diagnoses found, in order: the effects added, or why none was."""
-        found = [f"{r.effect} ({', '.join(f'{k} = {v:.4g} ± {s:.2g}' for k, (v, s) in r.magnitude().items())})"
-                 for r in self.refits]
+        """What the diagnoses found, in order: the effects added (and kept), or why none was."""
+        found = [f"{e} ({', '.join(f'{k} = {v:.4g} ± {s:.2g}' for k, (v, s) in m.items())})"
+                 for e, m in self.magnitudes().items()]
         last = self.rankings[-1].diagnosis if self.rankings else None
         if not found:
             return last.verdict if last else "not diagnosed"
         tail = "" if last is None or last.best is not None else f"; then {last.verdict}"
+        if self.dropped is not None:
+            t = next(t for t in self.pruning.tests if t["effect"] == self.dropped)
+            tail += (f"; {self.dropped} was added before and dropped: with the others in it bought "
+                     f"Δχ² = {t['gain']:.3g}, below its price {t['price']:.3g}")
         return "missing effect" + ("s" if len(found) > 1 else "") + ": " + "; ".join(found) + tail
 
     @property
@@ -187,6 +231,8 @@ class Analysis:
     def calibrated(self) -> CalibratedState:
         """The model the analysis ends with and the covariance of the fit that gave it (the last
         refit's, else the offsets fit's): what :func:`plans.optimize.optimize_beam` optimizes on."""
+        if self.dropped is not None:
+            return self.pruning.calibrated
         if self.refits and self.refits[-1].covariance is not None:
             return self.refits[-1].calibrated
         if self.refinement is not None and not self.refits:
@@ -552,6 +598,55 @@ def add_effect_and_refit(measurement, state: ModelState, effect: str, twin, forw
     return r
 
 
+def retest_effects(measurement, state: ModelState, twin, *, store=None, names: Sequence[str] | None = None,
+                   history: Sequence[Version] = (), options: FitOptions | Mapping | None = None, seed: int = 0,
+                   open_run: bool = True, md: Mapping | None = None, show: bool = True,
+                   table: ParameterTable = METRIXS) -> MsgGenerator[Pruning]:
+    """The backward step: each of ``names`` (default: every effect of ``state``) tested with the
+    others in, and the weakest dropped where it no longer earns its place.
+
+    :func:`bluesky_offsets.model.diagnosis.retest_effects` (the rest refitted without each,
+    ``options`` default :data:`bluesky_offsets.model.diagnosis.FIT`).  Streams
+    ``progress``, ``retest`` (one row per effect: its gain, its price, kept) and, when one is
+    dropped, ``effect`` (the refit's covariance), the new version's comparison and
+    ``error_history`` (``history`` + the new version).
+    """
+    meas, link = resolve_measurement(measurement, store, table=table)
+    twin = twin.with_hist(meas.spec)  # the twin bins as the measurement does
+    names = list(state.effects if names is None else names)
+    opts = FitOptions.resolve(options, D.FIT)
+    _md = {"plan_name": "retest_effects", "purpose": "does each added effect still earn its place", **link,
+           **_state_md(state, table), "effects": names, "fit_options": _jsonable(asdict(opts)),
+           "versions": [v.label for v in history], **dict(md or {})}
+
+    def body():
+        tests = yield from run_in_thread(
+            lambda progress: D.retest_effects(meas, state, names, options=opts, seed=seed, progress=progress,
+                                              table=table),
+            desc=f"retest {len(names)} added effects", show=show)
+        w = D.weakest(tests)
+        yield from emit_rows("retest", [{**t.as_dict(), "dropped": t is w} for t in tests])
+        if w is None:
+            return Pruning([t.as_dict() for t in tests], None, state, {}, None, list(history))
+        f = w.without
+        sig = f.effect_sigma()
+        st = ModelState(f.state.offsets, f.state.effects, f"- {w.effect}")
+        yield from emit_rows("effect", [{"effect": w.effect, "covariance": np.asarray(f.covariance, float),
+                                         "fit_names_json": _json(f.names), **_offsets_row(st, table)}])
+        c = yield from compare_model(meas, st, twin, label=st.label, effect_sigma=sig, open_run=False, show=show,
+                                     table=table)
+        versions = [*history, c.version()]
+        yield from record_error_history(versions)
+        return Pruning([t.as_dict() for t in tests], w.effect, st, sig, c, versions,
+                       covariance=np.asarray(f.covariance, float), fit_names=list(f.names))
+
+    r, uid = yield from in_run(body, _md, open_run)
+    r.uid = uid
+    if r.comparison is not None:
+        r.comparison.uid = uid
+    return r
+
+
 # --------------------------------------------------------------------------- #
 # results back from their runs: what an interrupted analysis resumes from
 # --------------------------------------------------------------------------- #
@@ -600,6 +695,20 @@ def restore_refit(res: Mapping, history: Sequence[Version], uid: str | None = No
                  None if cov is None else np.asarray(cov, float), row.get("fit_names"))
 
 
+def restore_pruning(res: Mapping, history: Sequence[Version], uid: str | None = None) -> Pruning:
+    """The :class:`Pruning` of a ``retest_effects`` run, after the versions ``history``."""
+    tests = [{k: v for k, v in r.items() if k not in ("time", "seq_num", "dropped")} for r in res["retest"]]
+    dropped = next((str(r["effect"]) for r in res["retest"] if r["dropped"]), None)
+    if dropped is None:
+        start = res["start"]
+        state = ModelState(np.asarray(start["model_offsets"], float), start["model_effects"], start["model_label"])
+        return Pruning(tests, None, state, {}, None, list(history), uid)
+    c = restore_comparison(res, uid)
+    row = res["effect"][0]
+    return Pruning(tests, dropped, c.state, dict(c.effect_sigma), c, [*history, c.version()], uid,
+                   np.asarray(row["covariance"], float), row.get("fit_names"))
+
+
 def analysis_key(meas: Measurement, settings: Mapping) -> str:
     """What makes two analyses the same: the measurement as fitted (its uid, configurations and
     histograms) and every setting that changes a result.  Stored with each step's run."""
@@ -629,7 +738,7 @@ def completed_steps(store, key: str) -> dict[str, str]:
 # --------------------------------------------------------------------------- #
 def analyse_measurement(measurement, twin, forward_model=None, *, store=None,
                         starts: ModelState | Sequence[ModelState] | None = None, refine: bool = True,
-                        candidates: Sequence[str] | None = None, add_best: bool = True, rounds: int = 2,
+                        candidates: Sequence[str] | None = None, add_best: bool = True, rounds: int = D.ROUNDS,
                         fit_options: FitOptions | Mapping | None = None,
                         scan_options: FitOptions | Mapping | None = None, fit_top: int | None = D.FIT_TOP,
                         folds: int = 4, seed: int = 0, resume: bool = False,
@@ -654,9 +763,11 @@ def analyse_measurement(measurement, twin, forward_model=None, *, store=None,
         Add the best significant candidate, starting from the values the diagnosis fitted,
         and refit (nothing is added when no candidate is significant).
     rounds : int
-        Diagnoses at most: after an effect is added the model is diagnosed again, until it is
-        within noise, no candidate is significant, or ``rounds`` diagnoses ran (two hidden
-        effects are found one after the other).
+        Diagnoses at most (default :data:`bluesky_offsets.model.diagnosis.ROUNDS`): after an
+        effect is added the model is diagnosed again, until it is within noise, no candidate is
+        significant, or ``rounds`` diagnoses ran (two hidden effects are found one after the
+        other).  With two or more effects added, each is then tested with the others in and the
+        weakest dropped where it no longer earns its place (:func:`retest_effects`).
     fit_options, scan_options : FitOptions or mapping, optional
         Of the offsets fit and the refits (default :data:`bluesky_offsets.model.diagnosis.FIT`), and
         of the diagnosis's candidate fits (:data:`bluesky_offsets.model.diagnosis.SCAN`).
@@ -755,6 +866,17 @@ def analyse_measurement(measurement, twin, forward_model=None, *, store=None,
         current = rf.state
         if rf.comparison.within_noise:
             break
+    if len(out.refits) >= 2:
+        # the backward step: an effect added early may have stood in for one added later
+        history = out.versions
+        pr = yield from step("retest_effects", lambda m: retest_effects(
+            meas, current, twin, names=[r.effect for r in out.refits], history=history,
+            options=fopts.replace(seed=fopts.seed + 1 + len(out.refits)), seed=seed, md=m, show=show, table=table),
+            lambda res, uid: restore_pruning(res, history, uid))
+        out.pruning = pr
+        out.uids["retest_effects"] = pr.uid
+        if pr.comparison is not None:
+            out.comparisons.append(pr.comparison)
     if not out.refits:
         uid = yield from _history_run(out.versions, {**md, "analysis_step": "error_history"})
         out.uids["error_history"] = uid

@@ -251,7 +251,7 @@ class Session:
 
 
 def calibration_session(beamline, chamber, twin, forward_model, *, design: MeasurementDesign,
-                        evaluations: int = 3000, candidates: list[str] | None = None, rounds: int = 2,
+                        evaluations: int = 3000, candidates: list[str] | None = None, rounds: int = D.ROUNDS,
                         fit=None, scan=None, fit_top: int | None = D.FIT_TOP, resolution: str = "camera",
                         measurement_md: dict | None = None, analysis_md: dict | None = None,
                         step=log.info) -> MsgGenerator[Session]:
@@ -288,9 +288,9 @@ def calibration_session(beamline, chamber, twin, forward_model, *, design: Measu
 # the analysis
 # --------------------------------------------------------------------------- #
 def analyse(measurement: str = "last", offsets: str | None = "last", *, candidates: list[str] | None = None,
-            rounds: int = 2, fit: dict | None = None, scan: dict | None = None, fit_top: int | None = D.FIT_TOP,
-            resolution: str = "camera", seed: int = 0, rays: int | None = None, scheduler: str | None = None,
-            resume: bool = False, store=None, md: dict | None = None) -> MsgGenerator:
+            rounds: int = D.ROUNDS, fit: dict | None = None, scan: dict | None = None,
+            fit_top: int | None = D.FIT_TOP, resolution: str = "camera", seed: int = 0, rays: int | None = None,
+            scheduler: str | None = None, resume: bool = False, store=None, md: dict | None = None) -> MsgGenerator:
     """Compare, fit the offsets, diagnose, add the winner, refit, diagnose again, on a stored
     measurement (:func:`plans.diagnose.analyse_measurement`; one run per step).
 

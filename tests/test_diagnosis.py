@@ -5,7 +5,8 @@ import numpy as np
 import pytest
 
 from bluesky_offsets.physics import effects as E
-from bluesky_offsets.model.diagnosis import Version, add_effect, diagnose, evaluate, plot_error_history, plot_ranking
+from bluesky_offsets.model.diagnosis import (
+    Version, add_effect, diagnose, evaluate, plot_error_history, plot_ranking, retest_effects, weakest)
 from bluesky_offsets.model.misfit import MeasurementError
 from bluesky_offsets.model.measurement import Measurement
 from bluesky_offsets.model.state import ModelState, refine, simulate
@@ -86,6 +87,14 @@ def test_hidden_effect_ranked_first_and_fitted(twin, with_gain_loss, tmp_path):
     assert chi[0] > chi[1] > chi[2] and versions[2].misfit.mse_total < 1.5 * versions[2].misfit.expected_mse_total
     assert plot_error_history(versions, tmp_path / "h.png").stat().st_size > 5000
     assert plot_ranking(d, tmp_path / "r.png").stat().st_size > 5000
+    # the backward step: an effect added beside the true one that buys nothing is dropped, the
+    # true one is kept (the model without it is far beyond noise)
+    both = state.with_effect("background", {"level": 0.0})
+    tests = {t.effect: t for t in retest_effects(meas, both, options=FIT)}
+    assert tests["intensity_scale"].kept and tests["intensity_scale"].beyond_noise_without
+    assert not tests["background"].kept and tests["background"].gain < tests["background"].price
+    assert weakest(list(tests.values())).effect == "background"
+    assert "background" not in tests["background"].without.state.effects
 
 
 def test_model_versions_and_bad_data():

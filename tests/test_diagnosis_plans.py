@@ -29,6 +29,8 @@ from plans.diagnose import (
     refine_offsets,
     diagnose_effects,
     load_results,
+    restore_pruning,
+    retest_effects,
 )
 from plans._stubs import emit_rows
 from sim_iocs.truth import default_start
@@ -160,6 +162,35 @@ def test_add_effect_and_refit_stores_magnitude_and_error_history(RE, twin, measu
     assert res["error_history"][1]["effects"] == {"intensity_scale": {"delta": pytest.approx(value)}}
     assert len(res["misfit"]) == 4 and len(res["progress"]) >= 3
     assert res["start"]["fit_options"]["rays"] == 1500
+
+
+def test_retest_effects_drops_the_weakest_and_resumes_from_its_run(RE, twin, measured, run_store):
+    """The backward step as a run: one ``retest`` row per effect, the weakest dropped (the
+    measurement has no hidden gain loss or background: both buy nothing here), the model without
+    it compared and stored, and the whole step rebuilt from the run as it was."""
+    m, _ = measured
+    both = ModelState().with_effect("intensity_scale", {"delta": 0.0}).with_effect("background", {"level": 0.0})
+    token = run_store.subscribe(RE)
+    try:
+        base = RE(compare_model(m, both, twin, show=False, label="+ both")).plan_result
+        pr = RE(retest_effects(m, both, twin, history=[base.version()], options=FIT, show=False)).plan_result
+    finally:
+        RE.unsubscribe(token)
+    assert [t["effect"] for t in pr.tests] == ["intensity_scale", "background"]
+    assert pr.dropped in ("intensity_scale", "background") and pr.dropped not in pr.state.effects
+    assert not next(t for t in pr.tests if t["effect"] == pr.dropped)["kept"]
+    res = load_results(run_store, pr.uid)
+    assert res["start"]["plan_name"] == "retest_effects" and res["start"]["measurement_uid"] == m.uid
+    assert [r["dropped"] for r in res["retest"]] == [t["effect"] == pr.dropped for t in pr.tests]
+    assert [h["label"] for h in res["error_history"]] == ["+ both", f"- {pr.dropped}"]
+    back = restore_pruning(res, [base.version()], pr.uid)
+    assert back.dropped == pr.dropped and [t["effect"] for t in back.tests] == [t["effect"] for t in pr.tests]
+    assert [t["gain"] for t in back.tests] == pytest.approx([t["gain"] for t in pr.tests])
+    assert [bool(t["kept"]) for t in back.tests] == [t["kept"] for t in pr.tests]
+    np.testing.assert_array_equal(back.state.offsets, pr.state.offsets)
+    assert back.state.effects == pr.state.effects and back.comparison.misfit.chi2_total == pytest.approx(
+        pr.comparison.misfit.chi2_total)
+    np.testing.assert_array_equal(back.covariance, pr.covariance)
 
 
 def test_plans_refuse_bad_input_before_opening_a_run(RE, twin, measured, run_store):

@@ -56,8 +56,9 @@ def add_analysis_options(p: argparse.ArgumentParser, *, fit_rays: int | None, fi
                          resolution_help: str) -> None:
     """The options every verb that analyses a measurement shares (``demo``, ``diagnose``):
     rounds of diagnosis, the fits' rays, screening, the binning fitted."""
-    p.add_argument("--rounds", type=int, default=2,
-                   help="diagnoses at most: after an effect is added the model is diagnosed again (default %(default)s)")
+    p.add_argument("--rounds", type=int, default=None,
+                   help="diagnoses at most: after an effect is added the model is diagnosed again (default 3: two "
+                        "hidden effects and one added before them that the backward step drops)")
     p.add_argument("--fit-rays", type=int, default=fit_rays, help=fit_rays_help)
     p.add_argument("--fit-top", type=int, default=0,
                    help="screen every start of every candidate first and fit only this many candidates to "
@@ -68,6 +69,9 @@ def add_analysis_options(p: argparse.ArgumentParser, *, fit_rays: int | None, fi
 
 def check_analysis_options(args) -> None:
     """One line for each analysis option a user can fix (see :func:`add_analysis_options`)."""
+    if args.rounds is None:
+        from bluesky_offsets.model.diagnosis import ROUNDS
+        args.rounds = ROUNDS
     if args.rounds < 1:
         raise CliError("--rounds must be at least 1")
     if args.fit_rays is not None and args.fit_rays < 100:

@@ -76,7 +76,7 @@ class DemoSettings:
     finder_evaluations: int = 3000
     fit: FitOptions = D.FIT           # the offsets fit and the refits
     scan: FitOptions = D.SCAN         # the diagnosis's candidate fits
-    rounds: int = 2                   # diagnoses at most (one per hidden effect)
+    rounds: int = D.ROUNDS            # diagnoses at most
     fit_top: int | None = D.FIT_TOP   # screen every start, fit this many candidates (None: fit all)
     # the diagnosis reads the camera-resolution profiles ("camera") or the paper's histograms ("paper")
     resolution: str = "camera"
@@ -382,7 +382,8 @@ def run_demo(out: Path, settings: DemoSettings | None = None, store_location: st
             "hidden_effects": hidden, "verdict": analysis.verdict,
             "rankings": [[c.name for c in r.diagnosis.candidates] for r in analysis.rankings],
             "history": [c.total_row() for c in analysis.comparisons],
-            "fitted_effects": {r.effect: r.magnitude() for r in analysis.refits},
+            "fitted_effects": analysis.magnitudes(),
+            "retest": analysis.pruning.tests if analysis.pruning is not None else [], "dropped": analysis.dropped,
             "truth_id": m.truth_id, "ioc": {"prefix": ioc.prefix, "port": ioc.port, "pid": ioc.proc.pid},
             "live_views": [str(p) for cb in live for p in cb.written],
             "beam": None if beam_result is None else _beam_summary(beam_result, best)}

@@ -70,8 +70,10 @@ def summary_dict(analysis) -> dict:
         "rankings": [[{"effect": c.name, "score": c.score, "significant": c.significant, "values": c.values,
                        "sigma": c.sigma} for c in r.diagnosis.candidates] for r in analysis.rankings],
         "history": [c.total_row() for c in analysis.comparisons],
-        "fitted_effects": {r.effect: {k: {"value": v, "sigma": s} for k, (v, s) in r.magnitude().items()}
-                           for r in analysis.refits},
+        "fitted_effects": {e: {k: {"value": v, "sigma": s} for k, (v, s) in m.items()}
+                           for e, m in analysis.magnitudes().items()},
+        "retest": analysis.pruning.tests if analysis.pruning is not None else [],
+        "dropped": analysis.dropped,
         "uids": dict(analysis.uids),
         "resumed": dict(analysis.resumed),
     }

@@ -158,12 +158,12 @@ def analysis_sections(analysis, spec, work: Path, *, truth: Mapping | None = Non
     # the added effects
     if analysis.refits:
         rows = []
-        for rf in analysis.refits:
-            units = {p.name: p.unit for p in get_effect(rf.effect).parameters}
-            for k, (v, s_) in rf.magnitude().items():
-                row = {"effect": rf.effect, "parameter": k, "fitted": v, "± (1σ)": s_, "unit": units.get(k, "")}
-                if truth is not None and rf.effect in truth:
-                    hv = truth[rf.effect].get(k)
+        for eff, mags in analysis.magnitudes().items():
+            units = {p.name: p.unit for p in get_effect(eff).parameters}
+            for k, (v, s_) in mags.items():
+                row = {"effect": eff, "parameter": k, "fitted": v, "± (1σ)": s_, "unit": units.get(k, "")}
+                if truth is not None and eff in truth:
+                    hv = truth[eff].get(k)
                     if hv is not None:
                         row["hidden (simulation)"] = float(hv)
                         row["error"] = f"{(v - hv) / hv * 100:+.1f} %" if hv else "—"
@@ -173,6 +173,14 @@ def analysis_sections(analysis, spec, work: Path, *, truth: Mapping | None = Non
         if truth is not None:
             body += paragraph("Hidden effects of the simulation (revealed for the demo only): "
                               + (", ".join(f"{e}: {_fmt_values(v)}" for e, v in truth.items()) or "none"))
+        if analysis.pruning is not None:
+            body += paragraph("Each added effect tested with the others in (the rest refitted without it, both "
+                              "traced with fresh rays): kept when the model without it is beyond noise and its "
+                              "Δχ² exceeds its price p ln N × dispersion.")
+            body += table_([{"effect": t["effect"], "Δχ² it buys": t["gain"], "price": t["price"],
+                             "χ²/dof without": t["chi2_reduced_without"],
+                             "kept": "yes" if t["kept"] else ("dropped" if t["effect"] == analysis.dropped else "no")}
+                            for t in analysis.pruning.tests])
         secs.append(("Fitted effect magnitudes", body))
 
     # rankings, one per diagnosis
