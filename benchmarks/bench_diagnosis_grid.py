@@ -94,7 +94,7 @@ def _run(args) -> None:
     folder = Path(args.folder)
     args.rounds = args.rounds or D.ROUNDS
     eng_opts = {"device": args.device}
-    fit_o = D.FIT.replace(engine=eng_opts)
+    fit_o = D.FIT.replace(engine=eng_opts, **({"rays": args.fit_rays} if args.fit_rays else {}))
     scan_o = D.SCAN.replace(engine=eng_opts)
     if args.threads:
         torch.set_num_threads(args.threads)
@@ -148,6 +148,7 @@ def _run(args) -> None:
         at_truth = evaluate(ModelState(d["offsets"], hidden))
         row = {"scenario": label, "draw": int(draw), "hidden": hidden, "found": found, "rankings": rankings,
                "retest": retest, "dropped": dropped, "rounds": args.rounds,
+               "fit_rays": fit_o.rays,
                "verdict": diag.verdict, "chi2_reduced": mf.chi2_reduced_total,
                "mse_over_noise": mf.mse_total / mf.expected_mse_total,
                "truth_chi2_reduced": at_truth.chi2_reduced_total,
@@ -238,6 +239,8 @@ def main(argv=None):
     r.add_argument("--draw", type=int, default=None)
     r.add_argument("--threads", type=int, default=None)
     r.add_argument("--rounds", type=int, default=None, help="diagnoses at most (default: the analysis's, 3)")
+    r.add_argument("--fit-rays", type=int, default=None,
+                   help="rays of the offsets fit, the refits and the backward step (default: diagnosis.FIT's)")
     t = sub.add_parser("table")
     t.add_argument("folder")
     args = ap.parse_args(argv)
