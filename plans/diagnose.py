@@ -219,8 +219,9 @@ class Analysis:
         tail = "" if last is None or last.best is not None else f"; then {last.verdict}"
         if self.dropped is not None:
             t = next(t for t in self.pruning.tests if t["effect"] == self.dropped)
-            tail += (f"; {self.dropped} was added before and dropped: with the others in it bought "
-                     f"Δχ² = {t['gain']:.3g}, below its price {t['price']:.3g}")
+            why = ("without it the model is within noise" if not t["beyond_noise_without"] else
+                   f"with the others in it bought Δχ² = {t['gain']:.3g}, below its price {t['price']:.3g}")
+            tail += f"; {self.dropped} was added before and dropped: {why}"
         return "missing effect" + ("s" if len(found) > 1 else "") + ": " + "; ".join(found) + tail
 
     @property

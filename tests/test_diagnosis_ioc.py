@@ -129,9 +129,10 @@ class TestChamberZ(_HiddenEffect):
         # 21's acceptance; benchmarks/bench_optimize_beam.py checks five other draws), after the
         # closed loop. The first move's prediction rests on offsets that reproduce the frames
         # within noise but are not the truth's (pulls up to 11 sigma; issue 17): measured
-        # (2026-11-27, this draw) 9.6 x 6.8 µm against 12.0 x 7.7 predicted (0.80, 0.88); refitted
-        # with the frames taken there, the second move's 11.1 x 6.8 predicted, 10.7 x 6.8 measured
-        # (0.97, 1.00), the truth's best 10.2 x 6.6 (1.05, 1.03).
+        # (2026-11-27, this draw, 20,000-ray fits) 11.1 x 6.8 µm against 11.7 x 6.9 predicted (0.95,
+        # 0.99; with 5000-ray fits 0.80, 0.88); refitted with the frames taken there, the second
+        # move's 11.5 x 6.9 predicted, 11.1 x 6.8 measured (0.96, 0.98), the truth's best 10.5 x
+        # 6.6 (1.06, 1.02).
         over = {a: after[f"rms_{a}"] / best[f"rms_{a}"] for a in "xy"}
         ratio = {a: after[f"rms_{a}"] / pred[f"rms_{a}"] for a in "xy"}
         for a in "xy":
