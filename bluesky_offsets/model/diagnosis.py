@@ -621,9 +621,9 @@ def retest_effects(meas: Measurement, state: ModelState, names: Sequence[str] | 
     """Each of ``names`` (default: every effect of ``state``) tested given the others.
 
     Effects are added one after another, each the best candidate *then*; an effect added early
-    may have stood in for one added later (measured: photon energy, which the offsets half
-    mimic, ranked above a hidden defocus and then fitted to 0.5 σ of zero once the defocus was
-    in).  So, after the forward steps, each effect is removed in turn, the rest refitted from
+    may have stood in for one added later (measured on the scenario grid: photon energy, which
+    the offsets half mimic, ranked above a hidden source divergence, and once the divergence
+    was in it was fitted within 1 σ of zero).  So, after the forward steps, each effect is removed in turn, the rest refitted from
     where the full model ended with every stage of ``options`` (default :data:`FIT`, as the
     full model was: an effect the offsets half mimic moves the beam, and the offsets need the
     features' wide basin to take it back; measured with the last stage alone, a photon energy
@@ -661,7 +661,8 @@ def retest_effects(meas: Measurement, state: ModelState, names: Sequence[str] | 
 
 
 def weakest(tests: Sequence[EffectTest]) -> EffectTest | None:
-    """The test of the effect to drop: the one furthest below its price among those not kept."""
+    """The test of the effect to drop, of those not kept: the one whose gain falls furthest
+    short of its price (None: every effect kept)."""
     dropped = [t for t in tests if not t.kept]
     return min(dropped, key=lambda t: t.gain - t.price) if dropped else None
 
