@@ -132,6 +132,10 @@ def _run(args) -> None:
             cur = res.state
             if not evaluate(cur).total_beyond_noise():
                 break
+        if found:
+            # every effect as the last refit left it (the first one's own refit lacked the second)
+            found = [{**f, "values": cur.effects[f["effect"]], "sigma": res.effect_sigma.get(f["effect"], {})}
+                     for f in found]
         retest, dropped = [], None
         if len(found) >= 2:
             # the backward step (plans.diagnose.analyse_measurement's retest_effects)
