@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Mapping
-from dataclasses import asdict, dataclass, field, is_dataclass, replace
+from dataclasses import asdict, dataclass, field, is_dataclass
 
 import numpy as np
 from bluesky.utils import MsgGenerator
@@ -191,9 +191,7 @@ def optimize_beam(target, model, beamline, chamber, *, constraints: Constraints 
     options : :class:`~bluesky_offsets.optimize.OptimizeOptions` (rays, starts, iterations ...).
     frames : frames taken before and after the move (their profiles averaged).
     closed_loop : refit the model on ``measurement`` (the calibration's, as analysed) and the
-        frames after the move (``refit``: FitOptions for it), optimize and move once more; where
-        that second setting measures worse than the first (a target's ``measured_cost``), move
-        back to the first and measure it again (a third step).
+        frames after the move (``refit``: FitOptions for it), optimize and move once more.
 
     Returns
     -------
@@ -261,33 +259,9 @@ def optimize_beam(target, model, beamline, chamber, *, constraints: Constraints 
         result.model = cal2
         result.profiles["after 2"] = tuple(after2_profiles)
         result.profiles["predicted 2"] = opt2.profiles
-        if _measured_worse(target, after2, after, before):
-            # The refit makes the second prediction right, not the beam better: where the second
-            # setting measures worse than the first (the target's cost of the measured beams), the
-            # motors go back to the first and it is measured again.  Measured (the README's main
-            # job with 20,000-ray fits): 10.8 x 6.8 µm at the first move, 11.4 x 6.7 at the second.
-            back = replace(opt, current=opt2.settings, moved=list(opt.moved))
-            m3, read3 = yield from _move_and_measure(back, beamline, chamber, int(frames), False,
-                                                     {**base_md, "step": 3, "previous_uid": m2.uid,
-                                                      "back_to_step": 1, **_optimum_md(back, table)}, table, after2)
-            after3, *after3_profiles = read3["after"]
-            steps.append(BeamStep(back, after3, m3.uid))
-            result.profiles["after 3"] = tuple(after3_profiles)
-            result.profiles["predicted 3"] = opt.profiles
     for line in result.lines():
         log.info(line)
     return result
-
-
-def _measured_worse(target, second: Focus, first: Focus, start: Focus, n_sigma: float = 0.0) -> bool:
-    """Whether ``second`` measures worse than ``first`` for ``target`` (by more than ``n_sigma``
-    of the rays counted; default: at all, as an operator keeps the better of two settings
-    measured with the same frames).  A target without ``measured_cost`` never says so."""
-    cost = getattr(target, "measured_cost", None)
-    if cost is None:
-        return False
-    (c2, s2), (c1, s1) = cost(second, start), cost(first, start)
-    return c2 - c1 > n_sigma * float(np.hypot(s1, s2))
 
 
 def _joined(a: Measurement, b: Measurement) -> Measurement:

@@ -59,28 +59,6 @@ def test_focus_is_read_from_profiles_as_a_frame_is():
     assert f.fwhm_y == pytest.approx(2.3548 * sy, rel=0.03)
 
 
-def test_a_closed_loop_compares_two_measured_settings_beyond_the_rays_counted():
-    """The closed loop goes back to its first setting where the second measures worse by the
-    target's own cost (plans.optimize._measured_worse), optionally beyond the rays counted."""
-    from bluesky_offsets.optimize import Focus
-    from plans.optimize import _measured_worse
-    start = Focus(0.16, 0, 0, 0.0514, 0.0294, sigma_rms_x=6.5e-4, sigma_rms_y=5.9e-4)
-    first = Focus(0.165, 0, 0, 0.0108, 0.0068, sigma_rms_x=1.4e-4, sigma_rms_y=1.5e-4)
-    t = SmallestFocus()
-    c, s = t.measured_cost(first, start)
-    assert c == pytest.approx((0.0108 / 0.0514) ** 2 + (0.0068 / 0.0294) ** 2) and 0 < s < 0.1 * c
-    worse = Focus(0.164, 0, 0, 0.0114, 0.0067, sigma_rms_x=1.4e-4, sigma_rms_y=1.5e-4)
-    within = Focus(0.164, 0, 0, 0.01083, 0.0068, sigma_rms_x=1.4e-4, sigma_rms_y=1.5e-4)
-    # x 0.6 µm wider, y 0.1 µm narrower: worse by the cost, within two sigma of the rays counted
-    assert _measured_worse(t, worse, first, start) and not _measured_worse(t, worse, first, start, n_sigma=2)
-    assert _measured_worse(t, within, first, start)
-    assert not _measured_worse(t, first, worse, start)  # better: the loop stays
-    # y only: the x width does not count
-    assert not _measured_worse(SmallestFocus(weight_x=0.0), worse, first, start)
-    # a target without a measured cost never steps back
-    assert not _measured_worse(FocusAt(x=0.0, y=0.0), worse, first, start)
-
-
 def test_smallest_focus_on_a_defocused_twin_shrinks_within_limits():
     start = METRIXS.reference.copy()
     res = optimize_settings("smallest_focus", ModelState(), start, overrides=DEFOCUSED, options=SMALL)

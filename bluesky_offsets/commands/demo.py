@@ -263,8 +263,8 @@ def demo_plan(s: DemoSettings, beamline, chamber, twin, forward_model, log):
     if s.optimize:
         log(f"[{next(number)}/{s.steps}] the smallest focus with the calibrated twin: settings for E1/E2 within "
             f"their limits, moved there, {s.frames} frames before and after"
-            + (f"; the model refitted with them, moved once more, {s.frames} frames (closed loop; back to the first "
-               "setting if the second measures worse)" if s.closed_loop else ""))
+            + (f"; the model refitted with them, moved once more, {s.frames} frames (closed loop)" if s.closed_loop
+               else ""))
         beam = yield from optimize_beam("smallest_focus", session.analysis, beamline, chamber, frames=s.frames,
                                         options={"seed": s.seed + 11}, md={"purpose": "bluesky-offsets demo"},
                                         closed_loop=s.closed_loop, measurement=session.analysis.measurement)
@@ -408,10 +408,7 @@ def _true_best(truth: Mapping, beam):
     from bluesky_offsets.optimize import optimize_settings
     true = ModelState(METRIXS.from_mapping(truth["offsets"], base=np.zeros(len(METRIXS))), label="hidden truth")
     o = beam.optimum
-    # from where the plan's last optimization started: the first move's settings in a closed loop
-    # (its step back to them, if any, optimized nothing), the start otherwise
-    start = beam.steps[1].optimum.current if len(beam.steps) > 1 else o.current
-    return optimize_settings(o.target, true, start, limits=beam.limits, constraints=beam.constraints,
+    return optimize_settings(o.target, true, o.current, limits=beam.limits, constraints=beam.constraints,
                              options=beam.options, overrides=truth.get("overrides") or None).predicted
 
 
@@ -472,8 +469,7 @@ def _print_summary(summary: dict, analysis, location: str) -> None:
         print(f"smallest focus: before {um(b['before'])}; after {um(b['after'])}; predicted {um(b['predicted'])} "
               f"(± {b['predicted_sigma']['x'] * 1e3:.1f}, ± {b['predicted_sigma']['y'] * 1e3:.1f}"
               f"{'' if b['trusted'] else ', not trusted'}); the hidden truth's best {um(b['true_best'])}"
-              + (f"; {len(b['steps'])} moves (closed loop{', back to the first setting' if len(b['steps']) > 2 else ''})"
-                 f", the first predicted {um(b['steps'][0]['predicted'])}, "
+              + (f"; {len(b['steps'])} moves (closed loop), the first predicted {um(b['steps'][0]['predicted'])}, "
                  f"measured {um(b['steps'][0]['after'])}" if len(b.get("steps", ())) > 1 else ""))
     print(f"report: {summary['report']}")
     if summary.get("live_views"):

@@ -58,8 +58,6 @@ class FitOptions:
     rays : model rays per configuration (one set for the whole fit).
     feature_rays : fewer rays for the feature stage (its five numbers per configuration are
         robust to ray noise, and a stage costs in proportion to its rays); None: ``rays``.
-    profile_rays : fewer rays for the profiles stage (it leads the bins' stage into its basin;
-        the estimate and its uncertainty are the last stage's); None: ``rays``.
     seed : their seed.
     stages : ``(stage, iterations)`` in order, stages from :data:`STAGES`.
     profile_factor : camera bins summed per profile bin (x, y).
@@ -94,7 +92,6 @@ class FitOptions:
 
     rays: int = 5000
     feature_rays: int | None = 2000
-    profile_rays: int | None = None
     seed: int = 0
     stages: tuple[tuple[str, int], ...] = (("features", 15), ("profiles", 8), ("bins", 8))
     profile_factor: tuple[int, int] = (5, 5)
@@ -108,7 +105,7 @@ class FitOptions:
     engine: Mapping | None = None
 
     def __post_init__(self):
-        if int(self.rays) < 1 or any(r is not None and int(r) < 1 for r in (self.feature_rays, self.profile_rays)):
+        if int(self.rays) < 1 or (self.feature_rays is not None and int(self.feature_rays) < 1):
             raise ValueError("rays must be positive")
         if not self.stages:
             raise ValueError("a fit needs at least one stage")
@@ -241,8 +238,7 @@ class _Model:
     # -- histograms ------------------------------------------------------------------
     def rays(self, stage: str) -> int:
         o = self.o
-        fewer = {"features": o.feature_rays, "profiles": o.profile_rays}.get(stage)
-        return min(o.rays, fewer) if fewer else o.rays
+        return min(o.rays, o.feature_rays) if stage == "features" and o.feature_rays else o.rays
 
     def histograms(self, z, jacobian: bool, rays: int | None = None, soft: bool = False):
         """Model histograms (C, B) at the measurement's bins, and their Jacobian (C, B, P + p) in z

@@ -191,17 +191,6 @@ class SmallestFocus:
     def unmet(self, focus: Focus) -> str | None:
         return None
 
-    def measured_cost(self, focus: Focus, start: Focus) -> tuple[float, float]:
-        """The cost the residuals' sum of squares stands for, of a measured beam, and its
-        uncertainty from the rays counted (0 where the focus has none): what a closed loop
-        compares two measured settings by (:func:`plans.optimize.optimize_beam`)."""
-        terms = [(w, getattr(focus, f"rms_{a}") / getattr(start, f"rms_{a}"),
-                  getattr(focus, f"sigma_rms_{a}") / getattr(start, f"rms_{a}"))
-                 for w, a in ((self.weight_x, "x"), (self.weight_y, "y"))]
-        cost = sum(w * r * r for w, r, _ in terms)
-        var = sum((2 * w * r * s) ** 2 for w, r, s in terms if math.isfinite(s))
-        return float(cost), float(math.sqrt(var))
-
 
 @dataclass(frozen=True)
 class FocusAt:
