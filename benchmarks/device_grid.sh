@@ -7,7 +7,6 @@ export PYTHONPATH=$PWD:$PWD/data/devdeps
 export OMP_NUM_THREADS=1 MKL_NUM_THREADS=1
 mkdir -p "$OUT/grid"
 cp data/grid/*.npz "$OUT/grid/"
-# the results come back as one archive: names with + and & do not come back one by one
 nproc; python -c "import torch, numpy; print(torch.__version__, numpy.__version__)"; lscpu | grep "Model name"
 # longest first (the pair and the defocus), so that the last wave is short
 {
@@ -18,4 +17,6 @@ done
 } | xargs -P "${PROCS:-15}" -L 1 bash -c 'timeout ${RUN_S:-560} python benchmarks/bench_diagnosis_grid.py run "$OUT/grid" --only "$0" --draw "$1" --check torch --threads 1 > "$OUT/grid/log_${0}_$1.txt" 2>&1; echo "done $0 $1 rc=$?"'
 python benchmarks/bench_diagnosis_grid.py table "$OUT/grid" > "$OUT/table.md" 2>&1
 cat "$OUT/table.md"
+# the results come back as one archive: files whose names hold + and & do not come back one by one
+# (added after the run in docs/benchmarks.md, whose files did not come back)
 tar -C "$OUT" -czf "$OUT/grid.tgz" --exclude="*.npz" grid && rm -rf "$OUT/grid"

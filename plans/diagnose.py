@@ -195,6 +195,11 @@ class Analysis:
         """The added effect the backward step took out again (None: every one kept)."""
         return self.pruning.dropped if self.pruning is not None else None
 
+    @property
+    def retests(self) -> list[dict]:
+        """The backward step's test of each added effect (empty: it did not run)."""
+        return self.pruning.tests if self.pruning is not None else []
+
     def magnitudes(self) -> dict[str, dict[str, tuple[float, float]]]:
         """``{effect: {parameter: (value, sigma)}}`` of the effects the analysis ends with, in
         the order they were added, from the last fit (the pruning's, else the last refit's)."""

@@ -383,7 +383,7 @@ def run_demo(out: Path, settings: DemoSettings | None = None, store_location: st
             "rankings": [[c.name for c in r.diagnosis.candidates] for r in analysis.rankings],
             "history": [c.total_row() for c in analysis.comparisons],
             "fitted_effects": analysis.magnitudes(),
-            "retest": analysis.pruning.tests if analysis.pruning is not None else [], "dropped": analysis.dropped,
+            "retest": analysis.retests, "dropped": analysis.dropped,
             "truth_id": m.truth_id, "ioc": {"prefix": ioc.prefix, "port": ioc.port, "pid": ioc.proc.pid},
             "live_views": [str(p) for cb in live for p in cb.written],
             "beam": None if beam_result is None else _beam_summary(beam_result, best)}

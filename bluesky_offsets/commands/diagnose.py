@@ -72,7 +72,7 @@ def summary_dict(analysis) -> dict:
         "history": [c.total_row() for c in analysis.comparisons],
         "fitted_effects": {e: {k: {"value": v, "sigma": s} for k, (v, s) in m.items()}
                            for e, m in analysis.magnitudes().items()},
-        "retest": analysis.pruning.tests if analysis.pruning is not None else [],
+        "retest": analysis.retests,
         "dropped": analysis.dropped,
         "uids": dict(analysis.uids),
         "resumed": dict(analysis.resumed),

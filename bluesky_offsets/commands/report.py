@@ -173,14 +173,14 @@ def analysis_sections(analysis, spec, work: Path, *, truth: Mapping | None = Non
         if truth is not None:
             body += paragraph("Hidden effects of the simulation (revealed for the demo only): "
                               + (", ".join(f"{e}: {_fmt_values(v)}" for e, v in truth.items()) or "none"))
-        if analysis.pruning is not None:
+        if analysis.retests:
             body += paragraph("Each added effect tested with the others in (the rest refitted without it, both "
                               "traced with fresh rays): kept when the model without it is beyond noise and its "
                               "Δχ² exceeds its price p ln N × dispersion.")
             body += table_([{"effect": t["effect"], "Δχ² it buys": t["gain"], "price": t["price"],
                              "χ²/dof without": t["chi2_reduced_without"],
                              "kept": "yes" if t["kept"] else ("dropped" if t["effect"] == analysis.dropped else "no")}
-                            for t in analysis.pruning.tests])
+                            for t in analysis.retests])
         secs.append(("Fitted effect magnitudes", body))
 
     # rankings, one per diagnosis

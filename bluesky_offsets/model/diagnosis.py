@@ -297,6 +297,15 @@ def absorbed_share(fit: FitResult, n_offsets: int) -> float:
     return float(np.clip(1.0 - keep.min(), 0.0, 1.0))
 
 
+def _fresh_misfit(verifier: Twin, meas: Measurement, st: ModelState, rays: int, seed: int, draw: int,
+                  table: ParameterTable) -> tuple[Misfit, np.ndarray]:
+    """``st`` traced with fresh rays (draw ``draw`` of streams none of the fits traced) against
+    ``meas``: its misfit and the model's histograms (C, bins x + bins y)."""
+    seeds = [seed + 104729 * (1 + draw) + i for i in range(meas.n)]
+    hx, hy = simulate(verifier, meas.configurations, st, rays, seeds, table)
+    return misfit(meas.hist_x, meas.hist_y, hx, hy, meas.n_rays, model_rays=rays), np.c_[hx, hy]
+
+
 def _heldout(fit: FitResult, folds: Sequence[np.ndarray]) -> np.ndarray:
     """Held-out χ² per fold: the fit re-solved without the fold's configurations (one
     Gauss-Newton step from the all-data solution on its exact Jacobian), scored on the fold."""
@@ -343,9 +352,7 @@ def diagnose(meas: Measurement, state: ModelState, twin=None, forward_model=None
     verify_rays = int(verify_rays or 4 * meas.n_rays)
 
     def verify(st: ModelState, draw: int = 0) -> tuple[Misfit, np.ndarray]:
-        seeds = [seed + 104729 * (1 + draw) + i for i in range(n)]
-        hx, hy = simulate(verifier, meas.configurations, st, verify_rays, seeds, table)
-        return misfit(meas.hist_x, meas.hist_y, hx, hy, meas.n_rays, model_rays=verify_rays), np.c_[hx, hy]
+        return _fresh_misfit(verifier, meas, st, verify_rays, seed, draw, table)
 
     base_mf, base_view = verify(state)
     n_traces = n
@@ -636,9 +643,7 @@ def retest_effects(meas: Measurement, state: ModelState, names: Sequence[str] | 
     verify_rays = int(verify_rays or 4 * meas.n_rays)
 
     def verify(st: ModelState, draw: int) -> Misfit:
-        seeds = [seed + 104729 * (1 + draw) + i for i in range(meas.n)]
-        hx, hy = simulate(verifier, meas.configurations, st, verify_rays, seeds, table)
-        return misfit(meas.hist_x, meas.hist_y, hx, hy, meas.n_rays, model_rays=verify_rays)
+        return _fresh_misfit(verifier, meas, st, verify_rays, seed, draw, table)[0]
 
     full = [verify(state, d) for d in (0, 1)]
     dispersion = max(1.0, full[0].chi2_reduced_total)
