@@ -4,8 +4,9 @@ Each scenario hides offsets in all 34 parameters (uniform within ±``--offsets-f
 each range, a new draw per seed) and zero, one or two effects.  RAYX (the reference twin)
 measures it the way the demo's IOC would: the demo's design (bright configurations around
 the start that brings the hidden beamline's motors back to its nominal, plus some of them
-with the slits open), at the camera's resolution, with seeded frame noise.  The beam search
-is not part of this grid (it starts where the beam is); the analysis is the demo's: offsets
+with the slits open), at the camera's resolution, with seeded frame noise (a detector-level
+effect acts on each photon: :func:`~bluesky_offsets.model.state.simulate_frames`).  The beam
+search is not part of this grid (it starts where the beam is); the analysis is the demo's: offsets
 fit from the nominal twin → diagnosis → add the winner → refit → diagnose again, all with
 the one fit engine.  The final check re-simulates the result with fresh rays (RAYX, or the
 torch twin with ``--check torch`` where RAYX is not installed, e.g. on a lent GPU).
@@ -48,7 +49,7 @@ SCENARIOS = {
 def _make(args) -> None:
     from bluesky_offsets.physics import effects as E
     from bluesky_offsets.commands.demo import DemoSettings
-    from bluesky_offsets.model.state import ModelState, simulate
+    from bluesky_offsets.model.state import ModelState, simulate, simulate_frames
     from bluesky_offsets.physics.parameters import METRIXS
     from bluesky_offsets.physics.twin import CAMERA, Twin
     from plans import enough_rays
@@ -59,6 +60,8 @@ def _make(args) -> None:
     out.mkdir(parents=True, exist_ok=True)
     twin = Twin(scheduler="inline")
     for label, effects in SCENARIOS.items():
+        if args.only and args.only not in label:
+            continue
         for draw in range(args.draws):
             path = out / f"{label}__{draw}.npz"
             if path.exists():
@@ -74,8 +77,11 @@ def _make(args) -> None:
             bright = cand[enough_rays(hx, hy)][:s.design.bright]
             design, analysed = measurement_design(s.design, bright)
             design = design[analysed]
-            mx, my = simulate(twin.with_hist(CAMERA), design, truth, args.rays,
-                              [seed + 5000 + i for i in range(len(design))])
+            # frames as a camera counts them: a detector-level effect acts on each photon, so the
+            # counts keep their noise (simulate_frames says why simulate would not)
+            frames = simulate_frames if any(E.get(n).level == "detector" for n in effects) else simulate
+            mx, my = frames(twin.with_hist(CAMERA), design, truth, args.rays,
+                            [seed + 5000 + i for i in range(len(design))])
             np.savez(path, configurations=design, hist_x=mx, hist_y=my, n_rays=args.rays, offsets=off,
                      effects=json.dumps(effects), n_bright=len(bright))
             print(f"{path.name}: {len(bright)} bright, {len(design)} analysed", flush=True)
@@ -94,8 +100,9 @@ def _run(args) -> None:
     folder = Path(args.folder)
     args.rounds = args.rounds or D.ROUNDS
     eng_opts = {"device": args.device}
-    fit_o = D.FIT.replace(engine=eng_opts, **({"rays": args.fit_rays} if args.fit_rays else {}))
-    scan_o = D.SCAN.replace(engine=eng_opts)
+    prior = {"prior_sigma": args.prior_fraction / np.sqrt(3.0)} if args.prior_fraction else {}
+    fit_o = D.FIT.replace(engine=eng_opts, **prior, **({"rays": args.fit_rays} if args.fit_rays else {}))
+    scan_o = D.SCAN.replace(engine=eng_opts, **prior)
     if args.threads:
         torch.set_num_threads(args.threads)
     check = Twin(TorchEngine(hist=CAMERA, options=eng_opts)) if args.check == "torch" else \
@@ -117,7 +124,8 @@ def _run(args) -> None:
             hx, hy = simulate(check, meas.configurations, st, rays, [seed + i for i in range(meas.n)])
             return misfit(meas.hist_x, meas.hist_y, hx, hy, meas.n_rays, model_rays=rays)
 
-        r = refine(meas, ModelState(), engine=TorchEngine(hist=CAMERA, options=eng_opts), options=fit_o)
+        # the analysis's engine (a random stream per configuration), as the demo's offsets fit
+        r = refine(meas, ModelState(), options=fit_o)
         cur, found, rankings = r.state, [], []
         for round_ in range(args.rounds):
             diag = D.diagnose(meas, cur, seed=round_, options=scan_o)
@@ -152,7 +160,7 @@ def _run(args) -> None:
         at_truth = evaluate(ModelState(d["offsets"], hidden))
         row = {"scenario": label, "draw": int(draw), "hidden": hidden, "found": found, "rankings": rankings,
                "retest": retest, "dropped": dropped, "rounds": args.rounds,
-               "fit_rays": fit_o.rays,
+               "fit_rays": fit_o.rays, "prior_sigma": fit_o.prior_sigma,
                "verdict": diag.verdict, "chi2_reduced": mf.chi2_reduced_total,
                "mse_over_noise": mf.mse_total / mf.expected_mse_total,
                "truth_chi2_reduced": at_truth.chi2_reduced_total,
@@ -235,6 +243,7 @@ def main(argv=None):
     m.add_argument("--draws", type=int, default=3)
     m.add_argument("--rays", type=int, default=5000)
     m.add_argument("--offsets-fraction", type=float, default=0.05)
+    m.add_argument("--only", default=None, help="scenarios whose label contains this")
     r = sub.add_parser("run")
     r.add_argument("folder")
     r.add_argument("--device", default="cpu")
@@ -243,6 +252,9 @@ def main(argv=None):
     r.add_argument("--draw", type=int, default=None)
     r.add_argument("--threads", type=int, default=None)
     r.add_argument("--rounds", type=int, default=None, help="diagnoses at most (default: the analysis's, 3)")
+    r.add_argument("--prior-fraction", type=float, default=None,
+                   help="the offsets' prior: uniform within this fraction of each range (default: the "
+                        "analysis's, the paper's 20 %%)")
     r.add_argument("--fit-rays", type=int, default=None,
                    help="rays of the offsets fit, the refits and the backward step (default: diagnosis.FIT's)")
     t = sub.add_parser("table")

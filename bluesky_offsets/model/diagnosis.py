@@ -229,7 +229,8 @@ def _folds(n: int, k: int, seed: int) -> list[np.ndarray]:
 # without sampling noise.  Tried (2026-11-27, docs/benchmarks.md): 20,000 rays in the last stage,
 # which brought four grid runs that missed by 2-4 σ within 1-2.6 σ but moved the demo's own
 # source-divergence scenario from passing to 0.456 ± 0.013 for 0.5 (-3.3 σ) and took the CI to
-# 16 min: not adopted.
+# 16 min: not adopted.  Those misses are the path's, not the fit's: from the hidden truth the
+# fits are unbiased and their ± holds ("Where the misses come from").
 FIT = FitOptions(rays=5000, stages=(("features", 15), ("profiles", 8), ("bins", 10)))
 SCAN = FitOptions(rays=3000, stages=(("features", 5), ("bins", 5)))
 ROUNDS = 3

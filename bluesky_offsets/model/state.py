@@ -131,6 +131,34 @@ def simulate(twin, configurations: np.ndarray, state: ModelState, n_rays: int, s
     return detector_view(hx, hy, state, twin.hist)
 
 
+def simulate_frames(twin, configurations: np.ndarray, state: ModelState, n_rays: int, seed,
+                    table: ParameterTable = METRIXS, *, oversample: int = 16) -> tuple[np.ndarray, np.ndarray]:
+    """Frames of ``state`` as a photon-counting camera records them: the twin's histograms at
+    ``oversample`` × ``n_rays`` (near their expectation) through the detector-level effects,
+    then ``n_rays`` source photons drawn from them (how many reach the screen, then where).
+
+    Why not :func:`simulate` where the state has detector-level effects: it applies them to
+    counted histograms, which smooths the counting noise along with the beam (a blurred frame
+    then carries a fraction of the noise its counts imply), and the analysis's noise model (counts)
+    read every misfit of such frames as within noise (measured on the scenario grid's blurred
+    frames: χ²/dof 0.001-0.008 at the hidden truth, where counted frames give 0.9-1.1).
+    ``seed``: the configurations' seeds (as :func:`simulate`), which also seed the draw."""
+    hx, hy = simulate(twin, configurations, state, n_rays * oversample,
+                      None if seed is None else [int(s) * oversample + 7 for s in np.atleast_1d(seed)], table)
+    rng = np.random.default_rng(None if seed is None else [int(s) for s in np.atleast_1d(seed)])
+    fx, fy = np.zeros_like(hx), np.zeros_like(hy)
+    for c in range(len(hx)):
+        px, py = np.clip(hx[c], 0, None), np.clip(hy[c], 0, None)
+        sx, sy = min(px.sum(), 1.0), min(py.sum(), 1.0)
+        kx = rng.binomial(n_rays, sx)
+        ky = kx if abs(sx - sy) <= 1e-9 else rng.binomial(n_rays, sy)  # the same photons on both axes
+        if kx:
+            fx[c] = rng.multinomial(kx, px / px.sum()) / n_rays
+        if ky:
+            fy[c] = rng.multinomial(ky, py / py.sum()) / n_rays
+    return fx, fy
+
+
 def check_twin(meas: Measurement, twin) -> None:
     """The twin must bin its histograms as the measurement is binned."""
     if twin.hist != meas.spec:
