@@ -143,8 +143,7 @@ def simulate_frames(twin, configurations: np.ndarray, state: ModelState, n_rays:
     read every misfit of such frames as within noise (measured on the scenario grid's blurred
     frames: χ²/dof 0.001-0.008 at the hidden truth, where counted frames give 0.9-1.1).
     ``seed``: the configurations' seeds (as :func:`simulate`), which also seed the draw."""
-    hx, hy = simulate(twin, configurations, state, n_rays * oversample,
-                      None if seed is None else [int(s) * oversample + 7 for s in np.atleast_1d(seed)], table)
+    hx, hy = simulate(twin, configurations, state, n_rays * oversample, seed, table)
     rng = np.random.default_rng(None if seed is None else [int(s) for s in np.atleast_1d(seed)])
     fx, fy = np.zeros_like(hx), np.zeros_like(hy)
     for c in range(len(hx)):
