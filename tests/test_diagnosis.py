@@ -9,7 +9,7 @@ from bluesky_offsets.model.diagnosis import (
     Version, add_effect, diagnose, evaluate, plot_error_history, plot_ranking, retest_effects, weakest)
 from bluesky_offsets.model.misfit import MeasurementError
 from bluesky_offsets.model.measurement import Measurement
-from bluesky_offsets.model.state import ModelState, refine, simulate
+from bluesky_offsets.model.state import ModelState, refine, simulate, simulate_frames
 from bluesky_offsets.physics.parameters import METRIXS
 from bluesky_offsets.physics.twin import Twin
 
@@ -40,7 +40,9 @@ def _measure(twin, effect=None):
     for n, v in HIDDEN.items():
         off[METRIXS.index(n)] = v
     truth = ModelState(off, {effect[0]: E.get(effect[0]).values(effect[1])} if effect else {})
-    hx, hy = simulate(twin, cfgs, truth, N_RAYS, seed=[900 + i for i in range(len(cfgs))])
+    # a detector effect (a gain loss) acts on each photon: frames as a camera counts them
+    frames = simulate_frames if effect and E.get(effect[0]).level == "detector" else simulate
+    hx, hy = frames(twin, cfgs, truth, N_RAYS, seed=[900 + i for i in range(len(cfgs))])
     return Measurement(cfgs, hx, hy, N_RAYS), truth
 
 
