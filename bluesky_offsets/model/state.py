@@ -131,7 +131,7 @@ def simulate(twin, configurations: np.ndarray, state: ModelState, n_rays: int, s
     return detector_view(hx, hy, state, twin.hist)
 
 
-def simulate_frames(twin, configurations: np.ndarray, state: ModelState, n_rays: int, seed,
+def simulate_frames(twin, configurations: np.ndarray, state: ModelState, n_rays: int, seed=None,
                     table: ParameterTable = METRIXS, *, oversample: int = 16) -> tuple[np.ndarray, np.ndarray]:
     """Frames of ``state`` as a photon-counting camera records them: the twin's histograms at
     ``oversample`` × ``n_rays`` (near their expectation) through the detector-level effects,
@@ -142,7 +142,7 @@ def simulate_frames(twin, configurations: np.ndarray, state: ModelState, n_rays:
     then carries a fraction of the noise its counts imply), and the analysis's noise model (counts)
     read every misfit of such frames as within noise (measured on the scenario grid's blurred
     frames: χ²/dof 0.001-0.008 at the hidden truth, where counted frames give 0.9-1.1).
-    ``seed``: the configurations' seeds (as :func:`simulate`), which also seed the draw."""
+    ``seed``: the configurations' seeds (as :func:`simulate`), which also seed the draw (None: unseeded)."""
     hx, hy = simulate(twin, configurations, state, n_rays * oversample, seed, table)
     rng = np.random.default_rng(None if seed is None else [int(s) for s in np.atleast_1d(seed)])
     fx, fy = np.zeros_like(hx), np.zeros_like(hy)
