@@ -79,9 +79,8 @@ def _make(args) -> None:
             design = design[analysed]
             # frames as a camera counts them: a detector-level effect acts on each photon, so the
             # counts keep their noise (simulate_frames says why simulate would not)
-            frames = simulate_frames if any(E.get(n).level == "detector" for n in effects) else simulate
-            mx, my = frames(twin.with_hist(CAMERA), design, truth, args.rays,
-                            [seed + 5000 + i for i in range(len(design))])
+            mx, my = simulate_frames(twin.with_hist(CAMERA), design, truth, args.rays,
+                                     [seed + 5000 + i for i in range(len(design))])
             np.savez(path, configurations=design, hist_x=mx, hist_y=my, n_rays=args.rays, offsets=off,
                      effects=json.dumps(effects), n_bright=len(bright))
             print(f"{path.name}: {len(bright)} bright, {len(design)} analysed", flush=True)

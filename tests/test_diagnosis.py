@@ -41,8 +41,7 @@ def _measure(twin, effect=None):
         off[METRIXS.index(n)] = v
     truth = ModelState(off, {effect[0]: E.get(effect[0]).values(effect[1])} if effect else {})
     # a detector effect (a gain loss) acts on each photon: frames as a camera counts them
-    frames = simulate_frames if effect and E.get(effect[0]).level == "detector" else simulate
-    hx, hy = frames(twin, cfgs, truth, N_RAYS, seed=[900 + i for i in range(len(cfgs))])
+    hx, hy = simulate_frames(twin, cfgs, truth, N_RAYS, seed=[900 + i for i in range(len(cfgs))])
     return Measurement(cfgs, hx, hy, N_RAYS), truth
 
 

@@ -142,7 +142,11 @@ def simulate_frames(twin, configurations: np.ndarray, state: ModelState, n_rays:
     then carries a fraction of the noise its counts imply), and the analysis's noise model (counts)
     read every misfit of such frames as within noise (measured on the scenario grid's blurred
     frames: χ²/dof 0.001-0.008 at the hidden truth, where counted frames give 0.9-1.1).
-    ``seed``: the configurations' seeds (as :func:`simulate`), which also seed the draw (None: unseeded)."""
+    Without detector-level effects the twin's counted histograms are such frames already:
+    :func:`simulate`'s.  ``seed``: the configurations' seeds (as :func:`simulate`), which also
+    seed the draw (None: unseeded)."""
+    if not any(E.get(n).level == "detector" for n in state.effects):
+        return simulate(twin, configurations, state, n_rays, seed, table)
     hx, hy = simulate(twin, configurations, state, n_rays * oversample, seed, table)
     rng = np.random.default_rng(None if seed is None else [int(s) for s in np.atleast_1d(seed)])
     fx, fy = np.zeros_like(hx), np.zeros_like(hy)
