@@ -164,7 +164,8 @@ def _run(args) -> None:
                "mse_over_noise": mf.mse_total / mf.expected_mse_total,
                "truth_chi2_reduced": at_truth.chi2_reduced_total,
                "offsets_chi2_reduced": evaluate(r.state).chi2_reduced_total,
-               "seconds": time.perf_counter() - t0, "device": args.device, "n_configurations": meas.n}
+               "seconds": time.perf_counter() - t0, "device": args.device, "n_configurations": meas.n,
+               "end": {"offsets": cur.offsets.tolist(), "effects": cur.effects}}
         res_path.write_text(json.dumps(row, indent=1, default=float))
         added = [f["effect"] + (" (dropped)" if f.get("dropped") else "") for f in found]
         print(f"{label} #{draw}: {added} chi2/dof {row['chi2_reduced']:.3f} "

@@ -429,9 +429,12 @@ def refine_offsets(measurement, state: ModelState, twin, forward_model=None, *, 
             desc="fit the offsets through the differentiable twin", show=show)
         st = ModelState(res.state.offsets, res.state.effects, label)
         row = _offsets_row(st, table)
-        end = res.history[-1]  # the kept start's last stage (a fit from several starts: model.fit.fit)
-        last = [h for h in res.history if h["stage"] == end["stage"] and h.get("start") == end.get("start")]
-        row.update(chi2_reduced_start=float(last[0]["chi2_reduced"]), chi2_reduced_end=float(last[-1]["chi2_reduced"]),
+        # the kept start's last stage (a fit from several starts: model.fit.fit) on the first ray
+        # draw, to where the history ends (with several ray draws: their mean)
+        end = res.history[-1]
+        last = [h for h in res.history if h["stage"] == end["stage"] and h.get("start") == end.get("start")
+                and "ray_draw" not in h]
+        row.update(chi2_reduced_start=float(last[0]["chi2_reduced"]), chi2_reduced_end=float(end["chi2_reduced"]),
                    offsets_sigma=np.asarray(res.offset_sigma, float),
                    accepted=int(sum(h["accepted"] for h in res.history if h["iteration"])),
                    effects_json=_json(st.effects), effect_sigma_json=_json(res.effect_sigma),

@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from bluesky_offsets.physics import effects as E
-from bluesky_offsets.model.fit import FRESH_SEED, FitOptions, _Model, _Products, fit, screen
+from bluesky_offsets.model.fit import FRESH_SEED, RAY_DRAW_SEED, FitOptions, _Model, _Products, fit, screen
 from bluesky_offsets.model.measurement import Measurement
 from bluesky_offsets.model.misfit import misfit
 from bluesky_offsets.model.state import ModelState, simulate, simulate_frames
@@ -198,6 +198,31 @@ def test_a_fit_from_several_starts_keeps_the_one_that_ends_lowest(defocus_case):
     assert np.all(both.widened >= 1.0) and np.all(np.isfinite(both.sigma))
     with pytest.raises(ValueError, match="same effects"):
         fit(meas, far, eng, opts, also_from=[ModelState(truth.offsets)])
+
+
+def test_ray_draws_average_the_fit_over_the_models_rays(defocus_case):
+    """``ray_draws``: the first draw is the one-draw fit; each later draw is the same fit on
+    other rays from where the first ended; the solution is their mean, and the covariance is
+    the Gauss-Newton one there plus the draws' scatter over their number."""
+    meas, truth, twin = defocus_case
+    opts = FitOptions(rays=1500, seed=3, stages=(("features", 3), ("bins", 3)))
+    eng = TorchEngine(hist=CAMERA)
+    start = ModelState(truth.offsets * 0.5, {"chamber_z": {"z": 8.0}})
+    one = fit(meas, start, eng, opts)
+    res = fit(meas, start, eng, opts.replace(ray_draws=3))
+    assert res.draws.shape == (3, len(METRIXS) + 1) and one.draws is None
+    assert np.array_equal(res.draws[0], np.r_[one.state.offsets, one.state.effect_vector()])
+    later = fit(meas, one.state, eng, opts.replace(seed=3 + 2 * RAY_DRAW_SEED))
+    assert np.array_equal(res.draws[2], np.r_[later.state.offsets, later.state.effect_vector()])
+    mean = res.draws.mean(0)
+    assert np.allclose(np.r_[res.state.offsets, res.state.effect_vector()], mean)
+    at_mean = fit(meas, res.state, eng, opts.replace(stages=(("bins", 0),)))
+    spread = np.cov(res.draws.T, ddof=1) / 3
+    assert np.allclose(res.covariance, at_mean.covariance + spread)
+    assert {h.get("ray_draw") for h in res.history} == {None, 1, 2, "mean"}
+    assert res.history[-1]["ray_draw"] == "mean" and res.history[-1]["chi2"] == pytest.approx(at_mean.history[-1]["chi2"])
+    with pytest.raises(ValueError, match="ray_draws"):
+        FitOptions(ray_draws=0)
 
 
 def test_a_parameter_the_data_do_not_see_has_no_uncertainty():
