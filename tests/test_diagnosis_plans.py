@@ -39,7 +39,7 @@ pytestmark = pytest.mark.slow  # over a minute: scheduled first (conftest)
 
 COLS = [METRIXS.index(n) for n in ("E1.rotationXerror", "E2.rotationXerror", "M1_Cylinder.rotationXerror")]
 # small fits: this file checks the workflow, tests/test_fit.py and test_diagnosis.py the physics
-FIT = {"rays": 1500, "stages": [["features", 2], ["bins", 1]]}
+FIT = {"rays": 1500, "stages": [["features", 2], ["bins", 1]], "ray_draws": 1}  # the plumbing, on one ray draw
 CANDIDATES = ["intensity_scale", "background"]
 
 

@@ -25,7 +25,7 @@ from conftest import start_metrixs_ioc
 
 pytestmark = pytest.mark.slow
 
-FIT = {"rays": 1500, "stages": [["features", 2], ["bins", 1]]}
+FIT = {"rays": 1500, "stages": [["features", 2], ["bins", 1]], "ray_draws": 1}  # the plumbing, on one ray draw
 
 
 def _cli() -> str:

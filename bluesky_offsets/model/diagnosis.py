@@ -461,8 +461,11 @@ def diagnose(meas: Measurement, state: ModelState, twin=None, forward_model=None
         # effect" the gain is ~ dispersion * chi2_p, which the BIC price p ln N covers
         c.significant = bool(not within and c.score > 0 and c.heldout_confirms)
     for c in out:
-        if not c.refined:  # what the others would add, for the ranking plot
-            c.predicted_signature = _signature(verify(c.refined_state)[1], ref_view, spec)
+        if not c.refined:
+            # what the others would add, for the ranking plot: at the measurement's rays (a
+            # picture, not a verdict; the verified ones above have 4x)
+            h = _fresh_misfit(verifier, meas, c.refined_state, meas.n_rays, seed, 0, table)[1]
+            c.predicted_signature = _signature(h, ref_view, spec)
             n_traces += n
     observed = _signature(meas.histograms, ref_view, spec)
     out.sort(key=lambda c: (not c.refined, -c.score))
