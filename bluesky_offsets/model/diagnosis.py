@@ -230,7 +230,8 @@ def _folds(n: int, k: int, seed: int) -> list[np.ndarray]:
 # which brought four grid runs that missed by 2-4 σ within 1-2.6 σ but moved the demo's own
 # source-divergence scenario from passing to 0.456 ± 0.013 for 0.5 (-3.3 σ) and took the CI to
 # 16 min: not adopted.  Those misses are the path's, not the fit's: from the hidden truth the
-# fits are unbiased and their ± holds ("Where the misses come from").
+# fits are unbiased and their ± holds ("Where the misses come from").  What addresses them: the
+# fits with effects on four draws of the model's rays (FitOptions.ray_draws; "Ray draws").
 FIT = FitOptions(rays=5000, stages=(("features", 15), ("profiles", 8), ("bins", 10)), ray_draws=4)
 SCAN = FitOptions(rays=3000, stages=(("features", 5), ("bins", 5)))
 ROUNDS = 3

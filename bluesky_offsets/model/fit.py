@@ -94,11 +94,11 @@ class FitOptions:
         model's rays, each later draw starting where the first ended; the solution is their mean
         and the covariance adds their spread (their sample covariance over the number of draws)
         to the Gauss-Newton one.  An offsets-only fit is one draw: it starts a diagnosis (whose
-        candidate fits refit the offsets) or a refit, and each draw costs a fit (about 8 s of
-        the main job's 14 configurations on one core).  Why: on RAYX's hard counts with a fixed set of rays the χ² is
-        rugged along the directions where offsets compensate an effect (an aperture's size
-        against the source's divergence), and one draw ends in whichever nook is near, farther
-        from the truth than its curvature says.  Measured (docs/benchmarks.md, "Ray draws"): a
+        candidate fits refit the offsets) or a refit, and each draw costs a fit (about 8 s for
+        the main job's 14 configurations on one core).  Why: on RAYX's hard counts with a fixed
+        set of rays the χ² is a staircase along the directions where offsets compensate an
+        effect (an aperture's size against the source's divergence), and one draw ends on
+        whichever step is near, farther from the truth than its curvature says.  Measured (docs/benchmarks.md, "Ray draws"): a
         hidden source divergence of 0.5 that single-draw fits put at 0.476 and 0.458 (σ 0.010),
         refitted on four other draws from there, came out at 0.480-0.510 and 0.475-0.517; with
         four draws in the analysis's refits, the five scenario-grid runs that had missed by
