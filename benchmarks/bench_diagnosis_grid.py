@@ -132,7 +132,7 @@ def _run(args) -> None:
             if diag.best is None:
                 break
             b = diag.best
-            res = D.add_effect_result(meas, ModelState(b.refined_state.offsets, cur.effects), b.name,
+            res = D.add_effect_result(meas, b.refit_start(), b.name,
                                       values=b.values, options=fit_o.replace(seed=fit_o.seed + 1 + round_))
             found.append({"effect": b.name, "values": res.state.effects[b.name],
                           "sigma": res.effect_sigma.get(b.name, {})})

@@ -863,7 +863,7 @@ def analyse_measurement(measurement, twin, forward_model=None, *, store=None,
         if not add_best or best is None:
             break
         # start where the diagnosis compensated the effect with the offsets
-        start = ModelState(best.refined_state.offsets, current.effects, current.label)
+        start = best.refit_start(current.label)
         history = out.versions
         rf = yield from step("add_effect" + suffix, lambda m: add_effect_and_refit(
             meas, start, best.name, twin, values=best.values, history=history,

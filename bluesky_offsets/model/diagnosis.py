@@ -89,6 +89,16 @@ class Candidate:
             return self.delta_chi2_twin / self.dispersion - self.penalty
         return self.feature_score
 
+    def refit_start(self, label: str = "") -> ModelState:
+        """Where adding this candidate starts (:func:`add_effect_result` with ``values``): its
+        fit's offsets and the model's other effects as that fit left them.  Not the model's
+        effects as they were: the candidate fit refitted them with its offsets, and the two
+        belong together (measured on the scenario grid, a pair's second round: the diagnosis's
+        offsets with the grating's earlier value started the refit at χ²/dof 1166 in the
+        features, and the fit drove the thermal bump to zero)."""
+        st = self.refined_state
+        return ModelState(st.offsets, {k: v for k, v in st.effects.items() if k != self.name}, label or st.label)
+
     @property
     def heldout_confirms(self) -> bool:
         """The held-out folds do not contradict the candidate: it lowers the held-out χ² in at
