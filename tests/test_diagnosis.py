@@ -206,3 +206,16 @@ def test_feature_stage_then_diagnosis_find_a_hidden_defocus(camera_case):
     assert abs(z - 20.0) <= max(3 * sz, 5.0), (z, sz)  # downstream, as hidden
     # adding it gives back most of what the offsets could not explain (measured: 0.88)
     assert evaluate(meas, res.state, twin).chi2_reduced_total < at_truth + 0.3 * (offsets_only - at_truth)
+
+
+def test_adding_an_effect_starts_where_the_diagnosis_fit_it():
+    """The refit's start is the candidate fit's end: its offsets and the model's other effects
+    as that fit left them (they were fitted together), the candidate itself left to ``values``."""
+    from bluesky_offsets.model.diagnosis import Candidate
+    end = ModelState(np.full(len(METRIXS), 0.01), {"grating_line_density": {"delta": -0.07},
+                                                   "thermal_bump_m1": {"height": 390.0}}, "fit")
+    c = Candidate("thermal_bump_m1", 1, {"height": 390.0}, {"height": 12.0}, 0.0, 50.0, 6.0, True, {},
+                  refined_state=end)
+    st = c.refit_start("model")
+    assert np.array_equal(st.offsets, end.offsets) and st.label == "model"
+    assert st.effects == {"grating_line_density": {"delta": -0.07}}
