@@ -591,11 +591,15 @@ def fit(meas, state, engine, options: FitOptions | Mapping | None = None, *,
     chi2 = float(r @ r)
     inflation = max(1.0, chi2 / max(dof, 1.0))
     cov = cov * inflation
-    jk = jackknife_covariance(G, r, rows, ridge, z)
+    with np.errstate(over="ignore", invalid="ignore"):
+        jk = jackknife_covariance(G, r, rows, ridge, z)
     widen = np.ones(len(z))
     if jk is not None:
         v = np.diag(cov)
-        ok = np.isfinite(v) & (v > 0)
+        # a parameter that one configuration alone determines has no delete-one estimate (its
+        # step without that configuration is unbounded): its Gauss-Newton σ stands (measured on
+        # the scenario grid, a grating added beside a defocus: the steps overflowed, σ NaN)
+        ok = np.isfinite(v) & (v > 0) & np.isfinite(np.diag(jk))
         widen[ok] = np.sqrt(np.maximum(1.0, np.diag(jk)[ok] / v[ok]))
         cov = cov * np.outer(widen, widen)  # the variances widened, the correlations kept
     if spread is not None:
