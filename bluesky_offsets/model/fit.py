@@ -598,7 +598,7 @@ def fit(meas, state, engine, options: FitOptions | Mapping | None = None, *,
         v = np.diag(cov)
         # a parameter that one configuration alone determines has no delete-one estimate (its
         # step without that configuration is unbounded): its Gauss-Newton σ stands (measured on
-        # the scenario grid, a grating added beside a defocus: the steps overflowed, σ NaN)
+        # the scenario grid, a grating added beside a defocus: the steps overflowed, NaN in the covariance)
         ok = np.isfinite(v) & (v > 0) & np.isfinite(np.diag(jk))
         widen[ok] = np.sqrt(np.maximum(1.0, np.diag(jk)[ok] / v[ok]))
         cov = cov * np.outer(widen, widen)  # the variances widened, the correlations kept
