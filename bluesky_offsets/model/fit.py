@@ -488,6 +488,20 @@ def _stage(mdl: _Model, stage: str, z: np.ndarray, pr: _Products, iterations: in
     return z, pr, exact
 
 
+def _stages(mdl: _Model, z: np.ndarray, ridge: np.ndarray, history: list[dict],
+            progress: Callable[[dict], None] | None, tag: dict) -> tuple[np.ndarray, _Products, bool]:
+    """All of the options' stages from ``z`` on ``mdl``, each iteration's record tagged with
+    ``tag`` (which start, which ray draw); returns what the last :func:`_stage` returns."""
+    def tagged(d):
+        d.update(tag)
+        if progress:
+            progress(d)
+    for stage, iterations in mdl.o.stages:
+        z, pr, exact = _stage(mdl, stage, z, mdl.products(stage, z, True), iterations, ridge, history, tagged,
+                              secant=mdl.o.secant)
+    return z, pr, exact
+
+
 def fit(meas, state, engine, options: FitOptions | Mapping | None = None, *,
         progress: Callable[[dict], None] | None = None, table: ParameterTable = METRIXS,
         also_from: Sequence = ()) -> FitResult:
@@ -525,17 +539,9 @@ def fit(meas, state, engine, options: FitOptions | Mapping | None = None, *,
         raise ValueError("the starts of one fit must hold the same effects")
     ends = []
     for k, st in enumerate(starts):
-        z = np.clip(mdl.vector(st), *mdl.bounds())
         part: list[dict] = []
-
-        def tagged(d, k=k):
-            if len(starts) > 1:
-                d["start"] = k
-            if progress:
-                progress(d)
-        for stage, iterations in o.stages:
-            z, pr, exact = _stage(mdl, stage, z, mdl.products(stage, z, True), iterations, ridge, part, tagged,
-                                  secant=o.secant)
+        z, pr, exact = _stages(mdl, np.clip(mdl.vector(st), *mdl.bounds()), ridge, part, progress,
+                               {"start": k} if len(starts) > 1 else {})
         ends.append((part[-1]["chi2"], k, z, pr, exact, part))
     if len(ends) > 1:
         fresh = _Model(meas, state, engine, o.replace(seed=o.seed + FRESH_SEED), table)
@@ -552,15 +558,7 @@ def fit(meas, state, engine, options: FitOptions | Mapping | None = None, *,
     for k in range(1, o.ray_draws if mdl.params else 1):
         # the same fit on other rays, from where the first draw ended
         dm = _Model(meas, state, engine, o.replace(seed=o.seed + k * RAY_DRAW_SEED), table)
-
-        def tagged(d, k=k):
-            d["ray_draw"] = k
-            if progress:
-                progress(d)
-        zk = z
-        for stage, iterations in o.stages:
-            zk, _, _ = _stage(dm, stage, zk, dm.products(stage, zk, True), iterations, ridge, history, tagged,
-                              secant=o.secant)
+        zk = _stages(dm, z, ridge, history, progress, {"ray_draw": k})[0]
         mdl.n_traces += dm.n_traces
         draws.append(zk)
     if len(draws) > 1:
