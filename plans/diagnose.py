@@ -32,6 +32,7 @@ from __future__ import annotations
 import json
 import logging
 from collections.abc import Mapping, Sequence
+from concurrent.futures import Executor
 from dataclasses import asdict, dataclass, field
 from typing import Any
 
@@ -399,7 +400,7 @@ def _offsets_row(state: ModelState, table: ParameterTable) -> dict:
 def refine_offsets(measurement, state: ModelState, twin, forward_model=None, *, store=None,
                    options: FitOptions | Mapping | None = None, label: str = "+ offsets", open_run: bool = True,
                    md: Mapping | None = None, show: bool = True, also_from: Sequence[ModelState] = (),
-                   table: ParameterTable = METRIXS) -> MsgGenerator[Refinement]:
+                   executor: Executor | None = None, table: ParameterTable = METRIXS) -> MsgGenerator[Refinement]:
     """Fit the offsets (and the state's effects), starting from ``state`` (and from each of
     ``also_from``: the fit that ends lowest is kept).
 
@@ -407,7 +408,9 @@ def refine_offsets(measurement, state: ModelState, twin, forward_model=None, *, 
     Jacobians; features, then profiles, then bins), options :class:`~bluesky_offsets.model.fit.FitOptions`
     (default :data:`bluesky_offsets.model.diagnosis.FIT`; an unknown key is an error).  Streams
     ``progress`` (every iteration) and ``offsets`` (values ± σ), then compares the result with
-    the measurement through the twin (RAYX, fresh rays).
+    the measurement through the twin (RAYX, fresh rays).  ``executor`` (a thread pool, or a Dask
+    client's ``get_executor()``) runs the starts and the ray draws side by side: the same result
+    on any number of threads (:func:`bluesky_offsets.model.fit.gather`).
 
     Returns
     -------
@@ -425,7 +428,7 @@ def refine_offsets(measurement, state: ModelState, twin, forward_model=None, *, 
     def body():
         res: RefineResult = yield from run_in_thread(
             lambda progress: refine(meas, state, twin, options=opts, progress=progress, table=table,
-                                    also_from=also_from),
+                                    also_from=also_from, executor=executor),
             desc="fit the offsets through the differentiable twin", show=show)
         st = ModelState(res.state.offsets, res.state.effects, label)
         row = _offsets_row(st, table)
@@ -480,16 +483,15 @@ def ranking_rows(d: Diagnosis) -> list[dict]:
 
 def diagnose_effects(measurement, state: ModelState, twin, forward_model=None, *, store=None,
                      candidates: Sequence[str] | None = None, folds: int = 4, seed: int = 0,
-                     options: FitOptions | Mapping | None = None, fit_top: int | None = D.FIT_TOP, client=None,
-                     open_run: bool = True, md: Mapping | None = None, show: bool = True,
+                     options: FitOptions | Mapping | None = None, fit_top: int | None = D.FIT_TOP,
+                     executor: Executor | None = None, open_run: bool = True, md: Mapping | None = None, show: bool = True,
                      table: ParameterTable = METRIXS) -> MsgGenerator[Ranking]:
     """Which effect is missing: :func:`bluesky_offsets.model.diagnosis.diagnose` as a run.
 
     Every candidate fitted with the offsets from each of its starts (``fit_top``: screen every
     start first and fit only that many candidates; ``options``: the candidate fits', default
-    :data:`bluesky_offsets.model.diagnosis.SCAN`; ``client``: a Dask client whose workers run them,
-    worth it on a cluster: on the 2-core machine the demo's analysis took 270 s with two
-    one-thread workers and 192 s in this process with two threads).  Streams ``progress`` (every fit's iterations),
+    :data:`bluesky_offsets.model.diagnosis.SCAN`; ``executor``: runs them side by side, the same
+    result on any number of threads).  Streams ``progress`` (every fit's iterations),
     ``ranking`` (one event per candidate, best first) and ``diagnosis`` (verdict, base misfit
     and its noise expectation, observed signature).
     """
@@ -506,7 +508,7 @@ def diagnose_effects(measurement, state: ModelState, twin, forward_model=None, *
     def body():
         d: Diagnosis = yield from run_in_thread(
             lambda progress: diagnose(meas, state, twin, candidates=names, folds=folds, seed=seed, options=opts,
-                                      fit_top=fit_top, progress=progress, client=client, table=table),
+                                      fit_top=fit_top, progress=progress, executor=executor, table=table),
             desc=f"rank {len(names)} candidate effects", show=show)
         yield from emit_rows("ranking", ranking_rows(d))
         mf = d.base_misfit
@@ -553,14 +555,14 @@ def add_effect_and_refit(measurement, state: ModelState, effect: str, twin, forw
                          values: Mapping[str, float] | None = None, history: Sequence[Version] = (),
                          options: FitOptions | Mapping | None = None, label: str | None = None,
                          open_run: bool = True, md: Mapping | None = None, show: bool = True,
-                         table: ParameterTable = METRIXS) -> MsgGenerator[Refit]:
+                         executor: Executor | None = None, table: ParameterTable = METRIXS) -> MsgGenerator[Refit]:
     """``state.with_effect(effect, values)``, offsets and effect refitted with the one fit engine.
 
     ``values`` start the effect (e.g. the diagnosis's fitted values; default 0 = absent);
     ``options`` those of the fit (default :data:`bluesky_offsets.model.diagnosis.FIT`).  Streams
     ``progress`` (refit iterations), ``effect`` (fitted magnitude ± uncertainty per parameter),
     the new version's comparison (``misfit``, ``misfit_total``) and ``error_history``
-    (``history`` + the new version).
+    (``history`` + the new version).  ``executor`` runs the fit's ray draws side by side.
     """
     meas, link = resolve_measurement(measurement, store, table=table)
     twin = twin.with_hist(meas.spec)  # the twin bins as the measurement does
@@ -574,14 +576,9 @@ def add_effect_and_refit(measurement, state: ModelState, effect: str, twin, forw
            "versions": [v.label for v in history] + [label], **dict(md or {})}
 
     def body():
-        steps: list[dict] = []
-
         def work(progress):
-            def record(d):
-                steps.append(dict(d))
-                progress(d)
-            res = D.add_effect_result(meas, state, effect, twin, values=start_values, options=opts, progress=record,
-                                      table=table)
+            res = D.add_effect_result(meas, state, effect, twin, values=start_values, options=opts,
+                                      progress=progress, executor=executor, table=table)
             return res.state, res.effect_sigma, res.fit
 
         st, sig, fit = yield from run_in_thread(work, desc=f"add {effect} and refit", show=show)
@@ -599,7 +596,9 @@ def add_effect_and_refit(measurement, state: ModelState, effect: str, twin, forw
                                      table=table)
         versions = [*history, c.version()]
         yield from record_error_history(versions)
-        return Refit(effect, st, sig, c, steps, versions, covariance=np.asarray(fit.covariance, float),
+        # the fit's own record (its ray draws in order; the progress events came as they ran)
+        return Refit(effect, st, sig, c, [dict(h) for h in fit.history], versions,
+                     covariance=np.asarray(fit.covariance, float),
                      fit_names=list(fit.names))
 
     r, uid = yield from in_run(body, _md, open_run)
@@ -610,7 +609,7 @@ def add_effect_and_refit(measurement, state: ModelState, effect: str, twin, forw
 def retest_effects(measurement, state: ModelState, twin, *, store=None, names: Sequence[str] | None = None,
                    history: Sequence[Version] = (), options: FitOptions | Mapping | None = None, seed: int = 0,
                    open_run: bool = True, md: Mapping | None = None, show: bool = True,
-                   table: ParameterTable = METRIXS) -> MsgGenerator[Pruning]:
+                   executor: Executor | None = None, table: ParameterTable = METRIXS) -> MsgGenerator[Pruning]:
     """The backward step: each of ``names`` (default: every effect of ``state``) tested with the
     others in, and the weakest dropped where it no longer earns its place.
 
@@ -631,7 +630,7 @@ def retest_effects(measurement, state: ModelState, twin, *, store=None, names: S
     def body():
         tests = yield from run_in_thread(
             lambda progress: D.retest_effects(meas, state, names, options=opts, seed=seed, progress=progress,
-                                              table=table),
+                                              executor=executor, table=table),
             desc=f"retest {len(names)} added effects", show=show)
         w = D.weakest(tests)
         yield from emit_rows("retest", [{**t.as_dict(), "dropped": t is w} for t in tests])
@@ -752,7 +751,7 @@ def analyse_measurement(measurement, twin, forward_model=None, *, store=None,
                         scan_options: FitOptions | Mapping | None = None, fit_top: int | None = D.FIT_TOP,
                         folds: int = 4, seed: int = 0, resume: bool = False,
                         md: Mapping | None = None, show: bool = True, resolution: str = "camera",
-                        table: ParameterTable = METRIXS) -> MsgGenerator[Analysis]:
+                        executor: Executor | None = None, table: ParameterTable = METRIXS) -> MsgGenerator[Analysis]:
     """Compare, fit the offsets, diagnose, add the winning effect and refit, diagnose again — one
     run each.
 
@@ -791,6 +790,11 @@ def analyse_measurement(measurement, twin, forward_model=None, *, store=None,
         settings: :func:`analysis_key`) completed from the store (``store``, default
         :func:`bluesky_offsets.store.shared_store`) instead of computing it again; the first step
         it did not complete, and all after it, run.  After Ctrl-C, ``RE.abort()`` or a crash.
+    executor : concurrent.futures.Executor, optional
+        Runs independent fits side by side (the starts, the candidates, the ray draws): a
+        thread pool, or a Dask client's ``get_executor()``.  The result is the same with any
+        number of threads, or none (:func:`bluesky_offsets.model.fit.gather`); it is not part of
+        the analysis's key.
 
     Returns
     -------
@@ -847,7 +851,7 @@ def analyse_measurement(measurement, twin, forward_model=None, *, store=None,
         # at all) while their χ² is a little lower, and the fit ends near where it starts.
         r = yield from step("refine_offsets", lambda m: refine_offsets(
             meas, current, twin, options=fopts, md={**m, "start_label": order[0].label}, show=show,
-            also_from=[c.state for c in order[1:]], table=table), restore_refinement)
+            also_from=[c.state for c in order[1:]], executor=executor, table=table), restore_refinement)
         out.uids["refine_offsets"] = r.uid
         out.refinement = r
         out.comparisons.append(r.comparison)
@@ -856,7 +860,7 @@ def analyse_measurement(measurement, twin, forward_model=None, *, store=None,
         suffix = "" if round_ == 0 else f"_{round_ + 1}"
         rk = yield from step("diagnose" + suffix, lambda m: diagnose_effects(
             meas, current, twin, candidates=candidates, folds=folds, seed=seed + round_, options=sopts,
-            fit_top=fit_top, md=m, show=show, table=table), restore_ranking)
+            fit_top=fit_top, md=m, show=show, executor=executor, table=table), restore_ranking)
         out.rankings.append(rk)
         out.uids["diagnose" + suffix] = rk.uid
         best = rk.diagnosis.best
@@ -867,7 +871,7 @@ def analyse_measurement(measurement, twin, forward_model=None, *, store=None,
         history = out.versions
         rf = yield from step("add_effect" + suffix, lambda m: add_effect_and_refit(
             meas, start, best.name, twin, values=best.values, history=history,
-            options=fopts.replace(seed=fopts.seed + 1 + round_), md=m, show=show, table=table),
+            options=fopts.replace(seed=fopts.seed + 1 + round_), md=m, show=show, executor=executor, table=table),
             lambda res, uid: restore_refit(res, history, uid))
         out.refits.append(rf)
         out.comparisons.append(rf.comparison)
@@ -880,7 +884,8 @@ def analyse_measurement(measurement, twin, forward_model=None, *, store=None,
         history = out.versions
         pr = yield from step("retest_effects", lambda m: retest_effects(
             meas, current, twin, names=[r.effect for r in out.refits], history=history,
-            options=fopts.replace(seed=fopts.seed + 1 + len(out.refits)), seed=seed, md=m, show=show, table=table),
+            options=fopts.replace(seed=fopts.seed + 1 + len(out.refits)), seed=seed, md=m, show=show,
+            executor=executor, table=table),
             lambda res, uid: restore_pruning(res, history, uid))
         out.pruning = pr
         out.uids["retest_effects"] = pr.uid

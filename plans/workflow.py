@@ -254,10 +254,11 @@ def calibration_session(beamline, chamber, twin, forward_model, *, design: Measu
                         evaluations: int = 3000, candidates: list[str] | None = None, rounds: int = D.ROUNDS,
                         fit=None, scan=None, fit_top: int | None = D.FIT_TOP, resolution: str = "camera",
                         measurement_md: dict | None = None, analysis_md: dict | None = None,
-                        step=log.info) -> MsgGenerator[Session]:
+                        step=log.info, executor=None) -> MsgGenerator[Session]:
     """The session on a beamline: :func:`measure_bright`, :func:`surrogate_offsets` on it, then
     :func:`plans.diagnose.analyse_measurement` of the analysed configurations from the bare twin and
-    the surrogate's offsets.  ``step(text)`` announces each part (the demo numbers them).  What the
+    the surrogate's offsets.  ``step(text)`` announces each part (the demo numbers them);
+    ``executor`` runs the analysis's independent fits side by side (the same result).  What the
     demo and ``bluesky-offsets calibrate`` run; seeds from ``design.seed``."""
     from bluesky_offsets.model.state import ModelState
 
@@ -278,6 +279,7 @@ def calibration_session(beamline, chamber, twin, forward_model, *, design: Measu
          f"→ refit → diagnose again ({len(analysed) - n_open} bright + {n_open} open configurations)")
     analysis = yield from analyse_measurement(meas, twin, starts=starts, candidates=candidates, rounds=rounds,
                                               fit_options=fit, scan_options=scan, fit_top=fit_top, seed=design.seed,
+                                              executor=executor,
                                               md={**dict(analysis_md or {}),
                                                   "analysed_configurations": [int(i) for i in analysed]})
     t["analysis"] = time.perf_counter()

@@ -197,7 +197,12 @@ def test_feature_stage_then_diagnosis_find_a_hidden_defocus(camera_case):
     # dof, 4.6σ; the fit's rays a stream per configuration, and before that 2× the truth's)
     dof = truth_mf.dof_total
     assert (offsets_only - at_truth) * dof > 3 * np.sqrt(2 * dof), dof
-    d = diagnose(meas, fit.state, twin, candidates=["chamber_z", "detector_blur", "intensity_scale"], options=SCAN)
+    # the candidates side by side (two detector-level ones: their forward-mode derivatives
+    # take turns: bluesky_offsets.physics.torch_engine.FORWARD_AD)
+    from concurrent.futures import ThreadPoolExecutor
+    with ThreadPoolExecutor(2) as ex:
+        d = diagnose(meas, fit.state, twin, candidates=["chamber_z", "detector_blur", "intensity_scale"], options=SCAN,
+                     executor=ex)
     assert d.best is not None and d.best.name == "chamber_z", d.as_dict()
     assert d.candidates[0].refined and d.candidates[0].delta_chi2_twin > 0
     start = ModelState(d.best.refined_state.offsets)

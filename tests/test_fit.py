@@ -225,6 +225,28 @@ def test_ray_draws_average_the_fit_over_the_models_rays(defocus_case):
         FitOptions(ray_draws=0)
 
 
+def test_fits_side_by_side_give_what_one_after_the_other_gives(defocus_case):
+    """``executor``: the starts and then the ray draws of one fit run side by side, each on a
+    model of its own, and are used in their order: the result and the history are the ones
+    of the serial fit, to the bit, on any number of threads."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from bluesky_offsets.model.fit import gather
+    meas, truth, _ = defocus_case
+    opts = FitOptions(rays=1000, seed=5, stages=(("features", 2), ("bins", 2)), ray_draws=3)
+    eng = TorchEngine(hist=CAMERA)
+    start = ModelState(truth.offsets * 0.5, {"chamber_z": {"z": 8.0}})
+    other = ModelState(np.zeros(len(METRIXS)), {"chamber_z": {"z": 20.0}})
+    one = fit(meas, start, eng, opts, also_from=[other])
+    seen = []
+    with ThreadPoolExecutor(2) as ex:
+        two = fit(meas, start, eng, opts, also_from=[other], executor=ex, progress=seen.append)
+        assert gather([lambda k=k: k * k for k in range(5)], ex) == [0, 1, 4, 9, 16]
+    assert np.array_equal(one.draws, two.draws) and np.array_equal(one.covariance, two.covariance, equal_nan=True)
+    assert one.history == two.history and one.n_traces == two.n_traces
+    assert len(seen) == len(two.history)  # every record reported (the iterations as they ran)
+
+
 def test_a_parameter_the_data_do_not_see_has_no_uncertainty():
     """A thermal bump below its threshold is no bump (its column is zero): its σ is NaN, never
     the pseudo-inverse's 0 that would print "± 0"."""

@@ -84,6 +84,7 @@ def _calibrate(args, design, effects, pv_map, forward_model, store) -> int:
     from bluesky import RunEngine
     from bluesky.utils import RunEngineInterrupted
 
+    from bluesky_offsets.commands.cli import analysis_executor
     from bluesky_offsets.commands.demo import ScanProgress, _close_channels, _StepLines
     from bluesky_offsets.commands.report import history_lines, paragraph, write_analysis_report
     from bluesky_offsets.physics.twin import Twin
@@ -108,11 +109,12 @@ def _calibrate(args, design, effects, pv_map, forward_model, store) -> int:
 
         twin = Twin(n_rays=10_000, scheduler=args.scheduler)
         try:
-            session = RE(calibration_session(
-                beamline, chamber, twin, forward_model, design=design, evaluations=args.evaluations,
-                candidates=effects, rounds=args.rounds, fit={"rays": args.fit_rays} if args.fit_rays else None,
-                fit_top=args.fit_top or None, resolution=args.resolution, measurement_md={"purpose": "calibrate"},
-                analysis_md={"purpose": "calibration analysis"}, step=say)).plan_result
+            with analysis_executor(args.threads) as executor:
+                session = RE(calibration_session(
+                    beamline, chamber, twin, forward_model, design=design, evaluations=args.evaluations,
+                    candidates=effects, rounds=args.rounds, fit={"rays": args.fit_rays} if args.fit_rays else None,
+                    fit_top=args.fit_top or None, resolution=args.resolution, measurement_md={"purpose": "calibrate"},
+                    analysis_md={"purpose": "calibration analysis"}, step=say, executor=executor)).plan_result
         except DarkBeamline as exc:
             raise CliError(str(exc)) from None
         except RunEngineInterrupted:

@@ -8,9 +8,11 @@ function listed in :data:`EXTENSIONS`.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import importlib
 import json
 import logging
+import os
 import sys
 
 import numpy as np
@@ -54,8 +56,8 @@ def quiet_logs() -> None:
 # params
 def add_analysis_options(p: argparse.ArgumentParser, *, fit_rays: int | None, fit_rays_help: str,
                          resolution_help: str) -> None:
-    """The options every verb that analyses a measurement shares (``demo``, ``diagnose``):
-    rounds of diagnosis, the fits' rays, screening, the binning fitted."""
+    """The options every verb that analyses a measurement shares (``demo``, ``diagnose``,
+    ``calibrate``): rounds of diagnosis, the fits' rays, screening, the binning fitted, threads."""
     p.add_argument("--rounds", type=int, default=None,
                    help="diagnoses at most: after an effect is added the model is diagnosed again (default 3: two "
                         "hidden effects and one added before them that the backward step drops)")
@@ -65,6 +67,10 @@ def add_analysis_options(p: argparse.ArgumentParser, *, fit_rays: int | None, fi
                         "convergence (faster; a screen can miss a defocus: docs/diagnosis.md); default 0: every "
                         "start fitted")
     p.add_argument("--resolution", choices=("camera", "paper"), default="camera", help=resolution_help)
+    p.add_argument("--threads", type=int, default=None,
+                   help="fits that do not depend on each other (the starts, the candidates, the ray draws) run this "
+                        "many at a time, each on one torch thread; the result is the same for any number (default: "
+                        f"$OMP_NUM_THREADS, else the cores this process may use, {default_threads()} here)")
 
 
 def check_analysis_options(args) -> None:
@@ -78,6 +84,41 @@ def check_analysis_options(args) -> None:
         raise CliError("--fit-rays must be at least 100")
     if args.fit_top < 0:
         raise CliError("--fit-top must be at least 0 (0: every start of every candidate fitted)")
+    if args.threads is None:
+        args.threads = default_threads()
+    if args.threads < 1:
+        raise CliError("--threads must be at least 1")
+
+
+def default_threads() -> int:
+    """``$OMP_NUM_THREADS`` where set (a batch system's or a test runner's share of the
+    machine), else the cores this process may use."""
+    try:
+        return max(1, int(os.environ.get("OMP_NUM_THREADS", "")))
+    except ValueError:
+        return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+
+
+@contextlib.contextmanager
+def analysis_executor(threads: int):
+    """The executor an analysis's independent fits run on (None for one thread), each fit on
+    one torch thread and one BLAS thread.  Why not torch's or BLAS's own threads: the fits'
+    arrays (10^4-10^5 rays, Jacobians of 10^4 rows) are too small to share, while whole fits
+    run side by side with little in common.  Measured on 2 cores (2026-11-28, the README's
+    diagnosis alone): 60 s on one thread, 66 s with OpenBLAS's two (its idle thread spins),
+    39 s with two fits at a time; earlier, the whole demo took 192 s and 213 s with torch's two
+    threads and 175 s with one.  One BLAS thread also keeps the arithmetic (the order of a
+    matrix product's sums) the same on any number of cores."""
+    import torch
+    from threadpoolctl import threadpool_limits
+    torch.set_num_threads(1)
+    with threadpool_limits(1, user_api="blas"):
+        if threads <= 1:
+            yield None
+            return
+        from concurrent.futures import ThreadPoolExecutor
+        with ThreadPoolExecutor(threads, thread_name_prefix="fit") as ex:
+            yield ex
 
 
 # --------------------------------------------------------------------------- #

@@ -22,6 +22,7 @@ The IOC is always stopped, also after an error or Ctrl-C.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import math
@@ -83,6 +84,8 @@ class DemoSettings:
     candidates_effects: Sequence[str] | None = None
     seed: int = 0
     workers: int | None = None
+    # fits that do not depend on each other run this many at a time (the same result for any)
+    threads: int = 1
     # the last step: the smallest focus with the calibrated twin (plans.optimize.optimize_beam),
     # frames averaged before and after the move
     optimize: bool = True
@@ -243,10 +246,11 @@ class ScanProgress:
 # --------------------------------------------------------------------------- #
 # the workflow as one plan
 # --------------------------------------------------------------------------- #
-def demo_plan(s: DemoSettings, beamline, chamber, twin, forward_model, log):
+def demo_plan(s: DemoSettings, beamline, chamber, twin, forward_model, log, executor=None):
     """The session (:func:`plans.workflow.calibration_session`) with the demo's settings, then the
     smallest focus on the calibrated twin (:func:`plans.optimize.optimize_beam`); steps numbered 2
-    to 5 of the demo's six.  Returns (session, beam result or None)."""
+    to 5 of the demo's six; ``executor`` runs the analysis's independent fits.  Returns (session,
+    beam result or None)."""
     import itertools
 
     from plans.optimize import optimize_beam
@@ -257,7 +261,7 @@ def demo_plan(s: DemoSettings, beamline, chamber, twin, forward_model, log):
         beamline, chamber, twin, forward_model, design=s.design, evaluations=s.finder_evaluations,
         candidates=s.candidates_effects, rounds=s.rounds, fit=s.fit, scan=s.scan, fit_top=s.fit_top,
         resolution=s.resolution, measurement_md={"purpose": "demo measurement"},
-        analysis_md={"purpose": "bluesky-offsets demo"},
+        analysis_md={"purpose": "bluesky-offsets demo"}, executor=executor,
         step=lambda text: log(f"[{next(number)}/{s.steps}] {text}"))
     beam = None
     if s.optimize:
@@ -293,6 +297,7 @@ def run_demo(out: Path, settings: DemoSettings | None = None, store_location: st
     # seeded frame noise: the same settings give the same demo, --seed another draw of it
     ioc = SimulatedBeamline(truth, s.n_rays, work, noise_seed=s.seed + 2)
     twin = RE = steps_log = None
+    pool = contextlib.ExitStack()  # the analysis's threads (one BLAS thread each) to the end
     try:
         from bluesky import RunEngine
         from bluesky.utils import RunEngineInterrupted
@@ -300,7 +305,7 @@ def run_demo(out: Path, settings: DemoSettings | None = None, store_location: st
         from bluesky_offsets.commands.calibrate import connect_devices
         from bluesky_offsets.epics.pvmap import PVMap
         from bluesky_offsets.offsets.finder import load_forward_model
-        from bluesky_offsets.commands.cli import quiet_logs
+        from bluesky_offsets.commands.cli import analysis_executor, quiet_logs
         from bluesky_offsets.commands.report import paragraph, table_, write_analysis_report
         from bluesky_offsets.store import open_store
         from bluesky_offsets.physics.twin import Twin
@@ -321,8 +326,9 @@ def run_demo(out: Path, settings: DemoSettings | None = None, store_location: st
         for cb in live:
             RE.subscribe(cb)
         log(f"      IOC {ioc.prefix} on 127.0.0.1:{ioc.port}; run store {store.location}")
+        executor = pool.enter_context(analysis_executor(s.threads))
         try:
-            result = RE(demo_plan(s, beamline, chamber, twin, forward_model, log))
+            result = RE(demo_plan(s, beamline, chamber, twin, forward_model, log, executor))
         except RunEngineInterrupted:  # Ctrl-C paused it: end the run as aborted, then clean up
             RE.abort("interrupted")
             raise KeyboardInterrupt from None
@@ -392,6 +398,7 @@ def run_demo(out: Path, settings: DemoSettings | None = None, store_location: st
         store.close()
         return summary
     finally:
+        pool.close()
         if steps_log is not None:
             steps_log.close()
         if twin is not None:
@@ -510,9 +517,6 @@ def add_cli(sub) -> None:
     p.add_argument("--open-loop", action="store_true",
                    help="move once: without refitting the model with the frames taken after the move, "
                         "optimizing and moving once more (the default)")
-    p.add_argument("--threads", type=int, default=1,
-                   help="torch CPU threads of the analysis (default %(default)s: its operations on 10^4-10^5 rays "
-                        "gain nothing from more while the IOC and the Dask workers share the cores)")
     p.set_defaults(func=_cmd_demo)
 
 
@@ -556,8 +560,6 @@ def _cmd_demo(args) -> int:
         raise CliError("--rays must be at least 100")
     if not 0 <= args.offsets_fraction <= 0.2:
         raise CliError("--offsets-fraction must lie in [0, 0.2] (offsets beyond 20 % of a range are outside the model)")
-    if args.threads < 1:
-        raise CliError("--threads must be at least 1")
     check_analysis_options(args)
     effects = tuple(parse_effect(e) for e in (args.effect or [f"{DEMO_EFFECT[0]}:z={DEMO_EFFECT[1]['z']}"]))
     effects = tuple(e for e in effects if e[0])
@@ -578,6 +580,7 @@ def _cmd_demo(args) -> int:
                      fit_top=args.fit_top or None, fit=D.FIT.replace(rays=args.fit_rays),
                      scan=D.SCAN.replace(rays=min(args.fit_rays, D.SCAN.rays)),
                      resolution=args.resolution, optimize=not args.no_optimize, closed_loop=not args.open_loop,
+                     threads=args.threads,
                      candidates_effects=[c.strip() for c in args.candidates.split(",")] if args.candidates else None)
     for n in s.candidates_effects or ():
         try:
@@ -592,11 +595,6 @@ def _cmd_demo(args) -> int:
         raise SystemExit(128 + signum)
 
     previous = signal.signal(signal.SIGTERM, _terminate)
-    # measured on 2 cores (2026-11-24): the README's demo took 192 s and 213 s with torch's two
-    # threads, 175 s with one; the fits' tensors are too small to share, the other processes
-    # (IOC, Dask workers) need the second core
-    import torch
-    torch.set_num_threads(args.threads)
     try:
         run_demo(Path(args.out), s, args.store)
     finally:

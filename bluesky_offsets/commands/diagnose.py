@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from bluesky_offsets.commands.cli import CliError, add_analysis_options, check_analysis_options
+from bluesky_offsets.commands.cli import CliError, add_analysis_options, analysis_executor, check_analysis_options
 
 
 def _load(store, uid: str, n_rays: int | None, resolution: str = "camera"):
@@ -110,11 +110,12 @@ def _cmd_diagnose(args) -> int:
             if args.scheduler != "inline":
                 twin.client
                 quiet_logs()
-            analysis = RE(analyse_measurement(
-                stored, twin, starts=starts, refine=not args.no_refine, candidates=candidates,
-                add_best=not args.no_add, rounds=args.rounds, fit_options=fit_options, seed=args.seed,
-                fit_top=args.fit_top or None, resume=args.resume, store=store,
-                resolution=args.resolution, md={"purpose": "bluesky-offsets diagnose"})).plan_result
+            with analysis_executor(args.threads) as executor:
+                analysis = RE(analyse_measurement(
+                    stored, twin, starts=starts, refine=not args.no_refine, candidates=candidates,
+                    add_best=not args.no_add, rounds=args.rounds, fit_options=fit_options, seed=args.seed,
+                    fit_top=args.fit_top or None, resume=args.resume, store=store, resolution=args.resolution,
+                    executor=executor, md={"purpose": "bluesky-offsets diagnose"})).plan_result
             if analysis.resumed:
                 print(f"resumed {len(analysis.resumed)} completed steps from the store: "
                       f"{', '.join(analysis.resumed)}", file=log)

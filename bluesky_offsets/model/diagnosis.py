@@ -32,13 +32,14 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping, Sequence
+from concurrent.futures import Executor
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from bluesky_offsets.physics import effects as E
 from bluesky_offsets.model.misfit import Misfit, misfit, moments
-from bluesky_offsets.model.fit import FitOptions, FitResult, engine_for, fit, screen
+from bluesky_offsets.model.fit import FitOptions, FitResult, engine_for, fit, gather, screen
 from bluesky_offsets.model.measurement import Measurement
 from bluesky_offsets.model.state import ModelState, refine, simulate, solve_normal
 from bluesky_offsets.physics.parameters import METRIXS, ParameterTable
@@ -278,11 +279,6 @@ def starting_values(effect: E.Effect) -> list[dict[str, float]]:
     return out or [{}]  # nothing worth a start away from zero: one fit from zero
 
 
-def _fit_task(state: ModelState, meas: Measurement, options: FitOptions, table: ParameterTable) -> FitResult:
-    """One candidate fit on a Dask worker (its own torch engine, one thread)."""
-    return fit(meas, state, engine_for(meas, options, table), options, table=table)
-
-
 # What separates an effect from the offsets when the design cannot (reported with the verdict).
 SEPARATE_BY = {
     "photon_energy": "frames at two or more photon energies (undulator gap and grating angle moved together)",
@@ -337,7 +333,7 @@ def _heldout(fit: FitResult, folds: Sequence[np.ndarray]) -> np.ndarray:
 def diagnose(meas: Measurement, state: ModelState, twin=None, forward_model=None, *,
              candidates: Sequence[str] | None = None, folds: int = 4, seed: int = 0, n_sigma: float = 3.0,
              options: FitOptions | Mapping | None = None, verify_rays: int | None = None, verify_top: int = 3,
-             fit_top: int | None = FIT_TOP, progress=None, client=None,
+             fit_top: int | None = FIT_TOP, progress=None, executor: Executor | None = None,
              table: ParameterTable = METRIXS) -> Diagnosis:
     """Rank candidate effects for the misfit of ``state`` against ``meas`` (see the module text).
 
@@ -346,8 +342,9 @@ def diagnose(meas: Measurement, state: ModelState, twin=None, forward_model=None
     (the offsets-only reference and each candidate from each of its :func:`starting_values`)
     runs :func:`bluesky_offsets.model.fit.fit` with ``options`` (default :data:`SCAN`) on one set of
     rays.  The ``verify_top`` best are traced again with fresh rays (``verify_rays``, default
-    4x the measurement's) beside the reference.  ``client`` (a Dask client) runs the candidate
-    fits on its workers, one fit each (the same fits, in parallel).  ``fit_top``: with more
+    4x the measurement's) beside the reference.  ``executor`` runs the candidate fits side by
+    side (:func:`bluesky_offsets.model.fit.gather`: the same fits and the same result on any
+    number of threads).  ``fit_top``: with more
     candidates than this, every start is first screened (:func:`bluesky_offsets.model.fit.screen`:
     the twin's Jacobian there and a few steps on its secant updates, a fifth of a fit) and only
     the best ``fit_top`` candidates are fitted; None fits every start.  ``twin`` names the
@@ -390,8 +387,8 @@ def diagnose(meas: Measurement, state: ModelState, twin=None, forward_model=None
     if screened:
         # every start looked at once (the twin's Jacobian there, a few steps on its secant
         # updates); the best few candidates fitted from where their best start's look ended
-        for k, (name, st) in enumerate(jobs):
-            f = screen(meas, st, engine, o, table=table)
+        looks = gather([lambda st=st: screen(meas, st, engine, o, table=table) for _, st in jobs], executor)
+        for k, ((name, _), f) in enumerate(zip(jobs, looks)):
             n_traces += f.n_traces
             report(name)({"stage": "screen", "iteration": k + 1, "accepted": True, "chi2": f.chi2,
                           "chi2_reduced": f.chi2_reduced})
@@ -399,16 +396,8 @@ def diagnose(meas: Measurement, state: ModelState, twin=None, forward_model=None
                 best[name] = f
         chosen = sorted(best, key=lambda n_: best[n_].chi2)[:fit_top]
         jobs = [(name, best[name].state) for name in chosen]
-    if client is not None:
-        # the candidate fits are independent: on the Dask workers, one fit each
-        futures = client.map(_fit_task, [st for _, st in jobs], meas=meas, options=o, table=table, pure=False)
-        fits = []
-        for k, f in enumerate(futures):
-            fits.append(f.result())
-            report(jobs[k][0])({"stage": "candidates", "iteration": k + 1, "accepted": True,
-                                "chi2": fits[-1].chi2, "chi2_reduced": fits[-1].chi2_reduced})
-    else:
-        fits = [fit(meas, st, engine, o, progress=report(name), table=table) for name, st in jobs]
+    fits = gather([lambda name=name, st=st: fit(meas, st, engine, o, progress=report(name), table=table)
+                   for name, st in jobs], executor)
     fitted = set()
     for (name, _), f in zip(jobs, fits):
         n_traces += f.n_traces
@@ -421,13 +410,16 @@ def diagnose(meas: Measurement, state: ModelState, twin=None, forward_model=None
     # goes to the reference; a true effect's does not (without it, those offsets no longer
     # compensate).  Measured: a thermal bump fitted to 13 nm (below 25 nm: no bump at all)
     # had outscored a hidden 12 mm defocus before.
-    for name in sorted(fitted, key=lambda n_: best[n_].chi2)[:verify_top]:
-        if best[name].chi2 >= ref.chi2:
-            break
-        # the last stage alone: the features stage would first trade the bins for the features
-        alt = fit(meas, ModelState(best[name].state.offsets, state.effects, state.label), engine,
-                  o.replace(stages=o.stages[-1:]), progress=report(f"offsets only, from {name}'s"), table=table)
+    # (the last stage alone: the features stage would first trade the bins for the features)
+    froms = [n_ for n_ in sorted(fitted, key=lambda n_: best[n_].chi2)[:verify_top] if best[n_].chi2 < ref.chi2]
+    alts = gather([lambda name=name: fit(meas, ModelState(best[name].state.offsets, state.effects, state.label),
+                                         engine, o.replace(stages=o.stages[-1:]),
+                                         progress=report(f"offsets only, from {name}'s"), table=table)
+                   for name in froms], executor)
+    for name, alt in zip(froms, alts):
         n_traces += alt.n_traces
+        if best[name].chi2 >= ref.chi2:
+            break  # beside the reference as it now stands, this candidate gained nothing
         if alt.chi2 < ref.chi2:
             ref = alt
     dispersion_fit = max(1.0, ref.chi2_reduced)
@@ -588,25 +580,27 @@ def evaluate(meas: Measurement, state: ModelState, twin, *, model_rays: int | No
 
 def add_effect(meas: Measurement, state: ModelState, name: str, twin=None, forward_model=None, *,
                values=None, options: FitOptions | Mapping | None = None, progress=None,
+               executor: Executor | None = None,
                table: ParameterTable = METRIXS) -> tuple[ModelState, dict[str, dict[str, float]]]:
     """``state.with_effect(name, values)`` with offsets and effect refitted (:func:`add_effect_result`)."""
     res = add_effect_result(meas, state, name, twin, forward_model, values=values, options=options,
-                            progress=progress, table=table)
+                            progress=progress, executor=executor, table=table)
     return res.state, res.effect_sigma
 
 
 def add_effect_result(meas: Measurement, state: ModelState, name: str, twin=None, forward_model=None, *,
                       values=None, options: FitOptions | Mapping | None = None, progress=None,
-                      table: ParameterTable = METRIXS):
+                      executor: Executor | None = None, table: ParameterTable = METRIXS):
     """``state.with_effect(name, values)``, offsets and effect refitted with the one fit engine
     (:func:`bluesky_offsets.model.state.refine`, options default :data:`FIT`); returns its
     :class:`~bluesky_offsets.model.state.RefineResult`.  ``values`` starts the effect where the
-    diagnosis found it (a :class:`Candidate` or its ``values``)."""
+    diagnosis found it (a :class:`Candidate` or its ``values``); ``executor`` runs the fit's ray
+    draws side by side."""
     if values is not None and not isinstance(values, dict):
         values = getattr(values, "values", values)  # a Candidate
     o = FitOptions.resolve(options, FIT)
     return refine(meas, state.with_effect(name, values), twin, forward_model, options=o, progress=progress,
-                  table=table)
+                  executor=executor, table=table)
 
 
 # --------------------------------------------------------------------------- #
@@ -636,7 +630,7 @@ class EffectTest:
 
 def retest_effects(meas: Measurement, state: ModelState, names: Sequence[str] | None = None, *,
                    options: FitOptions | Mapping | None = None, seed: int = 0, n_sigma: float = 3.0,
-                   verify_rays: int | None = None, progress=None,
+                   verify_rays: int | None = None, progress=None, executor: Executor | None = None,
                    table: ParameterTable = METRIXS) -> list[EffectTest]:
     """Each of ``names`` (default: every effect of ``state``) tested given the others.
 
@@ -650,6 +644,7 @@ def retest_effects(meas: Measurement, state: ModelState, names: Sequence[str] | 
     fitted to 1.0 σ from zero cost Δχ² = 860 to remove), and both traced with fresh rays (two
     draws, the smaller gain counts).  An effect is kept when the model without it is beyond
     noise and its gain exceeds the diagnosis's price (``p ln N`` times the dispersion).
+    ``executor`` runs each refit's ray draws side by side.
     """
     names = list(state.effects if names is None else names)
     o = FitOptions.resolve(options, FIT)
@@ -670,7 +665,7 @@ def retest_effects(meas: Measurement, state: ModelState, names: Sequence[str] | 
         def report(h, name=name):
             if progress:
                 progress({"fit": f"without {name}", **h})
-        res = fit(meas, rest, engine, o, progress=report, table=table)
+        res = fit(meas, rest, engine, o, progress=report, table=table, executor=executor)
         without = [verify(res.state, d) for d in (0, 1)]
         p = len(E.get(name).parameters)
         out.append(EffectTest(name, p, float(min(w.chi2_total - f.chi2_total for w, f in zip(without, full))),

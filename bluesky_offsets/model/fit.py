@@ -28,13 +28,20 @@ covariance of the last stage at the solution, inflated by χ²/dof where the mod
 reach the noise, and widened to the spread over configurations where that is larger
 (:func:`jackknife_covariance`: what one configuration alone pulls the solution by, which the
 Gauss-Newton covariance does not see when the model or the fit's end is off).
+
+Fits that do not depend on each other (the starts of one fit, its ray draws, a diagnosis's
+candidates) run side by side on an executor where one is given (:func:`gather`); each has its
+own rays and its own model, and their results are used in a fixed order, so the outcome is the
+same on any number of threads.
 """
 
 from __future__ import annotations
 
 import math
 from collections.abc import Callable, Mapping, Sequence
+from concurrent.futures import Executor
 from dataclasses import dataclass, field, fields
+from typing import TypeVar
 
 import numpy as np
 import torch
@@ -44,6 +51,7 @@ from bluesky_offsets.physics import effects as E
 from bluesky_offsets.model.misfit import beam_features, expected_pull2, feature_values
 from bluesky_offsets.physics.noise import bin_variance
 from bluesky_offsets.physics.parameters import MAX_OFFSET, METRIXS, ParameterTable
+from bluesky_offsets.physics.torch_engine import FORWARD_AD
 
 STAGES = ("features", "profiles", "bins")
 #: added to a fit's seed for rays none of its configurations traced (each configuration ``i``
@@ -52,6 +60,7 @@ FRESH_SEED = 1_000_003
 #: ``k`` times this added to a fit's seed: the model's rays of its ``k``-th ray draw
 #: (:attr:`FitOptions.ray_draws`), streams neither the first draw nor the fresh rays trace
 RAY_DRAW_SEED = 3_000_017
+T = TypeVar("T")
 
 
 @dataclass(frozen=True)
@@ -320,7 +329,8 @@ class _Model:
                     th = {k: dict(d) for k, d in theta.items()}
                     th[e][q] = v
                     return apply(h, th)
-                det_cols[(e, q)] = torch.func.jvp(f, (theta[e][q],), (torch.ones((), dtype=torch.float64),))[1]
+                with FORWARD_AD:
+                    det_cols[(e, q)] = torch.func.jvp(f, (theta[e][q],), (torch.ones((), dtype=torch.float64),))[1]
         # the columns in the state's order: twin effects are already in JA at their places
         full, k = [JA[..., :self.P]], self.P
         for e in self.base.effects:
@@ -488,6 +498,17 @@ def _stage(mdl: _Model, stage: str, z: np.ndarray, pr: _Products, iterations: in
     return z, pr, exact
 
 
+def gather(calls: Sequence[Callable[[], T]], executor: Executor | None = None) -> list[T]:
+    """Every call's result, in the calls' order: side by side on ``executor`` (a
+    ``concurrent.futures`` thread pool, or a Dask client's ``get_executor()``), one after the
+    other without one.  Only independent work belongs here (a call must not wait on the same
+    executor: a bounded pool would deadlock); the order of the results, never which call
+    finished first, decides what follows."""
+    if executor is None:
+        return [c() for c in calls]
+    return [f.result() for f in [executor.submit(c) for c in calls]]
+
+
 def _stages(mdl: _Model, z: np.ndarray, ridge: np.ndarray, history: list[dict],
             progress: Callable[[dict], None] | None, tag: dict) -> tuple[np.ndarray, _Products, bool]:
     """All of the options' stages from ``z`` on ``mdl``, each iteration's record tagged with
@@ -504,7 +525,7 @@ def _stages(mdl: _Model, z: np.ndarray, ridge: np.ndarray, history: list[dict],
 
 def fit(meas, state, engine, options: FitOptions | Mapping | None = None, *,
         progress: Callable[[dict], None] | None = None, table: ParameterTable = METRIXS,
-        also_from: Sequence = ()) -> FitResult:
+        also_from: Sequence = (), executor: Executor | None = None) -> FitResult:
     """Fit the offsets and the state's effect parameters to ``meas`` (see the module text).
 
     Parameters
@@ -529,6 +550,8 @@ def fit(meas, state, engine, options: FitOptions | Mapping | None = None, *,
         the end that is lowest on them need not be (measured on a fresh clone, hidden source
         divergence 0.5: the start kept on the fit's own rays compared at χ²/dof 3.92 on fresh
         rays, and the divergence refitted from there at 0.39 ± 0.018; docs/diagnosis.md).
+    executor : runs the starts side by side, then the ray draws (:func:`gather`; the result
+        does not depend on it).
     """
     o = FitOptions.resolve(options)
     mdl = _Model(meas, state, engine, o, table)
@@ -537,12 +560,14 @@ def fit(meas, state, engine, options: FitOptions | Mapping | None = None, *,
     starts = [state, *also_from]
     if any(list(st.effects) != list(state.effects) for st in starts):
         raise ValueError("the starts of one fit must hold the same effects")
-    ends = []
-    for k, st in enumerate(starts):
-        part: list[dict] = []
-        z, pr, exact = _stages(mdl, np.clip(mdl.vector(st), *mdl.bounds()), ridge, part, progress,
-                               {"start": k} if len(starts) > 1 else {})
-        ends.append((part[-1]["chi2"], k, z, pr, exact, part))
+    parts: list[list[dict]] = [[] for _ in starts]
+    # each start on a model of its own, which counts its traces (the rays are the same)
+    models = [mdl] + [_Model(meas, state, engine, o, table) for _ in starts[1:]]
+    runs = gather([lambda k=k, st=st: _stages(models[k], np.clip(mdl.vector(st), *mdl.bounds()), ridge, parts[k],
+                                              progress, {"start": k} if len(starts) > 1 else {})
+                   for k, st in enumerate(starts)], executor)
+    ends = [(parts[k][-1]["chi2"], k, *runs[k], parts[k]) for k in range(len(starts))]
+    mdl.n_traces += sum(m.n_traces for m in models[1:])
     if len(ends) > 1:
         fresh = _Model(meas, state, engine, o.replace(seed=o.seed + FRESH_SEED), table)
         last = o.stages[-1][0]
@@ -554,13 +579,17 @@ def fit(meas, state, engine, options: FitOptions | Mapping | None = None, *,
     _, _, z, pr, exact, _ = kept
     for e in sorted(ends, key=lambda e: e is kept):  # the kept run's iterations last
         history += e[5]
-    draws, spread = [z], None
-    for k in range(1, o.ray_draws if mdl.params else 1):
-        # the same fit on other rays, from where the first draw ended
-        dm = _Model(meas, state, engine, o.replace(seed=o.seed + k * RAY_DRAW_SEED), table)
-        zk = _stages(dm, z, ridge, history, progress, {"ray_draw": k})[0]
+    # the same fit on other rays, from where the first draw ended
+    ks = range(1, o.ray_draws if mdl.params else 1)
+    dms = [_Model(meas, state, engine, o.replace(seed=o.seed + k * RAY_DRAW_SEED), table) for k in ks]
+    dparts: list[list[dict]] = [[] for _ in ks]
+    draws = [z] + [r[0] for r in gather([lambda i=i, k=k: _stages(dms[i], z, ridge, dparts[i], progress,
+                                                                   {"ray_draw": k})
+                                         for i, k in enumerate(ks)], executor)]
+    for dm, part in zip(dms, dparts):
         mdl.n_traces += dm.n_traces
-        draws.append(zk)
+        history += part
+    spread = None
     if len(draws) > 1:
         draws = np.asarray(draws)
         z, exact = np.clip(draws.mean(0), *mdl.bounds()), False

@@ -10,6 +10,7 @@ offsets for the 34 parameters and the values of the physical effects it includes
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
+from concurrent.futures import Executor
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -183,14 +184,16 @@ class RefineResult:
 
 def refine(meas: Measurement, state: ModelState, twin=None, forward_model=None, *,
            options: FitOptions | Mapping | None = None, progress=None, engine=None,
-           table: ParameterTable = METRIXS, also_from: Sequence[ModelState] = ()) -> RefineResult:
+           table: ParameterTable = METRIXS, also_from: Sequence[ModelState] = (),
+           executor: Executor | None = None) -> RefineResult:
     """Fit the offsets and the state's effects to ``meas`` with :func:`bluesky_offsets.model.fit.fit`.
 
     ``twin`` names the parameter table (the fit traces the torch twin, ``engine``, made for
     the measurement's bins unless given); ``forward_model`` is accepted for symmetry with the
-    finders and not used: the twin's own Jacobian is exact and cheap.
+    finders and not used: the twin's own Jacobian is exact and cheap.  ``executor`` runs the
+    fit's starts and ray draws side by side (the same result).
     """
     o = FitOptions.resolve(options)
     engine = engine or engine_for(meas, o, table)
-    res = fit(meas, state, engine, o, progress=progress, table=table, also_from=also_from)
+    res = fit(meas, state, engine, o, progress=progress, table=table, also_from=also_from, executor=executor)
     return RefineResult(res.state, res.effect_sigma(), res.history, res)

@@ -56,6 +56,7 @@ import numpy as np
 import torch
 
 from bluesky_offsets.physics.parameters import MAX_OFFSET, METRIXS, ParameterTable
+from bluesky_offsets.physics.torch_engine import FORWARD_AD
 
 # torch.func has no batching rule for Mish's backward yet: correct, just slower; not the user's concern
 warnings.filterwarnings("ignore", message=".*batching rule for aten::mish", category=UserWarning)
@@ -723,7 +724,7 @@ class LevenbergMarquardt:
         jac = torch.func.vmap(torch.func.jacfwd(resid))
         eye = torch.eye(P, device=obj.device, dtype=torch.float64)
         while not tr.exhausted() and tr.cap(k * (P + 1)) >= k * (P + 1):
-            with torch.no_grad():
+            with torch.no_grad(), FORWARD_AD:
                 J = jac(x).double()  # (k, B, P)
                 r = torch.func.vmap(resid)(x).double()  # (k, B)
             obj.evaluations += k * P

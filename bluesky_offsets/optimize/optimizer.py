@@ -38,6 +38,7 @@ import torch
 from bluesky_offsets.options import refuse_unknown
 from bluesky_offsets.physics import effects as E
 from bluesky_offsets.physics.parameters import MAX_OFFSET, METRIXS, ParameterTable
+from bluesky_offsets.physics.torch_engine import FORWARD_AD
 from bluesky_offsets.physics.twin import CAMERA
 
 from .targets import (
@@ -242,8 +243,9 @@ class _Problem:
             return (r * r).sum()
 
         value = moved(x, y)
-        jac = torch.func.vmap(lambda dx, dy: torch.func.jvp(moved, (x, y), (dx, dy))[1])(tx, ty)
-        grad = torch.func.vmap(lambda dx, dy, dw: torch.func.jvp(total, (x, y, w), (dx, dy, dw))[1])(tx, ty, tw)
+        with FORWARD_AD:
+            jac = torch.func.vmap(lambda dx, dy: torch.func.jvp(moved, (x, y), (dx, dy))[1])(tx, ty)
+            grad = torch.func.vmap(lambda dx, dy, dw: torch.func.jvp(total, (x, y, w), (dx, dy, dw))[1])(tx, ty, tw)
         return value.detach().numpy(), jac.T.detach().numpy(), grad.detach().numpy()
 
 

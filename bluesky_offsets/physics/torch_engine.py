@@ -37,6 +37,7 @@ from __future__ import annotations
 
 import math
 import os
+import threading
 from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass, field, fields
 from typing import Literal
@@ -63,6 +64,13 @@ RAY_WEIGHT_FLOOR = 1e-30
 # a compacting trace gathers the rays still in flight once fewer than this share of those
 # traced are (a gather costs about one element's arithmetic on the survivors)
 COMPACT_BELOW = 0.8
+#: Held by every use of forward-mode AD (``torch.autograd.forward_ad``, ``torch.func.jvp``).
+#: Its dual level is one for the whole process: torch refuses a second one, and the level a
+#: thread leaves is gone for the thread still inside it (measured: two beam optimizations on
+#: two threads failed with "Trying to access a forward AD level with an invalid index").  Fits
+#: run side by side on threads (:func:`bluesky_offsets.model.fit.gather`); reverse mode, what
+#: they mostly use, is safe there.
+FORWARD_AD = threading.RLock()
 FEATURES = ("intensity", "centroid_x", "centroid_y", "width_x", "width_y")
 _MIS_KEYS = {"translationXerror": "tx", "translationYerror": "ty", "translationZerror": "tz",
              "rotationXerror": "rx", "rotationYerror": "ry", "rotationZerror": "rz"}
@@ -1276,7 +1284,7 @@ class TorchEngine:
         cols, out = [], None
         c = vals.shape[0]
         for j in range(n_in):
-            with fwd.dual_level():
+            with FORWARD_AD, fwd.dual_level():
                 k = 0
                 dual_vals, dual_leaves = None, {e: {} for e in leaves}
                 for key, t in flat:
