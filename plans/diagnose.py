@@ -484,8 +484,8 @@ def ranking_rows(d: Diagnosis) -> list[dict]:
 def diagnose_effects(measurement, state: ModelState, twin, forward_model=None, *, store=None,
                      candidates: Sequence[str] | None = None, folds: int = 4, seed: int = 0,
                      options: FitOptions | Mapping | None = None, fit_top: int | None = D.FIT_TOP,
-                     executor: Executor | None = None, open_run: bool = True, md: Mapping | None = None, show: bool = True,
-                     table: ParameterTable = METRIXS) -> MsgGenerator[Ranking]:
+                     executor: Executor | None = None, open_run: bool = True, md: Mapping | None = None,
+                     show: bool = True, table: ParameterTable = METRIXS) -> MsgGenerator[Ranking]:
     """Which effect is missing: :func:`bluesky_offsets.model.diagnosis.diagnose` as a run.
 
     Every candidate fitted with the offsets from each of its starts (``fit_top``: screen every

@@ -293,7 +293,7 @@ def run_demo(out: Path, settings: DemoSettings | None = None, store_location: st
     offsets = truth["offsets"]
     log(f"[1/{s.steps}] starting the simulated METRIXS IOC (RAYX twin backend; hidden offsets in {len(offsets)} of "
         f"{len(METRIXS)} parameters, hidden effects: {', '.join(hidden) or 'none'}); load average {load:.1f} on "
-        f"{os.cpu_count()} cores")
+        f"{os.cpu_count()} cores; the analysis's fits {s.threads} at a time)")
     # seeded frame noise: the same settings give the same demo, --seed another draw of it
     ioc = SimulatedBeamline(truth, s.n_rays, work, noise_seed=s.seed + 2)
     twin = RE = steps_log = None
@@ -379,7 +379,8 @@ def run_demo(out: Path, settings: DemoSettings | None = None, store_location: st
                                               ("Timing", table_([{k: f"{v:.0f} s" for k, v in timing.items()}]))])
         seconds = time.perf_counter() - t0
         summary = {
-            "seconds": seconds, "load_average_start": load, "timing_s": timing, "store": store.location,
+            "seconds": seconds, "load_average_start": load, "threads": s.threads, "timing_s": timing,
+            "store": store.location,
             "uids": steps, "all_run_uids": uids, "report": str(report), "n_configurations": len(m),
             "n_open_configurations": n_open, "n_analysed_configurations": analysis.measurement.n,
             "beam_search": {"frames": beam.frames, "bright": beam.bright, "intensity": beam.intensity,

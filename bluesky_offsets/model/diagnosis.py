@@ -344,11 +344,11 @@ def diagnose(meas: Measurement, state: ModelState, twin=None, forward_model=None
     rays.  The ``verify_top`` best are traced again with fresh rays (``verify_rays``, default
     4x the measurement's) beside the reference.  ``executor`` runs the candidate fits side by
     side (:func:`bluesky_offsets.model.fit.gather`: the same fits and the same result on any
-    number of threads).  ``fit_top``: with more
-    candidates than this, every start is first screened (:func:`bluesky_offsets.model.fit.screen`:
-    the twin's Jacobian there and a few steps on its secant updates, a fifth of a fit) and only
-    the best ``fit_top`` candidates are fitted; None fits every start.  ``twin`` names the
-    parameter table and ``forward_model`` is not used (both kept for symmetry with the other steps).
+    number of threads).  ``fit_top``: with more candidates than this, every start is first
+    screened (:func:`bluesky_offsets.model.fit.screen`: the twin's Jacobian there and a few steps
+    on its secant updates, a fifth of a fit) and only the best ``fit_top`` candidates are fitted;
+    None fits every start.  ``twin`` names the parameter table and ``forward_model`` is not used
+    (both kept for symmetry with the other steps).
     """
     names = [n_ for n_ in (candidates or list(E.EFFECTS)) if n_ not in state.effects]
     for n_ in names:

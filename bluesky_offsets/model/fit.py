@@ -60,7 +60,6 @@ FRESH_SEED = 1_000_003
 #: ``k`` times this added to a fit's seed: the model's rays of its ``k``-th ray draw
 #: (:attr:`FitOptions.ray_draws`), streams neither the first draw nor the fresh rays trace
 RAY_DRAW_SEED = 3_000_017
-T = TypeVar("T")
 
 
 @dataclass(frozen=True)
@@ -496,6 +495,9 @@ def _stage(mdl: _Model, stage: str, z: np.ndarray, pr: _Products, iterations: in
         if not look and (small >= 2 or lam > 1e6):
             break
     return z, pr, exact
+
+
+T = TypeVar("T")
 
 
 def gather(calls: Sequence[Callable[[], T]], executor: Executor | None = None) -> list[T]:
