@@ -408,9 +408,9 @@ def refine_offsets(measurement, state: ModelState, twin, forward_model=None, *, 
     Jacobians; features, then profiles, then bins), options :class:`~bluesky_offsets.model.fit.FitOptions`
     (default :data:`bluesky_offsets.model.diagnosis.FIT`; an unknown key is an error).  Streams
     ``progress`` (every iteration) and ``offsets`` (values ± σ), then compares the result with
-    the measurement through the twin (RAYX, fresh rays).  ``executor`` (a thread pool, or a Dask
-    client's ``get_executor()``) runs the starts and the ray draws side by side: the same result
-    on any number of threads (:func:`bluesky_offsets.model.fit.gather`).
+    the measurement through the twin (RAYX, fresh rays).  ``executor`` (a thread pool) runs the
+    starts and the ray draws side by side: the same result on any number of threads
+    (:func:`bluesky_offsets.model.fit.gather`).
 
     Returns
     -------
@@ -791,10 +791,10 @@ def analyse_measurement(measurement, twin, forward_model=None, *, store=None,
         :func:`bluesky_offsets.store.shared_store`) instead of computing it again; the first step
         it did not complete, and all after it, run.  After Ctrl-C, ``RE.abort()`` or a crash.
     executor : concurrent.futures.Executor, optional
-        Runs independent fits side by side (the starts, the candidates, the ray draws): a
-        thread pool, or a Dask client's ``get_executor()``.  The result is the same with any
-        number of threads, or none (:func:`bluesky_offsets.model.fit.gather`); it is not part of
-        the analysis's key.
+        Runs independent fits side by side (the starts, the candidates, the ray draws): a thread
+        pool (:func:`bluesky_offsets.commands.cli.analysis_executor`).  The result is the same
+        with any number of threads, or none (:func:`bluesky_offsets.model.fit.gather`); it is not
+        part of the analysis's key.
 
     Returns
     -------

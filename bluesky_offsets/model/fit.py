@@ -501,11 +501,12 @@ T = TypeVar("T")
 
 
 def gather(calls: Sequence[Callable[[], T]], executor: Executor | None = None) -> list[T]:
-    """Every call's result, in the calls' order: side by side on ``executor`` (a
-    ``concurrent.futures`` thread pool, or a Dask client's ``get_executor()``), one after the
-    other without one.  Only independent work belongs here (a call must not wait on the same
-    executor: a bounded pool would deadlock); the order of the results, never which call
-    finished first, decides what follows."""
+    """Every call's result, in the calls' order: side by side on ``executor``, one after the
+    other without one.  A thread pool: the calls are closures over the caller's engine and
+    progress callback (a queue, in the plans), which another process could not share.  Only
+    independent work belongs here (a call must not wait on the same executor: a bounded pool
+    would deadlock); the order of the results, never which call finished first, decides what
+    follows."""
     if executor is None:
         return [c() for c in calls]
     return [f.result() for f in [executor.submit(c) for c in calls]]
