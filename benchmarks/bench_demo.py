@@ -63,8 +63,8 @@ def main() -> None:
         d.mkdir(parents=True, exist_ok=True)
         rows.append(run(s, d, a.threads, a.extra))
         print(f"seed {s}: {rows[-1]['done']} s", file=sys.stderr, flush=True)
-    print(f"Machine: {machine()}; {time.strftime('%Y-%m-%d')}; `bluesky-offsets demo --seed S"
-          f"{f' --threads {a.threads}' if a.threads else ''} {' '.join(a.extra)}`".rstrip() + "\n")
+    cmd = " ".join(["bluesky-offsets demo --seed S", *([f"--threads {a.threads}"] if a.threads else []), *a.extra])
+    print(f"Machine: {machine()}; {time.strftime('%Y-%m-%d')}; `{cmd}`\n")
     print("| seed | wall | IOC up | beam found + measured | surrogate finder | analysis | beam optimized | report "
           "| verdict |")
     print("|---:|---:|---:|---:|---:|---:|---:|---:|---|")

@@ -46,8 +46,8 @@ SCENARIOS = {
 def _demo(tmp_path: Path, effect: str, *extra: str) -> tuple[dict, subprocess.CompletedProcess]:
     exe = Path(sys.executable).parent / "bluesky-offsets"  # the console script, as a user runs it
     # the demo's fits one at a time ($OMP_NUM_THREADS, tests/conftest.py): measured with two at a
-    # time, the demos ran 5-20 s shorter but the suite 0.5 min longer (14.9 min, the CPU 22.4 min
-    # against 21.6: the two workers' demos overlap, and four fit threads share two cores)
+    # time, the suite took 14.9 min (its demos 279, 271, 231, 136 s) against 14.7 (291, 280, 228,
+    # 117 s) with one: the two workers' demos overlap, and nothing was gained
     cmd = [str(exe) if exe.exists() else shutil.which("bluesky-offsets"), "demo", "--effect", effect,
            "--out", str(tmp_path / "out"), "--store", str(tmp_path / "runs"), *extra]
     proc = subprocess.run(cmd, capture_output=True, text=True, timeout=1150,
