@@ -107,10 +107,11 @@ class FitOptions:
         set of rays the χ² is a staircase along the directions where offsets compensate an
         effect (an aperture's size against the source's divergence), and one draw ends on
         whichever step is near, farther from the truth than its curvature says.  Measured
-        (docs/benchmarks.md, "Ray draws"): a hidden source divergence of 0.5 that single-draw fits put at 0.476 and 0.458 (σ 0.010),
-        refitted on four other draws from there, came out at 0.480-0.510 and 0.475-0.517; with
-        four draws in the analysis's refits, the five scenario-grid runs that had missed by
-        2.1-3.8 σ came within 1.8 σ, their σ 17-43 % wider.  1: one draw.
+        (docs/benchmarks.md, "Ray draws"): a hidden source divergence of 0.5 that single-draw
+        fits put at 0.476 and 0.458 (σ 0.010), refitted on four other draws from there, came out
+        at 0.480-0.510 and 0.475-0.517; with four draws in the analysis's refits, the five
+        scenario-grid runs that had missed by 2.1-3.8 σ came within 1.8 σ, their σ 17-43 % wider.
+        1: one draw.
     engine : options of the torch engine (:class:`~bluesky_offsets.physics.torch_engine.TorchOptions`).
     """
 
@@ -526,6 +527,16 @@ def _stages(mdl: _Model, z: np.ndarray, ridge: np.ndarray, history: list[dict],
     return z, pr, exact
 
 
+def _runs(jobs: Sequence[tuple[_Model, np.ndarray, dict]], ridge: np.ndarray,
+          progress: Callable[[dict], None] | None, executor: Executor | None) -> list[tuple]:
+    """:func:`_stages` for each ``(model, z, tag)``, side by side on ``executor``: each run's
+    (z, products, exact, its own history), in the jobs' order."""
+    parts: list[list[dict]] = [[] for _ in jobs]
+    ends = gather([lambda j=j, part=part: _stages(j[0], j[1], ridge, part, progress, j[2])
+                   for j, part in zip(jobs, parts)], executor)
+    return [(*end, part) for end, part in zip(ends, parts)]
+
+
 def fit(meas, state, engine, options: FitOptions | Mapping | None = None, *,
         progress: Callable[[dict], None] | None = None, table: ParameterTable = METRIXS,
         also_from: Sequence = (), executor: Executor | None = None) -> FitResult:
@@ -563,14 +574,11 @@ def fit(meas, state, engine, options: FitOptions | Mapping | None = None, *,
     starts = [state, *also_from]
     if any(list(st.effects) != list(state.effects) for st in starts):
         raise ValueError("the starts of one fit must hold the same effects")
-    parts: list[list[dict]] = [[] for _ in starts]
     # each start on a model of its own, which counts its traces (the rays are the same)
     models = [mdl] + [_Model(meas, state, engine, o, table) for _ in starts[1:]]
-    runs = gather([lambda k=k, st=st: _stages(models[k], np.clip(mdl.vector(st), *mdl.bounds()), ridge, parts[k],
-                                              progress, {"start": k} if len(starts) > 1 else {})
-                   for k, st in enumerate(starts)], executor)
-    ends = [(parts[k][-1]["chi2"], k, *runs[k], parts[k]) for k in range(len(starts))]
-    mdl.n_traces += sum(m.n_traces for m in models[1:])
+    runs = _runs([(m, np.clip(mdl.vector(st), *mdl.bounds()), {"start": k} if len(starts) > 1 else {})
+                  for k, (m, st) in enumerate(zip(models, starts))], ridge, progress, executor)
+    ends = [(part[-1]["chi2"], k, z, pr, exact, part) for k, (z, pr, exact, part) in enumerate(runs)]
     if len(ends) > 1:
         fresh = _Model(meas, state, engine, o.replace(seed=o.seed + FRESH_SEED), table)
         last = o.stages[-1][0]
@@ -585,13 +593,10 @@ def fit(meas, state, engine, options: FitOptions | Mapping | None = None, *,
     # the same fit on other rays, from where the first draw ended
     ks = range(1, o.ray_draws if mdl.params else 1)
     dms = [_Model(meas, state, engine, o.replace(seed=o.seed + k * RAY_DRAW_SEED), table) for k in ks]
-    dparts: list[list[dict]] = [[] for _ in ks]
-    draws = [z] + [r[0] for r in gather([lambda i=i, k=k: _stages(dms[i], z, ridge, dparts[i], progress,
-                                                                   {"ray_draw": k})
-                                         for i, k in enumerate(ks)], executor)]
-    for dm, part in zip(dms, dparts):
-        mdl.n_traces += dm.n_traces
-        history += part
+    later = _runs([(dm, z, {"ray_draw": k}) for k, dm in zip(ks, dms)], ridge, progress, executor)
+    draws = [z] + [run[0] for run in later]
+    history += [h for run in later for h in run[3]]
+    mdl.n_traces += sum(m.n_traces for m in models[1:] + dms)
     spread = None
     if len(draws) > 1:
         draws = np.asarray(draws)
