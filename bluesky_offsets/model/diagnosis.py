@@ -412,14 +412,18 @@ def diagnose(meas: Measurement, state: ModelState, twin=None, forward_model=None
     # had outscored a hidden 12 mm defocus before.
     # (the last stage alone: the features stage would first trade the bins for the features)
     froms = [n_ for n_ in sorted(fitted, key=lambda n_: best[n_].chi2)[:verify_top] if best[n_].chi2 < ref.chi2]
-    alts = gather([lambda name=name: fit(meas, ModelState(best[name].state.offsets, state.effects, state.label),
-                                         engine, o.replace(stages=o.stages[-1:]),
-                                         progress=report(f"offsets only, from {name}'s"), table=table)
-                   for name in froms], executor)
-    for name, alt in zip(froms, alts):
-        n_traces += alt.n_traces
+    alt_fits = [lambda name=name: fit(meas, ModelState(best[name].state.offsets, state.effects, state.label),
+                                      engine, o.replace(stages=o.stages[-1:]),
+                                      progress=report(f"offsets only, from {name}'s"), table=table)
+                for name in froms]
+    # side by side all at once; one after the other only as far as the loop goes (the same
+    # result: the loop reads them in order and stops at the same place)
+    alts = gather(alt_fits, executor) if executor is not None else None
+    for k, name in enumerate(froms):
         if best[name].chi2 >= ref.chi2:
             break  # beside the reference as it now stands, this candidate gained nothing
+        alt = alts[k] if alts is not None else alt_fits[k]()
+        n_traces += alt.n_traces
         if alt.chi2 < ref.chi2:
             ref = alt
     dispersion_fit = max(1.0, ref.chi2_reduced)
