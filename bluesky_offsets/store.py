@@ -128,6 +128,47 @@ def consistent_profiles(profile_x, profile_y, fingerprint, hist_x, hist_y):
 # --------------------------------------------------------------------------- #
 # the catalog
 # --------------------------------------------------------------------------- #
+def _init_catalog(uri: str) -> None:
+    """A new tiled catalog at ``uri``: its tables created and stamped with alembic's head, as
+    ``tiled catalog init`` does.  In this process, on a thread of its own (its event loop and
+    its SQLite connections stay there): tiled's ``init_if_not_exists`` starts that command as a
+    subprocess, a new interpreter importing tiled (3.5 s, measured; every new store of a test
+    and of a demo paid it)."""
+    import asyncio
+    import threading
+
+    from sqlalchemy.ext.asyncio import create_async_engine
+    from tiled.alembic_utils import UninitializedDatabase, check_database, stamp_head
+    from tiled.catalog.alembic_constants import ALEMBIC_DIR, ALEMBIC_INI_TEMPLATE_PATH
+    from tiled.catalog.core import ALL_REVISIONS, REQUIRED_REVISION, initialize_database
+    from tiled.utils import ensure_specified_sql_driver
+
+    uri = ensure_specified_sql_driver(uri)
+    failed: list[BaseException] = []
+
+    async def tables() -> None:
+        engine = create_async_engine(uri)
+        try:
+            await check_database(engine, REQUIRED_REVISION, ALL_REVISIONS)
+        except UninitializedDatabase:
+            await initialize_database(engine)
+        finally:
+            await engine.dispose()
+
+    def run() -> None:
+        try:
+            asyncio.run(tables())
+            stamp_head(ALEMBIC_INI_TEMPLATE_PATH, ALEMBIC_DIR, uri)
+        except BaseException as exc:  # noqa: BLE001 - re-raised in the caller's thread
+            failed.append(exc)
+
+    worker = threading.Thread(target=run, name="tiled-catalog-init")
+    worker.start()
+    worker.join()
+    if failed:
+        raise StoreError(f"run store: cannot create the catalog {uri}: {failed[0]}") from failed[0]
+
+
 class RunStore:
     """A tiled catalog of Bluesky runs: embedded (a directory) or a tiled server (URL).
 
@@ -165,10 +206,10 @@ class RunStore:
         db = path / "catalog.db"
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")  # tiled's in-process client warns about httpx/starlette
-            # tiled initializes a catalog in a subprocess (seconds): only when there is none yet
+            if not db.exists():
+                _init_catalog(f"sqlite:///{db}")
             adapter = catalog_from_uri(f"sqlite:///{db}",
-                                       writable_storage=[str(path / "data"), f"duckdb:///{path / 'tables.duckdb'}"],
-                                       init_if_not_exists=not db.exists())
+                                       writable_storage=[str(path / "data"), f"duckdb:///{path / 'tables.duckdb'}"])
             self._context = Context.from_app(build_app(adapter))
             try:
                 client = from_context(self._context)

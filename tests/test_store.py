@@ -93,6 +93,22 @@ def test_embedded_store_persists_and_loads_measurement(RE, chamber, run_store, m
         m2 = again.load_measurement(uid)
     np.testing.assert_allclose(m2.hist_x, m.hist_x)
     np.testing.assert_allclose(m2.configurations, m.configurations)
+    # the catalog was created in this process (not by tiled's `catalog init` subprocess) and
+    # stamped as that command stamps it: tiled's own check of the schema's revision passes
+    import asyncio
+    from pathlib import Path
+
+    from sqlalchemy.ext.asyncio import create_async_engine
+    from tiled.alembic_utils import check_database
+    from tiled.catalog.core import ALL_REVISIONS, REQUIRED_REVISION
+
+    async def check():
+        engine = create_async_engine(f"sqlite+aiosqlite:///{Path(run_store.location) / 'catalog.db'}")
+        try:
+            await check_database(engine, REQUIRED_REVISION, ALL_REVISIONS)
+        finally:
+            await engine.dispose()
+    asyncio.run(check())
 
 
 def test_load_errors_are_clear(RE, chamber, run_store):
