@@ -446,18 +446,25 @@ def diagnose(meas: Measurement, state: ModelState, twin=None, forward_model=None
     # 2. the best few verified with fresh rays beside the reference; held-out folds
     top = [c for c in out if c.score > 0 and c.fitted][:verify_top]
     ref_state = ModelState(ref.state.offsets, state.effects, f"{state.label} (offsets refitted)")
-    ref_mf, ref_view = verify(ref_state)
-    ref_mf2 = verify(ref_state, 1)[0]
-    n_traces += 2 * n * (1 + len(top))
+    # every fresh trace below at once, side by side on the executor (independent traces, read
+    # in this order: the same numbers on any number of threads): the reference and the best few
+    # on two draws each, and the others at the measurement's rays for the ranking plot's
+    # signatures (a picture, not a verdict; the verified ones have 4x)
+    rest = [c for c in out if c not in top]
+    traced = gather([lambda st=st, k=k: verify(st, k) for st in [ref_state] + [c.refined_state for c in top]
+                     for k in (0, 1)]
+                    + [lambda c=c: _fresh_misfit(verifier, meas, c.refined_state, meas.n_rays, seed, 0, table)
+                       for c in rest], executor)
+    (ref_mf, ref_view), (ref_mf2, _) = traced[0], traced[1]
+    n_traces += 2 * n * (1 + len(top)) + n * len(rest)
     within = not ref_mf.total_beyond_noise(n_sigma)
     dispersion = max(1.0, ref_mf.chi2_total / max(ref_mf.dof_total, 1.0))
     ref_ho = _heldout(ref, fold_idx)
-    for c in top:
-        mf_c, h = verify(c.refined_state)
+    for j, c in enumerate(top):
+        (mf_c, h), (mf_c2, _) = traced[2 + 2 * j], traced[3 + 2 * j]
         # a gain must hold with two independent sets of fresh rays: a verdict that another
         # draw of the model's rays would flip is not significant
-        c.delta_chi2_twin = float(min(ref_mf.chi2_total - mf_c.chi2_total,
-                                      ref_mf2.chi2_total - verify(c.refined_state, 1)[0].chi2_total))
+        c.delta_chi2_twin = float(min(ref_mf.chi2_total - mf_c.chi2_total, ref_mf2.chi2_total - mf_c2.chi2_total))
         c.dispersion = dispersion
         c.predicted_signature = _signature(h, ref_view, spec)
         gain = ref_ho - _heldout(best[c.name], fold_idx)
@@ -467,13 +474,8 @@ def diagnose(meas: Measurement, state: ModelState, twin=None, forward_model=None
         # nested models scored on the same measurement and the same fresh rays: under "no such
         # effect" the gain is ~ dispersion * chi2_p, which the BIC price p ln N covers
         c.significant = bool(not within and c.score > 0 and c.heldout_confirms)
-    for c in out:
-        if not c.refined:
-            # what the others would add, for the ranking plot: at the measurement's rays (a
-            # picture, not a verdict; the verified ones above have 4x)
-            h = _fresh_misfit(verifier, meas, c.refined_state, meas.n_rays, seed, 0, table)[1]
-            c.predicted_signature = _signature(h, ref_view, spec)
-            n_traces += n
+    for c, (_, h) in zip(rest, traced[2 + 2 * len(top):]):
+        c.predicted_signature = _signature(h, ref_view, spec)
     observed = _signature(meas.histograms, ref_view, spec)
     out.sort(key=lambda c: (not c.refined, -c.score))
     n_starts = sum(len(starting_values(E.get(n_))) for n_ in names)
