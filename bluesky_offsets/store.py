@@ -166,7 +166,8 @@ def _init_catalog(uri: str) -> None:
     worker.start()
     worker.join()
     if failed:
-        raise StoreError(f"run store: cannot create the catalog {uri}: {failed[0]}") from failed[0]
+        first = (str(failed[0]).splitlines() or [type(failed[0]).__name__])[0][:300]
+        raise StoreError(f"run store: cannot create the catalog {uri}: {first}") from failed[0]
 
 
 class RunStore:
