@@ -450,7 +450,7 @@ def diagnose(meas: Measurement, state: ModelState, twin=None, forward_model=None
     # in this order: the same numbers on any number of threads): the reference and the best few
     # on two draws each, and the others at the measurement's rays for the ranking plot's
     # signatures (a picture, not a verdict; the verified ones have 4x)
-    rest = [c for c in out if c not in top]
+    rest = [c for c in out if not any(c is t for t in top)]  # by identity: Candidate's == compares fields
     traced = gather([lambda st=st, k=k: verify(st, k) for st in [ref_state] + [c.refined_state for c in top]
                      for k in (0, 1)]
                     + [lambda c=c: _fresh_misfit(verifier, meas, c.refined_state, meas.n_rays, seed, 0, table)
