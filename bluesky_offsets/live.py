@@ -33,6 +33,28 @@ def _figure(figsize, show: bool | None):
     return Figure(figsize=figsize)
 
 
+def in_background(callback):
+    """``callback`` on a thread of its own (:class:`bluesky_offsets.queued.QueuedCallback`) when it
+    draws no windows (Agg figures, written as PNG), else itself: a GUI's figures belong to its
+    main loop.  Writing a 20-panel footprint figure takes 0.8 s, which the RunEngine would wait
+    for at the end of every run that draws on it.  :func:`flush` before reading ``written``."""
+    import matplotlib
+
+    from bluesky_offsets.queued import QueuedCallback
+    show = getattr(callback, "show", None)
+    if show or show is None and matplotlib.get_backend().lower() not in NON_GUI:
+        return callback
+    return QueuedCallback(callback, name=f"live-{type(callback).__name__}")
+
+
+def flush(callbacks) -> None:
+    """Wait until the callbacks made with :func:`in_background` have drawn and written every
+    document so far."""
+    for cb in callbacks:
+        if hasattr(type(cb), "flush"):
+            cb.flush()
+
+
 def _redraw(fig) -> None:
     """Repaint a window; an Agg figure (no window) is drawn once, when it is written."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg

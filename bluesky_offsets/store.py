@@ -188,10 +188,22 @@ class RunStore:
         self._context = None
         if loc.startswith(("http://", "https://")):
             from tiled.client import from_uri
-            self.client = from_uri(loc, api_key=api_key or os.environ.get("TILED_API_KEY"))
+            self._client = from_uri(loc, api_key=api_key or os.environ.get("TILED_API_KEY"))
         else:
-            self.client = self._embedded(Path(loc).expanduser())
+            self._client = self._embedded(Path(loc).expanduser())
         self._writer = None
+
+    @property
+    def client(self):
+        """The tiled client of the catalog, once every document handed to :attr:`writer` is in."""
+        self.flush()
+        return self._client
+
+    def flush(self) -> None:
+        """Wait until every document handed to :attr:`writer` is written; raise :class:`StoreError`
+        if one could not be."""
+        if self._writer is not None:
+            self._writer.flush()
 
     def _embedded(self, path: Path):
         from tiled.catalog import from_uri as catalog_from_uri
@@ -224,10 +236,20 @@ class RunStore:
 
     @property
     def writer(self):
-        """A ``TiledWriter`` callback for ``RE.subscribe`` (one per store)."""
+        """The callback for ``RE.subscribe`` (one per store): documents go to a ``TiledWriter`` on
+        a thread of its own, in order; every read of the store waits for them (:meth:`flush`)."""
         if self._writer is None:
             from bluesky_tiled_plugins import TiledWriter
-            self._writer = TiledWriter(self.client)
+
+            from bluesky_offsets.queued import QueuedCallback
+
+            def failed(exc: BaseException) -> StoreError:
+                first = (str(exc).splitlines() or [type(exc).__name__])[0][:300]
+                return StoreError(f"run store {self.location}: a document could not be written: {first}")
+
+            # queued: a catalog answers each request in 20-100 ms of Python, a run's end takes two
+            # dozen (1.0 s for each beam-search run); written while the motors move instead
+            self._writer = QueuedCallback(TiledWriter(self._client), name="run-store-writer", error=failed)
         return self._writer
 
     def subscribe(self, RE) -> int:
@@ -273,6 +295,12 @@ class RunStore:
         return m
 
     def close(self) -> None:
+        """Write what is queued, then close (an embedded catalog's server ends with it)."""
+        if self._writer is not None:
+            try:
+                self._writer.close()
+            finally:
+                self._writer = None
         if self._context is not None:
             self._context.close()
             self._context = None

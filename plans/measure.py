@@ -148,10 +148,16 @@ def scan_configurations(configurations, beamline, chamber, *, reference=None, ta
     readings: list[dict] = []
     devices = [chamber, commanded, *(motors.values() if read_motors else ())]
 
+    # where the motors stand: known after each verified move, unknown while one is under way
+    # (a pause, an abort, a failed move): then every motor is commanded (motion.move_to)
+    here: dict = {"at": dict(start)}
+
     def body():
         for k, (cfg, target) in enumerate(zip(configs, targets)):
             yield from bps.checkpoint()  # a paused scan resumes at this configuration
-            yield from move_to(motors, target, resolution=steps)
+            at, here["at"] = here["at"], None
+            yield from move_to(motors, target, resolution=steps, current=at)
+            here["at"] = target
             commanded.update(k, cfg)
             reading = yield from bps.trigger_and_read(devices)
             readings.append(reading)
@@ -161,10 +167,14 @@ def scan_configurations(configurations, beamline, chamber, *, reference=None, ta
             yield from finish(_measurement(readings, configs, table, None, _md))
 
     run = bpp.run_wrapper(body(), md=_md)
+
+    def back():  # reads ``here`` when it runs, not when the wrapper is built
+        yield from return_to(motors, start, current=here["at"])
+
     if return_to_start:
-        uid = yield from bpp.finalize_wrapper(run, return_to(motors, start))
+        uid = yield from bpp.finalize_wrapper(run, back)
     else:  # kept where the scan ends, unless it fails: then back where they started
-        uid = yield from bpp.contingency_wrapper(run, except_plan=lambda exc: return_to(motors, start))
+        uid = yield from bpp.contingency_wrapper(run, except_plan=lambda exc: back())
     return _measurement(readings, configs, table, uid, _md)
 
 

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Mapping
+from concurrent.futures import Executor
 from dataclasses import asdict, dataclass, field, is_dataclass
 
 import numpy as np
@@ -173,7 +174,7 @@ def _move_and_measure(opt: BeamOptimum, beamline, chamber, frames: int, before_f
 def optimize_beam(target, model, beamline, chamber, *, constraints: Constraints | Mapping | None = None,
                   options: OptimizeOptions | Mapping | None = None, frames: int = 1, closed_loop: bool = False,
                   measurement: Measurement | None = None, refit=None, table: ParameterTable = METRIXS,
-                  md: Mapping | None = None) -> MsgGenerator[BeamResult]:
+                  md: Mapping | None = None, executor: Executor | None = None) -> MsgGenerator[BeamResult]:
     """Compute the settings that give ``target`` on the calibrated ``model``, move there, measure.
 
     Parameters
@@ -193,6 +194,7 @@ def optimize_beam(target, model, beamline, chamber, *, constraints: Constraints 
     closed_loop : refit the model on ``measurement`` (the calibration's, as analysed) and the
         frames after the move (``refit``: FitOptions for it, default ``diagnosis.FIT`` on one draw
         of the model's rays), optimize and move once more.
+    executor : runs the optimizer's starts and the refit's side by side (the same result).
 
     Returns
     -------
@@ -223,7 +225,7 @@ def optimize_beam(target, model, beamline, chamber, *, constraints: Constraints 
         return (yield from run_in_thread(
             lambda progress: optimize_settings(target, cal.state, current, limits=limits, constraints=cons,
                                                covariance=cal.covariance, names=cal.names, options=o,
-                                               progress=progress, table=table),
+                                               progress=progress, executor=executor, table=table),
             stream=None, desc=f"optimize the beam ({target.name}) on the calibrated twin"))
 
     opt = yield from compute(cal, table.from_mapping(start))
@@ -251,7 +253,8 @@ def optimize_beam(target, model, beamline, chamber, *, constraints: Constraints 
         # frames are measured and the prediction is checked, and each further draw costs a whole fit
         # (measured alone: with four, the main job's last step took 60 s against 35-47 s)
         res = yield from run_in_thread(lambda progress: refine(both, cal.state, options=refit or FIT.replace(ray_draws=1),
-                                                               progress=progress, table=table),
+                                                               progress=progress, executor=executor,
+                                                               table=table),
                                        stream=None, desc="refit the model with the frames after the move")
         cal2 = CalibratedState(res.state, res.fit.covariance, tuple(res.fit.names), m.uid)
         opt2 = yield from compute(cal2, opt.settings)

@@ -14,6 +14,7 @@ from bluesky_offsets.epics.devices import FocusChamber, MetrixsBeamline
 from bluesky_offsets.physics.parameters import METRIXS
 from bluesky_offsets.physics.twin import CAMERA, HistogramSpec, Twin
 from conftest import start_metrixs_ioc
+from plans.motion import resolve_motors
 from plans import (
     HIGH_RAY_THRESHOLD,
     MotorLimitError,
@@ -184,6 +185,32 @@ def test_move_beyond_limits_fails_the_step_and_moves_nothing(RE, devices, metrix
         RE(bps.mv(beamline.e1.rx, 2.0))
     assert isinstance(info.value.__cause__, MotorLimitsError)
     assert _positions(ca, metrixs_ioc.prefix) == before
+
+
+def test_a_scan_commands_only_the_motors_its_configurations_change(RE, devices, metrixs_ioc, ca, store):
+    beamline, chamber = devices
+    before = _positions(ca, metrixs_ioc.prefix)
+    configs = np.tile(default_start(), (3, 1))
+    configs[:, METRIXS.index("E1.rotationXerror")] += np.array([0.0, 0.02, -0.02])
+    commanded = []
+
+    def hook(msg):
+        if msg.command == "set":
+            commanded.append(msg.obj.name)
+
+    events = []
+    RE.msg_hook = hook
+    try:
+        RE(measure_configurations(configs, beamline, chamber), lambda name, doc: events.append(doc)
+           if name == "event" else None)
+    finally:
+        RE.msg_hook = None
+    # the first configuration is where the motors stand: nothing moves; then E1 rx twice and back
+    assert commanded == [beamline.e1.rx.name] * 3
+    assert _positions(ca, metrixs_ioc.prefix) == before
+    # every frame still records where all the motors stand
+    motors = resolve_motors(beamline, METRIXS)
+    assert len(events) == 3 and all(m.name in ev["data"] for ev in events for m in motors.values())
 
 
 def test_abort_during_scan_closes_run_and_leaves_ioc_consistent(RE, devices, metrixs_ioc, ca, store):

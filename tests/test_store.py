@@ -189,3 +189,61 @@ def test_camera_profiles_are_kept_only_when_they_add_up_to_the_histograms():
     assert _profiles({keys[0]: px, keys[1]: py}, keys, {}, {}, hx, hy) == (None, None)  # no binning recorded
     m = Measurement(np.tile(METRIXS.reference, (2, 1)), hx, hy, profile_x=px, profile_y=py, metadata=start)
     assert m.profile_spec == CAMERA
+
+
+def test_writes_are_queued_and_every_read_sees_them(RE, chamber, tmp_path):
+    """The writer works on a thread of its own while the RunEngine goes on; a read right after
+    the run sees every document, and a document the catalog refuses stops the next one."""
+    from bluesky_offsets.store import StoreError
+    store = open_store(tmp_path / "runs")
+    try:
+        token = store.subscribe(RE)
+        configs, hists = _data(3)
+        for k in range(2):
+            (uid,) = RE(measurement_run(chamber, configs, hists, {"k": k})).run_start_uids
+            m = store.load_measurement(uid)  # no wait in between: the read waits for the queue
+            assert np.allclose(m.hist_x, [h[0] for h in hists]) and m.metadata["exit_status"] == "success"
+        assert len(store) == 2
+        RE.unsubscribe(token)
+        # the same run again: its uid is in the catalog already, tiled refuses the start document
+        writer = store.writer
+        run = store[uid].metadata
+        writer("start", dict(run["start"]))
+        with pytest.raises(StoreError, match="could not be written: 409"):
+            store.flush()  # or a later document: raised once, in the RunEngine's thread
+        writer("stop", dict(run["stop"]))
+    finally:
+        store.close()
+
+
+def test_a_queued_callback_keeps_the_order_and_reports_failures(caplog):
+    from bluesky_offsets.queued import QueuedCallback
+    seen = []
+
+    def cb(name, doc):
+        if doc.get("bad"):
+            raise ValueError("cannot draw this")
+        seen.append((name, doc["i"]))
+
+    q = QueuedCallback(cb, error=lambda exc: RuntimeError(f"failed: {exc}"))
+    for i in range(50):
+        q("event", {"i": i})
+    q.flush()
+    assert seen == [("event", i) for i in range(50)]
+    q("event", {"i": 50, "bad": True})
+    q("event", {"i": 51})  # dropped: the failure is raised at the next document or flush
+    with pytest.raises(RuntimeError, match="failed: cannot draw this"):
+        q.flush()
+    q.close()
+    assert seen[-1] == ("event", 49)
+    with pytest.raises(RuntimeError, match="closed"):
+        q("event", {"i": 52})
+    # without an error type (a live view): logged once, and the documents after it are drawn
+    seen.clear()
+    q = QueuedCallback(cb)
+    with caplog.at_level("WARNING"):
+        for i in range(3):
+            q("event", {"i": i, "bad": i == 1})
+        q.close()
+    assert seen == [("event", 0), ("event", 2)]
+    assert sum("cannot draw this" in r.getMessage() for r in caplog.records) == 1

@@ -102,8 +102,10 @@ def _calibrate(args, design, effects, pv_map, forward_model, store) -> int:
         beamline, chamber = connect_devices(pv_map, args.connect_timeout)
         store.subscribe(RE)
         RE.subscribe(ScanProgress())
-        from bluesky_offsets.live import LiveFitProgress, LiveFootprints
-        live = [LiveFootprints(Path(args.out) / "live"), LiveFitProgress(Path(args.out) / "live")]
+        from bluesky_offsets.live import LiveFitProgress, LiveFootprints, in_background
+        from bluesky_offsets.live import flush as flush_live
+        live = [in_background(LiveFootprints(Path(args.out) / "live")),
+                in_background(LiveFitProgress(Path(args.out) / "live"))]
         for cb in live:
             RE.subscribe(cb)
 
@@ -143,6 +145,7 @@ def _calibrate(args, design, effects, pv_map, forward_model, store) -> int:
         for k, v in uids.items():
             print(f"  {k:16s} {v}")
         print(f"report: {report}")
+        flush_live(live)
         print(f"live views: {sum(len(cb.written) for cb in live)} figures in {Path(args.out) / 'live'}")
         print(f"done in {time.perf_counter() - t0:.0f} s")
         return 0

@@ -271,7 +271,8 @@ def demo_plan(s: DemoSettings, beamline, chamber, twin, forward_model, log, exec
                else ""))
         beam = yield from optimize_beam("smallest_focus", session.analysis, beamline, chamber, frames=s.frames,
                                         options={"seed": s.seed + 11}, md={"purpose": "bluesky-offsets demo"},
-                                        closed_loop=s.closed_loop, measurement=session.analysis.measurement)
+                                        closed_loop=s.closed_loop, measurement=session.analysis.measurement,
+                                        executor=executor)
     session.times["optimize"] = time.perf_counter()
     return session, beam
 
@@ -321,8 +322,10 @@ def run_demo(out: Path, settings: DemoSettings | None = None, store_location: st
         beamline, chamber = connect_devices(PVMap.simulated(ioc.prefix), timeout=10.0)
         store.subscribe(RE)
         RE.subscribe(ScanProgress())
-        from bluesky_offsets.live import LiveFitProgress, LiveFootprints
-        live = [LiveFootprints(out / "live"), LiveFitProgress(out / "live")]  # windows with a GUI backend
+        from bluesky_offsets.live import LiveFitProgress, LiveFootprints, in_background
+        from bluesky_offsets.live import flush as flush_live
+        # windows with a GUI backend; else PNGs, written on threads of their own
+        live = [in_background(LiveFootprints(out / "live")), in_background(LiveFitProgress(out / "live"))]
         for cb in live:
             RE.subscribe(cb)
         log(f"      IOC {ioc.prefix} on 127.0.0.1:{ioc.port}; run store {store.location}")
@@ -377,6 +380,7 @@ def run_demo(out: Path, settings: DemoSettings | None = None, store_location: st
                                        intro=intro, truth=hidden, uids=steps, store_location=store.location,
                                        extra=[*beam_secs,
                                               ("Timing", table_([{k: f"{v:.0f} s" for k, v in timing.items()}]))])
+        flush_live(live)
         seconds = time.perf_counter() - t0
         summary = {
             "seconds": seconds, "load_average_start": load, "threads": s.threads, "timing_s": timing,

@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Mapping
+from concurrent.futures import Executor
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -464,7 +465,7 @@ def _uncertainty(pb: _Problem, cfg, covariance, names, o: OptimizeOptions, table
 def optimize_settings(target, state, current, *, limits=None, constraints: Constraints | Mapping | None = None,
                       covariance=None, names=None, options: OptimizeOptions | Mapping | None = None, overrides=None,
                       engine=None, progress: Callable[[dict], None] | None = None,
-                      table: ParameterTable = METRIXS) -> BeamOptimum:
+                      executor: Executor | None = None, table: ParameterTable = METRIXS) -> BeamOptimum:
     """The motor settings that give ``target`` on the model ``state``, within the limits.
 
     Parameters
@@ -481,6 +482,7 @@ def optimize_settings(target, state, current, *, limits=None, constraints: Const
         ``names`` in that order); None: the prediction's uncertainty is unknown (not trusted).
     overrides : extra RML overrides of the state (e.g. a hidden truth's effects).
     progress : called with a dict per iteration.
+    executor : runs the starts side by side (the same result: the best in the starts' order).
 
     Raises
     ------
@@ -512,9 +514,11 @@ def optimize_settings(target, state, current, *, limits=None, constraints: Const
     inits = [np.zeros(int(free.sum()))]
     for _ in range(o.starts - 1):
         inits.append(np.clip(rng.uniform(-o.spread, o.spread, int(free.sum())), ulo, uhi))
+    from bluesky_offsets.model.fit import gather
+    runs = gather([lambda k=k, u0=u0: _lm(pb, u0, progress, "current" if k == 0 else f"random {k}")
+                   for k, u0 in enumerate(inits)], executor)
     best, history, starts = None, [], []
-    for k, u0 in enumerate(inits):
-        u, cost, hist = _lm(pb, u0, progress, "current" if k == 0 else f"random {k}")
+    for u, cost, hist in runs:
         history += hist
         starts.append({"start": hist[0]["start"], "cost_start": hist[0]["cost"], "cost": cost,
                        "iterations": hist[-1]["iteration"]})
