@@ -33,8 +33,7 @@ class QueuedCallback:
         ``error(exc) -> Exception``: a failure of ``callback`` is raised as ``error(exc)``, once, at
         the first document handed over or :meth:`flush` after it (the RunEngine then stops the
         plan, as it would have for the callback itself); the documents queued until then are
-        dropped.  Without it a failure is logged
-        once and the callback is called on.
+        dropped.  Without it a failure is logged once and the callback is called on.
 
     The wrapped callback's attributes are read through (``queued.written``); :meth:`flush` first
     where they change with the documents.  A program that ends without :meth:`close` still

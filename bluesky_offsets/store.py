@@ -295,15 +295,16 @@ class RunStore:
         return m
 
     def close(self) -> None:
-        """Write what is queued, then close (an embedded catalog's server ends with it)."""
-        if self._writer is not None:
-            try:
-                self._writer.close()
-            finally:
-                self._writer = None
-        if self._context is not None:
-            self._context.close()
-            self._context = None
+        """Write what is queued, then close (an embedded catalog's server ends with it); a
+        document that could not be written raises :class:`StoreError` after the close."""
+        writer, self._writer = self._writer, None
+        try:
+            if writer is not None:
+                writer.close()
+        finally:
+            if self._context is not None:
+                self._context.close()
+                self._context = None
 
     def __enter__(self) -> RunStore:
         return self

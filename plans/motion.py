@@ -173,9 +173,9 @@ def move_to(motors: Mapping, target: Mapping, *, verify: bool = True, resolution
     ``current``: where the motors are known to stand (the previous target of a scan); motors
     already at their target are then neither commanded nor checked.  A motor record processes
     every put as a move, also a zero-length one (``DMOV`` 1 -> 0 -> 1, a dozen monitor updates
-    each way), and a scan's step changes 1-8 of the 28 motors: commanding all of them took
-    most of a step's time on the simulated beamline.  Without ``current`` every motor is
-    commanded (after a pause or an interrupted move nobody knows where they stand).
+    each way), and a scan's step changes 1-8 of the 28 motors: on the simulated beamline a move
+    of 4 motors by a tiny step takes 16 ms, of all 28 103 ms.  Without ``current`` every motor
+    is commanded (after a pause or an interrupted move nobody knows where they stand).
     """
     moving = {n: m for n, m in motors.items()
               if current is None or n not in current or not _same(current[n], target[n])}
