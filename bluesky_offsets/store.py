@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import os
 import warnings
+import weakref
 from collections.abc import Mapping
 from pathlib import Path
 
@@ -170,6 +171,16 @@ def _init_catalog(uri: str) -> None:
         raise StoreError(f"run store: cannot create the catalog {uri}: {first}") from failed[0]
 
 
+_WRITERS: dict[str, weakref.WeakSet] = {}
+"""The queued writers of this process by catalog: a read waits for all that write to its catalog."""
+
+
+def _catalog_key(location: str) -> str:
+    if location.startswith(("http://", "https://")):
+        return location.rstrip("/")
+    return str(Path(location).expanduser().resolve())
+
+
 class RunStore:
     """A tiled catalog of Bluesky runs: embedded (a directory) or a tiled server (URL).
 
@@ -200,10 +211,11 @@ class RunStore:
         return self._client
 
     def flush(self) -> None:
-        """Wait until every document handed to :attr:`writer` is written; raise :class:`StoreError`
-        if one could not be."""
-        if self._writer is not None:
-            self._writer.flush()
+        """Wait until every document handed to :attr:`writer` is written, and to the writers of the
+        other stores open on the same catalog in this process (a plan given the location rather
+        than the store opens one of its own); raise :class:`StoreError` if one could not be."""
+        for writer in list(_WRITERS.get(_catalog_key(self.location), ())):
+            writer.flush()
 
     def _embedded(self, path: Path):
         from tiled.catalog import from_uri as catalog_from_uri
@@ -250,6 +262,7 @@ class RunStore:
             # queued: a catalog answers each request in 20-100 ms of Python, a run's end takes two
             # dozen (1.0 s for each beam-search run); written while the motors move instead
             self._writer = QueuedCallback(TiledWriter(self._client), name="run-store-writer", error=failed)
+            _WRITERS.setdefault(_catalog_key(self.location), weakref.WeakSet()).add(self._writer)
         return self._writer
 
     def subscribe(self, RE) -> int:

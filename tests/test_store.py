@@ -201,7 +201,11 @@ def test_writes_are_queued_and_every_read_sees_them(RE, chamber, tmp_path):
         configs, hists = _data(3)
         for k in range(2):
             (uid,) = RE(measurement_run(chamber, configs, hists, {"k": k})).run_start_uids
-            m = store.load_measurement(uid)  # no wait in between: the read waits for the queue
+            # no wait in between: a read waits for the queue, also through another store on the
+            # same catalog (a plan given the location opens its own)
+            with open_store(str(tmp_path / "runs") + "/") as other:
+                assert other.load_measurement(uid).metadata["exit_status"] == "success"
+            m = store.load_measurement(uid)
             assert np.allclose(m.hist_x, [h[0] for h in hists]) and m.metadata["exit_status"] == "success"
         assert len(store) == 2
         RE.unsubscribe(token)
