@@ -129,6 +129,11 @@ def consistent_profiles(profile_x, profile_y, fingerprint, hist_x, hist_y):
 # --------------------------------------------------------------------------- #
 # the catalog
 # --------------------------------------------------------------------------- #
+def _first_line(exc: BaseException) -> str:
+    """The first line of an error's message (its type's name if it has none), for one-line errors."""
+    return (str(exc).splitlines() or [type(exc).__name__])[0][:300]
+
+
 def _init_catalog(uri: str) -> None:
     """A new tiled catalog at ``uri``: its tables created and stamped with alembic's head, as
     ``tiled catalog init`` does.  In this process, on a thread of its own (its event loop and
@@ -167,8 +172,7 @@ def _init_catalog(uri: str) -> None:
     worker.start()
     worker.join()
     if failed:
-        first = (str(failed[0]).splitlines() or [type(failed[0]).__name__])[0][:300]
-        raise StoreError(f"run store: cannot create the catalog {uri}: {first}") from failed[0]
+        raise StoreError(f"run store: cannot create the catalog {uri}: {_first_line(failed[0])}") from failed[0]
 
 
 _WRITERS: dict[str, weakref.WeakSet] = {}
@@ -203,6 +207,7 @@ class RunStore:
         else:
             self._client = self._embedded(Path(loc).expanduser())
         self._writer = None
+        self._catalog = _catalog_key(loc)  # every read looks up the writers by it
 
     @property
     def client(self):
@@ -214,7 +219,7 @@ class RunStore:
         """Wait until every document handed to :attr:`writer` is written, and to the writers of the
         other stores open on the same catalog in this process (a plan given the location rather
         than the store opens one of its own); raise :class:`StoreError` if one could not be."""
-        for writer in list(_WRITERS.get(_catalog_key(self.location), ())):
+        for writer in list(_WRITERS.get(self._catalog, ())):
             writer.flush()
 
     def _embedded(self, path: Path):
@@ -241,7 +246,7 @@ class RunStore:
             except Exception as exc:  # noqa: BLE001 - e.g. the DuckDB tables locked by another process
                 self._context.close()
                 self._context = None
-                first = str(exc).splitlines()[0][:300] if str(exc) else type(exc).__name__
+                first = _first_line(exc)
                 raise StoreError(f"run store: cannot open {path}: {first} (an embedded store serves one process "
                                  f"at a time; several need a tiled server: BLUESKY_OFFSETS_STORE=http://...)") from None
         return client
@@ -256,13 +261,13 @@ class RunStore:
             from bluesky_offsets.queued import QueuedCallback
 
             def failed(exc: BaseException) -> StoreError:
-                first = (str(exc).splitlines() or [type(exc).__name__])[0][:300]
-                return StoreError(f"run store {self.location}: a document could not be written: {first}")
+                return StoreError(f"run store {self.location}: a document could not be written: "
+                                  f"{_first_line(exc)}")
 
             # queued: a catalog answers each request in 20-100 ms of Python, a run's end takes two
             # dozen (1.0 s for each beam-search run); written while the motors move instead
             self._writer = QueuedCallback(TiledWriter(self._client), name="run-store-writer", error=failed)
-            _WRITERS.setdefault(_catalog_key(self.location), weakref.WeakSet()).add(self._writer)
+            _WRITERS.setdefault(self._catalog, weakref.WeakSet()).add(self._writer)
         return self._writer
 
     def subscribe(self, RE) -> int:
