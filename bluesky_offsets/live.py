@@ -22,11 +22,16 @@ from bluesky.callbacks.core import CallbackBase
 NON_GUI = {"agg", "pdf", "ps", "svg", "cairo", "pgf", "template"}
 
 
-def _figure(figsize, show: bool | None):
-    import matplotlib
+def _windows(show: bool | None) -> bool:
+    """Whether figures are windows: ``show``, or by default whether the backend is a GUI's."""
     if show is None:
-        show = matplotlib.get_backend().lower() not in NON_GUI
-    if show:
+        import matplotlib
+        return matplotlib.get_backend().lower() not in NON_GUI
+    return bool(show)
+
+
+def _figure(figsize, show: bool | None):
+    if _windows(show):
         import matplotlib.pyplot as plt
         return plt.figure(figsize=figsize)
     from matplotlib.figure import Figure
@@ -38,11 +43,8 @@ def in_background(callback):
     draws no windows (Agg figures, written as PNG), else itself: a GUI's figures belong to its
     main loop.  Writing a 20-panel footprint figure takes 0.8 s, which the RunEngine would wait
     for at the end of every run that draws on it.  :func:`flush` before reading ``written``."""
-    import matplotlib
-
     from bluesky_offsets.queued import QueuedCallback
-    show = getattr(callback, "show", None)
-    if show or show is None and matplotlib.get_backend().lower() not in NON_GUI:
+    if _windows(getattr(callback, "show", None)):
         return callback
     return QueuedCallback(callback, name=f"live-{type(callback).__name__}")
 
