@@ -215,6 +215,17 @@ class Analysis:
                 for r in self.refits if r.effect in state.effects}
 
     @property
+    def could_hide(self) -> dict[str, dict[str, float]]:
+        """With the model within noise before any candidate was fitted: how large each candidate
+        could be and still hide behind the offsets (the last diagnosis's
+        :func:`~bluesky_offsets.model.diagnosis.detection_limits`); else empty."""
+        return self.rankings[-1].diagnosis.limits if self.rankings else {}
+
+    @property
+    def could_hide_line(self) -> str:
+        return "could hide within noise, behind the offsets: " + D.limits_text(self.could_hide)
+
+    @property
     def verdict(self) -> str:
         """What the diagnoses found, in order: the effects added (and kept), or why none was."""
         found = [f"{e} ({', '.join(f'{k} = {v:.4g} ± {s:.2g}' for k, (v, s) in m.items())})"

@@ -72,6 +72,13 @@ def test_refine_finds_the_offsets_through_the_twin(twin):
     # (the offsets themselves are only determined up to compensating combinations)
     d = diagnose(meas, fit.state, twin, candidates=CANDIDATES, options=SCAN)
     assert d.verdict == "no significant missing effect", d.as_dict()
+    # within noise, nothing is fitted, and what that cannot exclude is said: how large each
+    # candidate could be and still hide behind the offsets, every parameter of every candidate
+    assert d.within_noise and not d.candidates
+    assert {n: set(v) for n, v in d.limits.items()} == {
+        n: {p.name for p in E.get(n).parameters} for n in CANDIDATES}, d.limits
+    assert all(lim > 0 for v in d.limits.values() for lim in v.values()), d.limits
+    assert "could absorb and still leave the model within noise" in d.notes[-1] and "chamber_z.z up to" in d.notes[-1]
 
 
 def test_hidden_effect_ranked_first_and_fitted(twin, with_gain_loss, tmp_path):

@@ -138,6 +138,8 @@ def _calibrate(args, design, effects, pv_map, forward_model, store) -> int:
             uids=uids, store_location=store.location)
         print()
         print(f"verdict: {analysis.verdict}")
+        if analysis.could_hide:
+            print(analysis.could_hide_line)
         print("error history (a correct model: chi2/dof ≈ 1, MSE ≈ its noise expectation):")
         for line in history_lines(analysis):
             print(line)

@@ -391,6 +391,8 @@ def run_demo(out: Path, settings: DemoSettings | None = None, store_location: st
                             "steps": beam.log, "uids": beam.uids},
             "n_rays": s.n_rays, "hidden_offsets": offsets, "offsets_fraction": s.offsets_fraction,
             "hidden_effects": hidden, "verdict": analysis.verdict,
+            # a within-noise verdict: how large each candidate could be and still hide
+            "could_hide": analysis.could_hide,
             "rankings": [[c.name for c in r.diagnosis.candidates] for r in analysis.rankings],
             "history": [c.total_row() for c in analysis.comparisons],
             "fitted_effects": analysis.magnitudes(),
@@ -455,6 +457,8 @@ def _print_summary(summary: dict, analysis, location: str) -> None:
     from bluesky_offsets.commands.report import history_lines
     print()
     print(f"verdict: {summary['verdict']}")
+    if analysis.could_hide:
+        print(analysis.could_hide_line)
     for k, ranking in enumerate(summary["rankings"], 1):
         print(f"ranking {k}: " + ", ".join(ranking[:5]) + (" ..." if len(ranking) > 5 else ""))
     print("hidden: " + (", ".join(f"{k} {v}" for k, v in summary["hidden_effects"].items()) or "no effect"))

@@ -67,6 +67,7 @@ def summary_dict(analysis) -> dict:
     return {
         "measurement_uid": analysis.measurement.uid,
         "verdict": analysis.verdict,
+        "could_hide": analysis.could_hide,
         "rankings": [[{"effect": c.name, "score": c.score, "significant": c.significant, "values": c.values,
                        "sigma": c.sigma} for c in r.diagnosis.candidates] for r in analysis.rankings],
         "history": [c.total_row() for c in analysis.comparisons],
@@ -131,6 +132,8 @@ def _cmd_diagnose(args) -> int:
         else:
             from bluesky_offsets.commands.report import history_lines
             print(out["verdict"])
+            if analysis.could_hide:
+                print(analysis.could_hide_line)
             for line in history_lines(analysis):
                 print(line)
             for k, v in out["uids"].items():

@@ -222,6 +222,14 @@ def analysis_sections(analysis, spec, work: Path, *, truth: Mapping | None = Non
                 + table_(sig_rows))
         if diag.notes:
             body += paragraph("; ".join(diag.notes))
+        if diag.limits:
+            from bluesky_offsets.model.diagnosis import limit_text
+            body += (paragraph("The model is within noise, so no candidate was fitted. What that cannot exclude: "
+                               "how large each candidate could be and still be absorbed by the offsets, the model "
+                               "staying within noise (linearised at the candidate's starting values; more can hide "
+                               "where the twin responds less, as a defocus near its focus):")
+                     + table_([{"effect": name, "parameter": q, "could hide": limit_text(name, q, lim)}
+                               for name, d in diag.limits.items() for q, lim in d.items()]))
         title = "Which effect is missing: ranking" + (f" (diagnosis {k_rank}, model '{diag_label(analysis, k_rank)}')"
                                                       if len(analysis.rankings) > 1 else "")
         secs.append((title, body))

@@ -616,13 +616,7 @@ def fit(meas, state, engine, options: FitOptions | Mapping | None = None, *,
             progress(history[-1])
     # the covariance of the last stage: Gauss-Newton at the solution; a bound that holds a
     # parameter does not shrink its uncertainty below what the data say
-    A = G.T @ G + np.diag(ridge)
-    d = np.sqrt(np.clip(np.diag(A), 1e-300, None))
-    cov = np.linalg.pinv(A / np.outer(d, d), rcond=1e-12) / np.outer(d, d)
-    # a parameter the data do not see at all (a thermal bump below its threshold: no bump, a
-    # zero column) has no uncertainty to give; the pseudo-inverse's 0 would print "± 0"
-    blind = np.diag(A) <= 0
-    cov[blind, blind] = np.nan
+    cov = _gauss_newton_covariance(G, ridge)
     chi2 = float(r @ r)
     inflation = max(1.0, chi2 / max(dof, 1.0))
     cov = cov * inflation
@@ -642,6 +636,35 @@ def fit(meas, state, engine, options: FitOptions | Mapping | None = None, *,
         cov = cov + np.where(np.isnan(cov), 0.0, spread)
     return FitResult(mdl.state(z), history, cov, mdl.names, chi2, dof, inflation, mdl.n_traces, G, r,
                      rows, o.stages[-1][0], ridge, widen, None if spread is None else np.asarray(draws))
+
+
+def _gauss_newton_covariance(G: np.ndarray, ridge: np.ndarray) -> np.ndarray:
+    """(Gᵀ G + prior)⁻¹, scaled to unit diagonal first (the columns' units differ by orders of
+    magnitude).  A parameter the data do not see at all (a thermal bump below its threshold: no
+    bump, a zero column) has no uncertainty to give: NaN, not the pseudo-inverse's "± 0"."""
+    A = G.T @ G + np.diag(ridge)
+    d = np.sqrt(np.clip(np.diag(A), 1e-300, None))
+    cov = np.linalg.pinv(A / np.outer(d, d), rcond=1e-12) / np.outer(d, d)
+    blind = np.diag(A) <= 0
+    cov[blind, blind] = np.nan
+    return cov
+
+
+def information(meas, state, engine, options: FitOptions | Mapping | None = None, *,
+                table: ParameterTable = METRIXS) -> FitResult:
+    """``state`` looked at as it stands, no step taken: the last stage's residuals and the twin's
+    exact Jacobian there, and the Gauss-Newton covariance they give (not inflated, not widened:
+    what the data could say about each parameter there, the others free).  One Jacobian of the
+    twin; :func:`bluesky_offsets.model.diagnosis.detection_limits` reads from it how large an
+    effect could be and still hide behind the offsets."""
+    o = FitOptions.resolve(options)
+    mdl = _Model(meas, state, engine, o, table)
+    z = np.clip(mdl.vector(state), *mdl.bounds())
+    stage = o.stages[-1][0]
+    r, G, dof, rows = mdl.residuals(stage, mdl.products(stage, z, True))
+    ridge = _ridge(mdl, o)
+    return FitResult(mdl.state(z), [], _gauss_newton_covariance(G, ridge), mdl.names, float(r @ r), dof, 1.0,
+                     mdl.n_traces, G, r, rows, stage, ridge)
 
 
 def jackknife_covariance(G: np.ndarray, r: np.ndarray, rows: np.ndarray, ridge: np.ndarray,
