@@ -338,13 +338,6 @@ def detection_limits(meas: Measurement, state: ModelState, engine, options: FitO
     return out
 
 
-def limits_note(limits: Mapping[str, Mapping[str, float]], rays: int, n_sigma: float) -> str:
-    """One line: what a within-noise verdict cannot exclude (:func:`detection_limits`), in each
-    parameter's units."""
-    return (f"what the offsets could absorb and still leave the model within noise ({n_sigma:g} sigma of chi2; "
-            f"linearised at each candidate's starts, {rays} model rays): {limits_text(limits)}")
-
-
 def limits_text(limits: Mapping[str, Mapping[str, float]]) -> str:
     """"chamber_z.z up to 12.3 mm; ..." (:func:`detection_limits`)."""
     return "; ".join(f"{name}.{q} {limit_text(name, q, lim)}" for name, d in limits.items() for q, lim in d.items())
@@ -428,8 +421,9 @@ def diagnose(meas: Measurement, state: ModelState, twin=None, forward_model=None
         n_traces += n * sum(len(starting_values(E.get(n_))) for n_ in names)
         return Diagnosis(base_mf, True, [], _signature(meas.histograms, base_view, spec), folds, n_traces,
                          [f"the base model is within noise (chi2/dof = {base_mf.chi2_reduced_total:.2f}): "
-                          "no candidate fitted", limits_note(limits, o.rays, n_sigma)], state, base_mf,
-                         limits=limits)
+                          "no candidate fitted; the limits say how large each could be and still hide behind the "
+                          f"offsets ({n_sigma:g} sigma of chi2, linearised at its starts, {o.rays} model rays)"],
+                         state, base_mf, limits=limits)
 
     def report(label):
         def inner(h):
