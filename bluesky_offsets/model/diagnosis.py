@@ -321,7 +321,7 @@ def detection_limits(meas: Measurement, state: ModelState, engine, options: FitO
     ``(a / σ)²``, so the limit is ``σ √excess``; the smallest over the starts that move the
     parameter (an effect without starts: at zero, every parameter).  Where the twin responds
     less than at the start (a defocus near its focus) more can hide: a limit says what surely
-    hides, not what surely shows.  Infinite where the offsets mimic the parameter entirely.
+    hides, not what surely shows.  Infinite where the data do not see the parameter at all.
     Side by side on ``executor``, read in order.
     """
     jobs = [(name, v) for name in names for v in starting_values(E.get(name))]
@@ -346,7 +346,7 @@ def limits_text(limits: Mapping[str, Mapping[str, float]]) -> str:
 def limit_text(name: str, parameter: str, limit: float) -> str:
     """"up to 12.3 mm", or what an infinite limit means."""
     if not math.isfinite(limit):
-        return "at any size (the offsets mimic it)"
+        return "at any size (this design does not see it)"
     unit = next((p.unit for p in E.get(name).parameters if p.name == parameter), "")
     return f"up to {limit:.3g}" + (f" {unit}" if unit else "")
 
