@@ -320,8 +320,9 @@ def detection_limits(meas: Measurement, state: ModelState, engine, options: FitO
     the parameter's σ with the offsets free is the Schur complement's, and a magnitude ``a`` adds
     ``(a / σ)²``, so the limit is ``σ √excess``; the smallest over the starts that move the
     parameter (an effect without starts: at zero, every parameter).  Where the twin responds
-    less than at the start (a defocus near its focus) more can hide: a limit says what surely
-    hides, not what surely shows.  Infinite where the data do not see the parameter at all.
+    less than at the start (a defocus near its focus) more can hide: a limit estimates from below
+    what can hide, it is no bound on what shows.  Infinite where the data do not see the
+    parameter at all.
     Side by side on ``executor``, read in order.
     """
     jobs = [(name, v) for name in names for v in starting_values(E.get(name))]
