@@ -222,6 +222,12 @@ class Analysis:
         return self.rankings[-1].diagnosis.limits if self.rankings else {}
 
     @property
+    def could_hide_json(self) -> dict[str, dict[str, float | None]]:
+        """:attr:`could_hide` for a JSON file: a parameter the data do not see at all (an infinite
+        limit) as null, so that strict JSON parsers read it."""
+        return {e: {q: (v if np.isfinite(v) else None) for q, v in d.items()} for e, d in self.could_hide.items()}
+
+    @property
     def could_hide_line(self) -> str:
         return "could hide within noise, behind the offsets: " + D.limits_text(self.could_hide)
 

@@ -392,7 +392,7 @@ def run_demo(out: Path, settings: DemoSettings | None = None, store_location: st
             "n_rays": s.n_rays, "hidden_offsets": offsets, "offsets_fraction": s.offsets_fraction,
             "hidden_effects": hidden, "verdict": analysis.verdict,
             # a within-noise verdict: how large each candidate could be and still hide
-            "could_hide": analysis.could_hide,
+            "could_hide": analysis.could_hide_json,
             "rankings": [[c.name for c in r.diagnosis.candidates] for r in analysis.rankings],
             "history": [c.total_row() for c in analysis.comparisons],
             "fitted_effects": analysis.magnitudes(),

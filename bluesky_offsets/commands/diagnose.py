@@ -67,7 +67,7 @@ def summary_dict(analysis) -> dict:
     return {
         "measurement_uid": analysis.measurement.uid,
         "verdict": analysis.verdict,
-        "could_hide": analysis.could_hide,
+        "could_hide": analysis.could_hide_json,
         "rankings": [[{"effect": c.name, "score": c.score, "significant": c.significant, "values": c.values,
                        "sigma": c.sigma} for c in r.diagnosis.candidates] for r in analysis.rankings],
         "history": [c.total_row() for c in analysis.comparisons],
