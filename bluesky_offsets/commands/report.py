@@ -123,7 +123,7 @@ def analysis_sections(analysis, spec, work: Path, *, truth: Mapping | None = Non
 
     ``truth`` (simulations only) adds the hidden effect beside the fitted one.
     """
-    from bluesky_offsets.model.diagnosis import plot_error_history, plot_ranking
+    from bluesky_offsets.model.diagnosis import limit_text, plot_error_history, plot_ranking
     from bluesky_offsets.model.misfit import plot_overlays, plot_residual_maps
     from bluesky_offsets.physics.effects import get as get_effect
     from bluesky_offsets.physics.parameters import METRIXS
@@ -223,7 +223,6 @@ def analysis_sections(analysis, spec, work: Path, *, truth: Mapping | None = Non
         if diag.notes:
             body += paragraph("; ".join(diag.notes))
         if diag.limits:
-            from bluesky_offsets.model.diagnosis import limit_text
             body += (paragraph("The model is within noise, so no candidate was fitted. What that cannot exclude: "
                                "how large each candidate could be and still be absorbed by the offsets, the model "
                                "staying within noise (linearised at the candidate's starting values; more can hide "

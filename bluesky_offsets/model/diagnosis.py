@@ -412,6 +412,7 @@ def diagnose(meas: Measurement, state: ModelState, twin=None, forward_model=None
 
     base_mf, base_view = verify(state)
     n_traces = n
+    n_starts = sum(len(starting_values(E.get(n_))) for n_ in names)
     fold_idx = _folds(n, folds, seed)
     if not base_mf.total_beyond_noise(n_sigma):
         # nothing to explain: no candidate is fitted.  What the verdict cannot exclude is said:
@@ -419,7 +420,7 @@ def diagnose(meas: Measurement, state: ModelState, twin=None, forward_model=None
         # defocus behind all-34 offsets of ±7 %, chi2/dof 1.09)
         excess = n_sigma * math.sqrt(2 * max(base_mf.dof_total, 1.0))
         limits = detection_limits(meas, state, engine, o, names, excess, executor=executor, table=table)
-        n_traces += n * sum(len(starting_values(E.get(n_))) for n_ in names)
+        n_traces += n * n_starts  # one Jacobian at each start
         return Diagnosis(base_mf, True, [], _signature(meas.histograms, base_view, spec), folds, n_traces,
                          [f"the base model is within noise (chi2/dof = {base_mf.chi2_reduced_total:.2f}): "
                           "no candidate fitted; the limits say how large each could be and still hide behind the "
@@ -532,7 +533,6 @@ def diagnose(meas: Measurement, state: ModelState, twin=None, forward_model=None
         c.predicted_signature = _signature(h, ref_view, spec)
     observed = _signature(meas.histograms, ref_view, spec)
     out.sort(key=lambda c: (not c.refined, -c.score))
-    n_starts = sum(len(starting_values(E.get(n_))) for n_ in names)
     how = (f"{n_starts} starts of {len(names)} candidates screened (one Jacobian of the twin each), the best "
            f"{len(fitted)} fitted" if screened else f"{n_starts} fits of {len(names)} candidates")
     notes = [(f"{how} with the offsets ({', '.join(f'{s} {k}' for s, k in o.stages)} iterations, {o.rays} rays, "
