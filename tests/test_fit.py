@@ -54,6 +54,14 @@ def test_ray_jacobian_gives_the_soft_histograms_exact_jacobian():
     assert sub.names == [names[c] for c in cols] and torch.equal(sub.rows, rj.rows)
     for full, part in ((rj.rows_jx, sub.rows_jx), (rj.rows_jy, sub.rows_jy), (rj.rows_jw, sub.rows_jw)):
         assert float((full[:, cols] - part).abs().max()) <= 1e-12 * max(float(full.abs().max()), 1.0)
+    # the values a fit's step has just traced are taken instead of traced again: the same
+    # histograms and Jacobian (the weights may differ in the last bit, as above)
+    again = eng.ray_jacobian(cfg, eff, n_rays=1500, seed=5, chunk=1000, full=soft)
+    h2, J2 = again.histograms(HistogramSpec(), kernel=eng.options.kernel)
+    assert torch.equal(h2, h) and torch.equal(again.rows, rj.rows)
+    assert float((J2 - J).abs().max()) <= 1e-12 * float(J.abs().max())
+    with pytest.raises(ValueError, match=r"full: rays of shape \(2, 1500\), not \(2, 1000\)"):
+        eng.ray_jacobian(cfg, eff, n_rays=1000, seed=5, full=soft)
 
 
 def test_pitch_moves_the_focus_along_x():

@@ -249,6 +249,9 @@ class _Model:
         self.n_traces = 0
         self.soft = bool(options.soft_values)
         self._measured: dict[str, np.ndarray] = {}
+        # the rays' values last traced without derivatives ((z, rays), Beam): an accepted step
+        # asks for the Jacobian where its values were just traced, which then traces no value again
+        self._last: tuple | None = None
 
     # -- z <-> state -----------------------------------------------------------------
     def vector(self, st) -> np.ndarray:
@@ -278,8 +281,10 @@ class _Model:
         twin_eff = {e: st.effects[e] for e in self.twin_effects}
         spec = self.meas.spec
         self.n_traces += self.meas.n
+        key = (np.asarray(z, float).tobytes(), rays)
         if jacobian:
-            rj = self.engine.ray_jacobian(vals, twin_eff, n_rays=rays, seed=self.o.seed)
+            full = self._last[1] if self._last is not None and self._last[0] == key else None
+            rj = self.engine.ray_jacobian(vals, twin_eff, n_rays=rays, seed=self.o.seed, full=full)
             h, J = rj.histograms(spec, self.o.kernel, soft=soft)
             # offsets are normalized: d/dz = d/dvalue * span; effect columns in the state's order
             cols = [J[..., :self.P] * self.span]
@@ -290,9 +295,12 @@ class _Model:
                     k += 1
             J = torch.cat(cols, -1)
         else:
+            # with the soft edge whether or not the values are soft: RAYX's hard counts (the rays'
+            # ``alive``) are the same bit for bit, and the Jacobian can take these rays
             with torch.no_grad():
                 beam = self.engine.beam(vals, E.twin_overrides(twin_eff) if twin_eff else None, n_rays=rays,
-                                        seed=self.o.seed, edge=self.engine.options.edge if soft else 0.0)
+                                        seed=self.o.seed, edge=self.engine.options.edge)
+            self._last = (key, beam)
             from bluesky_offsets.physics.torch_engine import histograms
             hx, hy = histograms(beam, spec, soft=soft, kernel=self.o.kernel)
             h, J = torch.cat([hx, hy], 1), None

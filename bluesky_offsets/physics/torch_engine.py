@@ -1380,7 +1380,7 @@ class TorchEngine:
 
     # -- per-ray derivatives ---------------------------------------------------------
     def ray_jacobian(self, values, effects=None, *, n_rays: int, seed=0, overrides=None,
-                     chunk: int = 1 << 16, columns=None) -> RayJacobian:
+                     chunk: int = 1 << 16, columns=None, full: Beam | None = None) -> RayJacobian:
         """Every ray's screen position and soft weight with their derivatives in the inputs.
 
         The inputs are the 34 parameters and the twin-level effect parameters of ``effects``
@@ -1399,9 +1399,14 @@ class TorchEngine:
         fields they do not move are no leaves, so nothing upstream of the first field they
         move is traced with a graph (the beam optimizer moves E1 and E2 alone: 0.12 s instead of
         0.96 s at 20,000 rays).
+        ``full``: the rays' values as :meth:`beam` traced them at these inputs, rays and seed with
+        the soft edge (``edge=options.edge``), taken instead of tracing them again (a fit traces
+        the values at a step before it asks for the Jacobian there).
         """
         o = self.options
         vals, leaves, names = self.inputs(values, effects)
+        if full is not None and tuple(full.x.shape) != (vals.shape[0], n_rays):
+            raise ValueError(f"full: rays of shape {tuple(full.x.shape)}, not ({vals.shape[0]}, {n_rays})")
         c = vals.shape[0]
         vals_req = vals.clone().requires_grad_(True)
         leaves_req = {e: {p: t.clone().requires_grad_(True) for p, t in d.items()} for e, d in leaves.items()}
@@ -1420,6 +1425,7 @@ class TorchEngine:
         live = [i for i in range(len(fields)) if bool(dfield[:, bounds[i]:bounds[i + 1]].any())]
         dfield_live = torch.cat([dfield[:, bounds[i]:bounds[i + 1]] for i in live], 1)
         units = source_units(bl, n_rays, seed, sampling=o.sampling, common=o.common_rays)
+        full_all = full
         step = max(1, int(chunk) // c)
         n_live = dfield_live.shape[1]
         parts = []
@@ -1430,8 +1436,11 @@ class TorchEngine:
                               None if units.draws is None else units.draws.slice(a, b),
                               None if units.ctr is None else units.ctr[..., a:b])
             # every ray's values, without a graph (bit for bit the values of :meth:`beam`)
-            with torch.no_grad():
-                full = trace_rays(bl, source_rays(bl, cut), cut.draws, edge=o.edge)
+            if full_all is not None:
+                full = Beam(*(t[:, a:b] for t in (full_all.x, full_all.y, full_all.alive, full_all.weight)), r)
+            else:
+                with torch.no_grad():
+                    full = trace_rays(bl, source_rays(bl, cut), cut.draws, edge=o.edge)
             # derivatives only for the rays with weight: a ray's soft weight w bounds its
             # derivatives' share of every product (|dw| <= w * sum |du/dθ| over its apertures'
             # logistic arguments u; the position's enters multiplied by w), so below
