@@ -114,6 +114,9 @@ class LiveFootprints(CallbackBase):
         self._overlays: dict[tuple[str, int], list] = {}
         self._runs: dict[str, dict] = {}         # run uid -> what its documents mean here
         self._descriptors: dict[str, tuple[str, str]] = {}  # descriptor uid -> (run uid, stream)
+        # figures drawn on since they were last written: a run that drew nothing (a diagnosis
+        # names the measurement but traces no model of it) writes nothing
+        self._changed: set[str] = set()
 
     # the measurement ------------------------------------------------------ #
     def start(self, doc):
@@ -152,7 +155,7 @@ class LiveFootprints(CallbackBase):
 
     def stop(self, doc):
         run = self._runs.pop(doc["run_start"], None)
-        if run is not None:
+        if run is not None and run["measurement"] in self._changed:
             self._save(run["measurement"])
 
     # drawing --------------------------------------------------------------- #
@@ -189,6 +192,7 @@ class LiveFootprints(CallbackBase):
             lo, hi = min(lit), max(lit)
             pad = max(0.25 * (hi - lo), 0.5)
             ax.set_xlim(max(lo - pad, self.range_x[0]), min(hi + pad, self.range_x[1]))
+        self._changed.add(uid)
         _redraw(self.figures[uid])
 
     def _draw_model(self, uid: str, i: int, mx, my, label: str) -> None:
@@ -204,6 +208,7 @@ class LiveFootprints(CallbackBase):
             lines += ax.plot(c, d, "--", color=color, lw=0.8, alpha=0.9)
         ax.set_title(f"configuration {i} — {label}", fontsize=7)
         self._overlays[(uid, i)] = lines
+        self._changed.add(uid)
         _redraw(self.figures[uid])
 
     def _save(self, uid: str) -> None:
@@ -212,6 +217,7 @@ class LiveFootprints(CallbackBase):
         self.directory.mkdir(parents=True, exist_ok=True)
         path = self.directory / f"footprints-{uid[:8]}.png"
         self.figures[uid].savefig(path, dpi=80)
+        self._changed.discard(uid)
         if path not in self.written:
             self.written.append(path)
 
