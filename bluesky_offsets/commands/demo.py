@@ -87,6 +87,7 @@ class DemoSettings:
     resolution: str = "camera"
     candidates_effects: Sequence[str] | None = None
     seed: int = 0
+    # the twin's Dask workers (RAYX traces of the comparisons); None: one per thread below
     workers: int | None = None
     # fits that do not depend on each other run this many at a time (the same result for any)
     threads: int = 1
@@ -319,7 +320,9 @@ def run_demo(out: Path, settings: DemoSettings | None = None, store_location: st
         steps_log = _StepLines(log)  # the workflow plans' progress lines, indented under the step
         store = open_store(store_location)
         forward_model = load_forward_model()
-        twin = Twin(n_rays=s.n_rays, n_workers=s.workers)
+        # as many RAYX workers as the demo may use cores (--threads): a test runner's share of
+        # one core (OMP_NUM_THREADS=1) starts one worker, not a worker per core of the machine
+        twin = Twin(n_rays=s.n_rays, n_workers=s.workers or s.threads)
         twin.client  # start the Dask workers while the IOC comes up
         RE = RunEngine({}, call_returns_result=True)  # before the devices: they connect in its event loop
         ioc.wait_ready()
