@@ -64,9 +64,9 @@ def _design(**kw) -> MeasurementDesign:
 @dataclass
 class DemoSettings:
     n_rays: int = 5000                # per measured frame
-    # the simulated motors: seconds for a full-range move (velocity = range / move_time).  Short,
-    # as no real motor is (those take seconds): the ~55 frames of the beam search and the
-    # measurement took 27 s with 0.5 and 22 s with 0.1, the same frames and results
+    # the simulated motors: seconds for a full-range move (velocity = range / move_time), far
+    # faster than a real motor: the ~55 frames of the beam search and the measurement took 27 s
+    # with 0.5 and 22 s with 0.1, the same frames and results
     move_time: float = 0.1
     # what is searched and measured: 16 bright configurations, 4 of them again with the slits open,
     # 14 fitted, 40 candidates, the beam search's range and frames (its seed is the demo's ``seed``)
