@@ -670,6 +670,12 @@ class Beam:
     hits: dict[str, torch.Tensor] | None = None  # element -> (C, N, 3) local hit points
     directions: dict[str, torch.Tensor] | None = None  # element -> (C, N, 3) local, after it
 
+    def slice(self, a: int, b: int) -> Beam:
+        """Rays ``a`` to ``b`` of every configuration (as :meth:`Rays.slice`)."""
+        per = (lambda d: None if d is None else {k: t[:, a:b] for k, t in d.items()})
+        return Beam(self.x[:, a:b], self.y[:, a:b], self.alive[:, a:b], self.weight[:, a:b], b - a,
+                    per(self.hits), per(self.directions))
+
 
 def _zero(v) -> bool:
     """An exact number 0: a term it multiplies is left out (adding an exact zero changes no
@@ -1425,7 +1431,6 @@ class TorchEngine:
         live = [i for i in range(len(fields)) if bool(dfield[:, bounds[i]:bounds[i + 1]].any())]
         dfield_live = torch.cat([dfield[:, bounds[i]:bounds[i + 1]] for i in live], 1)
         units = source_units(bl, n_rays, seed, sampling=o.sampling, common=o.common_rays)
-        full_all = full
         step = max(1, int(chunk) // c)
         n_live = dfield_live.shape[1]
         parts = []
@@ -1436,17 +1441,17 @@ class TorchEngine:
                               None if units.draws is None else units.draws.slice(a, b),
                               None if units.ctr is None else units.ctr[..., a:b])
             # every ray's values, without a graph (bit for bit the values of :meth:`beam`)
-            if full_all is not None:
-                full = Beam(*(t[:, a:b] for t in (full_all.x, full_all.y, full_all.alive, full_all.weight)), r)
+            if full is not None:
+                values_k = full.slice(a, b)
             else:
                 with torch.no_grad():
-                    full = trace_rays(bl, source_rays(bl, cut), cut.draws, edge=o.edge)
+                    values_k = trace_rays(bl, source_rays(bl, cut), cut.draws, edge=o.edge)
             # derivatives only for the rays with weight: a ray's soft weight w bounds its
             # derivatives' share of every product (|dw| <= w * sum |du/dθ| over its apertures'
             # logistic arguments u; the position's enters multiplied by w), so below
             # RAY_WEIGHT_FLOOR they lie beneath the rounding of any sum and their rows are 0.
             # Most rays of a bright configuration end far outside a slit: this skips ~80 %.
-            keep = torch.nonzero(full.weight.reshape(-1) > RAY_WEIGHT_FLOOR).squeeze(1)
+            keep = torch.nonzero(values_k.weight.reshape(-1) > RAY_WEIGHT_FLOOR).squeeze(1)
             k_n, conf = int(keep.numel()), keep // r
             grads = [torch.zeros(0, len(names), dtype=dfield_live.dtype, device=dfield_live.device)] * 3
             if k_n:
@@ -1479,8 +1484,8 @@ class TorchEngine:
                                                 enumerate(buf.split(per_config, 1)) if blk.shape[1]], 0))
             # the kept rays as (configuration, ray) of the whole trace, configuration-major
             rows = conf * n_rays + a + keep % r
-            parts.append((full.x.reshape(c, r), full.y.reshape(c, r), full.alive.reshape(c, r),
-                          full.weight.reshape(c, r), rows, *grads))
+            parts.append((values_k.x.reshape(c, r), values_k.y.reshape(c, r), values_k.alive.reshape(c, r),
+                          values_k.weight.reshape(c, r), rows, *grads))
         if len(parts) == 1:
             x, y, alive, weight, rows, jx, jy, jw = parts[0]
         else:
