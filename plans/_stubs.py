@@ -14,6 +14,8 @@ import bluesky.preprocessors as bpp
 import numpy as np
 from bluesky.utils import MsgGenerator
 
+from bluesky_offsets.model.cluster import Progress
+
 __all__ = ["BAR_KEYS", "Record", "emit_rows", "in_run", "run_in_thread"]
 
 
@@ -79,7 +81,7 @@ def run_in_thread(func: Callable[[Callable[[dict], None]], Any], *, stream: str 
 
     def work():
         try:
-            box["result"] = func(q.put)
+            box["result"] = func(Progress(q.put))  # a Progress: it may be sent to a worker process
         except BaseException as exc:  # re-raised in the plan, where the RunEngine reports it
             box["error"] = exc
 

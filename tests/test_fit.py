@@ -255,6 +255,39 @@ def test_fits_side_by_side_give_what_one_after_the_other_gives(defocus_case):
     assert len(seen) == len(two.history)  # every record reported (the iterations as they ran)
 
 
+def test_fits_on_the_twins_workers_give_what_threads_give(defocus_case):
+    """A :class:`ClusterExecutor` runs the same calls pickled to the processes of the twin's Dask
+    cluster: the same fit to the bit, the runs' trace counts back, and every progress record
+    forwarded from the workers to the callback here."""
+    import pickle
+    import time
+
+    from bluesky_offsets.model.cluster import ClusterExecutor, Progress
+    from bluesky_offsets.model.fit import gather
+    meas, truth, _ = defocus_case
+    opts = FitOptions(rays=1000, seed=5, stages=(("features", 2), ("bins", 2)), ray_draws=2)
+    eng = TorchEngine(hist=CAMERA)
+    start = ModelState(truth.offsets * 0.5, {"chamber_z": {"z": 8.0}})
+    other = ModelState(np.zeros(len(METRIXS)), {"chamber_z": {"z": 20.0}})
+    one = fit(meas, start, eng, opts, also_from=[other])
+    seen: list[dict] = []
+    with Twin(n_workers=2) as twin:
+        ex = ClusterExecutor(twin.client)
+        try:
+            two = fit(meas, start, eng, opts, also_from=[other], executor=ex, progress=Progress(seen.append))
+            assert gather([lambda k=k: k * k for k in range(5)], ex) == [0, 1, 4, 9, 16]
+            t = time.monotonic()
+            while len(seen) < len(two.history) and time.monotonic() - t < 30:
+                time.sleep(0.1)  # the workers' events travel through the scheduler
+        finally:
+            ex.shutdown()
+    assert np.array_equal(one.draws, two.draws) and np.array_equal(one.covariance, two.covariance, equal_nan=True)
+    assert one.history == two.history and one.n_traces == two.n_traces
+    assert len(seen) == len(two.history)
+    with pytest.raises(TypeError, match="ClusterExecutor"):
+        pickle.dumps(Progress(seen.append))
+
+
 def test_a_parameter_the_data_do_not_see_has_no_uncertainty():
     """A thermal bump below its threshold is no bump (its column is zero): its σ is NaN, never
     the pseudo-inverse's 0 that would print "± 0"."""

@@ -101,9 +101,11 @@ def default_threads() -> int:
 
 
 @contextlib.contextmanager
-def analysis_executor(threads: int):
+def analysis_executor(threads: int, client=None):
     """The executor an analysis's independent fits run on (None for one thread), each fit on
-    one torch thread and one BLAS thread.  Why not torch's or BLAS's own threads: the fits'
+    one torch thread and one BLAS thread: the workers of the Dask ``client``'s cluster (the
+    twin's, :class:`~bluesky_offsets.model.cluster.ClusterExecutor`) where one is given, else
+    ``threads`` threads of this process.  Why not torch's or BLAS's own threads: the fits'
     arrays (10^4-10^5 rays, Jacobians of 10^4 rows) are too small to share, while whole fits
     run side by side with little in common.  Measured on 2 cores (2026-11-28, the README's
     diagnosis alone): 60 s on one thread, 66 s with OpenBLAS's two (its idle thread spins),
@@ -116,6 +118,14 @@ def analysis_executor(threads: int):
     with threadpool_limits(1, user_api="blas"):
         if threads <= 1:
             yield None
+            return
+        if client is not None:
+            from bluesky_offsets.model.cluster import ClusterExecutor
+            ex = ClusterExecutor(client)
+            try:
+                yield ex
+            finally:
+                ex.shutdown()
             return
         from concurrent.futures import ThreadPoolExecutor
         with ThreadPoolExecutor(threads, thread_name_prefix="fit") as ex:

@@ -303,7 +303,7 @@ def run_demo(out: Path, settings: DemoSettings | None = None, store_location: st
     # seeded frame noise: the same settings give the same demo, --seed another draw of it
     ioc = SimulatedBeamline(truth, s.n_rays, work, move_time=s.move_time, noise_seed=s.seed + 2)
     twin = RE = steps_log = None
-    pool = contextlib.ExitStack()  # the analysis's threads (one BLAS thread each) to the end
+    pool = contextlib.ExitStack()  # the analysis's executor (one torch and BLAS thread a fit) to the end
     try:
         from bluesky import RunEngine
         from bluesky.utils import RunEngineInterrupted
@@ -336,7 +336,9 @@ def run_demo(out: Path, settings: DemoSettings | None = None, store_location: st
         for cb in live:
             RE.subscribe(cb)
         log(f"      IOC {ioc.prefix} on 127.0.0.1:{ioc.port}; run store {store.location}")
-        executor = pool.enter_context(analysis_executor(s.threads))
+        # the analysis's independent fits on the twin's workers: processes, so that two fits do
+        # not share one interpreter lock (nor this process's with the RunEngine and live views)
+        executor = pool.enter_context(analysis_executor(s.threads, twin.client))
         try:
             result = RE(demo_plan(s, beamline, chamber, twin, forward_model, log, executor))
         except RunEngineInterrupted:  # Ctrl-C paused it: end the run as aborted, then clean up

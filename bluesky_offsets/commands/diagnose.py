@@ -111,7 +111,8 @@ def _cmd_diagnose(args) -> int:
             if args.scheduler != "inline":
                 twin.client
                 quiet_logs()
-            with analysis_executor(args.threads) as executor:
+            # the fits on the twin's workers (processes), or on threads here without a cluster
+            with analysis_executor(args.threads, None if args.scheduler == "inline" else twin.client) as executor:
                 analysis = RE(analyse_measurement(
                     stored, twin, starts=starts, refine=not args.no_refine, candidates=candidates,
                     add_best=not args.no_add, rounds=args.rounds, fit_options=fit_options, seed=args.seed,

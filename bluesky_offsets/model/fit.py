@@ -511,11 +511,13 @@ T = TypeVar("T")
 
 def gather(calls: Sequence[Callable[[], T]], executor: Executor | None = None) -> list[T]:
     """Every call's result, in the calls' order: side by side on ``executor``, one after the
-    other without one.  A thread pool: the calls are closures over the caller's engine and
-    progress callback (a queue, in the plans), which another process could not share.  Only
-    independent work belongs here (a call must not wait on the same executor: a bounded pool
-    would deadlock); the order of the results, never which call finished first, decides what
-    follows."""
+    other without one.  The executor is a thread pool or a Dask cluster
+    (:class:`~bluesky_offsets.model.cluster.ClusterExecutor`: each call pickled to a worker
+    process), so a call returns everything it changes and mutates nothing the caller reads
+    after; a progress callback crosses as a :class:`~bluesky_offsets.model.cluster.Progress`.
+    Only independent work belongs here (a call must not wait on the same executor: a bounded
+    pool would deadlock); the order of the results, never which call finished first, decides
+    what follows."""
     if executor is None:
         return [c() for c in calls]
     return [f.result() for f in [executor.submit(c) for c in calls]]
@@ -535,14 +537,24 @@ def _stages(mdl: _Model, z: np.ndarray, ridge: np.ndarray, history: list[dict],
     return z, pr, exact
 
 
+def _run(mdl: _Model, z: np.ndarray, ridge: np.ndarray, progress: Callable[[dict], None] | None,
+         tag: dict) -> tuple:
+    """:func:`_stages` from ``z``: (z, products, exact, the run's history, the model's traces),
+    everything the run changed returned (it may run in a process of its own)."""
+    part: list[dict] = []
+    z, pr, exact = _stages(mdl, z, ridge, part, progress, tag)
+    return z, pr, exact, part, mdl.n_traces
+
+
 def _runs(jobs: Sequence[tuple[_Model, np.ndarray, dict]], ridge: np.ndarray,
           progress: Callable[[dict], None] | None, executor: Executor | None) -> list[tuple]:
     """:func:`_stages` for each ``(model, z, tag)``, side by side on ``executor``: each run's
     (z, products, exact, its own history), in the jobs' order."""
-    parts: list[list[dict]] = [[] for _ in jobs]
-    ends = gather([lambda j=j, part=part: _stages(j[0], j[1], ridge, part, progress, j[2])
-                   for j, part in zip(jobs, parts)], executor)
-    return [(*end, part) for end, part in zip(ends, parts)]
+    ends = gather([lambda j=j: _run(j[0], z=j[1], ridge=ridge, progress=progress, tag=j[2]) for j in jobs],
+                  executor)
+    for (mdl, _, _), end in zip(jobs, ends):
+        mdl.n_traces = end[4]  # a run in another process counted on a copy of its model
+    return [end[:4] for end in ends]
 
 
 def fit(meas, state, engine, options: FitOptions | Mapping | None = None, *,

@@ -1,0 +1,117 @@
+"""The analysis's independent fits in the processes of a Dask cluster.
+
+A fit is some ten thousand small torch operations per Jacobian with Python between them, so
+two fits on two threads of one process wait on each other's interpreter lock (measured on the
+main job's analysis, 2 cores: 127 s on one thread, 100 s on two).  In two processes they do
+not.  :class:`ClusterExecutor` is the :class:`concurrent.futures.Executor` that
+:func:`bluesky_offsets.model.fit.gather` hands the calls to: each call is pickled (cloudpickle:
+closures included) and run on a worker of the twin's cluster (a LocalCluster of one-thread
+processes by default, or any scheduler address), which computes the same numbers as a thread
+of this process would (one torch thread, one BLAS thread, the same library).
+
+A progress callback cannot cross to another process as it is (the plans' is a queue's
+``put``); wrapped in :class:`Progress` it crosses as a publisher on a Dask event topic, and the
+executor forwards the topic's events to the callback here.
+"""
+
+from __future__ import annotations
+
+import contextvars
+import uuid
+from collections.abc import Callable
+from concurrent.futures import Executor, Future
+
+#: the executor pickling a call in this context (topics for the Progress callbacks it meets)
+_SENDING: contextvars.ContextVar[ClusterExecutor | None] = contextvars.ContextVar("_SENDING", default=None)
+
+
+class Progress:
+    """A progress callback that can be sent to a worker process.
+
+    Here it calls ``callback(record)``; pickled by a :class:`ClusterExecutor` it becomes a
+    :class:`_Published` on an event topic whose records the executor hands to ``callback``."""
+
+    def __init__(self, callback: Callable[[dict], None]):
+        self.callback = callback
+
+    def __call__(self, record: dict) -> None:
+        self.callback(record)
+
+    def __reduce__(self):
+        sender = _SENDING.get()
+        if sender is None:
+            raise TypeError("a Progress crosses to another process only through a ClusterExecutor")
+        return _Published, (sender.topic_for(self),)
+
+
+class _Published:
+    """A worker's side of a :class:`Progress`: each record an event on ``topic``."""
+
+    def __init__(self, topic: str):
+        self.topic = topic
+
+    def __call__(self, record: dict) -> None:
+        from distributed import get_worker
+        # the records' numbers as plain Python numbers (the event travels as msgpack)
+        plain = {k: (v.item() if hasattr(v, "item") else v) for k, v in record.items()}
+        get_worker().log_event(self.topic, plain)
+
+
+class ClusterExecutor(Executor):
+    """Calls on the workers of a Dask ``client``'s cluster, each pickled with cloudpickle; the
+    :class:`Progress` callbacks in them forwarded here as the workers report.  A call that
+    holds this executor gets none on the worker (its own calls run there one after the other)."""
+
+    def __init__(self, client):
+        self.client = client
+        self._topics: dict[int, tuple[str, Progress]] = {}
+
+    def topic_for(self, progress: Progress) -> str:
+        key = id(progress)
+        if key not in self._topics:
+            topic = f"bluesky-offsets-progress-{uuid.uuid4().hex}"
+            self.client.subscribe_topic(topic, lambda event, cb=progress.callback: cb(event[1]))
+            self._topics[key] = (topic, progress)  # held: its id stays its own
+        return self._topics[key][0]
+
+    def submit(self, fn, /, *args, **kwargs) -> Future:
+        import cloudpickle
+        token = _SENDING.set(self)
+        try:
+            blob = cloudpickle.dumps((fn, args, kwargs))
+        finally:
+            _SENDING.reset(token)
+        out: Future = Future()
+        remote = self.client.submit(_unpickle_and_call, blob, pure=False)
+
+        def done(f):
+            try:
+                out.set_result(f.result())
+            except BaseException as exc:  # the call's own error, raised where gather reads it
+                out.set_exception(exc)
+        remote.add_done_callback(done)
+        return out
+
+    def shutdown(self, wait: bool = True, *, cancel_futures: bool = False) -> None:
+        for topic, _ in self._topics.values():
+            try:
+                self.client.unsubscribe_topic(topic)
+            except Exception:  # the client already closed: nothing left to forward
+                pass
+        self._topics.clear()
+
+    def __reduce__(self):
+        # sent inside a call: that call's own calls run on its worker one after the other
+        return type(None), ()
+
+
+def _unpickle_and_call(blob: bytes):
+    """A call on a worker: one torch thread and one BLAS thread, as on this side's threads (the
+    order of every sum the same, whatever the worker's own settings)."""
+    import cloudpickle
+    import torch
+    from threadpoolctl import threadpool_limits
+    torch.set_num_threads(1)
+    with threadpool_limits(1, user_api="blas"):
+        fn, args, kwargs = cloudpickle.loads(blob)
+        return fn(*args, **kwargs)
