@@ -111,7 +111,12 @@ def analysis_executor(threads: int, client=None):
     diagnosis alone): 60 s on one thread, 66 s with OpenBLAS's two (its idle thread spins),
     39 s with two fits at a time; earlier, the whole demo took 192 s and 213 s with torch's two
     threads and 175 s with one.  One BLAS thread also keeps the arithmetic (the order of a
-    matrix product's sums) the same on any number of cores."""
+    matrix product's sums) the same on any number of cores.  Why processes where there is a
+    cluster: a fit is some ten thousand small torch operations per Jacobian with Python between
+    them, and two fits on threads share one interpreter lock with each other and with the
+    RunEngine, the store and the live views; measured (2026-11-28, 2 cores, the same results to
+    the bit): the README's demo 170 → 154 s, ``bluesky-offsets diagnose`` of its measurement
+    128 → 117 s."""
     import torch
     from threadpoolctl import threadpool_limits
     torch.set_num_threads(1)

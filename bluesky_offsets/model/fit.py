@@ -30,9 +30,10 @@ reach the noise, and widened to the spread over configurations where that is lar
 Gauss-Newton covariance does not see when the model or the fit's end is off).
 
 Fits that do not depend on each other (the starts of one fit, its ray draws, a diagnosis's
-candidates) run side by side on an executor where one is given (:func:`gather`); each has its
-own rays and its own model, and their results are used in a fixed order, so the outcome is the
-same on any number of threads.
+candidates) run side by side on an executor where one is given (:func:`gather`: threads, or the
+processes of the twin's Dask cluster); each has its own rays and its own model, and their
+results are used in a fixed order, so the outcome is the same on any number of threads or
+workers.
 """
 
 from __future__ import annotations
