@@ -276,6 +276,8 @@ def test_fits_on_the_twins_workers_give_what_threads_give(defocus_case):
         try:
             two = fit(meas, start, eng, opts, also_from=[other], executor=ex, progress=Progress(seen.append))
             assert gather([lambda k=k: k * k for k in range(5)], ex) == [0, 1, 4, 9, 16]
+            with pytest.raises(ZeroDivisionError):  # a call's own error, raised where it is read
+                gather([lambda: 1 / 0], ex)
             t = time.monotonic()
             while len(seen) < len(two.history) and time.monotonic() - t < 30:
                 time.sleep(0.1)  # the workers' events travel through the scheduler

@@ -109,7 +109,7 @@ def _calibrate(args, design, effects, pv_map, forward_model, store) -> int:
         for cb in live:
             RE.subscribe(cb)
 
-        twin = Twin(n_rays=10_000, scheduler=args.scheduler)
+        twin = Twin(n_rays=10_000, scheduler=args.scheduler, n_workers=args.threads)
         try:
             with analysis_executor(args.threads, None if args.scheduler == "inline" else twin.client) as executor:
                 session = RE(calibration_session(

@@ -69,7 +69,8 @@ def add_analysis_options(p: argparse.ArgumentParser, *, fit_rays: int | None, fi
     p.add_argument("--resolution", choices=("camera", "paper"), default="camera", help=resolution_help)
     p.add_argument("--threads", type=int, default=None,
                    help="fits that do not depend on each other (the starts, the candidates, the ray draws) run this "
-                        "many at a time, each on one torch and one BLAS thread; the result is the same for any "
+                        "many at a time, each on one torch and one BLAS thread, in the twin's Dask worker processes "
+                        "(this many on a local cluster; a --scheduler's own); the result is the same for any "
                         f"number (default: $OMP_NUM_THREADS, else the cores this process may use, {default_threads()} "
                         "here)")
 

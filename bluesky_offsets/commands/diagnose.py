@@ -106,7 +106,7 @@ def _cmd_diagnose(args) -> int:
         log = sys.stderr if args.json else sys.stdout
         print(f"measurement {meas.uid}: {meas.n} configurations at {meas.n_rays} rays; results go to "
               f"{store.location}", file=log, flush=True)
-        with Twin(n_rays=int(meas.n_rays), scheduler=args.scheduler) as twin:
+        with Twin(n_rays=int(meas.n_rays), scheduler=args.scheduler, n_workers=args.threads) as twin:
             from bluesky_offsets.commands.cli import quiet_logs
             if args.scheduler != "inline":
                 twin.client

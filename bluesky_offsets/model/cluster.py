@@ -1,9 +1,10 @@
 """The analysis's independent fits in the processes of a Dask cluster.
 
 A fit is some ten thousand small torch operations per Jacobian with Python between them, so
-two fits on two threads of one process wait on each other's interpreter lock (measured on the
-main job's analysis, 2 cores: 127 s on one thread, 100 s on two).  In two processes they do
-not.  :class:`ClusterExecutor` is the :class:`concurrent.futures.Executor` that
+two fits on two threads of one process wait on each other's interpreter lock, and on the
+RunEngine's, the store's and the live views' (measured on 2 cores: the main job's analysis
+127 s on one thread, 100 s on two); in worker processes they do not (the main job 170 → 154 s,
+the same numbers to the bit).  :class:`ClusterExecutor` is the :class:`concurrent.futures.Executor` that
 :func:`bluesky_offsets.model.fit.gather` hands the calls to: each call is pickled (cloudpickle:
 closures included) and run on a worker of the twin's cluster (a LocalCluster of one-thread
 processes by default, or any scheduler address), which computes the same numbers as a thread
