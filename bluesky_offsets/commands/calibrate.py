@@ -111,7 +111,9 @@ def _calibrate(args, design, effects, pv_map, forward_model, store) -> int:
 
         twin = Twin(n_rays=10_000, scheduler=args.scheduler, n_workers=args.threads)
         try:
-            with analysis_executor(args.threads, None if args.scheduler == "inline" else twin.client) as executor:
+            # the analysis's fits on the twin's workers (processes: its cluster starts here), or in this process
+            client = twin.client if args.threads > 1 and args.scheduler != "inline" else None
+            with analysis_executor(args.threads, client) as executor:
                 session = RE(calibration_session(
                     beamline, chamber, twin, forward_model, design=design, evaluations=args.evaluations,
                     candidates=effects, rounds=args.rounds, fit={"rays": args.fit_rays} if args.fit_rays else None,
