@@ -1,6 +1,10 @@
 """The one fit engine: exact Jacobians from the rays, and fits through the differentiable twin
 of measurements the reference twin (RAYX) made."""
 
+import contextlib
+import pickle
+import time
+
 import numpy as np
 import pytest
 import torch
@@ -233,12 +237,31 @@ def test_ray_draws_average_the_fit_over_the_models_rays(defocus_case):
         FitOptions(ray_draws=0)
 
 
-def test_fits_side_by_side_give_what_one_after_the_other_gives(defocus_case):
+@contextlib.contextmanager
+def _side_by_side(where: str):
+    """Two threads of this process, or the two worker processes of a twin's Dask cluster."""
+    if where == "threads":
+        from concurrent.futures import ThreadPoolExecutor
+        with ThreadPoolExecutor(2) as ex:
+            yield ex
+        return
+    from bluesky_offsets.model.cluster import ClusterExecutor
+    with Twin(n_workers=2) as twin:
+        ex = ClusterExecutor(twin.client)
+        try:
+            yield ex
+        finally:
+            ex.shutdown()
+
+
+@pytest.mark.parametrize("where", ["threads", "workers"])
+def test_fits_side_by_side_give_what_one_after_the_other_gives(defocus_case, where):
     """``executor``: the starts and then the ray draws of one fit run side by side, each on a
     model of its own, and are used in their order: the result and the history are the ones
-    of the serial fit, to the bit, on any number of threads."""
-    from concurrent.futures import ThreadPoolExecutor
-
+    of the serial fit, to the bit, on threads or pickled to the processes of the twin's Dask
+    cluster (:class:`ClusterExecutor`: the runs' trace counts come back, every progress record
+    is forwarded from the workers, a call's error is raised where it is read)."""
+    from bluesky_offsets.model.cluster import Progress
     from bluesky_offsets.model.fit import gather
     meas, truth, _ = defocus_case
     opts = FitOptions(rays=1000, seed=5, stages=(("features", 2), ("bins", 2)), ray_draws=3)
@@ -246,48 +269,20 @@ def test_fits_side_by_side_give_what_one_after_the_other_gives(defocus_case):
     start = ModelState(truth.offsets * 0.5, {"chamber_z": {"z": 8.0}})
     other = ModelState(np.zeros(len(METRIXS)), {"chamber_z": {"z": 20.0}})
     one = fit(meas, start, eng, opts, also_from=[other])
-    seen = []
-    with ThreadPoolExecutor(2) as ex:
-        two = fit(meas, start, eng, opts, also_from=[other], executor=ex, progress=seen.append)
+    seen: list[dict] = []
+    with _side_by_side(where) as ex:
+        two = fit(meas, start, eng, opts, also_from=[other], executor=ex, progress=Progress(seen.append))
         assert gather([lambda k=k: k * k for k in range(5)], ex) == [0, 1, 4, 9, 16]
+        with pytest.raises(ZeroDivisionError):
+            gather([lambda: 1 / 0], ex)
+        t = time.monotonic()
+        while len(seen) < len(two.history) and time.monotonic() - t < 30:
+            time.sleep(0.1)  # a worker's records travel through the scheduler
     assert np.array_equal(one.draws, two.draws) and np.array_equal(one.covariance, two.covariance, equal_nan=True)
     assert one.history == two.history and one.n_traces == two.n_traces
     assert len(seen) == len(two.history)  # every record reported (the iterations as they ran)
-
-
-def test_fits_on_the_twins_workers_give_what_threads_give(defocus_case):
-    """A :class:`ClusterExecutor` runs the same calls pickled to the processes of the twin's Dask
-    cluster: the same fit to the bit, the runs' trace counts back, and every progress record
-    forwarded from the workers to the callback here."""
-    import pickle
-    import time
-
-    from bluesky_offsets.model.cluster import ClusterExecutor, Progress
-    from bluesky_offsets.model.fit import gather
-    meas, truth, _ = defocus_case
-    opts = FitOptions(rays=1000, seed=5, stages=(("features", 2), ("bins", 2)), ray_draws=2)
-    eng = TorchEngine(hist=CAMERA)
-    start = ModelState(truth.offsets * 0.5, {"chamber_z": {"z": 8.0}})
-    other = ModelState(np.zeros(len(METRIXS)), {"chamber_z": {"z": 20.0}})
-    one = fit(meas, start, eng, opts, also_from=[other])
-    seen: list[dict] = []
-    with Twin(n_workers=2) as twin:
-        ex = ClusterExecutor(twin.client)
-        try:
-            two = fit(meas, start, eng, opts, also_from=[other], executor=ex, progress=Progress(seen.append))
-            assert gather([lambda k=k: k * k for k in range(5)], ex) == [0, 1, 4, 9, 16]
-            with pytest.raises(ZeroDivisionError):  # a call's own error, raised where it is read
-                gather([lambda: 1 / 0], ex)
-            t = time.monotonic()
-            while len(seen) < len(two.history) and time.monotonic() - t < 30:
-                time.sleep(0.1)  # the workers' events travel through the scheduler
-        finally:
-            ex.shutdown()
-    assert np.array_equal(one.draws, two.draws) and np.array_equal(one.covariance, two.covariance, equal_nan=True)
-    assert one.history == two.history and one.n_traces == two.n_traces
-    assert len(seen) == len(two.history)
     with pytest.raises(TypeError, match="ClusterExecutor"):
-        pickle.dumps(Progress(seen.append))
+        pickle.dumps(Progress(seen.append))  # to another process only through the executor
 
 
 def test_a_parameter_the_data_do_not_see_has_no_uncertainty():
