@@ -111,9 +111,7 @@ def _calibrate(args, design, effects, pv_map, forward_model, store) -> int:
 
         twin = Twin(n_rays=10_000, scheduler=args.scheduler, n_workers=args.threads)
         try:
-            # the analysis's fits on the twin's workers (processes: its cluster starts here), or in this process
-            client = twin.client if args.threads > 1 and args.scheduler != "inline" else None
-            with analysis_executor(args.threads, client) as executor:
+            with analysis_executor(args.threads, twin) as executor:
                 session = RE(calibration_session(
                     beamline, chamber, twin, forward_model, design=design, evaluations=args.evaluations,
                     candidates=effects, rounds=args.rounds, fit={"rays": args.fit_rays} if args.fit_rays else None,

@@ -102,11 +102,12 @@ def default_threads() -> int:
 
 
 @contextlib.contextmanager
-def analysis_executor(threads: int, client=None):
+def analysis_executor(threads: int, twin=None):
     """The executor an analysis's independent fits run on (None for one thread), each fit on
-    one torch thread and one BLAS thread: the workers of the Dask ``client``'s cluster (the
-    twin's, :class:`~bluesky_offsets.model.cluster.ClusterExecutor`) where one is given, else
-    ``threads`` threads of this process.  Why not torch's or BLAS's own threads: the fits'
+    one torch thread and one BLAS thread: the workers of ``twin``'s Dask cluster
+    (:class:`~bluesky_offsets.model.cluster.ClusterExecutor`; the cluster starts here if it has
+    not) unless the twin traces in this process (``scheduler="inline"``), else ``threads``
+    threads of this process.  Why not torch's or BLAS's own threads: the fits'
     arrays (10^4-10^5 rays, Jacobians of 10^4 rows) are too small to share, while whole fits
     run side by side with little in common.  Measured on 2 cores (2026-11-28, the README's
     diagnosis alone): 60 s on one thread, 66 s with OpenBLAS's two (its idle thread spins),
@@ -118,16 +119,13 @@ def analysis_executor(threads: int, client=None):
     RunEngine, the store and the live views; measured (2026-11-28, 2 cores, the same results to
     the bit): the README's demo 170 → 154 s, ``bluesky-offsets diagnose`` of its measurement
     128 → 117 s."""
-    import torch
-    from threadpoolctl import threadpool_limits
-    torch.set_num_threads(1)
-    with threadpool_limits(1, user_api="blas"):
+    from bluesky_offsets.model.cluster import ClusterExecutor, one_thread
+    with one_thread():
         if threads <= 1:
             yield None
             return
-        if client is not None:
-            from bluesky_offsets.model.cluster import ClusterExecutor
-            ex = ClusterExecutor(client)
+        if twin is not None and twin.scheduler != "inline":
+            ex = ClusterExecutor(twin.client)
             try:
                 yield ex
             finally:

@@ -338,7 +338,7 @@ def run_demo(out: Path, settings: DemoSettings | None = None, store_location: st
         log(f"      IOC {ioc.prefix} on 127.0.0.1:{ioc.port}; run store {store.location}")
         # the analysis's independent fits on the twin's workers: processes, so that two fits do
         # not share one interpreter lock (nor this process's with the RunEngine and live views)
-        executor = pool.enter_context(analysis_executor(s.threads, twin.client))
+        executor = pool.enter_context(analysis_executor(s.threads, twin))
         try:
             result = RE(demo_plan(s, beamline, chamber, twin, forward_model, log, executor))
         except RunEngineInterrupted:  # Ctrl-C paused it: end the run as aborted, then clean up

@@ -111,9 +111,7 @@ def _cmd_diagnose(args) -> int:
             if args.scheduler != "inline":
                 twin.client
                 quiet_logs()
-            # the fits on the twin's workers (processes), or in this process without a cluster
-            client = twin.client if args.threads > 1 and args.scheduler != "inline" else None
-            with analysis_executor(args.threads, client) as executor:
+            with analysis_executor(args.threads, twin) as executor:
                 analysis = RE(analyse_measurement(
                     stored, twin, starts=starts, refine=not args.no_refine, candidates=candidates,
                     add_best=not args.no_add, rounds=args.rounds, fit_options=fit_options, seed=args.seed,

@@ -17,6 +17,7 @@ executor forwards the topic's events to the callback here.
 
 from __future__ import annotations
 
+import contextlib
 import contextvars
 import uuid
 from collections.abc import Callable
@@ -24,6 +25,17 @@ from concurrent.futures import Executor, Future
 
 #: the executor pickling a call in this context (topics for the Progress callbacks it meets)
 _SENDING: contextvars.ContextVar[ClusterExecutor | None] = contextvars.ContextVar("_SENDING", default=None)
+
+
+@contextlib.contextmanager
+def one_thread():
+    """One torch thread and one BLAS thread for the fits run here: every sum in the same order
+    whatever the machine's cores (here and on a worker alike)."""
+    import torch
+    from threadpoolctl import threadpool_limits
+    torch.set_num_threads(1)
+    with threadpool_limits(1, user_api="blas"):
+        yield
 
 
 class Progress:
@@ -65,6 +77,7 @@ class ClusterExecutor(Executor):
 
     def __init__(self, client):
         self.client = client
+        self._remote = client.get_executor(pure=False)  # Dask's own concurrent.futures face
         self._topics: dict[int, tuple[str, Progress]] = {}
 
     def topic_for(self, progress: Progress) -> str:
@@ -82,16 +95,7 @@ class ClusterExecutor(Executor):
             blob = cloudpickle.dumps((fn, args, kwargs))
         finally:
             _SENDING.reset(token)
-        out: Future = Future()
-        remote = self.client.submit(_unpickle_and_call, blob, pure=False)
-
-        def done(f):
-            try:
-                out.set_result(f.result())
-            except BaseException as exc:  # the call's own error, raised where gather reads it
-                out.set_exception(exc)
-        remote.add_done_callback(done)
-        return out
+        return self._remote.submit(_unpickle_and_call, blob)  # a call's own error raised where it is read
 
     def shutdown(self, wait: bool = True, *, cancel_futures: bool = False) -> None:
         for topic, _ in self._topics.values():
@@ -107,12 +111,8 @@ class ClusterExecutor(Executor):
 
 
 def _unpickle_and_call(blob: bytes):
-    """A call on a worker: one torch thread and one BLAS thread, as on this side's threads (the
-    order of every sum the same, whatever the worker's own settings)."""
+    """A call on a worker, on one thread as on this side (whatever the worker's own settings)."""
     import cloudpickle
-    import torch
-    from threadpoolctl import threadpool_limits
-    torch.set_num_threads(1)
-    with threadpool_limits(1, user_api="blas"):
+    with one_thread():
         fn, args, kwargs = cloudpickle.loads(blob)
         return fn(*args, **kwargs)
