@@ -58,9 +58,11 @@ SEARCH_SHIFT = 1e-6  # mm: RAYX starts each search this far along the ray
 ARCSEC = math.pi / 180.0 / 3600.0
 # soft weight below which a ray's derivatives are taken as 0 (TorchEngine.ray_jacobian): each is
 # bounded by the weight times its apertures' logistic slopes (|dw/dθ| / w measured up to 6e4 per
-# unit of an input, the exit slit's height), so below 1e-24: far beneath the rounding of any
-# product of the rays
-RAY_WEIGHT_FLOOR = 1e-30
+# unit of an input, the exit slit's height), so below 1e-16 beneath the rounding of any product
+# of the rays (measured: the camera-histogram Jacobian moves by at most 1.2e-15 of each column's
+# largest entry against a floor of 1e-30, as with 1e-24), and 18 % fewer rays are traced for
+# their derivatives at the main job's configurations (docs/benchmarks.md, "Per-ray Jacobian")
+RAY_WEIGHT_FLOOR = 1e-16
 # a compacting trace gathers the rays still in flight once fewer than this share of those
 # traced are (a gather costs about one element's arithmetic on the survivors)
 COMPACT_BELOW = 0.8
@@ -1479,9 +1481,11 @@ class TorchEngine:
                         g = torch.autograd.grad(out.sum(), comps, retain_graph=k < 2, allow_unused=True)
                         torch.cat([(gi if gi is not None else torch.zeros_like(t)).reshape(1, k_n)
                                    for gi, t in zip(g, comps)], 0, out=buf)
-                        # each kept ray's field derivatives times its configuration's d field / d input
-                        grads.append(torch.cat([blk.T @ dfield_live[j] for j, blk in
-                                                enumerate(buf.split(per_config, 1)) if blk.shape[1]], 0))
+                        # each kept ray's field derivatives times its configuration's d field / d
+                        # input, as (P, K) products of the buffer's contiguous rows (half the time
+                        # of (K, P) ones from its transpose); the rays' rows are a view of them
+                        grads.append(torch.cat([dfield_live[j].T @ blk for j, blk in
+                                                enumerate(buf.split(per_config, 1)) if blk.shape[1]], 1).T)
             # the kept rays as (configuration, ray) of the whole trace, configuration-major
             rows = conf * n_rays + a + keep % r
             parts.append((values_k.x.reshape(c, r), values_k.y.reshape(c, r), values_k.alive.reshape(c, r),
