@@ -285,6 +285,60 @@ def test_fits_side_by_side_give_what_one_after_the_other_gives(defocus_case, whe
         pickle.dumps(Progress(seen.append))  # to another process only through the executor
 
 
+_ARITHMETIC_FIT = """
+import sys, hashlib
+import bluesky_offsets, numpy as np  # the package first: it pins the BLAS kernels
+from bluesky_offsets.model.fit import FitOptions, fit
+from bluesky_offsets.model.measurement import Measurement
+from bluesky_offsets.model.state import ModelState
+from bluesky_offsets.physics.torch_engine import TorchEngine
+from bluesky_offsets.physics.twin import CAMERA
+d = np.load(sys.argv[1])
+meas = Measurement(d["cfg"], d["hx"], d["hy"], int(d["n"]), spec=CAMERA)
+res = fit(meas, ModelState(d["start"], {"chamber_z": {"z": 8.0}}), TorchEngine(hist=CAMERA),
+          FitOptions(rays=1500, seed=5, stages=(("features", 3), ("profiles", 2), ("bins", 3))))
+print(hashlib.sha256(res.covariance.tobytes() + res.state.offsets.tobytes()).hexdigest(),
+      repr(res.state.effects["chamber_z"]["z"]), repr(res.chi2))
+"""
+
+
+def _has_avx2() -> bool:
+    import platform
+    try:
+        return platform.machine().lower() in ("x86_64", "amd64") and " avx2" in open("/proc/cpuinfo").read()
+    except OSError:
+        return False
+
+
+@pytest.mark.skipif(not _has_avx2(), reason="the kernels are pinned on x86-64 CPUs with AVX2 (Linux)")
+def test_another_cpus_arithmetic_gives_the_same_bits(defocus_case, tmp_path):
+    """Issue 17's "the same result on any machine": a fit in a process as this CPU runs it and in
+    one that computes as an AVX2-only CPU would (torch's AVX2 kernels, MKL's AVX2 instructions)
+    gives the same bits, because the package pins MKL's and OpenBLAS's kernels
+    (``bluesky_offsets._pin_blas_kernels``) and torch's own kernels round alike at any vector
+    width.  Without the pinning the README's analysis differed in its digits (docs/diagnosis.md)."""
+    import os
+    import subprocess
+    import sys
+    meas, truth, _ = defocus_case
+    data = tmp_path / "meas.npz"
+    np.savez(data, cfg=meas.configurations, hx=meas.hist_x, hy=meas.hist_y, n=meas.n_rays, start=truth.offsets * 0.5)
+    script = tmp_path / "fit.py"
+    script.write_text(_ARITHMETIC_FIT)
+    base = {k: v for k, v in os.environ.items() if k not in ("MKL_CBWR", "OPENBLAS_CORETYPE", "ATEN_CPU_CAPABILITY",
+                                                            "MKL_ENABLE_INSTRUCTIONS")}
+    outs = []
+    for extra in ({}, {"ATEN_CPU_CAPABILITY": "avx2", "MKL_ENABLE_INSTRUCTIONS": "AVX2"}):
+        proc = subprocess.run([sys.executable, str(script), str(data)], capture_output=True, text=True,
+                              env={**base, **extra}, timeout=300)
+        assert proc.returncode == 0, proc.stderr[-2000:]
+        outs.append(proc.stdout.strip())
+    assert outs[0] == outs[1], outs
+    probe = subprocess.run([sys.executable, "-c", "import os, bluesky_offsets; print(os.environ['MKL_CBWR'], "
+                            "os.environ['OPENBLAS_CORETYPE'])"], capture_output=True, text=True, env=base)
+    assert probe.stdout.split() == ["AVX2", "Haswell"], probe.stderr
+
+
 def test_a_parameter_the_data_do_not_see_has_no_uncertainty():
     """A thermal bump below its threshold is no bump (its column is zero): its σ is NaN, never
     the pseudo-inverse's 0 that would print "± 0"."""
