@@ -15,21 +15,25 @@ def _pin_blas_kernels() -> None:
     ``ATEN_CPU_CAPABILITY=avx2 MKL_ENABLE_INSTRUCTIONS=AVX2 OPENBLAS_CORETYPE=Haswell``: chamber_z
     21.36 ± 0.9 mm instead of 21.44 ± 0.74, χ²/dof 3.66 instead of 3.87 after the offsets fit;
     the same verdict).  Pinned, the two gave the same bits: torch's own kernels are the same at
-    any vector width (tests/test_fit.py).  Cost: about 10 % of a per-ray Jacobian on an AVX-512
-    CPU (docs/benchmarks.md).  It must happen before numpy or torch is imported: the command
+    any vector width (tests/test_fit.py).  Cost: about 7 % of a per-ray Jacobian on an AVX-512
+    CPU (docs/benchmarks.md, "Per-ray Jacobian").  It must happen before numpy or torch is imported: the command
     line imports this package first, and every process it starts (the IOC, the Dask workers)
     inherits the environment; a session that imported numpy first keeps numpy's own choice.
     ``MKL_CBWR=AUTO`` and ``OPENBLAS_CORETYPE=`` (empty) in the environment undo it."""
-    if _platform.machine().lower() not in ("x86_64", "amd64"):
-        return
-    try:
-        with open("/proc/cpuinfo") as f:
-            avx2 = any(line.startswith("flags") and " avx2" in line for line in f)
-    except OSError:  # not Linux: the libraries' own choice
-        return
-    if avx2:
+    if _x86_with_avx2():
         _os.environ.setdefault("MKL_CBWR", "AVX2")
         _os.environ.setdefault("OPENBLAS_CORETYPE", "Haswell")
+
+
+def _x86_with_avx2() -> bool:
+    """An x86-64 CPU with AVX2, as Linux reports it (elsewhere: False, the libraries' own choice)."""
+    if _platform.machine().lower() not in ("x86_64", "amd64"):
+        return False
+    try:
+        with open("/proc/cpuinfo") as f:
+            return any(line.startswith("flags") and " avx2" in line for line in f)
+    except OSError:
+        return False
 
 
 _pin_blas_kernels()

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 import torch
 
+import bluesky_offsets
 from bluesky_offsets.physics import effects as E
 from bluesky_offsets.model.fit import FRESH_SEED, RAY_DRAW_SEED, FitOptions, _Model, _Products, fit, screen
 from bluesky_offsets.model.measurement import Measurement
@@ -302,15 +303,7 @@ print(hashlib.sha256(res.covariance.tobytes() + res.state.offsets.tobytes()).hex
 """
 
 
-def _has_avx2() -> bool:
-    import platform
-    try:
-        return platform.machine().lower() in ("x86_64", "amd64") and " avx2" in open("/proc/cpuinfo").read()
-    except OSError:
-        return False
-
-
-@pytest.mark.skipif(not _has_avx2(), reason="the kernels are pinned on x86-64 CPUs with AVX2 (Linux)")
+@pytest.mark.skipif(not bluesky_offsets._x86_with_avx2(), reason="the kernels are pinned on x86-64 CPUs with AVX2 (Linux)")
 def test_another_cpus_arithmetic_gives_the_same_bits(defocus_case, tmp_path):
     """Issue 17's "the same result on any machine": a fit in a process as this CPU runs it and in
     one that computes as an AVX2-only CPU would (torch's AVX2 kernels, MKL's AVX2 instructions)
