@@ -16,9 +16,10 @@ def _pin_blas_kernels() -> None:
     21.36 ± 0.9 mm instead of 21.44 ± 0.74, χ²/dof 3.66 instead of 3.87 after the offsets fit;
     the same verdict).  Pinned, the two gave the same bits: torch's own kernels are the same at
     any vector width (tests/test_fit.py).  Cost: about 7 % of a per-ray Jacobian on an AVX-512
-    CPU (docs/benchmarks.md, "Per-ray Jacobian").  It must happen before numpy or torch is imported: the command
-    line imports this package first, and every process it starts (the IOC, the Dask workers)
-    inherits the environment; a session that imported numpy first keeps numpy's own choice.
+    CPU (docs/benchmarks.md, "Per-ray Jacobian").  It must happen before numpy or torch is
+    imported: the command line imports this package first, and every process it starts (the
+    IOC, the Dask workers) inherits the environment; a session that imported numpy first keeps
+    numpy's own choice.
     ``MKL_CBWR=AUTO`` and ``OPENBLAS_CORETYPE=`` (empty) in the environment undo it."""
     if _x86_with_avx2():
         _os.environ.setdefault("MKL_CBWR", "AVX2")

@@ -1482,8 +1482,8 @@ class TorchEngine:
                         torch.cat([(gi if gi is not None else torch.zeros_like(t)).reshape(1, k_n)
                                    for gi, t in zip(g, comps)], 0, out=buf)
                         # each kept ray's field derivatives times its configuration's d field / d
-                        # input, as (P, K) products of the buffer's contiguous rows (half the time
-                        # of (K, P) ones from its transpose); the rays' rows are a view of them
+                        # input, as (P, K) products of the buffer's contiguous rows instead of (K, P)
+                        # ones of its transpose; the rays' rows are a view of them
                         grads.append(torch.cat([dfield_live[j].T @ blk for j, blk in
                                                 enumerate(buf.split(per_config, 1)) if blk.shape[1]], 1).T)
             # the kept rays as (configuration, ray) of the whole trace, configuration-major
