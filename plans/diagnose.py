@@ -245,6 +245,15 @@ class Analysis:
             why = ("without it the model is within noise" if not t["beyond_noise_without"] else
                    f"with the others in it bought Δχ² = {t['gain']:.3g}, below its price {t['price']:.3g}")
             tail += f"; {self.dropped} was added before and dropped: {why}"
+        if last is not None and last.best is not None and not self.final.within_noise:
+            # the last diagnosis added an effect and the model still does not reach the noise: the
+            # search ran out of rounds, not of effects (measured: a thermal bump beside a narrower
+            # source ended at chi2/dof 1.21 with a blur that was not hidden and the divergence at 40 %
+            # of its hidden value)
+            n = len(self.rankings)
+            tail += (f"; the model is still beyond noise after {n} diagnos{'is' if n == 1 else 'es'} (chi2/dof = "
+                     f"{self.final.misfit.chi2_reduced_total:.3g}): an effect may be missing or another set "
+                     "may fit, and the values above hold only for a complete model")
         return "missing effect" + ("s" if len(found) > 1 else "") + ": " + "; ".join(found) + tail
 
     @property

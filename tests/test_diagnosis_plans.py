@@ -321,6 +321,9 @@ def test_an_interrupted_analysis_resumes_from_the_store_to_the_same_verdict(RE, 
     assert len(aborted) == 1
     # the same verdict, ranking and numbers as the uninterrupted analysis
     assert a.verdict == fresh.verdict
+    # one round: an effect added and the model still beyond noise is said, not left out
+    short = a.ranking.diagnosis.best is not None and not a.final.within_noise
+    assert ("still beyond noise after 1 diagnosis" in a.verdict) == short, (a.verdict, a.final.total_row())
     assert [c.name for c in a.ranking.diagnosis.candidates] == [c.name for c in fresh.ranking.diagnosis.candidates]
     np.testing.assert_array_equal(a.refinement.state.offsets, fresh.refinement.state.offsets)
     assert [c.misfit.chi2_total for c in a.comparisons] == pytest.approx([c.misfit.chi2_total

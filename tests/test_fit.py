@@ -269,16 +269,24 @@ def test_fits_side_by_side_give_what_one_after_the_other_gives(defocus_case, whe
     eng = TorchEngine(hist=CAMERA)
     start = ModelState(truth.offsets * 0.5, {"chamber_z": {"z": 8.0}})
     other = ModelState(np.zeros(len(METRIXS)), {"chamber_z": {"z": 20.0}})
-    one = fit(meas, start, eng, opts, also_from=[other])
+    from bluesky_offsets.model.cluster import one_thread
     seen: list[dict] = []
-    with _side_by_side(where) as ex:
-        two = fit(meas, start, eng, opts, also_from=[other], executor=ex, progress=Progress(seen.append))
-        assert gather([lambda k=k: k * k for k in range(5)], ex) == [0, 1, 4, 9, 16]
-        with pytest.raises(ZeroDivisionError):
-            gather([lambda: 1 / 0], ex)
-        t = time.monotonic()
-        while len(seen) < len(two.history) and time.monotonic() - t < 30:
-            time.sleep(0.1)  # a worker's records travel through the scheduler
+    threads = torch.get_num_threads()
+    # one torch and one BLAS thread here, as on the workers and as the analysis's executor sets
+    # them (commands.cli.analysis_executor): else a sum runs in another order (pytest -n 0 on two cores)
+    try:
+        with one_thread():
+            one = fit(meas, start, eng, opts, also_from=[other])
+            with _side_by_side(where) as ex:
+                two = fit(meas, start, eng, opts, also_from=[other], executor=ex, progress=Progress(seen.append))
+                assert gather([lambda k=k: k * k for k in range(5)], ex) == [0, 1, 4, 9, 16]
+                with pytest.raises(ZeroDivisionError):
+                    gather([lambda: 1 / 0], ex)
+                t = time.monotonic()
+                while len(seen) < len(two.history) and time.monotonic() - t < 30:
+                    time.sleep(0.1)  # a worker's records travel through the scheduler
+    finally:
+        torch.set_num_threads(threads)  # one_thread leaves torch on one thread; the tests after keep theirs
     assert np.array_equal(one.draws, two.draws) and np.array_equal(one.covariance, two.covariance, equal_nan=True)
     assert one.history == two.history and one.n_traces == two.n_traces
     assert len(seen) == len(two.history)  # every record reported (the iterations as they ran)
