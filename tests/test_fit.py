@@ -215,7 +215,7 @@ def test_a_fit_from_several_starts_keeps_the_one_that_ends_lowest(defocus_case):
 
 def test_ray_draws_average_the_fit_over_the_models_rays(defocus_case):
     """``ray_draws``: the first draw is the one-draw fit; each later draw is the same fit on
-    other rays from the same start; the solution is their mean, and the covariance is
+    other rays from where the first ended; the solution is their mean, and the covariance is
     the Gauss-Newton one there plus the draws' scatter over their number."""
     meas, truth, twin = defocus_case
     opts = FitOptions(rays=1500, seed=3, stages=(("features", 3), ("bins", 3)))
@@ -225,7 +225,7 @@ def test_ray_draws_average_the_fit_over_the_models_rays(defocus_case):
     res = fit(meas, start, eng, opts.replace(ray_draws=3))
     assert res.draws.shape == (3, len(METRIXS) + 1) and one.draws is None
     assert np.array_equal(res.draws[0], np.r_[one.state.offsets, one.state.effect_vector()])
-    later = fit(meas, start, eng, opts.replace(seed=3 + 2 * RAY_DRAW_SEED))
+    later = fit(meas, one.state, eng, opts.replace(seed=3 + 2 * RAY_DRAW_SEED))
     assert np.array_equal(res.draws[2], np.r_[later.state.offsets, later.state.effect_vector()])
     mean = res.draws.mean(0)
     assert np.allclose(np.r_[res.state.offsets, res.state.effect_vector()], mean)

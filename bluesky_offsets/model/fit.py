@@ -100,10 +100,9 @@ class FitOptions:
         with fresh rays (exact: 0.75), and a diagnosis's 5 + 5 iteration candidate fit of a
         12 mm defocus ended at z = 7 mm.
     ray_draws : a fit with effect parameters repeated on this many independent draws of the
-        model's rays, each from the start (from one start all at once, side by side on an
-        executor; from several, from the one kept); the solution is their mean and the
-        covariance adds their spread (their sample covariance over the number of draws) to the
-        Gauss-Newton one.  An offsets-only fit is one draw: it starts a diagnosis (whose
+        model's rays, each later draw starting where the first ended; the solution is their mean
+        and the covariance adds their spread (their sample covariance over the number of draws)
+        to the Gauss-Newton one.  An offsets-only fit is one draw: it starts a diagnosis (whose
         candidate fits refit the offsets) or a refit, and each draw costs a fit (about 8 s for
         the main job's 14 configurations on one core).  Why: on RAYX's hard counts with a fixed
         set of rays the χ² is a staircase along the directions where offsets compensate an
@@ -598,18 +597,8 @@ def fit(meas, state, engine, options: FitOptions | Mapping | None = None, *,
         raise ValueError("the starts of one fit must hold the same effects")
     # each start on a model of its own, which counts its traces (the rays are the same)
     models = [mdl] + [_Model(meas, state, engine, o, table) for _ in starts[1:]]
-    z_starts = [np.clip(mdl.vector(st), *mdl.bounds()) for st in starts]
-    # the same fit on other rays (ray draws), each from the start, so that their scatter holds
-    # the path's share of the end as well as the rays'; from one start they run beside the first
-    ks = range(1, o.ray_draws if mdl.params else 1)
-    dms = [_Model(meas, state, engine, o.replace(seed=o.seed + k * RAY_DRAW_SEED), table) for k in ks]
-    beside = len(starts) == 1
-    runs = _runs([(m, z0, {"start": k} if len(starts) > 1 else {})
-                  for k, (m, z0) in enumerate(zip(models, z_starts))]
-                 + ([(dm, z_starts[0], {"ray_draw": k}) for k, dm in zip(ks, dms)] if beside else []),
-                 ridge, progress, executor)
-    later = runs[len(starts):]
-    runs = runs[:len(starts)]
+    runs = _runs([(m, np.clip(mdl.vector(st), *mdl.bounds()), {"start": k} if len(starts) > 1 else {})
+                  for k, (m, st) in enumerate(zip(models, starts))], ridge, progress, executor)
     ends = [(part[-1]["chi2"], k, z, pr, exact, part) for k, (z, pr, exact, part) in enumerate(runs)]
     if len(ends) > 1:
         fresh = _Model(meas, state, engine, o.replace(seed=o.seed + FRESH_SEED), table)
@@ -622,9 +611,10 @@ def fit(meas, state, engine, options: FitOptions | Mapping | None = None, *,
     _, _, z, pr, exact, _ = kept
     for e in sorted(ends, key=lambda e: e is kept):  # the kept run's iterations last
         history += e[5]
-    if not beside:  # from several starts: the later draws from the one kept, once it is known
-        later = _runs([(dm, z_starts[kept[1]], {"ray_draw": k}) for k, dm in zip(ks, dms)], ridge, progress,
-                      executor)
+    # the same fit on other rays, from where the first draw ended
+    ks = range(1, o.ray_draws if mdl.params else 1)
+    dms = [_Model(meas, state, engine, o.replace(seed=o.seed + k * RAY_DRAW_SEED), table) for k in ks]
+    later = _runs([(dm, z, {"ray_draw": k}) for k, dm in zip(ks, dms)], ridge, progress, executor)
     draws = [z] + [run[0] for run in later]
     history += [h for run in later for h in run[3]]
     mdl.n_traces += sum(m.n_traces for m in models[1:] + dms)
