@@ -18,7 +18,9 @@ Typical use::
 
 from __future__ import annotations
 
+import logging
 import os
+import sqlite3
 import warnings
 import weakref
 from collections.abc import Mapping
@@ -28,6 +30,8 @@ import numpy as np
 
 from bluesky_offsets.model.measurement import Measurement
 from bluesky_offsets.physics.parameters import METRIXS, ParameterTable
+
+log = logging.getLogger("bluesky_offsets.store")
 
 ENV_STORE = "BLUESKY_OFFSETS_STORE"
 
@@ -175,6 +179,45 @@ def _init_catalog(uri: str) -> None:
         raise StoreError(f"run store: cannot create the catalog {uri}: {_first_line(failed[0])}") from failed[0]
 
 
+def _relocate(path: Path, db: Path) -> str | None:
+    """Point an embedded catalog that was moved or copied to ``path`` (absolute) at its own files.
+
+    tiled records each array's file and the event tables' DuckDB file by absolute URI (a store
+    made with a relative path: the tables' by the relative one), and refuses to read a URI
+    outside the store it serves: a moved or copied store, or a relative one opened from another
+    directory, could not load a run ("Refusing to serve file://... outside the readable storage
+    area").  The old place is read from the tables' URI (``duckdb://localhost/<place>/tables.duckdb``)
+    and every URI under it is rewritten to ``path`` in one transaction.  Returns the old place,
+    or None when the catalog already points here (or holds no tables yet)."""
+    import sqlite3
+    from contextlib import closing
+
+    head, tail = "duckdb://localhost/", "/tables.duckdb"
+    new = str(path)
+    with closing(sqlite3.connect(db)) as con:
+        duck = [u for (u,) in con.execute("SELECT data_uri FROM assets WHERE data_uri LIKE 'duckdb://%'")]
+        olds = {u[len(head):-len(tail)] for u in duck if u.startswith(head) and u.endswith(tail)}
+        if len(olds) != 1:
+            return None  # no tables yet (nothing was written), or not a store this package made
+        old = olds.pop()
+        if old == new:
+            return None
+        # the arrays' files: absolute (a relative store's were made absolute where it was written)
+        files = [u for (u,) in con.execute("SELECT data_uri FROM assets WHERE data_uri LIKE 'file://localhost/%'")]
+        marker = f"{old.rstrip('/')}/data/" if old.startswith("/") else f"/{old.strip('/')}/data/"
+        roots = {u[len("file://localhost"):u.index(marker) + len(marker) - len("/data/")]
+                 for u in files if marker in u}
+        if len(roots) > 1:
+            return None  # files from several places: leave the catalog as it is
+        with con:
+            con.execute("UPDATE assets SET data_uri = ? WHERE data_uri = ?", (f"{head}{new}{tail}", f"{head}{old}{tail}"))
+            for root in roots:
+                pre = f"file://localhost{root}/data/"
+                con.execute("UPDATE assets SET data_uri = ? || substr(data_uri, ?) WHERE substr(data_uri, 1, ?) = ?",
+                            (f"file://localhost{new}/data/", len(pre) + 1, len(pre), pre))
+    return old
+
+
 _WRITERS: dict[str, weakref.WeakSet] = {}
 """The queued writers of this process by catalog: a read waits for all that write to its catalog."""
 
@@ -227,6 +270,9 @@ class RunStore:
         from tiled.client import Context, from_context
         from tiled.server.app import build_app
 
+        # absolute and normalized (symbolic links kept): tiled records the files by absolute URI,
+        # and a relative place would be recorded as such for the tables (_relocate)
+        path = Path(os.path.normpath(path.absolute()))
         try:
             (path / "data").mkdir(parents=True, exist_ok=True)
         except OSError as exc:
@@ -238,6 +284,13 @@ class RunStore:
             warnings.simplefilter("ignore")  # tiled's in-process client warns about httpx/starlette
             if not db.exists():
                 _init_catalog(f"sqlite:///{db}")
+            else:
+                try:
+                    old = _relocate(path, db)
+                except sqlite3.Error as exc:
+                    raise StoreError(f"run store: cannot read the catalog {db}: {_first_line(exc)}") from None
+                if old is not None:
+                    log.warning("run store %s: made at %s; its catalog now points at the files here", path, old)
             adapter = catalog_from_uri(f"sqlite:///{db}",
                                        writable_storage=[str(path / "data"), f"duckdb:///{path / 'tables.duckdb'}"])
             self._context = Context.from_app(build_app(adapter))

@@ -111,6 +111,39 @@ def test_embedded_store_persists_and_loads_measurement(RE, chamber, run_store, m
     asyncio.run(check())
 
 
+def test_a_moved_copied_or_relative_store_reads_its_own_files(RE, chamber, tmp_path, monkeypatch, caplog):
+    """tiled addresses a run's files by absolute URI: a store moved or copied elsewhere, or made
+    with a relative path and opened from another directory, points its catalog at its own files
+    when opened (once, said in one log line) and loads every run."""
+    import shutil
+
+    configs, hists = _data(3, seed=4)
+    monkeypatch.chdir(tmp_path)
+    with open_store("runs") as made:  # relative, as `--store runs` makes it
+        token = made.subscribe(RE)
+        (uid,) = RE(measurement_run(chamber, configs, hists)).run_start_uids
+        RE.unsubscribe(token)
+    shutil.copytree(tmp_path / "runs", tmp_path / "copy")
+    shutil.move(tmp_path / "runs", tmp_path / "moved")
+    # the copy as a relative store was recorded before stores were made absolute: the tables' URI relative
+    import sqlite3
+    with sqlite3.connect(tmp_path / "copy" / "catalog.db") as con:
+        con.execute("UPDATE assets SET data_uri = 'duckdb://localhost/runs/tables.duckdb' WHERE data_uri LIKE 'duckdb:%'")
+    con.close()
+    monkeypatch.chdir(tmp_path.parent)  # elsewhere
+    for place in ("moved", "copy"):
+        with caplog.at_level("WARNING", logger="bluesky_offsets.store"):
+            caplog.clear()
+            with open_store(tmp_path / place) as store:
+                m = store.load_measurement(uid)
+            with open_store(str(tmp_path / place) + "/") as again:  # once: the catalog points here now
+                np.testing.assert_allclose(again.load_measurement(uid).hist_y, m.hist_y)
+        np.testing.assert_allclose(m.hist_x, [h[0] for h in hists])
+        assert [r.getMessage() for r in caplog.records] == [f"run store {tmp_path / place}: made at "
+                                                           f"{tmp_path / 'runs' if place == 'moved' else 'runs'}; "
+                                                           "its catalog now points at the files here"], place
+
+
 def test_load_errors_are_clear(RE, chamber, run_store):
     configs, hists = _data(1)
 
