@@ -234,7 +234,11 @@ class Analysis:
     @property
     def verdict(self) -> str:
         """What the diagnoses found, in order: the effects added (and kept), or why none was."""
-        found = [f"{e} ({', '.join(f'{k} = {v:.4g} ± {s:.2g}' for k, (v, s) in m.items())})"
+        def none_within(m):  # every parameter within 2σ of the effect's absence (all zeros)
+            return all(np.isfinite(s) and abs(v) <= 2 * s for v, s in m.values())
+
+        found = [f"{e} ({', '.join(f'{k} = {v:.4g} ± {s:.2g}' for k, (v, s) in m.items())}"
+                 + (", within 2 sigma of none)" if none_within(m) else ")")
                  for e, m in self.magnitudes().items()]
         last = self.rankings[-1].diagnosis if self.rankings else None
         if not found:

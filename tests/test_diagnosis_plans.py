@@ -328,3 +328,32 @@ def test_an_interrupted_analysis_resumes_from_the_store_to_the_same_verdict(RE, 
     np.testing.assert_array_equal(a.refinement.state.offsets, fresh.refinement.state.offsets)
     assert [c.misfit.chi2_total for c in a.comparisons] == pytest.approx([c.misfit.chi2_total
                                                                          for c in fresh.comparisons], rel=1e-12)
+
+
+def test_the_verdict_says_what_its_numbers_do_not_support():
+    """The verdict's text, from an analysis's parts: an added effect fitted within 2σ of its
+    absence is marked so, and a model still beyond noise when the rounds ran out says that the
+    values hold only for a complete model (measured on a pair the grid does not hold:
+    docs/diagnosis.md, "When the rounds run out before the noise")."""
+    from types import SimpleNamespace as NS
+
+    from plans.diagnose import Analysis
+
+    def analysis(magnitudes, within, best="chamber_z", rounds=3):
+        last = NS(diagnosis=NS(best=None if best is None else NS(name=best),
+                               verdict="misfit beyond noise that no candidate effect explains significantly"))
+        final = NS(within_noise=within, misfit=NS(chi2_reduced_total=1.21))
+        return NS(magnitudes=lambda: magnitudes, rankings=[last] * rounds, dropped=None, final=final)
+
+    verdict = Analysis.verdict.fget
+    found = {"chamber_z": {"z": (20.6, 1.1)}}
+    assert verdict(analysis(found, True)) == "missing effect: chamber_z (z = 20.6 ± 1.1)"
+    both = {**found, "chamber_y": {"y": (-0.005, 0.21)}}
+    text = verdict(analysis(both, False))
+    assert text.startswith("missing effects: chamber_z (z = 20.6 ± 1.1); chamber_y (y = -0.005 ± 0.21, "
+                           "within 2 sigma of none); the model is still beyond noise after 3 diagnoses "
+                           "(chi2/dof = 1.21)"), text
+    # the last diagnosis found nothing more: its own verdict says why, nothing else is added
+    text = verdict(analysis(found, False, best=None))
+    assert text == "missing effect: chamber_z (z = 20.6 ± 1.1); then misfit beyond noise that no candidate " \
+                   "effect explains significantly", text
