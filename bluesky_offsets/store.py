@@ -189,7 +189,6 @@ def _relocate(path: Path, db: Path) -> str | None:
     area").  The old place is read from the tables' URI (``duckdb://localhost/<place>/tables.duckdb``)
     and every URI under it is rewritten to ``path`` in one transaction.  Returns the old place,
     or None when the catalog already points here (or holds no tables yet)."""
-    import sqlite3
     from contextlib import closing
 
     head, tail = "duckdb://localhost/", "/tables.duckdb"
