@@ -237,8 +237,10 @@ class Analysis:
         def none_within(m):  # every parameter within 2σ of the effect's absence (all zeros)
             return all(np.isfinite(s) and abs(v) <= 2 * s for v, s in m.values())
 
+        # the diagnosis that added each effect: the candidates it did not tell from it
+        rivals = {rk.diagnosis.best.name: rk.diagnosis.rivals for rk in self.rankings if rk.diagnosis.best is not None}
         found = [f"{e} ({', '.join(f'{k} = {v:.4g} ± {s:.2g}' for k, (v, s) in m.items())}"
-                 + (", within 2 sigma of none)" if none_within(m) else ")")
+                 + (", within 2 sigma of none)" if none_within(m) else ")") + D.rivals_text(rivals.get(e, ()))
                  for e, m in self.magnitudes().items()]
         last = self.rankings[-1].diagnosis if self.rankings else None
         if not found:

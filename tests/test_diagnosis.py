@@ -87,6 +87,10 @@ def test_hidden_effect_ranked_first_and_fitted(twin, with_gain_loss, tmp_path):
     assert d.best is not None and d.best.name == "intensity_scale", d.as_dict()
     assert d.candidates[0].name == "intensity_scale"
     assert d.observed_signature["x.intensity"] < 0 and d.candidates[0].predicted_signature["x.intensity"] < 0
+    # the best's lead over each other verified candidate is measured; a tie would be said
+    assert all((c.behind_z is not None) == (c.refined and c is not d.best and c.score > 0) for c in d.candidates)
+    assert d.verdict.startswith("missing effect: intensity_scale (")
+    assert ("not told apart from" in d.verdict) == bool(d.rivals), (d.verdict, [c.behind_z for c in d.candidates])
     state, sigma = add_effect(meas, fit.state, "intensity_scale", twin, values=d.best.values, options=FIT)
     fitted, s = state.effects["intensity_scale"]["delta"], sigma["intensity_scale"]["delta"]
     assert fitted == pytest.approx(GAIN_LOSS, rel=0.25) and 0 < s < 0.05
@@ -231,3 +235,31 @@ def test_adding_an_effect_starts_where_the_diagnosis_fit_it():
     st = c.refit_start("model")
     assert np.array_equal(st.offsets, end.offsets) and st.label == "model"
     assert st.effects == {"grating_line_density": {"delta": -0.07}}
+
+
+def test_the_lead_of_one_model_over_another_is_measured_in_sigma():
+    """``lead_z``: Vuong's statistic on the bins' squared pulls of two models traced with the same
+    fresh rays. Two models that fit alike are not told apart; one worse in every bin by a
+    little is; a price difference counts against the dearer model."""
+    from bluesky_offsets.model.diagnosis import lead_z
+    from bluesky_offsets.model.misfit import Misfit
+
+    rng = np.random.default_rng(3)
+
+    def mf(px, py):
+        return Misfit(np.zeros(4), np.zeros(4), np.zeros(4), np.zeros(4), px, py)
+
+    px, py = rng.normal(size=(4, 200)), rng.normal(size=(4, 200))
+    same = lead_z(mf(px, py), mf(px, py))
+    assert same == 0.0
+    # another model: the same noise, its own shape error of about 1 σ in every bin (2·800 = 1600
+    # more χ² against a spread of ~ 2 √(1600))
+    worse = mf(px + 1.0, py + 1.0)
+    z = lead_z(mf(px, py), worse)
+    assert z > 10 and lead_z(worse, mf(px, py)) == pytest.approx(-z)
+    # a model that differs by noise alone: |z| of order 1
+    other = mf(px + 0.05 * rng.normal(size=px.shape), py + 0.05 * rng.normal(size=py.shape))
+    assert abs(lead_z(mf(px, py), other)) < 3
+    # the dispersion divides lead and spread alike; a price moves the lead
+    assert lead_z(mf(px, py), worse, dispersion=2.0) == pytest.approx(z)
+    assert lead_z(mf(px, py), worse, price=1e6) < 0

@@ -340,7 +340,7 @@ def test_the_verdict_says_what_its_numbers_do_not_support():
     from plans.diagnose import Analysis
 
     def analysis(magnitudes, within, best="chamber_z", rounds=3):
-        last = NS(diagnosis=NS(best=None if best is None else NS(name=best),
+        last = NS(diagnosis=NS(best=None if best is None else NS(name=best), rivals=[],
                                verdict="misfit beyond noise that no candidate effect explains significantly"))
         final = NS(within_noise=within, misfit=NS(chi2_reduced_total=1.21))
         return NS(magnitudes=lambda: magnitudes, rankings=[last] * rounds, dropped=None, final=final)
