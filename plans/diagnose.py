@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 from collections.abc import Mapping, Sequence
 from concurrent.futures import Executor
 from dataclasses import asdict, dataclass, field
@@ -134,6 +135,9 @@ class Refit:
     uid: str | None = None
     covariance: np.ndarray | None = None     # the refit's (normalized offsets, then effect parameters)
     fit_names: list[str] | None = None       # its rows' names
+    # within noise after the refit: how large each other candidate could be and still hide
+    # (diagnosis.detection_limits at the refitted state); empty when beyond noise
+    limits: dict[str, dict[str, float]] = field(default_factory=dict)
 
     @property
     def calibrated(self) -> CalibratedState:
@@ -216,10 +220,14 @@ class Analysis:
 
     @property
     def could_hide(self) -> dict[str, dict[str, float]]:
-        """With the model within noise before any candidate was fitted: how large each candidate
-        could be and still hide behind the offsets (the last diagnosis's
-        :func:`~bluesky_offsets.model.diagnosis.detection_limits`); else empty."""
-        return self.rankings[-1].diagnosis.limits if self.rankings else {}
+        """With the model the analysis ends with within noise: how large each candidate it does
+        not hold could be and still hide behind the offsets
+        (:func:`~bluesky_offsets.model.diagnosis.detection_limits`: of the last diagnosis when it
+        found the model within noise, of the last refit when that reached the noise); else empty."""
+        if self.refits and self.dropped is None and self.refits[-1].limits and self.final is self.refits[-1].comparison:
+            return self.refits[-1].limits
+        last = self.rankings[-1].diagnosis if self.rankings else None
+        return last.limits if last is not None and last.best is None else {}
 
     @property
     def could_hide_json(self) -> dict[str, dict[str, float | None]]:
@@ -587,6 +595,7 @@ def add_effect_and_refit(measurement, state: ModelState, effect: str, twin, forw
                          values: Mapping[str, float] | None = None, history: Sequence[Version] = (),
                          options: FitOptions | Mapping | None = None, label: str | None = None,
                          open_run: bool = True, md: Mapping | None = None, show: bool = True,
+                         candidates: Sequence[str] | None = None, limits_options: FitOptions | Mapping | None = None,
                          executor: Executor | None = None, table: ParameterTable = METRIXS) -> MsgGenerator[Refit]:
     """``state.with_effect(effect, values)``, offsets and effect refitted with the one fit engine.
 
@@ -595,6 +604,11 @@ def add_effect_and_refit(measurement, state: ModelState, effect: str, twin, forw
     ``progress`` (refit iterations), ``effect`` (fitted magnitude ± uncertainty per parameter),
     the new version's comparison (``misfit``, ``misfit_total``) and ``error_history``
     (``history`` + the new version).  ``executor`` runs the fit's ray draws side by side.
+    When the refitted model is within noise, ``limits`` (one row per candidate parameter): how
+    large each of ``candidates`` (default: every registered effect the model does not hold)
+    could be and still hide behind the offsets
+    (:func:`bluesky_offsets.model.diagnosis.detection_limits`, ``limits_options`` default
+    :data:`bluesky_offsets.model.diagnosis.SCAN`): what the verdict cannot exclude.
     """
     meas, link = resolve_measurement(measurement, store, table=table)
     twin = twin.with_hist(meas.spec)  # the twin bins as the measurement does
@@ -628,10 +642,23 @@ def add_effect_and_refit(measurement, state: ModelState, effect: str, twin, forw
                                      table=table)
         versions = [*history, c.version()]
         yield from record_error_history(versions)
+        limits: dict[str, dict[str, float]] = {}
+        if c.within_noise:
+            # what could still hide (measured: a hidden 10 mm defocus beside a divergence of -0.3;
+            # the divergence added, the model was within noise and nothing said the defocus could hide)
+            names = [n for n in (candidates or E.EFFECTS) if n not in st.effects]
+            lo = FitOptions.resolve(limits_options, D.SCAN)
+            excess = 3.0 * math.sqrt(2 * max(c.misfit.dof_total, 1.0))
+            limits = yield from run_in_thread(
+                lambda progress: D.detection_limits(meas, st, D.engine_for(meas, lo, table), lo, names, excess,
+                                                    executor=executor, table=table),
+                stream=None, desc="what could still hide", show=show)
+            yield from emit_rows("limits", [{"effect": e, "parameter": q, "limit": float(v)}
+                                            for e, d in limits.items() for q, v in d.items()])
         # the fit's own record (its ray draws in order; the progress events came as they ran)
         return Refit(effect, st, sig, c, [dict(h) for h in fit.history], versions,
                      covariance=np.asarray(fit.covariance, float),
-                     fit_names=list(fit.names))
+                     fit_names=list(fit.names), limits=limits)
 
     r, uid = yield from in_run(body, _md, open_run)
     r.uid = r.comparison.uid = uid
@@ -731,8 +758,11 @@ def restore_refit(res: Mapping, history: Sequence[Version], uid: str | None = No
     steps = [{k: v for k, v in r.items() if k not in ("time", "seq_num")} for r in res.get("progress", [])]
     row = (res.get("effect") or [{}])[0]
     cov = row.get("covariance")
+    limits: dict[str, dict[str, float]] = {}
+    for r in res.get("limits", []):
+        limits.setdefault(str(r["effect"]), {})[str(r["parameter"])] = float(r["limit"])
     return Refit(str(res["start"]["effect"]), c.state, dict(c.effect_sigma), c, steps, [*history, c.version()], uid,
-                 None if cov is None else np.asarray(cov, float), row.get("fit_names"))
+                 None if cov is None else np.asarray(cov, float), row.get("fit_names"), limits)
 
 
 def restore_pruning(res: Mapping, history: Sequence[Version], uid: str | None = None) -> Pruning:
@@ -903,7 +933,8 @@ def analyse_measurement(measurement, twin, forward_model=None, *, store=None,
         history = out.versions
         rf = yield from step("add_effect" + suffix, lambda m: add_effect_and_refit(
             meas, start, best.name, twin, values=best.values, history=history,
-            options=fopts.replace(seed=fopts.seed + 1 + round_), md=m, show=show, executor=executor, table=table),
+            options=fopts.replace(seed=fopts.seed + 1 + round_), md=m, show=show, candidates=candidates,
+            limits_options=sopts.replace(seed=seed + round_ + 7919), executor=executor, table=table),
             lambda res, uid: restore_refit(res, history, uid))
         out.refits.append(rf)
         out.comparisons.append(rf.comparison)

@@ -30,6 +30,7 @@ from plans.diagnose import (
     diagnose_effects,
     load_results,
     restore_pruning,
+    restore_refit,
     retest_effects,
 )
 from plans._stubs import emit_rows
@@ -135,7 +136,8 @@ def test_add_effect_and_refit_stores_magnitude_and_error_history(RE, twin, measu
     try:
         base = RE(compare_model(m, ModelState(), twin, show=False)).plan_result
         rf = RE(add_effect_and_refit(m, ModelState(), "intensity_scale", twin, history=[base.version()],
-                                     options=FIT, show=False)).plan_result
+                                     options=FIT, show=False, candidates=["background", "detector_blur"],
+                                     limits_options=FIT)).plan_result
     finally:
         for t in tokens:
             RE.unsubscribe(t)
@@ -162,6 +164,13 @@ def test_add_effect_and_refit_stores_magnitude_and_error_history(RE, twin, measu
     assert res["error_history"][1]["effects"] == {"intensity_scale": {"delta": pytest.approx(value)}}
     assert len(res["misfit"]) == 4 and len(res["progress"]) >= 3
     assert res["start"]["fit_options"]["rays"] == 1500
+    # within noise after the refit: what could still hide, stored with it and read back as it was
+    assert rf.comparison.within_noise == bool(rf.limits) == bool(res.get("limits")), (rf.comparison.total_row(),
+                                                                                      rf.limits)
+    if rf.limits:
+        assert set(rf.limits) == {"background", "detector_blur"}
+        assert all(0 < v < np.inf for d in rf.limits.values() for v in d.values()), rf.limits
+    assert restore_refit(res, [base.version()], rf.uid).limits == rf.limits
 
 
 def test_retest_effects_drops_the_weakest_and_resumes_from_its_run(RE, twin, measured, run_store):
