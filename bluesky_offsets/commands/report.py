@@ -181,6 +181,14 @@ def analysis_sections(analysis, spec, work: Path, *, truth: Mapping | None = Non
                              "χ²/dof without": t["chi2_reduced_without"],
                              "kept": "yes" if t["kept"] else ("dropped" if t["effect"] == analysis.dropped else "no")}
                             for t in analysis.retests])
+        hide = analysis.could_hide if analysis.refits and analysis.final is analysis.refits[-1].comparison else {}
+        if hide:
+            body += (paragraph("With the last effect added the model is within noise. What that cannot exclude: how "
+                               "large each other candidate could be and still be absorbed by the offsets, the model "
+                               "staying within noise (linearised at the candidate's starting values; more can hide "
+                               "where the twin responds less, as a defocus near its focus):")
+                     + table_([{"effect": name, "parameter": q, "could hide": limit_text(name, q, lim)}
+                               for name, d in hide.items() for q, lim in d.items()]))
         secs.append(("Fitted effect magnitudes", body))
 
     # rankings, one per diagnosis
