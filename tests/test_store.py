@@ -125,7 +125,8 @@ def test_a_moved_copied_or_relative_store_reads_its_own_files(RE, chamber, tmp_p
         RE.unsubscribe(token)
     shutil.copytree(tmp_path / "runs", tmp_path / "copy")
     shutil.move(tmp_path / "runs", tmp_path / "moved")
-    # the copy as a relative store was recorded before stores were made absolute: the tables' URI relative
+    # the copy as a store made with a relative path recorded it before new stores were made absolute:
+    # its tables by the relative URI
     import sqlite3
     with sqlite3.connect(tmp_path / "copy" / "catalog.db") as con:
         con.execute("UPDATE assets SET data_uri = 'duckdb://localhost/runs/tables.duckdb' WHERE data_uri LIKE 'duckdb:%'")
