@@ -31,7 +31,6 @@ from __future__ import annotations
 
 import json
 import logging
-import math
 from collections.abc import Mapping, Sequence
 from concurrent.futures import Executor
 from dataclasses import asdict, dataclass, field
@@ -224,7 +223,7 @@ class Analysis:
         not hold could be and still hide behind the offsets
         (:func:`~bluesky_offsets.model.diagnosis.detection_limits`: of the last diagnosis when it
         found the model within noise, of the last refit when that reached the noise); else empty."""
-        if self.refits and self.dropped is None and self.refits[-1].limits and self.final is self.refits[-1].comparison:
+        if self.refits and self.final is self.refits[-1].comparison:  # no backward step dropped one since
             return self.refits[-1].limits
         last = self.rankings[-1].diagnosis if self.rankings else None
         return last.limits if last is not None and last.best is None else {}
@@ -648,10 +647,9 @@ def add_effect_and_refit(measurement, state: ModelState, effect: str, twin, forw
             # the divergence added, the model was within noise and nothing said the defocus could hide)
             names = [n for n in (candidates or E.EFFECTS) if n not in st.effects]
             lo = FitOptions.resolve(limits_options, D.SCAN)
-            excess = 3.0 * math.sqrt(2 * max(c.misfit.dof_total, 1.0))
             limits = yield from run_in_thread(
-                lambda progress: D.detection_limits(meas, st, D.engine_for(meas, lo, table), lo, names, excess,
-                                                    executor=executor, table=table),
+                lambda progress: D.detection_limits(meas, st, D.engine_for(meas, lo, table), lo, names,
+                                                    c.misfit.noise_margin(), executor=executor, table=table),
                 stream=None, desc="what could still hide", show=show)
             yield from emit_rows("limits", [{"effect": e, "parameter": q, "limit": float(v)}
                                             for e, d in limits.items() for q, v in d.items()])

@@ -123,7 +123,7 @@ def analysis_sections(analysis, spec, work: Path, *, truth: Mapping | None = Non
 
     ``truth`` (simulations only) adds the hidden effect beside the fitted one.
     """
-    from bluesky_offsets.model.diagnosis import limit_text, plot_error_history, plot_ranking
+    from bluesky_offsets.model.diagnosis import plot_error_history, plot_ranking
     from bluesky_offsets.model.misfit import plot_overlays, plot_residual_maps
     from bluesky_offsets.physics.effects import get as get_effect
     from bluesky_offsets.physics.parameters import METRIXS
@@ -181,14 +181,8 @@ def analysis_sections(analysis, spec, work: Path, *, truth: Mapping | None = Non
                              "χ²/dof without": t["chi2_reduced_without"],
                              "kept": "yes" if t["kept"] else ("dropped" if t["effect"] == analysis.dropped else "no")}
                             for t in analysis.retests])
-        hide = analysis.could_hide if analysis.refits and analysis.final is analysis.refits[-1].comparison else {}
-        if hide:
-            body += (paragraph("With the last effect added the model is within noise. What that cannot exclude: how "
-                               "large each other candidate could be and still be absorbed by the offsets, the model "
-                               "staying within noise (linearised at the candidate's starting values; more can hide "
-                               "where the twin responds less, as a defocus near its focus):")
-                     + table_([{"effect": name, "parameter": q, "could hide": limit_text(name, q, lim)}
-                               for name, d in hide.items() for q, lim in d.items()]))
+        if analysis.final is analysis.refits[-1].comparison and analysis.refits[-1].limits:
+            body += limits_section("With the last effect added the model is within noise.", analysis.refits[-1].limits)
         secs.append(("Fitted effect magnitudes", body))
 
     # rankings, one per diagnosis
@@ -231,12 +225,7 @@ def analysis_sections(analysis, spec, work: Path, *, truth: Mapping | None = Non
         if diag.notes:
             body += paragraph("; ".join(diag.notes))
         if diag.limits:
-            body += (paragraph("The model is within noise, so no candidate was fitted. What that cannot exclude: "
-                               "how large each candidate could be and still be absorbed by the offsets, the model "
-                               "staying within noise (linearised at the candidate's starting values; more can hide "
-                               "where the twin responds less, as a defocus near its focus):")
-                     + table_([{"effect": name, "parameter": q, "could hide": limit_text(name, q, lim)}
-                               for name, d in diag.limits.items() for q, lim in d.items()]))
+            body += limits_section("The model is within noise, so no candidate was fitted.", diag.limits)
         title = "Which effect is missing: ranking" + (f" (diagnosis {k_rank}, model '{diag_label(analysis, k_rank)}')"
                                                       if len(analysis.rankings) > 1 else "")
         secs.append((title, body))
@@ -296,6 +285,17 @@ def analysis_sections(analysis, spec, work: Path, *, truth: Mapping | None = Non
 
 def table_(rows, columns=None, fmt: str = "{:.4g}") -> str:
     return _table(rows, columns, fmt)
+
+
+def limits_section(why: str, limits: Mapping[str, Mapping[str, float]]) -> str:
+    """What a model within noise cannot exclude (:func:`bluesky_offsets.model.diagnosis.detection_limits`),
+    after ``why`` it is within noise: a paragraph and a table."""
+    from bluesky_offsets.model.diagnosis import limit_text
+    return (paragraph(f"{why} What that cannot exclude: how large each candidate could be and still be absorbed "
+                      "by the offsets, the model staying within noise (linearised at the candidate's starting "
+                      "values; more can hide where the twin responds less, as a defocus near its focus):")
+            + table_([{"effect": name, "parameter": q, "could hide": limit_text(name, q, lim)}
+                      for name, d in limits.items() for q, lim in d.items()]))
 
 
 def uid_section(uids: Mapping[str, str], store_location: str | None = None) -> str:

@@ -263,7 +263,7 @@ def rivals_text(rivals: Sequence[Candidate]) -> str:
     if not rivals:
         return ""
     return ", not told apart from " + ", ".join(
-        f"{c.name} (preferred by {c.behind_z:.1f} sigma)" if math.isfinite(c.behind_z or float("nan")) else c.name
+        f"{c.name} (preferred by {c.behind_z:.1f} sigma)" if math.isfinite(c.behind_z) else c.name
         for c in rivals)
 
 
@@ -469,8 +469,8 @@ def diagnose(meas: Measurement, state: ModelState, twin=None, forward_model=None
         # nothing to explain: no candidate is fitted.  What the verdict cannot exclude is said:
         # an effect the offsets absorb leaves a model within noise (measured: a hidden 9 mm
         # defocus behind all-34 offsets of ±7 %, chi2/dof 1.09)
-        excess = n_sigma * math.sqrt(2 * max(base_mf.dof_total, 1.0))
-        limits = detection_limits(meas, state, engine, o, names, excess, executor=executor, table=table)
+        limits = detection_limits(meas, state, engine, o, names, base_mf.noise_margin(n_sigma), executor=executor,
+                                  table=table)
         n_traces += n * n_starts  # one Jacobian at each start
         return Diagnosis(base_mf, True, [], _signature(meas.histograms, base_view, spec), folds, n_traces,
                          [f"the base model is within noise (chi2/dof = {base_mf.chi2_reduced_total:.2f}): "

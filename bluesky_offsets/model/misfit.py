@@ -90,8 +90,14 @@ class Misfit:
         """Configurations whose chi2 exceeds its expectation by ``n_sigma`` (chi2 with dof)."""
         return self.chi2 > self.dof + n_sigma * np.sqrt(2 * np.maximum(self.dof, 1))
 
+    def noise_margin(self, n_sigma: float = 3.0) -> float:
+        """How far χ² may exceed its expectation and the model still be within noise: ``n_sigma``
+        times χ²'s spread √(2 dof) (the gate of :meth:`total_beyond_noise`; what a hidden effect
+        may add and hide, :func:`bluesky_offsets.model.diagnosis.detection_limits`)."""
+        return float(n_sigma * np.sqrt(2 * max(self.dof_total, 1)))
+
     def total_beyond_noise(self, n_sigma: float = 3.0) -> bool:
-        return self.chi2_total > self.dof_total + n_sigma * np.sqrt(2 * max(self.dof_total, 1))
+        return self.chi2_total > self.dof_total + self.noise_margin(n_sigma)
 
     def as_dict(self) -> dict:
         return {"chi2_total": self.chi2_total, "dof_total": self.dof_total,
