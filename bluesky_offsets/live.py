@@ -8,12 +8,15 @@
 
 With a GUI backend (``%matplotlib qt``, a desktop session) the figures are pyplot windows that
 update as documents arrive; without one they are plain Agg figures.  Either way, with
-``directory`` set, each figure is written there as PNG when its run stops.
+``directory`` set, each figure is written there as PNG when its run stops (a measurement's
+footprints, which every later comparison draws on, at most every ``every`` seconds, and the
+last state at :func:`flush`).
 """
 
 from __future__ import annotations
 
 import math
+import time
 from pathlib import Path
 
 import numpy as np
@@ -50,8 +53,8 @@ def in_background(callback):
 
 
 def flush(callbacks) -> None:
-    """Wait until the callbacks made with :func:`in_background` have drawn and written every
-    document so far."""
+    """Wait until the callbacks (made with :func:`in_background` or not) have drawn every
+    document so far and written every figure drawn on since it was last written."""
     for cb in callbacks:
         if hasattr(type(cb), "flush"):
             cb.flush()
@@ -100,10 +103,16 @@ class LiveFootprints(CallbackBase):
         Panels per row.
     show : bool, optional
         Pyplot windows (True) or Agg figures (False); default: windows with a GUI backend.
+    every : float
+        Seconds at least between two writes of one figure as later runs stop; what was drawn
+        since is written by the next run that stops after that, or by :meth:`flush`.  A 20-panel
+        figure takes 0.8-2 s to write, and each comparison of the README's main job drew on its
+        measurement's (written every time: 18.9 s of the main process's CPU, profiled, beside the fits).
     """
 
     def __init__(self, directory=None, *, plans: tuple[str, ...] = ("measure_configurations",),
-                 range_x=(-10.0, 10.0), range_y=(-3.0, 3.0), columns: int = 5, show: bool | None = None):
+                 range_x=(-10.0, 10.0), range_y=(-3.0, 3.0), columns: int = 5, show: bool | None = None,
+                 every: float = 30.0):
         super().__init__()
         self.directory = Path(directory) if directory is not None else None
         self.plans, self.range_x, self.range_y = tuple(plans), tuple(range_x), tuple(range_y)
@@ -117,6 +126,8 @@ class LiveFootprints(CallbackBase):
         # figures drawn on since they were last written: a run that drew nothing (a diagnosis
         # names the measurement but traces no model of it) writes nothing
         self._changed: set[str] = set()
+        self.every = float(every)
+        self._written_at: dict[str, float] = {}  # measurement uid -> time.monotonic() of its last write
 
     # the measurement ------------------------------------------------------ #
     def start(self, doc):
@@ -155,8 +166,16 @@ class LiveFootprints(CallbackBase):
 
     def stop(self, doc):
         run = self._runs.pop(doc["run_start"], None)
-        if run is not None and run["measurement"] in self._changed:
+        if run is None or run["measurement"] not in self._changed:
+            return
+        # a file someone may be watching, not a result: its write is paced by the clock
+        if time.monotonic() - self._written_at.get(run["measurement"], -math.inf) >= self.every:
             self._save(run["measurement"])
+
+    def flush(self) -> None:
+        """Write every figure drawn on since it was last written."""
+        for uid in list(self._changed):
+            self._save(uid)
 
     # drawing --------------------------------------------------------------- #
     def _new_figure(self, uid: str, n: int, title: str) -> None:
@@ -218,6 +237,7 @@ class LiveFootprints(CallbackBase):
         path = self.directory / f"footprints-{uid[:8]}.png"
         self.figures[uid].savefig(path, dpi=80)
         self._changed.discard(uid)
+        self._written_at[uid] = time.monotonic()
         if path not in self.written:
             self.written.append(path)
 

@@ -19,6 +19,8 @@ from collections.abc import Callable
 
 log = logging.getLogger(__name__)
 
+_FLUSH = object()  # queued by flush(): the wrapped callback's own flush, on its thread
+
 
 class QueuedCallback:
     """``RE.subscribe(QueuedCallback(callback))``: ``callback(name, doc)`` on a thread of its own.
@@ -60,14 +62,18 @@ class QueuedCallback:
                 if item is None:
                     return
                 if self._error is None:
-                    self.callback(*item)
+                    if item is _FLUSH:
+                        self.callback.flush()
+                    else:
+                        self.callback(*item)
             except BaseException as exc:  # noqa: BLE001 - handed to the RunEngine's thread, or logged
                 if self._error_type is not None:
                     self._error = exc
                 elif not self._logged:
                     self._logged = True
                     log.warning("%s failed on a %r document (later failures not logged): %s",
-                                type(self.callback).__name__, item[0], exc, exc_info=exc)
+                                type(self.callback).__name__, "flush" if item is _FLUSH else item[0], exc,
+                                exc_info=exc)
             finally:
                 self._queue.task_done()
 
@@ -83,13 +89,18 @@ class QueuedCallback:
         self._queue.put((name, doc))
 
     def flush(self) -> None:
-        """Wait until the callback has had every document queued so far."""
+        """Wait until the callback has had every document queued so far and, where it has a
+        ``flush`` of its own (work it defers, such as a figure's next write), has run that."""
+        if callable(getattr(self.callback, "flush", None)):
+            self._queue.put(_FLUSH)
         self._queue.join()
         self._raise()
 
     def close(self, raise_error: bool = True) -> None:
-        """Deliver what is queued, then end the thread."""
+        """Deliver what is queued (and run the callback's own ``flush``), then end the thread."""
         if self._thread.is_alive():
+            if callable(getattr(self.callback, "flush", None)):
+                self._queue.put(_FLUSH)
             self._queue.put(None)
             self._thread.join()
         if raise_error:

@@ -285,3 +285,58 @@ def test_a_queued_callback_keeps_the_order_and_reports_failures(caplog):
         q.close()
     assert seen == [("event", 0), ("event", 2)]
     assert sum("cannot draw this" in r.getMessage() for r in caplog.records) == 1
+
+
+
+def test_a_measurements_footprints_are_written_paced_and_the_last_state_at_flush(tmp_path):
+    """Every comparison draws the model over the measured frames; the figure is written when the
+    measurement stops, again only ``every`` seconds later, and as last drawn at ``flush`` (through
+    the queue's thread as well as called directly)."""
+    from bluesky_offsets.live import LiveFootprints, in_background
+    from bluesky_offsets.live import flush as flush_live
+
+    h = np.zeros(50)
+    h[20:30] = 1.0
+
+    def run(uid, start, stream, events):
+        yield "start", {"uid": uid, "time": 0.0, **start}
+        yield "descriptor", {"uid": uid + "-d", "run_start": uid, "name": stream}
+        for k, data in enumerate(events):
+            yield "event", {"descriptor": uid + "-d", "seq_num": k + 1, "data": data}
+        yield "stop", {"run_start": uid}
+
+    def measurement(n=2):
+        return run("m", {"plan_name": "measure_configurations", "configurations": [[0.0]] * n}, "primary",
+                   [{"hist_x": h, "hist_y": h}] * n)
+
+    def comparison(k, n=2):
+        return run(f"c{k}", {"measurement_uid": "m", "version_label": f"model {k}"}, "misfit",
+                   [{"config_index": i, "model_hist_x": h, "model_hist_y": h, "chi2_reduced": 1.0 + k}
+                    for i in range(n)])
+
+    def counted(fp):
+        writes, save = [], fp._save
+        fp._save = lambda uid: (writes.append(fp.figures[uid].axes[0].get_title()), save(uid))
+        return writes
+
+    for queued in (False, True):
+        fp = LiveFootprints(tmp_path / str(queued), show=False, every=3600.0)
+        writes = counted(fp)
+        cb = in_background(fp) if queued else fp
+        for docs in (measurement(), comparison(0), comparison(1), comparison(2)):
+            for name, doc in docs:
+                cb(name, doc)
+        flush_live([cb])
+        # written when the measurement stopped, not as the three comparisons stopped (within the
+        # hour), then at flush with the last comparison drawn; a second flush writes nothing
+        assert writes == ["configuration 0", "configuration 0 — model 2: χ²/dof 3"], (queued, writes)
+        flush_live([cb])
+        assert len(writes) == 2
+        assert (tmp_path / str(queued) / "footprints-m.png").stat().st_size > 5_000
+    # with every=0 each run that drew writes
+    fp = LiveFootprints(tmp_path / "each", show=False, every=0.0)
+    writes = counted(fp)
+    for docs in (measurement(1), comparison(0, 1), comparison(1, 1)):
+        for name, doc in docs:
+            fp(name, doc)
+    assert len(writes) == 3

@@ -518,9 +518,11 @@ def diagnose(meas: Measurement, state: ModelState, twin=None, forward_model=None
     # had outscored a hidden 12 mm defocus before.
     # (the last stage alone: the features stage would first trade the bins for the features)
     froms = [n_ for n_ in sorted(fitted, key=lambda n_: best[n_].chi2)[:verify_top] if best[n_].chi2 < ref.chi2]
-    alt_fits = [lambda name=name: fit(meas, ModelState(best[name].state.offsets, state.effects, state.label),
-                                      engine, o.replace(stages=o.stages[-1:]),
-                                      progress=report(f"offsets only, from {name}'s"), table=table)
+    # (each call holds only its start: one that reached ``best`` would carry every candidate's
+    # Jacobian to the worker, 15 MB a call)
+    alt_fits = [lambda st=ModelState(best[name].state.offsets, state.effects, state.label), name=name:
+                fit(meas, st, engine, o.replace(stages=o.stages[-1:]), progress=report(f"offsets only, from {name}'s"),
+                    table=table)
                 for name in froms]
     # side by side all at once; one after the other only as far as the loop goes (the same
     # result: the loop reads them in order and stops at the same place)
