@@ -216,7 +216,8 @@ def test_a_fit_from_several_starts_keeps_the_one_that_ends_lowest(defocus_case):
 def test_ray_draws_average_the_fit_over_the_models_rays(defocus_case):
     """``ray_draws``: the first draw is the one-draw fit; each later draw is the same fit on
     other rays from where the first ended; the solution is their mean, and the covariance is
-    the Gauss-Newton one there plus the draws' scatter over their number."""
+    the Gauss-Newton one there plus the draws' scatter (one draw's, not over their number: the
+    later draws start where the first ended and are not independent estimates)."""
     meas, truth, twin = defocus_case
     opts = FitOptions(rays=1500, seed=3, stages=(("features", 3), ("bins", 3)))
     eng = TorchEngine(hist=CAMERA)
@@ -230,7 +231,7 @@ def test_ray_draws_average_the_fit_over_the_models_rays(defocus_case):
     mean = res.draws.mean(0)
     assert np.allclose(np.r_[res.state.offsets, res.state.effect_vector()], mean)
     at_mean = fit(meas, res.state, eng, opts.replace(stages=(("bins", 0),)))
-    spread = np.cov(res.draws.T, ddof=1) / 3
+    spread = np.cov(res.draws.T, ddof=1)
     assert np.allclose(res.covariance, at_mean.covariance + spread)
     assert {h.get("ray_draw") for h in res.history} == {None, 1, 2, "mean"}
     assert res.history[-1]["ray_draw"] == "mean" and res.history[-1]["chi2"] == pytest.approx(at_mean.history[-1]["chi2"])

@@ -101,8 +101,8 @@ class FitOptions:
         12 mm defocus ended at z = 7 mm.
     ray_draws : a fit with effect parameters repeated on this many independent draws of the
         model's rays, each later draw starting where the first ended; the solution is their mean
-        and the covariance adds their spread (their sample covariance over the number of draws)
-        to the Gauss-Newton one.  An offsets-only fit is one draw: it starts a diagnosis (whose
+        and the covariance adds their spread (their sample covariance, one draw's: not divided
+        by their number, see :func:`fit`) to the Gauss-Newton one.  An offsets-only fit is one draw: it starts a diagnosis (whose
         candidate fits refit the offsets) or a refit, and each draw costs a fit (about 8 s for
         the main job's 14 configurations on one core).  Why: on RAYX's hard counts with a fixed
         set of rays the χ² is a staircase along the directions where offsets compensate an
@@ -622,7 +622,17 @@ def fit(meas, state, engine, options: FitOptions | Mapping | None = None, *,
     if len(draws) > 1:
         draws = np.asarray(draws)
         z, exact = np.clip(draws.mean(0), *mdl.bounds()), False
-        spread = np.cov(draws.T, ddof=1) / len(draws)  # the mean's variance from the draws' scatter
+        # what the rays leave in the mean: one draw's variance, not a quarter of it.  The later
+        # draws start where the first ended, and a fit on RAYX's hard counts ends near where it
+        # starts, so they are not independent estimates: each moves only part of the way from the
+        # first's end toward its own rays' minimum, the mean keeps most of the first draw's
+        # error, and their scatter shows only the part they moved: draws that move a fraction a
+        # of the way (S: one draw's variance at its own minimum) scatter by a^2 S while their
+        # mean varies by S((1 - 3a/4)^2 + 3a^2/16): the scatter is four times that at a = 1
+        # (conservative), equal to it at a = 0.6, and short of it below.  Over four, as before,
+        # it was short whenever a < 1; on the scenario grid (docs/benchmarks.md, "One draw's
+        # spread") that left 4 of 33 runs beyond 2 sigma.
+        spread = np.cov(draws.T, ddof=1)
     if not exact:
         # the uncertainty (and everything read from the Jacobian) at the twin's own Jacobian
         pr = mdl.products(o.stages[-1][0], z, True)
