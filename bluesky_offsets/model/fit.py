@@ -102,12 +102,12 @@ class FitOptions:
     ray_draws : a fit with effect parameters repeated on this many independent draws of the
         model's rays, each later draw starting where the first ended; the solution is their mean
         and the covariance adds their spread (their sample covariance, one draw's: not divided
-        by their number, see :func:`fit`) to the Gauss-Newton one.  An offsets-only fit is one draw: it starts a diagnosis (whose
-        candidate fits refit the offsets) or a refit, and each draw costs a fit (about 8 s for
-        the main job's 14 configurations on one core).  Why: on RAYX's hard counts with a fixed
-        set of rays the χ² is a staircase along the directions where offsets compensate an
-        effect (an aperture's size against the source's divergence), and one draw ends on
-        whichever step is near, farther from the truth than its curvature says.  Measured
+        by their number, see :func:`fit`) to the Gauss-Newton one.  An offsets-only fit is one
+        draw: it starts a diagnosis (whose candidate fits refit the offsets) or a refit, and
+        each draw costs a fit (about 8 s for the main job's 14 configurations on one core).
+        Why: on RAYX's hard counts with a fixed set of rays the χ² is a staircase along the
+        directions where offsets compensate an effect (an aperture's size against the source's
+        divergence), and one draw ends on whichever step is near, farther from the truth than its curvature says.  Measured
         (docs/benchmarks.md, "Ray draws"): a hidden source divergence of 0.5 that single-draw
         fits put at 0.476 and 0.458 (σ 0.010), refitted on four other draws from there, came out
         at 0.480-0.510 and 0.475-0.517; with four draws in the analysis's refits, the five
