@@ -287,7 +287,6 @@ def test_a_queued_callback_keeps_the_order_and_reports_failures(caplog):
     assert sum("cannot draw this" in r.getMessage() for r in caplog.records) == 1
 
 
-
 def test_a_measurements_footprints_are_written_paced_and_the_last_state_at_flush(tmp_path):
     """Every comparison draws the model over the measured frames; the figure is written when the
     measurement stops, again only ``every`` seconds later, and as last drawn at ``flush`` (through
