@@ -91,16 +91,18 @@ class QueuedCallback:
     def flush(self) -> None:
         """Wait until the callback has had every document queued so far and, where it has a
         ``flush`` of its own (work it defers, such as a figure's next write), has run that."""
-        if callable(getattr(self.callback, "flush", None)):
-            self._queue.put(_FLUSH)
+        self._queue_own_flush()
         self._queue.join()
         self._raise()
+
+    def _queue_own_flush(self) -> None:
+        if callable(getattr(self.callback, "flush", None)):
+            self._queue.put(_FLUSH)
 
     def close(self, raise_error: bool = True) -> None:
         """Deliver what is queued (and run the callback's own ``flush``), then end the thread."""
         if self._thread.is_alive():
-            if callable(getattr(self.callback, "flush", None)):
-                self._queue.put(_FLUSH)
+            self._queue_own_flush()
             self._queue.put(None)
             self._thread.join()
         if raise_error:

@@ -223,10 +223,21 @@ class Analysis:
         not hold could be and still hide behind the offsets
         (:func:`~bluesky_offsets.model.diagnosis.detection_limits`: of the last diagnosis when it
         found the model within noise, of the last refit when that reached the noise); else empty."""
-        if self.refits and self.final is self.refits[-1].comparison:  # no backward step dropped one since
-            return self.refits[-1].limits
+        if self._ends_with_refit:
+            return self.refit_limits
         last = self.rankings[-1].diagnosis if self.rankings else None
         return last.limits if last is not None and last.best is None else {}
+
+    @property
+    def _ends_with_refit(self) -> bool:
+        """The analysis ends with its last refit's model (no backward step dropped an effect since)."""
+        return bool(self.refits) and self.final is self.refits[-1].comparison
+
+    @property
+    def refit_limits(self) -> dict[str, dict[str, float]]:
+        """The last refit's detection limits (held when it reached the noise) where the analysis
+        ends with that refit's model; else empty."""
+        return self.refits[-1].limits if self._ends_with_refit else {}
 
     @property
     def could_hide_json(self) -> dict[str, dict[str, float | None]]:

@@ -181,8 +181,8 @@ def analysis_sections(analysis, spec, work: Path, *, truth: Mapping | None = Non
                              "χ²/dof without": t["chi2_reduced_without"],
                              "kept": "yes" if t["kept"] else ("dropped" if t["effect"] == analysis.dropped else "no")}
                             for t in analysis.retests])
-        if analysis.final is analysis.refits[-1].comparison and analysis.refits[-1].limits:
-            body += limits_section("With the last effect added the model is within noise.", analysis.refits[-1].limits)
+        if analysis.refit_limits:
+            body += limits_section("With the last effect added the model is within noise.", analysis.refit_limits)
         secs.append(("Fitted effect magnitudes", body))
 
     # rankings, one per diagnosis

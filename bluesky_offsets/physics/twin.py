@@ -433,8 +433,9 @@ WORKER_ENV = {"OMP_NUM_THREADS": "1"}
 # workers' 10 ms stack sampler (the dashboard's profile), the nannies' 100 ms memory poll and the
 # 0.5 s system monitor with disk counters.  Measured on 2 cores, an idle cluster of two workers
 # took 10.2 % of a core with the defaults and 2.4 % with these (benchmarks/bench_cluster_idle.py,
-# docs/benchmarks.md "less CPU beside the fits"); over a demo that is CPU the fits beside it did not get.  What runs, and where,
-# is unchanged; the dashboard still shows tasks and memory (no profile pane).
+# docs/benchmarks.md "less CPU beside the fits"); over a demo that is CPU the fits beside it did
+# not get.  What runs, and where, is unchanged; the dashboard still shows tasks and memory (no
+# profile pane).
 QUIET_CLUSTER = {"distributed.admin.tick.interval": "200ms",
                  "distributed.worker.profile.enabled": False,
                  "distributed.worker.memory.monitor-interval": "1s",
