@@ -129,7 +129,8 @@ def test_a_moved_copied_or_relative_store_reads_its_own_files(RE, chamber, tmp_p
     # its tables by the relative URI
     import sqlite3
     with sqlite3.connect(tmp_path / "copy" / "catalog.db") as con:
-        con.execute("UPDATE assets SET data_uri = 'duckdb://localhost/runs/tables.duckdb' WHERE data_uri LIKE 'duckdb:%'")
+        con.execute("UPDATE assets SET data_uri = 'duckdb://localhost/runs/tables.duckdb' "
+                    "WHERE data_uri LIKE 'duckdb:%'")
     con.close()
     monkeypatch.chdir(tmp_path.parent)  # elsewhere
     for place in ("moved", "copy"):

@@ -760,14 +760,15 @@ def retest_effects(meas: Measurement, state: ModelState, names: Sequence[str] | 
     Effects are added one after another, each the best candidate *then*; an effect added early
     may have stood in for one added later (measured on the scenario grid: photon energy, which
     the offsets half mimic, ranked above a hidden source divergence, and once the divergence
-    was in it was fitted within 1 σ of zero).  So, after the forward steps, each effect is removed in turn, the rest refitted from
-    where the full model ended with every stage of ``options`` (default :data:`FIT`, as the
-    full model was: an effect the offsets half mimic moves the beam, and the offsets need the
-    features' wide basin to take it back; measured with the last stage alone, a photon energy
-    fitted to 1.0 σ from zero cost Δχ² = 860 to remove), and both traced with fresh rays (two
-    draws, the smaller gain counts).  An effect is kept when the model without it is beyond
-    noise and its gain exceeds the diagnosis's price (``p ln N`` times the dispersion).
-    ``executor`` runs each refit's ray draws side by side.
+    was in it was fitted within 1 σ of zero).  So, after the forward steps, each effect is
+    removed in turn, the rest refitted from where the full model ended with every stage of
+    ``options`` (default :data:`FIT`, as the full model was: an effect the offsets half mimic
+    moves the beam, and the offsets need the features' wide basin to take it back; measured
+    with the last stage alone, a photon energy fitted to 1.0 σ from zero cost Δχ² = 860 to
+    remove), and both traced with fresh rays (two draws, the smaller gain counts).  An effect
+    is kept when the model without it is beyond noise and its gain exceeds the diagnosis's
+    price (``p ln N`` times the dispersion).  ``executor`` runs each refit's ray draws side by
+    side.
     """
     names = list(state.effects if names is None else names)
     o = FitOptions.resolve(options, FIT)
