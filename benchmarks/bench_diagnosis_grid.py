@@ -132,8 +132,11 @@ def _run(args) -> None:
             if diag.best is None:
                 break
             b = diag.best
-            res = D.add_effect_result(meas, b.refit_start(), b.name,
-                                      values=b.values, options=fit_o.replace(seed=fit_o.seed + 1 + round_))
+            start = b.refit_start()
+            # and from the bare twin's offsets, as the analysis refits (analyse_measurement)
+            twin_start = [ModelState(np.zeros(len(start.offsets)), start.effects, "twin")] if D.REFIT_FROM_TWIN else []
+            res = D.add_effect_result(meas, start, b.name, values=b.values, also_from=twin_start,
+                                      options=fit_o.replace(seed=fit_o.seed + 1 + round_))
             found.append({"effect": b.name, "values": res.state.effects[b.name],
                           "sigma": res.effect_sigma.get(b.name, {})})
             cur = res.state
@@ -158,6 +161,7 @@ def _run(args) -> None:
         mf = evaluate(cur)
         at_truth = evaluate(ModelState(d["offsets"], hidden))
         row = {"scenario": label, "draw": int(draw), "hidden": hidden, "found": found, "rankings": rankings,
+               "refit_from_twin": D.REFIT_FROM_TWIN,
                "retest": retest, "dropped": dropped, "rounds": args.rounds,
                "fit_rays": fit_o.rays, "prior_sigma": fit_o.prior_sigma,
                "verdict": diag.verdict, "chi2_reduced": mf.chi2_reduced_total,

@@ -606,10 +606,13 @@ def add_effect_and_refit(measurement, state: ModelState, effect: str, twin, forw
                          options: FitOptions | Mapping | None = None, label: str | None = None,
                          open_run: bool = True, md: Mapping | None = None, show: bool = True,
                          candidates: Sequence[str] | None = None, limits_options: FitOptions | Mapping | None = None,
-                         executor: Executor | None = None, table: ParameterTable = METRIXS) -> MsgGenerator[Refit]:
+                         also_from: Sequence[ModelState] = (), executor: Executor | None = None,
+                         table: ParameterTable = METRIXS) -> MsgGenerator[Refit]:
     """``state.with_effect(effect, values)``, offsets and effect refitted with the one fit engine.
 
     ``values`` start the effect (e.g. the diagnosis's fitted values; default 0 = absent);
+    ``also_from`` more starts, each given the effect at ``values`` (the fit that ends lowest on
+    fresh rays is kept: :func:`bluesky_offsets.model.diagnosis.add_effect_result`);
     ``options`` those of the fit (default :data:`bluesky_offsets.model.diagnosis.FIT`).  Streams
     ``progress`` (refit iterations), ``effect`` (fitted magnitude ± uncertainty per parameter),
     the new version's comparison (``misfit``, ``misfit_total``) and ``error_history``
@@ -629,12 +632,13 @@ def add_effect_and_refit(measurement, state: ModelState, effect: str, twin, forw
     _md = {"plan_name": "add_effect_and_refit", "purpose": "add the missing effect and refit", **link,
            **_state_md(state, table), "effect": effect, "effect_parameters": [p.name for p in eff.parameters],
            "effect_start": start_values, "fit_options": _jsonable(asdict(opts)), "version_label": label,
-           "versions": [v.label for v in history] + [label], **dict(md or {})}
+           "versions": [v.label for v in history] + [label], "also_from": [st.label for st in also_from],
+           **dict(md or {})}
 
     def body():
         def work(progress):
             res = D.add_effect_result(meas, state, effect, twin, values=start_values, options=opts,
-                                      progress=progress, executor=executor, table=table)
+                                      progress=progress, also_from=also_from, executor=executor, table=table)
             return res.state, res.effect_sigma, res.fit
 
         st, sig, fit = yield from run_in_thread(work, desc=f"add {effect} and refit", show=show)
@@ -820,7 +824,7 @@ def analyse_measurement(measurement, twin, forward_model=None, *, store=None,
                         candidates: Sequence[str] | None = None, add_best: bool = True, rounds: int = D.ROUNDS,
                         fit_options: FitOptions | Mapping | None = None,
                         scan_options: FitOptions | Mapping | None = None, fit_top: int | None = D.FIT_TOP,
-                        folds: int = 4, seed: int = 0, resume: bool = False,
+                        folds: int = 4, seed: int = 0, refit_from_twin: bool = D.REFIT_FROM_TWIN, resume: bool = False,
                         md: Mapping | None = None, show: bool = True, resolution: str = "camera",
                         executor: Executor | None = None, table: ParameterTable = METRIXS) -> MsgGenerator[Analysis]:
     """Compare, fit the offsets, diagnose, add the winning effect and refit, diagnose again — one
@@ -856,6 +860,10 @@ def analyse_measurement(measurement, twin, forward_model=None, *, store=None,
     resolution : {"camera", "paper"}
         Of a stored run: the camera-resolution profiles where it has them, or the 50 x 50
         histograms.
+    refit_from_twin : bool
+        Refit an added effect also from the bare twin's offsets (the effect at the diagnosis's
+        values), beside where the diagnosis ended, and keep the fit that ends lowest on fresh
+        rays (default :data:`bluesky_offsets.model.diagnosis.REFIT_FROM_TWIN`).
     resume : bool
         Take every step that an earlier run of the *same* analysis (same measurement, starts and
         settings: :func:`analysis_key`) completed from the store (``store``, default
@@ -886,7 +894,8 @@ def analyse_measurement(measurement, twin, forward_model=None, *, store=None,
         "starts": [(s.label, s.offsets, s.effects) for s in starts], "refine": refine and "from every start",
         "candidates": candidates,
         "add_best": add_best, "rounds": rounds, "fit": asdict(fopts), "scan": asdict(sopts), "fit_top": fit_top,
-        "folds": folds, "seed": seed, "spec": meas.spec.fingerprint(), "n_rays": meas.n_rays})
+        "folds": folds, "seed": seed, "spec": meas.spec.fingerprint(), "n_rays": meas.n_rays,
+        **({"refit_from_twin": True} if refit_from_twin else {})})
     md = {**link, **dict(md or {}), "analysis_key": key}
     done: dict[str, str] = {}
     if resume:
@@ -937,13 +946,17 @@ def analyse_measurement(measurement, twin, forward_model=None, *, store=None,
         best = rk.diagnosis.best
         if not add_best or best is None:
             break
-        # start where the diagnosis compensated the effect with the offsets
+        # start where the diagnosis compensated the effect with the offsets, and from the bare
+        # twin's offsets (the model's effects as there): the offsets-only fit has absorbed what it
+        # could of the effect, and from there a fit ends near where it starts
         start = best.refit_start(current.label)
+        twin_start = ModelState(np.zeros(len(table)), start.effects, "twin")
         history = out.versions
         rf = yield from step("add_effect" + suffix, lambda m: add_effect_and_refit(
             meas, start, best.name, twin, values=best.values, history=history,
             options=fopts.replace(seed=fopts.seed + 1 + round_), md=m, show=show, candidates=candidates,
-            limits_options=sopts.replace(seed=seed + round_ + 7919), executor=executor, table=table),
+            limits_options=sopts.replace(seed=seed + round_ + 7919), also_from=[twin_start] if refit_from_twin else (),
+            executor=executor, table=table),
             lambda res, uid: restore_refit(res, history, uid))
         out.refits.append(rf)
         out.comparisons.append(rf.comparison)

@@ -135,9 +135,11 @@ def test_add_effect_and_refit_stores_magnitude_and_error_history(RE, twin, measu
     tokens = [run_store.subscribe(RE), RE.subscribe(footprints), RE.subscribe(progress)]
     try:
         base = RE(compare_model(m, ModelState(), twin, show=False)).plan_result
+        # a second start (as an analysis adds the bare twin's offsets beside the diagnosis's end)
+        nudged = ModelState(np.full(len(METRIXS), 0.002), {}, "nudged")
         rf = RE(add_effect_and_refit(m, ModelState(), "intensity_scale", twin, history=[base.version()],
                                      options=FIT, show=False, candidates=["background", "detector_blur"],
-                                     limits_options=FIT)).plan_result
+                                     limits_options=FIT, also_from=[nudged])).plan_result
     finally:
         for t in tokens:
             RE.unsubscribe(t)
@@ -156,6 +158,8 @@ def test_add_effect_and_refit_stores_magnitude_and_error_history(RE, twin, measu
     assert matplotlib.image.imread(png).shape[2] in (3, 4)
     res = load_results(run_store, rf.uid)
     assert res["start"]["effect"] == "intensity_scale" and res["start"]["measurement_uid"] == m.uid
+    # the fit ran from both starts, each with the effect, and kept one
+    assert res["start"]["also_from"] == ["nudged"] and {h.get("start") for h in rf.history} == {0, 1}
     (eff,) = res["effect"]
     value, sigma = rf.magnitude()["delta"]
     assert eff["delta"] == pytest.approx(value) and eff["delta_sigma"] == pytest.approx(sigma) and sigma > 0

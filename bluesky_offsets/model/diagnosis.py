@@ -300,6 +300,9 @@ def _folds(n: int, k: int, seed: int) -> list[np.ndarray]:
 FIT = FitOptions(rays=5000, stages=(("features", 15), ("profiles", 8), ("bins", 10)), ray_draws=4)
 SCAN = FitOptions(rays=3000, stages=(("features", 5), ("bins", 5)))
 ROUNDS = 3
+REFIT_FROM_TWIN = True
+"""Whether an analysis refits an added effect also from the bare twin's offsets
+(``plans.diagnose.analyse_measurement``)."""
 """Diagnoses of an analysis at most (``plans.diagnose.analyse_measurement``): two hidden effects
 and one more.  Measured on the scenario grid: an effect the offsets half mimic (photon energy,
 the grating's line density) can rank above the true one and be added first; the backward step
@@ -713,17 +716,20 @@ def add_effect(meas: Measurement, state: ModelState, name: str, twin=None, forwa
 
 def add_effect_result(meas: Measurement, state: ModelState, name: str, twin=None, forward_model=None, *,
                       values=None, options: FitOptions | Mapping | None = None, progress=None,
-                      executor: Executor | None = None, table: ParameterTable = METRIXS):
+                      also_from: Sequence[ModelState] = (), executor: Executor | None = None,
+                      table: ParameterTable = METRIXS):
     """``state.with_effect(name, values)``, offsets and effect refitted with the one fit engine
     (:func:`bluesky_offsets.model.state.refine`, options default :data:`FIT`); returns its
     :class:`~bluesky_offsets.model.state.RefineResult`.  ``values`` starts the effect where the
-    diagnosis found it (a :class:`Candidate` or its ``values``); ``executor`` runs the fit's ray
-    draws side by side."""
+    diagnosis found it (a :class:`Candidate` or its ``values``).  ``also_from``: more starts
+    (offsets, and the model's other effects), each given the effect at ``values``; the fit that
+    ends lowest on fresh rays is kept (:func:`bluesky_offsets.model.fit.fit`).  ``executor`` runs
+    the starts, then the fit's ray draws, side by side."""
     if values is not None and not isinstance(values, dict):
         values = getattr(values, "values", values)  # a Candidate
     o = FitOptions.resolve(options, FIT)
     return refine(meas, state.with_effect(name, values), twin, forward_model, options=o, progress=progress,
-                  executor=executor, table=table)
+                  also_from=[st.with_effect(name, values) for st in also_from], executor=executor, table=table)
 
 
 # --------------------------------------------------------------------------- #
