@@ -133,9 +133,11 @@ def test_acceptance_measured_histograms_follow_the_hidden_truth(RE, acceptance_i
     assert m.truth_id == truth.truth_id and m.metadata["n_rays"] == N_RAYS
     assert np.isfinite(m.hist_x).all() and np.isfinite(m.hist_y).all()
 
-    commanded = twin.trace_batch(configs, n_rays=N_RAYS, progress=False)
+    # the twin's traces seeded as the IOC's frames are: the verdict is the same on every run (unseeded,
+    # the pooled chi2/dof below was 1.51 once in CI, 2026-11-29; twelve seeds here gave 0.77-1.20)
+    commanded = twin.trace_batch(configs, n_rays=N_RAYS, progress=False, seed=4242)
     at_truth = twin.trace_batch(np.array([truth.true_values(c) for c in configs]), overrides=truth.overrides,
-                            n_rays=N_RAYS, progress=False)
+                                n_rays=N_RAYS, progress=False, seed=4343)
     meas_counts = np.concatenate([_counts(m.hist_x, N_RAYS), _counts(m.hist_y, N_RAYS)], axis=1)
     cmd_counts = np.concatenate([_counts(commanded.hist_x, N_RAYS), _counts(commanded.hist_y, N_RAYS)], axis=1)
     true_counts = np.concatenate([_counts(at_truth.hist_x, N_RAYS), _counts(at_truth.hist_y, N_RAYS)], axis=1)
