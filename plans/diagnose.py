@@ -947,8 +947,8 @@ def analyse_measurement(measurement, twin, forward_model=None, *, store=None,
         if not add_best or best is None:
             break
         # start where the diagnosis compensated the effect with the offsets, and from the bare
-        # twin's offsets (the model's effects as there): the offsets-only fit has absorbed what it
-        # could of the effect, and from there a fit ends near where it starts
+        # twin's offsets (the model's other effects as that fit left them): the offsets-only fit
+        # has absorbed what it could of the effect, and a fit ends near where it starts
         start = best.refit_start(current.label)
         twin_start = ModelState(np.zeros(len(table)), start.effects, "twin")
         history = out.versions
