@@ -132,10 +132,9 @@ def _run(args) -> None:
             if diag.best is None:
                 break
             b = diag.best
-            start = b.refit_start()
             # and from the bare twin's offsets, as the analysis refits (analyse_measurement)
-            twin_start = [ModelState(np.zeros(len(start.offsets)), start.effects, "twin")] if D.REFIT_FROM_TWIN else []
-            res = D.add_effect_result(meas, start, b.name, values=b.values, also_from=twin_start,
+            res = D.add_effect_result(meas, b.refit_start(), b.name, values=b.values,
+                                      also_from=[b.twin_start()] if D.REFIT_FROM_TWIN else [],
                                       options=fit_o.replace(seed=fit_o.seed + 1 + round_))
             found.append({"effect": b.name, "values": res.state.effects[b.name],
                           "sigma": res.effect_sigma.get(b.name, {})})

@@ -950,12 +950,11 @@ def analyse_measurement(measurement, twin, forward_model=None, *, store=None,
         # twin's offsets (the model's other effects as that fit left them): the offsets-only fit
         # has absorbed what it could of the effect, and a fit ends near where it starts
         start = best.refit_start(current.label)
-        twin_start = ModelState(np.zeros(len(table)), start.effects, "twin")
         history = out.versions
         rf = yield from step("add_effect" + suffix, lambda m: add_effect_and_refit(
             meas, start, best.name, twin, values=best.values, history=history,
             options=fopts.replace(seed=fopts.seed + 1 + round_), md=m, show=show, candidates=candidates,
-            limits_options=sopts.replace(seed=seed + round_ + 7919), also_from=[twin_start] if refit_from_twin else (),
+            limits_options=sopts.replace(seed=seed + round_ + 7919), also_from=[best.twin_start()] if refit_from_twin else (),
             executor=executor, table=table),
             lambda res, uid: restore_refit(res, history, uid))
         out.refits.append(rf)

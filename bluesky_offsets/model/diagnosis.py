@@ -105,6 +105,11 @@ class Candidate:
         st = self.refined_state
         return ModelState(st.offsets, {k: v for k, v in st.effects.items() if k != self.name}, label or st.label)
 
+    def twin_start(self) -> ModelState:
+        """The refit's second start (:data:`REFIT_FROM_TWIN`): the bare twin's offsets with the
+        model's other effects as :meth:`refit_start` has them."""
+        return ModelState(np.zeros(len(self.refined_state.offsets)), self.refit_start().effects, "twin")
+
     @property
     def heldout_confirms(self) -> bool:
         """The held-out folds do not contradict the candidate: it lowers the held-out χ² in at

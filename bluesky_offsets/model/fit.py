@@ -110,8 +110,9 @@ class FitOptions:
         divergence), and one draw ends on whichever step is near, farther from the truth than its
         curvature says.  Measured (docs/benchmarks.md, "Ray draws"): a hidden source divergence
         of 0.5 that single-draw fits put at 0.476 and 0.458 (σ 0.010), refitted on four other
-        draws from there, came out at 0.480-0.510 and 0.475-0.517; with four draws in the analysis's refits, the five
-        scenario-grid runs that had missed by 2.1-3.8 σ came within 1.8 σ, their σ 17-43 % wider.
+        draws from there, came out at 0.480-0.510 and 0.475-0.517; with four draws in the
+        analysis's refits, the five scenario-grid runs that had missed by 2.1-3.8 σ came within
+        1.8 σ, their σ 17-43 % wider.
         1: one draw.
     engine : options of the torch engine (:class:`~bluesky_offsets.physics.torch_engine.TorchOptions`).
     """
