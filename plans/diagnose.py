@@ -954,8 +954,8 @@ def analyse_measurement(measurement, twin, forward_model=None, *, store=None,
         rf = yield from step("add_effect" + suffix, lambda m: add_effect_and_refit(
             meas, start, best.name, twin, values=best.values, history=history,
             options=fopts.replace(seed=fopts.seed + 1 + round_), md=m, show=show, candidates=candidates,
-            limits_options=sopts.replace(seed=seed + round_ + 7919), also_from=[best.twin_start()] if refit_from_twin else (),
-            executor=executor, table=table),
+            limits_options=sopts.replace(seed=seed + round_ + 7919),
+            also_from=[best.twin_start()] if refit_from_twin else (), executor=executor, table=table),
             lambda res, uid: restore_refit(res, history, uid))
         out.refits.append(rf)
         out.comparisons.append(rf.comparison)
