@@ -80,8 +80,12 @@ def measurement_from_run(run, *, stream: str = "primary") -> Measurement:
     hk = start.get("hist_keys", {})
     kx, ky = _key(keys, "hist_x", hk.get("x")), _key(keys, "hist_y", hk.get("y"))
     hist_x, hist_y = np.asarray(ds[kx]), np.asarray(ds[ky])
-    idx_key = next((k for k in keys if k.endswith("config_index")), None)
-    idx = np.asarray(ds[idx_key], dtype=int) if idx_key else np.arange(len(hist_x))
+    if "configuration" in keys:  # each frame's own (a designed measurement chooses them as it goes)
+        configs = np.asarray(ds["configuration"], dtype=float)
+        idx = np.arange(len(hist_x))
+    else:
+        idx_key = next((k for k in keys if k.endswith("config_index")), None)
+        idx = np.asarray(ds[idx_key], dtype=int) if idx_key else np.arange(len(hist_x))
     counts = images = None
     try:
         counts = np.asarray(ds[_key(keys, "total_counts", hk.get("counts"))])
@@ -97,8 +101,10 @@ def measurement_from_run(run, *, stream: str = "primary") -> Measurement:
     stop = run.metadata.get("stop") or {}
     md = dict(start, exit_status=stop.get("exit_status"))
     px, py = _profiles(ds, keys, hk, start, hist_x, hist_y)
+    screens = (np.stack([np.asarray(ds[f"screen_{a}"], dtype=float) for a in "xyz"], 1)
+               if "screen_x" in keys else None)
     return Measurement(configs[idx], hist_x, hist_y, names=names, uid=uid, total_counts=counts, images=images,
-                       metadata=md, profile_x=px, profile_y=py)
+                       metadata=md, profile_x=px, profile_y=py, screen=screens)
 
 
 def _profiles(ds, keys, hk, start, hist_x, hist_y):

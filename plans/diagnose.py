@@ -355,7 +355,8 @@ def _sig_key(prefix: str, key: str) -> str:
 # --------------------------------------------------------------------------- #
 def _compare(meas: Measurement, state: ModelState, twin, label: str, model_rays: int, seed: int,
              effect_sigma: Mapping | None, table: ParameterTable) -> Comparison:
-    hx, hy = simulate(twin, meas.configurations, state, model_rays, [seed + i for i in range(meas.n)], table)
+    hx, hy = simulate(twin, meas.configurations, state, model_rays, [seed + i for i in range(meas.n)], table,
+                      meas.screen)
     mf = misfit(meas.hist_x, meas.hist_y, hx, hy, meas.n_rays, model_rays=model_rays)
     sig = residual_signature(meas.hist_x, meas.hist_y, hx, hy, twin.hist)
     corr = correlate_with_parameters(sig, meas.configurations, table.names)

@@ -21,6 +21,7 @@ from bluesky.utils import MsgGenerator
 
 from bluesky_offsets.model.measurement import Measurement
 from bluesky_offsets.physics.parameters import METRIXS, ParameterTable
+from bluesky_offsets.physics.screen import as_screen, check_travel, moved
 from bluesky_offsets.physics.twin import HistogramSpec
 from bluesky_offsets.store import consistent_profiles
 
@@ -31,6 +32,7 @@ from .motion import (
     read_positions,
     resolutions,
     resolve_motors,
+    resolve_stage,
     return_to,
 )
 
@@ -39,25 +41,36 @@ class CommandedConfiguration:
     """Readable holding the configuration being measured (index and twin-coordinate vector),
     so that every event says which configuration it belongs to."""
 
-    def __init__(self, n_parameters: int, name: str = "commanded"):
+    def __init__(self, n_parameters: int, name: str = "commanded", screen: bool = False):
         self.name = name
         self.parent = None
         self._index = -1
         self._vector = np.full(n_parameters, np.nan)
+        self._screen = np.full(3, np.nan) if screen else None
         self._time = 0.0
 
-    def update(self, index: int, vector: np.ndarray) -> None:
+    def update(self, index: int, vector: np.ndarray, screen: np.ndarray | None = None) -> None:
         import time
         self._index, self._vector, self._time = int(index), np.asarray(vector, float), time.time()
+        if self._screen is not None and screen is not None:
+            self._screen = np.asarray(screen, float)
 
     def read(self) -> dict:
-        return {"config_index": {"value": self._index, "timestamp": self._time},
-                "configuration": {"value": self._vector, "timestamp": self._time}}
+        out = {"config_index": {"value": self._index, "timestamp": self._time},
+               "configuration": {"value": self._vector, "timestamp": self._time}}
+        if self._screen is not None:  # three numbers: short arrays do not keep their type in the store
+            out.update({f"screen_{a}": {"value": float(v), "timestamp": self._time}
+                        for a, v in zip("xyz", self._screen)})
+        return out
 
     def describe(self) -> dict:
-        return {"config_index": {"source": "plan", "dtype": "integer", "shape": []},
-                "configuration": {"source": "plan", "dtype": "array", "shape": [len(self._vector)],
-                                  "dtype_numpy": "<f8"}}
+        out = {"config_index": {"source": "plan", "dtype": "integer", "shape": []},
+               "configuration": {"source": "plan", "dtype": "array", "shape": [len(self._vector)],
+                                 "dtype_numpy": "<f8"}}
+        if self._screen is not None:
+            out.update({f"screen_{a}": {"source": "plan", "dtype": "number", "shape": [], "units": "mm"}
+                        for a in "xyz"})
+        return out
 
 
 def _signal_name(device, attr: str) -> str | None:
@@ -84,10 +97,24 @@ def _reference_vector(reference, start: Mapping, table: ParameterTable) -> np.nd
     return table.validate(reference, "reference configuration")
 
 
+def _with_stage(beamline, motors: dict, screen) -> tuple[dict, dict | None]:
+    """The scan's motors with the chamber's stage (when the beamline has one) and the stage's
+    positions per frame (None: no stage); a screen to move without a stage is refused."""
+    stage = resolve_stage(beamline)
+    if stage is None:
+        if moved(screen):
+            raise ValueError("the beamline has no chamber stage (beamline.chamber_stage, or [stage] in the PV map): "
+                             "frames with the screen moved cannot be taken")
+        return motors, None
+    return {**motors, **stage}, stage
+
+
 def scan_configurations(configurations, beamline, chamber, *, reference=None, table: ParameterTable = METRIXS,
                         md: Mapping | None = None, keep_going: Callable[[int, dict], bool] | None = None,
                         read_motors: bool = True, return_to_start: bool = True,
-                        finish: Callable[[Measurement], MsgGenerator[Any]] | None = None) -> MsgGenerator[Measurement]:
+                        finish: Callable[[Measurement], MsgGenerator[Any]] | None = None,
+                        screen=None, more: Callable[[Measurement], MsgGenerator[Any]] | None = None
+                        ) -> MsgGenerator[Measurement]:
     """Core of :func:`measure_configurations`, the on-beamline ray search and the beam optimizer.
 
     ``keep_going(index, reading)`` (optional) is called after each event and
@@ -95,15 +122,36 @@ def scan_configurations(configurations, beamline, chamber, *, reference=None, ta
     the last configuration when the scan succeeds (a move the plan means to keep:
     :func:`plans.optimize.optimize_beam`), and returns them to the start when it fails;
     ``finish(measurement)`` runs inside the run after the last frame (results of the frames as
-    streams of their own).
+    streams of their own).  ``screen`` ((n, 3) mm): the chamber's stage per frame (its readbacks
+    are the screen's twin coordinates, as the motors' are theirs); None leaves it where it stands.
+    ``more(measurement)``: a plan run after the frames so far (``measurement``) that returns the
+    next batch, ``(configurations, screen)``, or None to end; each batch is checked against the
+    limits before anything moves (the designed measurement: :func:`plans.design.measure_designed`).
     """
     motors = resolve_motors(beamline, table)
     configs = as_configurations(configurations, table)
+    motors, stage = _with_stage(beamline, motors, screen)
     start = yield from read_positions(motors)
-    ref = _reference_vector(reference, start, table)
-    col = {n: table.index(n) for n in motors}
-    targets = [{n: start[n] + (cfg[col[n]] - ref[col[n]]) for n in motors} for cfg in configs]
-    yield from check_limits(motors, targets)  # all of them, before anything moves
+    ref = _reference_vector(reference, {n: v for n, v in start.items() if n in table.names}, table)
+    col = {n: table.index(n) for n in motors if n not in (stage or {})}
+
+    def plan_targets(cfgs, scr):
+        """Each frame's motor targets and stage positions (None: no stage), checked against the limits."""
+        cfgs = as_configurations(cfgs, table)
+        tgts = [{n: start[n] + (cfg[col[n]] - ref[col[n]]) for n in col} for cfg in cfgs]
+        scrs = None
+        if stage is not None:
+            here = np.array([start[n] for n in stage])
+            scrs = np.tile(here, (len(cfgs), 1)) if scr is None else as_screen(scr, len(cfgs))
+            check_travel(scrs)
+            for t, row in zip(tgts, scrs):
+                t.update(zip(stage, map(float, row)))
+        elif moved(scr):
+            raise ValueError("the beamline has no chamber stage: frames with the screen moved cannot be taken")
+        yield from check_limits(motors, tgts)  # all of them, before anything moves
+        return cfgs, tgts, scrs
+
+    configs, targets, screens = yield from plan_targets(configs, screen)
     steps = yield from resolutions(motors)
 
     truth_id = yield from _optional_read(chamber, "truth_id")
@@ -112,7 +160,7 @@ def scan_configurations(configurations, beamline, chamber, *, reference=None, ta
     for axis in "xy":
         profile_axes.append((yield from _optional_read(chamber, f"profile_axis_{axis}")))
     hist = HistogramSpec()
-    commanded = CommandedConfiguration(len(table))
+    commanded = CommandedConfiguration(len(table), screen=stage is not None)
     _md = {
         "plan_name": "measure_configurations",
         "purpose": "offset finding: footprints at known configuration differences",
@@ -120,6 +168,7 @@ def scan_configurations(configurations, beamline, chamber, *, reference=None, ta
         "parameter_table_version": table.version,
         "parameter_names": list(table.names),
         "configurations": configs.tolist(),
+        **({"screens": screens.tolist()} if screens is not None else {}),
         "n_configurations": len(configs),
         "reference": ref.tolist(),
         # start documents allow no dots in keys: per-motor values as lists in table order
@@ -152,19 +201,28 @@ def scan_configurations(configurations, beamline, chamber, *, reference=None, ta
     # (a pause, an abort, a failed move): then every motor is commanded (motion.move_to)
     here: dict = {"at": dict(start)}
 
-    def body():
-        for k, (cfg, target) in enumerate(zip(configs, targets)):
+    def frames(cfgs, tgts, scrs):
+        for cfg, target, scr in zip(cfgs, tgts, scrs if scrs is not None else [None] * len(cfgs)):
             yield from bps.checkpoint()  # a paused scan resumes at this configuration
             at, here["at"] = here["at"], None
             yield from move_to(motors, target, resolution=steps, current=at)
             here["at"] = target
-            commanded.update(k, cfg)
+            commanded.update(len(readings), cfg, scr)
             reading = yield from bps.trigger_and_read(devices)
             readings.append(reading)
-            if keep_going is not None and not keep_going(k, reading):
+            if keep_going is not None and not keep_going(len(readings) - 1, reading):
+                return False
+        return True
+
+    def body():
+        going = yield from frames(configs, targets, screens)
+        while going and more is not None:
+            batch = yield from more(_measurement(readings, table, None, _md))
+            if batch is None:
                 break
+            going = yield from frames(*(yield from plan_targets(*batch)))
         if finish is not None:
-            yield from finish(_measurement(readings, configs, table, None, _md))
+            yield from finish(_measurement(readings, table, None, _md))
 
     run = bpp.run_wrapper(body(), md=_md)
 
@@ -175,7 +233,7 @@ def scan_configurations(configurations, beamline, chamber, *, reference=None, ta
         uid = yield from bpp.finalize_wrapper(run, back)
     else:  # kept where the scan ends, unless it fails: then back where they started
         uid = yield from bpp.contingency_wrapper(run, except_plan=lambda exc: back())
-    return _measurement(readings, configs, table, uid, _md)
+    return _measurement(readings, table, uid, _md)
 
 
 def _value(reading: dict, suffix: str, preferred: str | None):
@@ -187,19 +245,22 @@ def _value(reading: dict, suffix: str, preferred: str | None):
     return reading[keys[0]]["value"]
 
 
-def _measurement(readings, configs, table, uid, md) -> Measurement:
+def _measurement(readings, table, uid, md) -> Measurement:
+    """The frames of ``readings``, each at the configuration (and stage position) it was taken at."""
     keys = md.get("hist_keys", {})
     n = len(readings)
     if n == 0:
-        return Measurement(configs[:0], np.zeros((0, 50)), np.zeros((0, 50)), names=table.names, uid=uid,
-                           metadata=md)
+        return Measurement(np.zeros((0, len(table))), np.zeros((0, 50)), np.zeros((0, 50)), names=table.names,
+                           uid=uid, metadata=md)
     hx = np.array([_value(r, "hist_x", keys.get("x")) for r in readings], dtype=float)
     hy = np.array([_value(r, "hist_y", keys.get("y")) for r in readings], dtype=float)
     try:
         counts = np.array([_value(r, "total_counts", keys.get("counts")) for r in readings])
     except KeyError:
         counts = None
-    idx = [int(r["config_index"]["value"]) for r in readings]
+    cfgs = np.array([r["configuration"]["value"] for r in readings], dtype=float)
+    scr = (np.array([[r[f"screen_{a}"]["value"] for a in "xyz"] for r in readings], dtype=float)
+           if "screen_x" in readings[0] else None)
     px = py = None
     if md.get("profile"):
         try:
@@ -208,13 +269,13 @@ def _measurement(readings, configs, table, uid, md) -> Measurement:
                                          md["profile"], hx, hy)
         except KeyError:
             pass
-    return Measurement(configs[idx], hx, hy, names=table.names, uid=uid, total_counts=counts, metadata=dict(md),
-                       profile_x=px, profile_y=py)
+    return Measurement(cfgs, hx, hy, names=table.names, uid=uid, total_counts=counts, metadata=dict(md),
+                       profile_x=px, profile_y=py, screen=scr)
 
 
 def measure_configurations(configurations, beamline, chamber, *, reference=None,
                            table: ParameterTable = METRIXS, md: Mapping | None = None,
-                           read_motors: bool = True) -> MsgGenerator[Measurement]:
+                           read_motors: bool = True, screen=None) -> MsgGenerator[Measurement]:
     """Measure both focus-chamber histograms at each configuration; one event per configuration.
 
     Parameters
@@ -237,6 +298,9 @@ def measure_configurations(configurations, beamline, chamber, *, reference=None,
         Extra run metadata.
     read_motors : bool
         Also record every motor's readback in each event (default True).
+    screen : array_like, shape (n, 3), optional
+        The focus chamber's stage (x, y, z in mm, its readbacks' coordinates) per configuration;
+        default: where it stands.  Needs a beamline with a stage (:func:`plans.motion.resolve_stage`).
 
     Returns
     -------
@@ -253,4 +317,4 @@ def measure_configurations(configurations, beamline, chamber, *, reference=None,
     :class:`plans.motion.MotorLimitError` and leaves every motor where it was.
     """
     return (yield from scan_configurations(configurations, beamline, chamber, reference=reference,
-                                           table=table, md=md, read_motors=read_motors))
+                                           table=table, md=md, read_motors=read_motors, screen=screen))

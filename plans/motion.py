@@ -21,6 +21,7 @@ import bluesky.plan_stubs as bps
 import numpy as np
 from bluesky.utils import MsgGenerator
 
+from bluesky_offsets.epics.pvs import STAGE_AXES
 from bluesky_offsets.physics.parameters import METRIXS, ParameterError, ParameterTable
 
 
@@ -59,6 +60,20 @@ def resolve_motors(beamline, table: ParameterTable = METRIXS) -> dict:
     if missing:
         raise ValueError(f"beamline lacks motors for {len(missing)} parameters: {', '.join(missing)}")
     return out
+
+
+def resolve_stage(beamline) -> dict | None:
+    """``{"stage.x": movable, "stage.y": ..., "stage.z": ...}``: the focus chamber's translation
+    stage (``beamline.chamber_stage``, or a mapping's ``"chamber_stage"`` entry: a device or a
+    mapping of its axes); None for a beamline without one."""
+    stage = (beamline.get("chamber_stage") if isinstance(beamline, Mapping)
+             else getattr(beamline, "chamber_stage", None))
+    if stage is None:
+        return None
+    axes = {a: (stage.get(a) if isinstance(stage, Mapping) else getattr(stage, a, None)) for a in STAGE_AXES}
+    if missing := [a for a, m in axes.items() if m is None]:
+        raise ValueError(f"the chamber's stage lacks the axes {', '.join(missing)}")
+    return {f"stage.{a}": m for a, m in axes.items()}
 
 
 def as_configurations(configurations, table: ParameterTable = METRIXS, base=None) -> np.ndarray:

@@ -68,7 +68,9 @@ class FootprintBackend(Protocol):
     hist: HistogramSpec
 
     def submit(self, values: np.ndarray, n_rays: int) -> cf.Future:
-        """Start one frame at the true parameter vector ``values``; the future yields a :class:`Frame`."""
+        """Start one frame at the true parameter vector ``values``; the future yields a :class:`Frame`.
+        A backend that can move the screen also takes ``screen=`` (the chamber stage's x, y, z in
+        mm); the IOC passes it only while the stage stands away from 0."""
 
     def close(self) -> None:
         """Release workers."""
@@ -244,9 +246,13 @@ class TwinBackend:
                 self._spare = self._new_worker(True)
             return self._active
 
-    def _frame(self, values: np.ndarray, n_rays: int, seed: int) -> Frame:
+    def _frame(self, values: np.ndarray, n_rays: int, seed: int, screen=None) -> Frame:
         worker = self._worker()
-        status, payload = worker.run((np.asarray(values, float), self.overrides, int(n_rays), seed, self.hist))
+        overrides = self.overrides
+        if screen is not None and np.any(screen):  # the stage's position plus the chamber's hidden displacement
+            from bluesky_offsets.physics.screen import per_frame_overrides
+            overrides = per_frame_overrides(overrides, np.asarray(screen, float)[None], 1)[0]
+        status, payload = worker.run((np.asarray(values, float), overrides, int(n_rays), seed, self.hist))
         if status != "ok":
             raise RuntimeError(payload)
         frame, note = payload
@@ -254,10 +260,11 @@ class TwinBackend:
             self.notes.append(note)
         return frame
 
-    def submit(self, values: np.ndarray, n_rays: int) -> cf.Future:
+    def submit(self, values: np.ndarray, n_rays: int, screen=None) -> cf.Future:
+        """One frame at the true ``values``, the chamber's stage at ``screen`` (x, y, z mm; None: 0)."""
         # fresh noise for every frame
         seed = int(self._noise.integers(2 ** 32)) if self._noise is not None else int.from_bytes(os.urandom(4), "little")
-        return self._frames.submit(self._frame, np.asarray(values, float), int(n_rays), seed)
+        return self._frames.submit(self._frame, np.asarray(values, float), int(n_rays), seed, screen)
 
     def abort(self) -> None:
         """Stop the frame being traced now (its future raises :class:`FrameAborted`)."""
@@ -330,17 +337,21 @@ class SurrogateBackend:
         self._rng = np.random.default_rng(noise_seed)  # None: fresh from the OS
         self._pool = cf.ThreadPoolExecutor(max_workers=1, thread_name_prefix="surrogate")
 
-    def _frame(self, values: np.ndarray, n_rays: int) -> Frame:
+    def _frame(self, values: np.ndarray, n_rays: int, screen=None) -> Frame:
         t0 = time.perf_counter()
+        chamber = self.chamber + (0.0 if screen is None else np.asarray(screen, float))
+        if chamber.any() and not self.model.chamber:
+            raise ValueError("this surrogate checkpoint was trained without the focus chamber's inputs: it "
+                             "cannot move the screen")
         pred = np.asarray(self.model.predict(np.asarray(values, float)[None, :],
-                                             chamber=self.chamber if self.model.chamber else None))[0]
+                                             chamber=chamber if self.model.chamber else None))[0]
         px, py = pred[:self.hist.bins_x], pred[self.hist.bins_x:]
         cx, cy = finite_ray_sample(px, n_rays, self._rng), finite_ray_sample(py, n_rays, self._rng)
         n = max(int(n_rays), 1)
         return Frame(cx / n, cy / n, None, int(max(cx.sum(), cy.sum())), int(n_rays), time.perf_counter() - t0)
 
-    def submit(self, values: np.ndarray, n_rays: int) -> cf.Future:
-        return self._pool.submit(self._frame, values, n_rays)
+    def submit(self, values: np.ndarray, n_rays: int, screen=None) -> cf.Future:
+        return self._pool.submit(self._frame, values, n_rays, screen)
 
     def close(self) -> None:
         self._pool.shutdown(wait=True, cancel_futures=True)

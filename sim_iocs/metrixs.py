@@ -6,6 +6,9 @@
 * one motor record per motorized parameter of the table (28):
   ``BL:<component>:<axis>`` after the parameter's ``device`` path
   (``E1.rotationXerror`` -> ``BL:e1:rx``), soft limits = the motor travel (the table's box; wider for the slit openings);
+* the focus chamber's translation stage: motor records ``BL:chamber:x``, ``BL:chamber:y`` and
+  ``BL:chamber:z`` (mm; :data:`bluesky_offsets.physics.screen.STAGE`), standing at 0 at start;
+  the screen truly stands at their position plus the chamber's hidden displacement (an effect);
 * the focus-chamber detector ``BL:chamber:*``: ``Acquire`` (put-completion
   when the frame is ready), ``NumRays`` (ray budget), ``AcquireTime``,
   ``HistX``/``HistY`` (50 bins each, fraction of source rays per bin),
@@ -48,6 +51,7 @@ from caproto.server import PVGroup, pvproperty
 from caproto._data import SkipWrite
 
 from bluesky_offsets.physics.parameters import METRIXS, ParameterError, ParameterTable
+from bluesky_offsets.physics.screen import STAGE
 from bluesky_offsets.physics.twin import CAMERA, HistogramSpec
 
 from .backends import FootprintBackend, Frame, FrameAborted, make_backend
@@ -79,6 +83,13 @@ def axis_settings(param, start: float, *, move_time: float = 4.0, accel_time: fl
     return AxisSettings(description=f"{param.name}"[:40], egu=param.unit, low=low, high=high,
                         start=float(start), velocity=span / move_time, accel_time=accel_time,
                         resolution=resolution)
+
+
+def stage_settings(axis, *, move_time: float = 4.0, accel_time: float = 0.2) -> AxisSettings:
+    """Motor-record settings of one axis of the chamber's stage (:data:`bluesky_offsets.physics.screen.STAGE`):
+    at 0 at start, 0.1 µm steps, a full-travel move in ``move_time`` seconds."""
+    return AxisSettings(description=f"chamber stage {axis.name}", egu=axis.unit, low=axis.low, high=axis.high,
+                        start=0.0, velocity=axis.span / move_time, accel_time=accel_time, resolution=1e-4)
 
 
 def _zeros(n):
@@ -144,9 +155,11 @@ class FocusChamber(PVGroup):
 
     def __init__(self, *args, state: Callable[[], np.ndarray], backend: FootprintBackend, truth_id: str,
                  table: ParameterTable = METRIXS, n_rays: int = 10000, max_rays: int = MAX_RAYS,
-                 truth_log: Callable[[str], None] | None = None, **kwargs):
+                 truth_log: Callable[[str], None] | None = None,
+                 screen: Callable[[], np.ndarray] | None = None, **kwargs):
         super().__init__(*args, **kwargs)
         self._state = state
+        self._screen = screen or (lambda: np.zeros(3))
         self.backend = backend
         self._truth_id = truth_id
         self._table = table
@@ -219,11 +232,11 @@ class FocusChamber(PVGroup):
         n_rays = int(self.num_rays.value)
         await self.status.write("Acquiring")
         try:
-            values = self._state()
+            values, screen = self._state(), np.asarray(self._screen(), float)
             if n_rays == 0:
                 frame = Frame.dark(HIST, 0)
             else:
-                fut = asyncio.wrap_future(self.backend.submit(values, n_rays))
+                fut = asyncio.wrap_future(submit_frame(self.backend, values, n_rays, screen))
                 abort = asyncio.ensure_future(self._abort.wait())
                 done, _ = await asyncio.wait({fut, abort}, return_when=asyncio.FIRST_COMPLETED)
                 abort.cancel()
@@ -294,6 +307,19 @@ class _Aborted(Exception):
     pass
 
 
+def submit_frame(backend: FootprintBackend, values: np.ndarray, n_rays: int, screen: np.ndarray):
+    """``backend.submit`` with the chamber's stage where it stands; a backend that cannot move the
+    screen (a plugged-in one without a ``screen`` argument) is asked only while the stage is at 0."""
+    if not np.any(screen):
+        return backend.submit(values, n_rays)
+    try:
+        return backend.submit(values, n_rays, screen=screen)
+    except TypeError as exc:
+        if "screen" not in str(exc):
+            raise
+        raise RuntimeError(f"backend {backend.name!r} cannot move the screen (its submit takes no screen)") from None
+
+
 class MetrixsIOC:
     """The 28 motor records and the focus chamber, with one hidden truth.
 
@@ -341,11 +367,13 @@ class MetrixsIOC:
                 settings = axis_settings(p, self.truth.start[i], move_time=move_time, accel_time=accel_time)
                 self.motors[p.name] = MotorRecord(prefix=motor_pv(p, prefix), settings=settings, tick=tick,
                                                   name=p.name)
+        self.stage = {ax.name: MotorRecord(prefix=f"{prefix}{CHAMBER}{ax.name}", settings=stage_settings(
+            ax, move_time=move_time, accel_time=accel_time), tick=tick, name=f"chamber.{ax.name}") for ax in STAGE}
         self.chamber = FocusChamber(prefix=prefix + CHAMBER, state=self.true_state, backend=backend,
                                     truth_id=self.truth.truth_id, table=table, n_rays=n_rays, max_rays=max_rays,
-                                  truth_log=truth_log, name="chamber")
+                                    truth_log=truth_log, screen=self.screen, name="chamber")
         self.pvdb = {}
-        for group in (*self.motors.values(), self.chamber):
+        for group in (*self.motors.values(), *self.stage.values(), self.chamber):
             self.pvdb.update(group.pvdb)
 
     def positions(self) -> np.ndarray:
@@ -360,6 +388,10 @@ class MetrixsIOC:
     def true_state(self) -> np.ndarray:
         return self.truth.true_values(self.positions())
 
+    def screen(self) -> np.ndarray:
+        """The chamber stage's x, y, z (mm); the hidden displacement of the chamber adds to it."""
+        return np.array([self.stage[ax.name].axis_position for ax in STAGE])
+
     def describe(self) -> str:
         """Human-readable list of the records and detector PVs."""
         lines = [f"{len(self.motors)} motor records (fields: .VAL .RBV .DVAL .DRBV .OFF .DIR .DMOV .MOVN .STOP "
@@ -368,6 +400,10 @@ class MetrixsIOC:
         for name, m in self.motors.items():
             s = m.settings
             lines.append(f"  {m.prefix:28s} {name:32s} [{s.low:g}, {s.high:g}] {s.egu}")
+        lines.append("focus-chamber stage (motor records):")
+        for name, m in self.stage.items():
+            s = m.settings
+            lines.append(f"  {m.prefix:28s} {'chamber.' + name:32s} [{s.low:g}, {s.high:g}] {s.egu}")
         lines.append("focus-chamber detector:")
         for pv, inst in self.chamber.pvdb.items():
             n = getattr(inst, "max_length", 1) or 1

@@ -159,6 +159,44 @@ def test_acceptance_measured_histograms_follow_the_hidden_truth(RE, acceptance_i
     assert np.all(np.abs(z) < 5), z
 
 
+def test_frames_with_the_screen_moved_follow_the_truth_and_the_stage_returns(RE, acceptance_ioc, store):
+    """The chamber's stage moved along and across the beam: the frames are the truth's at the stage's
+    position plus the chamber's hidden displacement, the run records where the screen stood, and the
+    stage goes back to where it started."""
+    from ophyd_async.core import init_devices
+
+    from bluesky_offsets.physics.screen import per_frame_overrides
+    truth = Truth.from_mapping(ACCEPTANCE_TRUTH)
+    prefix = acceptance_ioc.prefix
+    with init_devices():
+        beamline = MetrixsBeamline(prefix, name="staged", stage={a: f"{prefix}chamber:{a}" for a in "xyz"})
+        chamber = FocusChamber(prefix + "chamber:", name="chamber")
+    twin = Twin(scheduler="inline", n_rays=N_RAYS)
+    start = default_start()
+    configs = high_ray_configurations_on_model(twin, 3, candidates=24, offsets=truth.offsets, around=start,
+                                               spread=_spread(0.03), rng=7, n_rays=2000, chunk=12, progress=False)
+    screen = np.array([[0.0, 0.0, 12.0], [0.4, -0.2, -10.0], [0.0, 0.0, 25.0]])
+    token = store.subscribe(RE)
+    try:
+        result = RE(measure_configurations(configs, beamline, chamber, screen=screen))
+    finally:
+        RE.unsubscribe(token)
+    m = store.load_measurement(result.run_start_uids[0])
+    np.testing.assert_allclose(m.screen, screen)
+    at_truth = twin.trace_batch(np.array([truth.true_values(c) for c in configs]), seed=99, progress=False,
+                                overrides=per_frame_overrides(truth.overrides, screen, 3), n_rays=N_RAYS)
+    meas = np.concatenate([_counts(m.hist_x, N_RAYS), _counts(m.hist_y, N_RAYS)], axis=1)
+    model = np.concatenate([_counts(at_truth.hist_x, N_RAYS), _counts(at_truth.hist_y, N_RAYS)], axis=1)
+    flat = twin.trace_batch(np.array([truth.true_values(c) for c in configs]), seed=98, progress=False,
+                            overrides=truth.overrides, n_rays=N_RAYS)
+    unmoved = np.concatenate([_counts(flat.hist_x, N_RAYS), _counts(flat.hist_y, N_RAYS)], axis=1)
+    same = np.array([chi2_two_sample(a, b) for a, b in zip(meas, model)])
+    other = np.array([chi2_two_sample(a, b) for a, b in zip(meas, unmoved)])
+    assert same[:, 0].sum() / same[:, 1].sum() < 1.5, same
+    assert np.all(other[:, 0] / other[:, 1] > 3), other
+    assert [float(RE(bps.rd(getattr(beamline.chamber_stage, a))).plan_result) for a in "xyz"] == [0.0, 0.0, 0.0]
+
+
 # --------------------------------------------------------------------------- #
 # robustness of the scan
 # --------------------------------------------------------------------------- #

@@ -35,7 +35,7 @@ def test_check_pvs_reports_a_missing_motor_record_and_a_mismatched_one(tmp_path,
         assert cli.main(["check-pvs", str(path)]) == 1  # the left-out record
         out = capfd.readouterr().out
         assert f"missing: E1.rotationXerror ({ioc.prefix}e1:rx) did not connect" in out
-        assert "47 of 48 PVs as expected, 1 missing, 0 mismatched" in out
+        assert "50 of 51 PVs as expected, 1 missing, 0 mismatched" in out
 
         # a record whose soft limits leave less travel than the model needs
         ca.put(ioc.prefix + "e2:rx.HLM", 0.1)

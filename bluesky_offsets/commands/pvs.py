@@ -29,9 +29,10 @@ def _cmd_check_pvs(args) -> int:
         pv_map = PVMap.from_file(args.file)
     except PVMapError as exc:
         raise CliError(str(exc)) from None
-    n = len(pv_map.motors) + len(pv_map.chamber)
+    n = len(pv_map.motors) + len(pv_map.chamber) + len(pv_map.stage)
     if not args.json:
-        print(f"checking {len(pv_map.motors)} motor records and {len(pv_map.chamber)} camera PVs of "
+        stage = f", {len(pv_map.stage)} stage motor records" if pv_map.stage else ""
+        print(f"checking {len(pv_map.motors)} motor records{stage} and {len(pv_map.chamber)} camera PVs of "
               f"{pv_map.name or args.file} (timeout {args.timeout:g} s)", flush=True)
     res = check_pvs(pv_map, timeout=args.timeout)
     if args.json:

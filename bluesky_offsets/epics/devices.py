@@ -31,10 +31,12 @@ from ophyd_async.epics.motor import Motor
 
 from bluesky_offsets.epics.pvs import (
     ChamberError,
+    STAGE_AXES,
     FixedParameterError,
     chamber_pvs,
     fixed_message,
     motor_pvs,
+    stage_pvs,
 )
 from bluesky_offsets.physics.parameters import METRIXS, Parameter, ParameterTable
 
@@ -62,8 +64,22 @@ class BeamlineComponent(Device):
         super().__init__(name=name)
 
 
+class ChamberStage(Device):
+    """The focus chamber's translation stage: ``x``, ``y``, ``z`` motors (mm)."""
+
+    def __init__(self, pv_names: Mapping[str, str], name: str = ""):
+        for axis, pv in pv_names.items():
+            setattr(self, axis, Motor(pv))
+        super().__init__(name=name)
+
+    @property
+    def axes(self) -> dict[str, Motor]:
+        return {a: getattr(self, a) for a in STAGE_AXES}
+
+
 class MetrixsBeamline(Device):
-    """The METRIXS beamline: 28 motors and 6 fixed parameters grouped by component.
+    """The METRIXS beamline: 28 motors and 6 fixed parameters grouped by component, and the
+    focus chamber's stage (``chamber_stage``) where it has one.
 
     Parameters
     ----------
@@ -76,10 +92,12 @@ class MetrixsBeamline(Device):
     pv_names : mapping, optional
         ``{parameter name: motor record name}`` overriding the default names,
         e.g. for the real beamline.
+    stage : mapping, optional
+        ``{"x": record, "y": record, "z": record}``: the chamber stage's motors (none: no stage).
     """
 
     def __init__(self, prefix: str = "", name: str = "", *, table: ParameterTable = METRIXS,
-                 pv_names: Mapping[str, str] | None = None):
+                 pv_names: Mapping[str, str] | None = None, stage: Mapping[str, str] | None = None):
         self.table = table
         pvs = motor_pvs(table, prefix, pv_names)
         groups: dict[str, dict[str, Device]] = {}
@@ -90,6 +108,8 @@ class MetrixsBeamline(Device):
             self._paths[p.name] = (comp, axis)
         for comp, children in groups.items():
             setattr(self, comp, BeamlineComponent(children))
+        if stage:
+            self.chamber_stage = ChamberStage(stage_pvs("", stage))
         super().__init__(name=name)
 
     def parameter(self, name: str) -> Device:

@@ -23,6 +23,7 @@ from bluesky_offsets.epics.pvs import (
     chamber_pvs,
     fixed_message,
     motor_pvs,
+    stage_pvs,
 )
 from bluesky_offsets.physics.parameters import METRIXS, Parameter, ParameterTable
 
@@ -67,8 +68,10 @@ class MetrixsBeamlineV1(DeviceV1):
 
 
 def make_beamline_v1(prefix: str = "", name: str = "metrixs", *, table: ParameterTable = METRIXS,
-                     pv_names: Mapping[str, str] | None = None) -> MetrixsBeamlineV1:
-    """The beamline as a classic ophyd Device of ``EpicsMotor``s (same layout as :class:`MetrixsBeamline`)."""
+                     pv_names: Mapping[str, str] | None = None,
+                     stage: Mapping[str, str] | None = None) -> MetrixsBeamlineV1:
+    """The beamline as a classic ophyd Device of ``EpicsMotor``s (same layout as :class:`MetrixsBeamline`,
+    the chamber's stage as ``chamber_stage`` where ``stage`` names its records)."""
     pvs = motor_pvs(table, prefix, pv_names)
     comps: dict[str, dict[str, Cpt]] = {}
     paths = {}
@@ -82,6 +85,9 @@ def make_beamline_v1(prefix: str = "", name: str = "metrixs", *, table: Paramete
         paths[p.name] = (comp, axis)
     comp_cpts = {comp: Cpt(create_device_from_components(f"{comp.title().replace('_', '')}V1", **children), "")
                  for comp, children in comps.items()}
+    if stage:
+        axes = {a: Cpt(EpicsMotor, pv, kind="hinted") for a, pv in stage_pvs("", stage).items()}
+        comp_cpts["chamber_stage"] = Cpt(create_device_from_components("ChamberStageV1", **axes), "")
     cls = create_device_from_components("MetrixsBeamlineV1", base_class=MetrixsBeamlineV1,
                                         docstring=MetrixsBeamlineV1.__doc__, **comp_cpts)
     cls.table, cls._paths = table, paths

@@ -28,7 +28,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from bluesky_offsets.epics.pvs import CHAMBER_PVS, chamber_pvs, motor_pvs
+from bluesky_offsets.epics.pvs import CHAMBER_PVS, STAGE_AXES, chamber_pvs, motor_pvs, stage_pvs
 from bluesky_offsets.physics.parameters import METRIXS, ParameterTable
 
 ENV_PVS = "BLUESKY_OFFSETS_PVS"
@@ -51,6 +51,7 @@ class PVMap:
     chamber: Mapping[str, str]
     name: str = ""
     table: ParameterTable = field(default=METRIXS, repr=False)
+    stage: Mapping[str, str] = field(default_factory=dict)  # the chamber's x/y/z motors; empty: none
 
     def __post_init__(self):
         missing = [n for n in self.table.motorized_names if n not in self.motors]
@@ -65,7 +66,11 @@ class PVMap:
             raise PVMapError(f"[chamber]: unknown signals {', '.join(bad)} (known: {', '.join(CHAMBER_PVS)})")
         if missing := [k for k in CHAMBER_PVS if k not in self.chamber]:
             raise PVMapError(f"[chamber]: no PV for {', '.join(missing)}")
-        for what, pvs in (("motors", self.motors), ("chamber", self.chamber)):
+        if bad := sorted(set(self.stage) - set(STAGE_AXES)):
+            raise PVMapError(f"[stage]: unknown axes {', '.join(bad)} (the stage has {', '.join(STAGE_AXES)})")
+        if self.stage and (missing := [a for a in STAGE_AXES if a not in self.stage]):
+            raise PVMapError(f"[stage]: no record for {', '.join(missing)} (name all three axes, or none)")
+        for what, pvs in (("motors", self.motors), ("chamber", self.chamber), ("stage", self.stage)):
             for k, v in pvs.items():
                 if not isinstance(v, str) or not v.strip():
                     raise PVMapError(f"[{what}] {k}: expected a PV name, got {v!r}")
@@ -75,7 +80,7 @@ class PVMap:
     def simulated(cls, prefix: str = SIM_PREFIX, table: ParameterTable = METRIXS) -> PVMap:
         """The simulated IOC's names (``sim_iocs.metrixs``) under ``prefix``."""
         return cls(motor_pvs(table, prefix, None), chamber_pvs(prefix + "chamber:", None),
-                   f"simulated METRIXS IOC, prefix {prefix}", table)
+                   f"simulated METRIXS IOC, prefix {prefix}", table, stage_pvs(prefix + "chamber:", None))
 
     @classmethod
     def from_file(cls, path: str | os.PathLike, table: ParameterTable = METRIXS) -> PVMap:
@@ -86,12 +91,12 @@ class PVMap:
             raise PVMapError(f"PV map {path}: {exc.strerror or exc}") from None
         except tomllib.TOMLDecodeError as exc:
             raise PVMapError(f"PV map {path}: not TOML: {exc}") from None
-        unknown = sorted(set(data) - {"name", "motors", "chamber"})
+        unknown = sorted(set(data) - {"name", "motors", "chamber", "stage"})
         if unknown:
-            raise PVMapError(f"PV map {path}: unknown keys {', '.join(unknown)} (name, [motors], [chamber])")
+            raise PVMapError(f"PV map {path}: unknown keys {', '.join(unknown)} (name, [motors], [chamber], [stage])")
         try:
             return cls(dict(data.get("motors", {})), dict(data.get("chamber", {})), str(data.get("name", path.stem)),
-                       table)
+                       table, dict(data.get("stage", {})))
         except PVMapError as exc:
             raise PVMapError(f"PV map {path}: {exc}") from None
 
@@ -111,13 +116,17 @@ class PVMap:
                 lines.append(f"{_q(p.name):36s} = {_q(self.motors[p.name])}  # {p.unit}, {p.description}")
         lines += ["", "[chamber]"]
         lines += [f"{k:16s} = {_q(self.chamber[k])}" for k in CHAMBER_PVS]
+        lines += ["", "# the focus chamber's x/y/z translation stage (mm); leave the section out if it has none",
+                  "[stage]" if self.stage else "# [stage]"]
+        lines += [f"{'' if self.stage else '# '}{a} = {_q(self.stage.get(a, f'CHAMBER:{a.upper()}'))}"
+                  for a in STAGE_AXES]
         return "\n".join(lines) + "\n"
 
     # ------------------------------------------------------------------ #
     def beamline(self, name: str = "metrixs"):
         """The ophyd-async :class:`~bluesky_offsets.epics.devices.MetrixsBeamline` (connect it in ``init_devices``)."""
         from bluesky_offsets.epics.devices import MetrixsBeamline
-        return MetrixsBeamline("", name, table=self.table, pv_names=self.motors)
+        return MetrixsBeamline("", name, table=self.table, pv_names=self.motors, stage=self.stage or None)
 
     def focus_chamber(self, name: str = "chamber"):
         from bluesky_offsets.epics.devices import FocusChamber
@@ -126,7 +135,7 @@ class PVMap:
     def beamline_v1(self, name: str = "metrixs"):
         """Classic ophyd devices (connect lazily: what a queueserver startup wants)."""
         from bluesky_offsets.epics.devices_v1 import make_beamline_v1
-        return make_beamline_v1("", name, table=self.table, pv_names=self.motors)
+        return make_beamline_v1("", name, table=self.table, pv_names=self.motors, stage=self.stage or None)
 
     def focus_chamber_v1(self, name: str = "chamber"):
         from bluesky_offsets.epics.devices_v1 import make_chamber_v1
@@ -177,6 +186,9 @@ def check_pvs(pv_map: PVMap, *, timeout: float = 3.0, progress=None) -> PVCheck:
             names[f"{rec}.{f}"] = n
     for k, pv in pv_map.chamber.items():
         names[pv] = f"chamber.{k}"
+    for a, rec in pv_map.stage.items():
+        for f in MOTOR_FIELDS:
+            names[f"{rec}.{f}"] = f"stage.{a}"
     out = PVCheck()
     ctx = Context(timeout=timeout)
     try:
@@ -194,26 +206,19 @@ def check_pvs(pv_map: PVMap, *, timeout: float = 3.0, progress=None) -> PVCheck:
                 values[name] = data[0].decode() if kw else data
             except Exception as exc:  # noqa: BLE001 - reported as a mismatch of that PV
                 values[name] = exc
-        for n, rec in pv_map.motors.items():
-            p = table[n]
+        from bluesky_offsets.physics.screen import STAGE
+        records = [(n, rec, table[n].unit, table[n].limits) for n, rec in pv_map.motors.items()]
+        records += [(f"stage.{ax.name}", pv_map.stage[ax.name], ax.unit, (ax.low, ax.high))
+                    for ax in STAGE if ax.name in pv_map.stage]
+        for n, rec, unit, (low, high) in records:
             absent = [f for f in MOTOR_FIELDS if not pvs[f"{rec}.{f}"].connected]
             if absent:
                 out.missing.append((n, rec if len(absent) == len(MOTOR_FIELDS) else
                                     f"{rec} fields {', '.join('.' + f for f in absent)}"))
                 continue
-            why = []
-            egu = values[f"{rec}.EGU"]
-            if isinstance(egu, str) and egu.strip() != p.unit:
-                why.append(f"units {egu.strip()!r}, the table's are {p.unit!r}")
-            llm, hlm = (float(values[f"{rec}.{f}"][0]) for f in ("LLM", "HLM"))
-            low, high = p.limits
-            if hlm <= llm:
-                why.append(f"soft limits LLM = {llm:g}, HLM = {hlm:g} leave no travel")
-            elif hlm - llm < (high - low) * (1 - 1e-9):
-                why.append(f"soft limits [{llm:g}, {hlm:g}] allow {hlm - llm:g} {p.unit} of travel, "
-                           f"the table's range needs {high - low:g}")
+            why = _record_mismatch(values, rec, unit, low, high)
             if why:
-                out.mismatched.append((n, rec, "; ".join(why)))
+                out.mismatched.append((n, rec, why))
             else:
                 out.ok += 1
             if progress:
@@ -226,3 +231,18 @@ def check_pvs(pv_map: PVMap, *, timeout: float = 3.0, progress=None) -> PVCheck:
     finally:
         ctx.disconnect()
     return out
+
+
+def _record_mismatch(values: Mapping, rec: str, unit: str, low: float, high: float) -> str:
+    """Why a motor record does not fit its axis (units, too little travel), or ''."""
+    why = []
+    egu = values[f"{rec}.EGU"]
+    if isinstance(egu, str) and egu.strip() != unit:
+        why.append(f"units {egu.strip()!r}, the table's are {unit!r}")
+    llm, hlm = (float(values[f"{rec}.{f}"][0]) for f in ("LLM", "HLM"))
+    if hlm <= llm:
+        why.append(f"soft limits LLM = {llm:g}, HLM = {hlm:g} leave no travel")
+    elif hlm - llm < (high - low) * (1 - 1e-9):
+        why.append(f"soft limits [{llm:g}, {hlm:g}] allow {hlm - llm:g} {unit} of travel, "
+                   f"the table's range needs {high - low:g}")
+    return "; ".join(why)

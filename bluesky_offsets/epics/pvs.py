@@ -58,3 +58,17 @@ def chamber_pvs(prefix: str, pv_names: Mapping[str, str] | None) -> dict[str, st
     if unknown:
         raise ValueError(f"pv_names: unknown chamber signals {sorted(unknown)}; known: {sorted(CHAMBER_PVS)}")
     return {k: pv_names.get(k, prefix + v) for k, v in CHAMBER_PVS.items()}
+
+
+STAGE_AXES = ("x", "y", "z")
+"""The focus chamber's translation stage (:data:`bluesky_offsets.physics.screen.STAGE`)."""
+
+
+def stage_pvs(prefix: str, pv_names: Mapping[str, str] | None) -> dict[str, str]:
+    """Motor record per stage axis: ``<prefix>x`` ... on the simulation IOC (``prefix`` the
+    chamber's), or ``pv_names``."""
+    pv_names = dict(pv_names or {})
+    unknown = set(pv_names) - set(STAGE_AXES)
+    if unknown:
+        raise ValueError(f"stage: unknown axes {sorted(unknown)}; the stage has {', '.join(STAGE_AXES)}")
+    return {a: pv_names.get(a, prefix + a) for a in STAGE_AXES}

@@ -420,7 +420,7 @@ def _fresh_misfit(verifier: Twin, meas: Measurement, st: ModelState, rays: int, 
     """``st`` traced with fresh rays (draw ``draw`` of streams none of the fits traced) against
     ``meas``: its misfit and the model's histograms (C, bins x + bins y)."""
     seeds = [seed + 104729 * (1 + draw) + i for i in range(meas.n)]
-    hx, hy = simulate(verifier, meas.configurations, st, rays, seeds, table)
+    hx, hy = simulate(verifier, meas.configurations, st, rays, seeds, table, meas.screen)
     return misfit(meas.hist_x, meas.hist_y, hx, hy, meas.n_rays, model_rays=rays), np.c_[hx, hy]
 
 
@@ -709,7 +709,8 @@ def evaluate(meas: Measurement, state: ModelState, twin, *, model_rays: int | No
              table: ParameterTable = METRIXS) -> Misfit:
     """The twin at the model's compensated configurations vs. the measurement (fresh rays)."""
     model_rays = model_rays or 4 * int(meas.n_rays)  # a sharper model than the measurement
-    hx, hy = simulate(twin, meas.configurations, state, model_rays, [seed + i for i in range(meas.n)], table)
+    hx, hy = simulate(twin, meas.configurations, state, model_rays, [seed + i for i in range(meas.n)], table,
+                      meas.screen)
     return misfit(meas.hist_x, meas.hist_y, hx, hy, meas.n_rays, model_rays=model_rays)
 
 

@@ -52,6 +52,7 @@ from bluesky_offsets.physics import effects as E
 from bluesky_offsets.model.misfit import beam_features, expected_pull2, feature_values
 from bluesky_offsets.physics.noise import bin_variance
 from bluesky_offsets.physics.parameters import MAX_OFFSET, METRIXS, ParameterTable
+from bluesky_offsets.physics.screen import add_overrides, tensor_overrides
 from bluesky_offsets.physics.torch_engine import FORWARD_AD
 
 STAGES = ("features", "profiles", "bins")
@@ -284,9 +285,10 @@ class _Model:
         spec = self.meas.spec
         self.n_traces += self.meas.n
         key = (np.asarray(z, float).tobytes(), rays)
+        stage = tensor_overrides(self.meas.screen, self.meas.n)  # the chamber's stage, frame by frame
         if jacobian:
             full = self._last[1] if self._last is not None and self._last[0] == key else None
-            rj = self.engine.ray_jacobian(vals, twin_eff, n_rays=rays, seed=self.o.seed, full=full)
+            rj = self.engine.ray_jacobian(vals, twin_eff, n_rays=rays, seed=self.o.seed, full=full, overrides=stage)
             h, J = rj.histograms(spec, self.o.kernel, soft=soft)
             # offsets are normalized: d/dz = d/dvalue * span; effect columns in the state's order
             cols = [J[..., :self.P] * self.span]
@@ -300,7 +302,8 @@ class _Model:
             # with the soft edge whether or not the values are soft: RAYX's hard counts (the rays'
             # ``alive``) are the same bit for bit, and the Jacobian can take these rays
             with torch.no_grad():
-                beam = self.engine.beam(vals, E.twin_overrides(twin_eff) if twin_eff else None, n_rays=rays,
+                ov = E.twin_overrides(twin_eff) if twin_eff else None
+                beam = self.engine.beam(vals, add_overrides(ov, stage) if stage else ov, n_rays=rays,
                                         seed=self.o.seed, edge=self.engine.options.edge)
             self._last = (key, beam)
             from bluesky_offsets.physics.torch_engine import histograms

@@ -15,6 +15,7 @@ import numpy as np
 
 from bluesky_offsets.model.misfit import MeasurementError, check_histograms
 from bluesky_offsets.physics.parameters import METRIXS, ParameterTable
+from bluesky_offsets.physics.screen import as_screen
 from bluesky_offsets.physics.twin import HistogramSpec
 
 RESOLUTIONS = ("camera", "paper")
@@ -46,6 +47,9 @@ class Measurement:
         The run's start document (or the plan's metadata).
     profile_x, profile_y : ndarray, shape (n, bins), optional
         The footprint at the camera's resolution (``profile_spec``), when the detector gave it.
+    screen : ndarray, shape (n, 3), optional
+        The focus chamber's stage (x, y, z, mm) per frame (:mod:`bluesky_offsets.physics.screen`);
+        None: the stage stood at 0 for every frame.
     """
 
     configurations: np.ndarray
@@ -60,6 +64,7 @@ class Measurement:
     metadata: dict = field(default_factory=dict)
     profile_x: np.ndarray | None = None
     profile_y: np.ndarray | None = None
+    screen: np.ndarray | None = None
 
     def __post_init__(self):
         self.names = tuple(self.names)
@@ -72,6 +77,11 @@ class Measurement:
         if len(hx) != len(cfg):
             raise MeasurementError(f"measurement: {len(cfg)} configurations but {len(hx)} x and {len(hy)} y histograms")
         self.configurations, self.hist_x, self.hist_y = cfg, hx, hy
+        if self.screen is not None:
+            try:
+                self.screen = as_screen(self.screen, len(cfg))
+            except ValueError as exc:
+                raise MeasurementError(f"measurement: {exc}") from None
         if self.n_rays is None:
             rays = self.metadata.get("n_rays") or self.metadata.get("num_rays")
             self.n_rays = int(rays) if rays else None
@@ -114,7 +124,7 @@ class Measurement:
             return None if a is None else np.asarray(a)[idx]
         return replace(self, configurations=self.configurations[idx], hist_x=self.hist_x[idx],
                        hist_y=self.hist_y[idx], total_counts=pick(self.total_counts), images=pick(self.images),
-                       profile_x=pick(self.profile_x), profile_y=pick(self.profile_y))
+                       profile_x=pick(self.profile_x), profile_y=pick(self.profile_y), screen=pick(self.screen))
 
     def rebinned(self, coarse: HistogramSpec) -> Measurement:
         """The same measurement in coarser bins (e.g. the paper's, for the surrogate)."""

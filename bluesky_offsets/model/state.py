@@ -19,6 +19,7 @@ from bluesky_offsets.model.fit import FitOptions, FitResult, engine_for, fit
 from bluesky_offsets.model.measurement import Measurement
 from bluesky_offsets.physics import effects as E
 from bluesky_offsets.physics.parameters import MAX_OFFSET, METRIXS, ParameterTable
+from bluesky_offsets.physics.screen import per_frame_overrides
 
 
 @dataclass
@@ -97,26 +98,34 @@ def _twin_overrides(state: ModelState) -> dict:
 
 
 def simulate_raw(twin, configurations: np.ndarray, state: ModelState, n_rays: int, seed=None,
-                 table: ParameterTable = METRIXS) -> tuple[np.ndarray, np.ndarray]:
-    """Twin histograms of ``state`` before detector-level effects."""
-    res = twin.trace_batch(_true_values(configurations, state, table), overrides=_twin_overrides(state),
+                 table: ParameterTable = METRIXS, screen=None) -> tuple[np.ndarray, np.ndarray]:
+    """Twin histograms of ``state`` before detector-level effects, the chamber's stage at
+    ``screen`` ((n, 3) mm, :mod:`bluesky_offsets.physics.screen`; None: at 0)."""
+    n = len(np.atleast_2d(configurations))
+    res = twin.trace_batch(_true_values(configurations, state, table),
+                           overrides=per_frame_overrides(_twin_overrides(state), screen, n),
                            n_rays=n_rays, seed=seed, progress=False, raise_on_error=True)
     return res.hist_x, res.hist_y
 
 
 def simulate_raw_many(twin, configurations: np.ndarray, states: Sequence[ModelState], n_rays: int, seeds,
-                      table: ParameterTable = METRIXS) -> list[tuple[np.ndarray, np.ndarray]]:
+                      table: ParameterTable = METRIXS, screen=None) -> list[tuple[np.ndarray, np.ndarray]]:
     """:func:`simulate_raw` for several states at the same configurations and seeds, in one
     batch (the workers stay busy; common random numbers make the states comparable)."""
     n = len(configurations)
     if not states:
         return []
     vals = np.concatenate([_true_values(configurations, st, table) for st in states])
-    ovs = [_twin_overrides(st) for st in states for _ in range(n)]
+    ovs = [ov for st in states for ov in _frames_overrides(_twin_overrides(st), screen, n)]
     res = twin.trace_batch(vals, overrides=ovs, n_rays=n_rays, seed=list(seeds) * len(states), progress=False,
                            raise_on_error=True)
     hx, hy = res.hist_x, res.hist_y
     return [(hx[i * n:(i + 1) * n], hy[i * n:(i + 1) * n]) for i in range(len(states))]
+
+
+def _frames_overrides(overrides: dict, screen, n: int) -> list[dict]:
+    ov = per_frame_overrides(overrides, screen, n)
+    return list(ov) if isinstance(ov, list) else [ov] * n
 
 
 def detector_view(hx, hy, state: ModelState, spec):
@@ -125,15 +134,16 @@ def detector_view(hx, hy, state: ModelState, spec):
 
 
 def simulate(twin, configurations: np.ndarray, state: ModelState, n_rays: int, seed=None,
-             table: ParameterTable = METRIXS) -> tuple[np.ndarray, np.ndarray]:
-    """Twin histograms of ``state`` at the commanded ``configurations`` (n, 34), as the
-    focus chamber would record them (detector-level effects applied)."""
-    hx, hy = simulate_raw(twin, configurations, state, n_rays, seed, table)
+             table: ParameterTable = METRIXS, screen=None) -> tuple[np.ndarray, np.ndarray]:
+    """Twin histograms of ``state`` at the commanded ``configurations`` (n, 34) and stage
+    positions ``screen``, as the focus chamber would record them (detector-level effects applied)."""
+    hx, hy = simulate_raw(twin, configurations, state, n_rays, seed, table, screen)
     return detector_view(hx, hy, state, twin.hist)
 
 
 def simulate_frames(twin, configurations: np.ndarray, state: ModelState, n_rays: int, seed=None,
-                    table: ParameterTable = METRIXS, *, oversample: int = 16) -> tuple[np.ndarray, np.ndarray]:
+                    table: ParameterTable = METRIXS, *, oversample: int = 16,
+                    screen=None) -> tuple[np.ndarray, np.ndarray]:
     """Frames of ``state`` as a photon-counting camera records them: the twin's histograms at
     ``oversample`` × ``n_rays`` (near their expectation) through the detector-level effects,
     then ``n_rays`` source photons drawn from them (how many reach the screen, then where).
@@ -147,8 +157,8 @@ def simulate_frames(twin, configurations: np.ndarray, state: ModelState, n_rays:
     :func:`simulate`'s.  ``seed``: the configurations' seeds (as :func:`simulate`), which also
     seed the draw (None: unseeded)."""
     if not any(E.get(n).level == "detector" for n in state.effects):
-        return simulate(twin, configurations, state, n_rays, seed, table)
-    hx, hy = simulate(twin, configurations, state, n_rays * oversample, seed, table)
+        return simulate(twin, configurations, state, n_rays, seed, table, screen)
+    hx, hy = simulate(twin, configurations, state, n_rays * oversample, seed, table, screen)
     rng = np.random.default_rng(None if seed is None else [int(s) for s in np.atleast_1d(seed)])
     fx, fy = np.zeros_like(hx), np.zeros_like(hy)
     for c in range(len(hx)):

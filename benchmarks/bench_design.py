@@ -1,0 +1,229 @@
+"""The designed measurement against the bright one: do the fitted offsets find the truth?
+
+Each draw hides offsets in all 34 parameters (uniform within ±``--fraction`` of each range) and,
+optionally, effects; the frames are RAYX's at the hidden truth (``--photons`` source photons a
+frame, fresh noise), the beam is found from the motors' start by the real search
+(:func:`bluesky_offsets.offsets.beam_search.search`, driven with those frames), then
+
+* ``optimal``: the designed measurement (:mod:`bluesky_offsets.design`: candidates, information
+  from the twin's exact Jacobian, the batch the criterion prefers, the offsets refitted between
+  batches) until ``--frames`` frames in all;
+* ``bright``: today's design (:func:`plans.workflow.measure_bright`'s: bright configurations around
+  the beam, some again with the slits open), the same budget of frames for the fit when
+  ``--same-frames``, else its 16 + 4;
+
+and the offsets are fitted once more in full (:data:`bluesky_offsets.model.diagnosis.FIT`).  Per
+draw: the offsets' RMSE over the truth's RMS, the share within 2σ, the determined ones (σ below a
+tenth of the prior's) and the share of those within 2σ, offsets at a bound, the Fisher ceiling of
+the design space at the budget (the predicted determined count), frames, seconds.
+
+    python benchmarks/bench_design.py --seeds 0 1 2 --fraction 0.05 [--design optimal bright]
+        [--frames 60] [--photons 5000] [--criterion D] [--out benchmarks/results/design.json]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import statistics
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _machine import machine  # noqa: E402
+
+from bluesky_offsets.design import DesignOptions, classes, prior_precision  # noqa: E402
+from bluesky_offsets.design.sequence import measured_precision, next_batch, update  # noqa: E402
+from bluesky_offsets.model import diagnosis as D  # noqa: E402
+from bluesky_offsets.model.fit import engine_for, fit  # noqa: E402
+from bluesky_offsets.model.measurement import Measurement  # noqa: E402
+from bluesky_offsets.model.state import ModelState  # noqa: E402
+from bluesky_offsets.offsets.beam_search import acceptance, intensity, search  # noqa: E402
+from bluesky_offsets.physics import effects as E  # noqa: E402
+from bluesky_offsets.physics.parameters import MAX_OFFSET, METRIXS as T  # noqa: E402
+from bluesky_offsets.physics.screen import per_frame_overrides  # noqa: E402
+from bluesky_offsets.physics.torch_engine import TorchEngine  # noqa: E402
+from bluesky_offsets.physics.twin import CAMERA, HistogramSpec, RayxEngine, Twin  # noqa: E402
+from plans import HIGH_RAY_THRESHOLD  # noqa: E402
+from sim_iocs.truth import default_start  # noqa: E402
+
+PRIOR = MAX_OFFSET / math.sqrt(3.0)
+
+
+class Beamline:
+    """RAYX at a hidden truth: frames at settings (configurations and stage positions)."""
+
+    def __init__(self, offsets, overrides, photons: int, seed: int):
+        self.offsets, self.overrides, self.photons = offsets, overrides, photons
+        self.twin = Twin(RayxEngine(hist=CAMERA), scheduler="inline")
+        self.rng = np.random.default_rng([seed, 31])
+        self.frames = 0
+
+    def measure(self, cfg, screen=None) -> Measurement:
+        cfg = np.atleast_2d(cfg)
+        vals = cfg + np.clip(self.offsets, -MAX_OFFSET, MAX_OFFSET) * T.span
+        ov = per_frame_overrides(self.overrides or None, screen, len(cfg))
+        seeds = [int(s) for s in self.rng.integers(2 ** 31, size=len(cfg))]
+        r = self.twin.trace_batch(vals, overrides=ov, n_rays=self.photons, seed=seeds, progress=False)
+        self.frames += len(cfg)
+        return Measurement(cfg, r.hist_x, r.hist_y, n_rays=self.photons, spec=CAMERA, screen=screen)
+
+
+def paper_intensity(m: Measurement) -> np.ndarray:
+    hx, hy = m.spec.rebin(m.hist_x, m.hist_y, HistogramSpec())
+    return intensity(hx, hy)
+
+
+def find_beam(bl: Beamline, start, fraction=0.15):
+    tw = Twin(TorchEngine())
+    widths = acceptance(tw, start, open_slits=True), acceptance(tw, start, open_slits=False)
+    gen = search(start, *widths, fraction=fraction, threshold=HIGH_RAY_THRESHOLD, max_frames=120)
+    try:
+        cfgs = next(gen)
+        while True:
+            cfgs = gen.send(paper_intensity(bl.measure(cfgs)))
+    except StopIteration as stop:
+        return stop.value
+
+
+def concat(a: Measurement | None, b: Measurement) -> Measurement:
+    if a is None:
+        return b
+    sa = a.screen if a.screen is not None else np.zeros((a.n, 3))
+    sb = b.screen if b.screen is not None else np.zeros((b.n, 3))
+    return Measurement(np.vstack([a.configurations, b.configurations]), np.vstack([a.hist_x, b.hist_x]),
+                       np.vstack([a.hist_y, b.hist_y]), n_rays=a.n_rays, spec=a.spec, screen=np.vstack([sa, sb]))
+
+
+def designed(bl: Beamline, beam, opts: DesignOptions, log) -> tuple[Measurement, np.ndarray, list]:
+    eng = TorchEngine(options={"common_rays": False})
+    acc = acceptance(Twin(TorchEngine()), beam.configuration, open_slits=False)
+    meas = bl.measure(beam.configuration[None], np.zeros((1, 3)))
+    mean = np.zeros(len(T))
+    P = measured_precision(eng, meas, mean, options=opts, photons=bl.photons)
+    steps = []
+    k = 0
+    while bl.frames < opts.frames:
+        bright = paper_intensity(meas) > HIGH_RAY_THRESHOLD
+        anchors = meas.configurations[bright] if bright.any() else beam.configuration[None]
+        st = next_batch(eng, mean, P, anchors, acc, k=min(opts.batch, opts.frames - bl.frames), step=k,
+                        photons=bl.photons, options=opts)
+        if not len(st.gains):
+            log(f"    step {k}: no candidate keeps the beam on the screen; stopping")
+            break
+        meas = concat(meas, bl.measure(st.configurations, st.screen))
+        t0 = time.perf_counter()
+        res = update(meas, mean, engine_for(meas, D.FIT), options=opts, step=k)
+        mean = res.state.offsets
+        P = measured_precision(eng, meas, mean, options=opts, photons=bl.photons)
+        sig = np.sqrt(np.diag(np.linalg.inv(P)))
+        steps.append({**{kk: v for kk, v in st.row().items() if not isinstance(v, np.ndarray)},
+                      "fit_seconds": time.perf_counter() - t0, "chi2_reduced": res.chi2_reduced,
+                      "determined_measured": classes(sig).count("determined")})
+        log(f"    step {k}: {meas.n} frames ({bl.frames} with the search), {st.allowed}/{st.candidates} candidates "
+            f"allowed, design {st.seconds:.0f} s, fit {steps[-1]['fit_seconds']:.0f} s chi2/dof "
+            f"{res.chi2_reduced:.2f}, determined {steps[-1]['determined_measured']} (predicted {st.n_determined})")
+        k += 1
+    return meas, mean, steps
+
+
+def bright_design(bl: Beamline, beam, seed: int) -> Measurement:
+    from plans.workflow import MeasurementDesign, candidate_configurations, measurement_design
+    design = MeasurementDesign(seed=seed)
+    cand = candidate_configurations(design, beam.configuration)
+    m = bl.measure(cand)
+    found = cand[paper_intensity(m) > HIGH_RAY_THRESHOLD][:design.bright]
+    cfgs, idx = measurement_design(design, found)
+    return bl.measure(cfgs).subset(idx)
+
+
+def metrics(truth, fitres) -> dict:
+    est, sig = fitres.state.offsets, fitres.offset_sigma
+    err = est - truth
+    rms = float(np.sqrt(np.mean(truth ** 2)))
+    cls = classes(sig)
+    det = np.array([c == "determined" for c in cls])
+    within = np.abs(err) <= 2 * sig
+    at_bound = np.abs(np.abs(est) - MAX_OFFSET) < 1e-6
+    return {"rmse_over_rms": float(np.sqrt(np.mean(err ** 2)) / rms), "within_2sigma": float(within.mean()),
+            "determined": int(det.sum()), "weak": cls.count("weak"), "undetermined": cls.count("undetermined"),
+            "determined_within_2sigma": float(within[det].mean()) if det.any() else float("nan"),
+            "determined_rmse_over_rms": float(np.sqrt(np.mean(err[det] ** 2)) / rms) if det.any() else float("nan"),
+            "at_bound": int(at_bound.sum()), "at_bound_truth_far": int((at_bound & ~within).sum()),
+            "chi2_reduced": float(fitres.chi2_reduced)}
+
+
+def one(seed: int, how: str, a, log) -> dict:
+    rng = np.random.default_rng([seed, 17])
+    truth = rng.uniform(-a.fraction, a.fraction, len(T))
+    hidden = dict(a.effects)
+    overrides = E.twin_overrides(hidden) if hidden else {}
+    bl = Beamline(truth, overrides, a.photons, seed)
+    t0 = time.perf_counter()
+    beam = find_beam(bl, default_start())
+    log(f"  seed {seed} {how}: beam found in {beam.frames} frames ({beam.intensity:.3g})")
+    opts = DesignOptions(frames=a.frames, batch=a.batch, criterion=a.criterion, seed=seed,
+                         candidates=a.candidates, rays=a.rays, fit_rays=a.fit_rays)
+    steps: list = []
+    if how == "optimal":
+        meas, start, steps = designed(bl, beam, opts, log)
+    else:
+        meas, start = bright_design(bl, beam, seed), np.zeros(len(T))
+    t1 = time.perf_counter()
+    fo = D.FIT.replace(seed=seed)
+    res = fit(meas, ModelState(start.copy()), engine_for(meas, fo), fo)
+    out = {"seed": seed, "design": how, "frames_total": bl.frames, "frames_fitted": meas.n,
+           "beam_search_frames": beam.frames, **metrics(truth, res), "seconds_measure_design": t1 - t0,
+           "seconds_final_fit": time.perf_counter() - t1, "steps": steps,
+           "truth": truth.tolist(), "fitted": res.state.offsets.tolist(), "sigma": res.offset_sigma.tolist()}
+    log(f"  seed {seed} {how}: RMSE/RMS {out['rmse_over_rms']:.2f}, within 2 sigma {out['within_2sigma']:.2f}, "
+        f"determined {out['determined']} ({out['determined_within_2sigma']:.2f} within 2 sigma), at bound "
+        f"{out['at_bound']}, chi2/dof {out['chi2_reduced']:.2f}, {meas.n} frames fitted of {bl.frames}, "
+        f"{t1 - t0:.0f} + {out['seconds_final_fit']:.0f} s")
+    return out
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
+    p.add_argument("--fraction", type=float, default=0.05)
+    p.add_argument("--design", nargs="+", default=["optimal", "bright"])
+    p.add_argument("--frames", type=int, default=60)
+    p.add_argument("--batch", type=int, default=8)
+    p.add_argument("--candidates", type=int, default=160)
+    p.add_argument("--rays", type=int, default=2000)
+    p.add_argument("--fit-rays", type=int, default=3000)
+    p.add_argument("--photons", type=int, default=5000)
+    p.add_argument("--criterion", default="D")
+    p.add_argument("--effect", action="append", default=[], help="NAME:PARAM=VALUE (hidden effect)")
+    p.add_argument("--out", type=Path, default=None)
+    a = p.parse_args()
+    a.effects = []
+    for text in a.effect:
+        name, _, rest = text.partition(":")
+        a.effects.append((name, {k: float(v) for k, v in (i.split("=") for i in rest.split(",") if i)}))
+    rows = []
+
+    def log(text):
+        print(text, flush=True)
+    for seed in a.seeds:
+        for how in a.design:
+            rows.append(one(seed, how, a, log))
+            if a.out:
+                a.out.parent.mkdir(parents=True, exist_ok=True)
+                a.out.write_text(json.dumps({"machine": machine(), "args": {k: v for k, v in vars(a).items()
+                                                                             if k != "out"},
+                                             "rows": rows}, indent=1, default=str))
+    for how in a.design:
+        r = [x for x in rows if x["design"] == how]
+        med = {k: statistics.median(x[k] for x in r) for k in ("rmse_over_rms", "within_2sigma", "determined",
+                                                                "determined_within_2sigma", "frames_total")}
+        print(f"{how}: median over {len(r)} draws: " + ", ".join(f"{k} {v:.3g}" for k, v in med.items()))
+
+
+if __name__ == "__main__":
+    main()

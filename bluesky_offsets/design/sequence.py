@@ -1,0 +1,108 @@
+"""One step of the designed measurement, and the update between steps.
+
+A designed measurement alternates: :func:`next_batch` (candidates, their information at the
+current estimate of the offsets, the batch the criterion prefers), the frames measured, then
+:func:`update` (the offsets refitted to every frame so far, from where the last fit ended, and
+the precision of the posterior taken anew at the refitted offsets from the frames actually
+measured).  The plan that drives the beamline is :func:`plans.design.measure_designed`; a
+benchmark drives the same functions with simulated frames.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from bluesky_offsets.design.choose import (
+    DesignOptions,
+    candidate_settings,
+    classes,
+    criterion_value,
+    predicted_sigma,
+    prior_precision,
+    select,
+)
+from bluesky_offsets.design.information import frame_information
+from bluesky_offsets.physics.parameters import METRIXS, ParameterTable
+
+STEP_SEED = 7_919
+"""Multiplies a step's number in the seed of its candidates' model rays."""
+
+
+@dataclass(frozen=True)
+class DesignStep:
+    """What one step chose, and why: the batch's settings, each frame's predicted gain of the
+    criterion and share of the source on the screen, the criterion before and after the batch,
+    the offsets' predicted σ after it, how many candidates were drawn and how many kept the beam on
+    the screen under the posterior, and the seconds it took."""
+
+    step: int
+    configurations: np.ndarray
+    screen: np.ndarray
+    gains: np.ndarray
+    intensity: np.ndarray
+    criterion: str
+    before: float
+    after: float
+    sigma: np.ndarray
+    candidates: int
+    allowed: int
+    seconds: float
+
+    @property
+    def n_determined(self) -> int:
+        return classes(self.sigma).count("determined")
+
+    def row(self) -> dict:
+        """The step as one event of the ``design`` stream."""
+        return {"step": self.step, "criterion": self.criterion, "criterion_before": self.before,
+                "criterion_after": self.after, "predicted_gain": float(np.sum(self.gains)),
+                "gains": np.asarray(self.gains, float), "frames": len(self.gains),
+                "predicted_intensity": np.asarray(self.intensity, float),
+                "predicted_sigma": np.asarray(self.sigma, float), "predicted_determined": self.n_determined,
+                "candidates": self.candidates, "allowed": self.allowed, "seconds": self.seconds}
+
+
+def next_batch(engine, offsets: np.ndarray, precision: np.ndarray, anchors: np.ndarray, acceptance: np.ndarray,
+               *, k: int, step: int, photons: int, options: DesignOptions,
+               table: ParameterTable = METRIXS) -> DesignStep:
+    """The next ``k`` frames: candidates around ``anchors`` (settings where the beam was on the
+    screen), their information at ``offsets`` (the current estimate, normalized), those whose
+    beam stays on the screen under the posterior (``precision``), the best batch of them by the
+    criterion.  ``engine``: the torch twin, a random stream per configuration."""
+    t0 = time.perf_counter()
+    rng = np.random.default_rng([options.seed, step])
+    cfg, screen = candidate_settings(anchors, options.candidates, rng, acceptance=acceptance, options=options,
+                                     table=table)
+    info = frame_information(engine, cfg, offsets, photons=photons, model_rays=options.fit_rays, rays=options.rays,
+                             screen=screen, seed=options.seed + STEP_SEED * (step + 1), table=table)
+    spread = info.intensity_sigma(np.linalg.inv(precision))
+    allowed = info.intensity - options.confidence * spread >= options.floor
+    choice = select(info.fisher, precision, k, criterion=options.criterion, allowed=allowed)
+    idx = choice.indices
+    return DesignStep(step, cfg[idx], screen[idx], np.asarray(choice.gains), info.intensity[idx], options.criterion,
+                      criterion_value(precision, options.criterion), criterion_value(choice.precision,
+                                                                                     options.criterion),
+                      predicted_sigma(choice.precision), len(cfg), int(allowed.sum()), time.perf_counter() - t0)
+
+
+def measured_precision(engine, meas, offsets: np.ndarray, *, options: DesignOptions, photons: int,
+                       table: ParameterTable = METRIXS) -> np.ndarray:
+    """The posterior precision of the normalized offsets from the frames of ``meas`` (their
+    settings, at ``offsets``), the prior's added."""
+    info = frame_information(engine, meas.configurations, offsets, photons=photons, model_rays=options.fit_rays,
+                             rays=options.rays, screen=meas.screen, seed=options.seed, table=table)
+    return prior_precision(len(table)) + info.fisher.sum(0)
+
+
+def update(meas, offsets: np.ndarray, fit_engine, *, options: DesignOptions, step: int,
+           table: ParameterTable = METRIXS):
+    """The offsets refitted to every frame of ``meas`` from ``offsets`` (a short fit: the features,
+    then the camera's bins; the analysis fits again in full at the end).  Returns the fit's result."""
+    from bluesky_offsets.model.fit import FitOptions, fit
+    from bluesky_offsets.model.state import ModelState
+    o = FitOptions(rays=options.fit_rays, feature_rays=min(2000, options.fit_rays), seed=options.seed + step,
+                   stages=(("features", 8), ("bins", 4)))
+    return fit(meas, ModelState(np.asarray(offsets, float).copy(), {}, "design"), fit_engine, o, table=table)
