@@ -38,3 +38,12 @@ def _x86_with_avx2() -> bool:
 
 
 _pin_blas_kernels()
+
+
+def __getattr__(name):
+    """``bluesky_offsets.load_calibration``: loaded when first asked for (the package itself
+    imports nothing heavy)."""
+    if name in ("load_calibration", "write_calibration"):
+        from bluesky_offsets.model import export
+        return getattr(export, name)
+    raise AttributeError(f"module 'bluesky_offsets' has no attribute {name!r}")

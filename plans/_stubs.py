@@ -53,9 +53,10 @@ class Record:
         return out
 
 
-def emit_rows(stream: str, rows: Sequence[Mapping[str, Any]]) -> MsgGenerator[None]:
-    """One event per row in ``stream`` (rows share their keys)."""
-    rec = Record(stream)
+def emit_rows(stream: str, rows: Sequence[Mapping[str, Any]], record: Record | None = None) -> MsgGenerator[None]:
+    """One event per row in ``stream`` (rows share their keys); ``record``: the stream's readable
+    where events are added to it over several calls (the RunEngine wants the same one each time)."""
+    rec = record or Record(stream)
     for row in rows:
         rec.set(row)
         yield from bps.create(name=stream)

@@ -801,6 +801,8 @@ def analysis_key(meas: Measurement, settings: Mapping) -> str:
     h.update(json.dumps(_jsonable({"uid": meas.uid, **settings}), sort_keys=True, default=str).encode())
     for a in (meas.configurations, meas.hist_x, meas.hist_y):
         h.update(np.ascontiguousarray(a, dtype=float).tobytes())
+    if meas.screen is not None and np.any(meas.screen):  # where the screen stood (keys of older runs unchanged)
+        h.update(np.ascontiguousarray(meas.screen, dtype=float).tobytes())
     return h.hexdigest()[:20]
 
 

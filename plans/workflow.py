@@ -26,6 +26,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 from bluesky.utils import MsgGenerator
 
+from bluesky_offsets.design import DesignOptions
 from bluesky_offsets.model import diagnosis as D
 from bluesky_offsets.model.measurement import Measurement
 from bluesky_offsets.physics.parameters import METRIXS
@@ -94,16 +95,25 @@ def measurement_design(design: MeasurementDesign, bright: np.ndarray) -> tuple[n
 
 @dataclass
 class Measured:
-    """What :func:`measure_bright` did: the beam search and the measurement."""
+    """What :func:`measure_bright` (or :func:`plans.design.measure_designed`) did: the beam search
+    and the measurement; ``designed`` the design's record where the frames were designed."""
 
     beam: object                 # bluesky_offsets.offsets.beam_search.SearchResult
     measurement: Measurement
     n_open: int
     analysed: np.ndarray         # indices of the configurations the analysis fits
+    designed: object | None = None  # plans.design.Designed
 
     @property
     def uid(self) -> str | None:
         return self.measurement.uid
+
+    @property
+    def frames(self) -> int:
+        """Frames taken in all (the beam search's, a bright search's and the measurement's)."""
+        if self.designed is not None:
+            return self.designed.frames
+        return int(self.beam.frames) + int(self.measurement.metadata.get("search_frames", 0)) + self.measurement.n
 
 
 class DarkBeamline(RuntimeError):
@@ -153,10 +163,14 @@ def measure_bright(beamline, chamber, *, bright: int = 16, reopened: int = 4, an
         raise DarkBeamline(f"only {len(found)} of {len(cand)} candidate configurations were bright; {bright} needed")
     configs, idx = measurement_design(design, found)
     n_open = len(configs) - len(found)
+    # the search stops at the last bright one it needs: the frames it took
+    at = [int(np.flatnonzero(np.all(cand == f, axis=1))[0]) for f in found]
+    searched = max(at) + 1 if len(found) >= bright else len(cand)
     log.info("measuring %d bright configurations%s", len(found),
              f" and {n_open} of them with the slits open (ASBL 4 x 4 mm, exit slit 100 µm)" if n_open else "")
     m = yield from measure_configurations(configs, beamline, chamber, table=METRIXS, md={
         "purpose": "calibration measurement", "design": asdict(design), "n_bright": len(found), "n_open": n_open,
+        "search_frames": searched,
         "analysed_configurations": [int(i) for i in idx], "beam_search_uids": list(beam.uids), **dict(md or {})})
     return Measured(beam, m, n_open, idx)
 
@@ -245,25 +259,35 @@ class Session:
     """What :func:`calibration_session` did, and when each part ended (``times``, perf_counter)."""
 
     measured: Measured
-    offsets: object              # plans.offsets.OffsetResult (``uid``: its run)
+    offsets: object              # plans.offsets.OffsetResult (``uid``: its run); None for a designed one
     analysis: object             # plans.diagnose.Analysis
     times: dict
+    validation: object | None = None   # plans.design.Validation
 
 
-def calibration_session(beamline, chamber, twin, forward_model, *, design: MeasurementDesign,
+def calibration_session(beamline, chamber, twin, forward_model, *, design: MeasurementDesign | DesignOptions,
                         evaluations: int = 3000, candidates: list[str] | None = None, rounds: int = D.ROUNDS,
                         fit=None, scan=None, fit_top: int | None = D.FIT_TOP, resolution: str = "camera",
                         measurement_md: dict | None = None, analysis_md: dict | None = None,
                         step=log.info, executor=None) -> MsgGenerator[Session]:
-    """The session on a beamline: :func:`measure_bright`, :func:`surrogate_offsets` on it, then
-    :func:`plans.diagnose.analyse_measurement` of the analysed configurations from the bare twin and
-    the surrogate's offsets.  ``step(text)`` announces each part (the demo numbers them);
-    ``executor`` runs the analysis's independent fits side by side (the same result).  What the
-    demo and ``bluesky-offsets calibrate`` run; seeds from ``design.seed``."""
+    """The session on a beamline.  With :class:`~bluesky_offsets.design.DesignOptions` (the default
+    of the demo and ``calibrate``): :func:`plans.design.measure_designed`, then
+    :func:`plans.diagnose.analyse_measurement` of every designed frame from the bare twin and the
+    design's last estimate of the offsets, then validation frames no fit used
+    (:func:`plans.design.measure_validation`).  With a :class:`MeasurementDesign` (the bright
+    design): :func:`measure_bright`, :func:`surrogate_offsets` on it, then the analysis of the
+    analysed configurations from the bare twin and the surrogate's offsets.  ``step(text)``
+    announces each part (the demo numbers them); ``executor`` runs the analysis's independent fits
+    side by side (the same result); seeds from ``design.seed``."""
     from bluesky_offsets.model.state import ModelState
 
     from .diagnose import analyse_measurement
 
+    if isinstance(design, DesignOptions):
+        return (yield from _designed_session(beamline, chamber, twin, design=design, candidates=candidates,
+                                             rounds=rounds, fit=fit, scan=scan, fit_top=fit_top,
+                                             resolution=resolution, measurement_md=measurement_md,
+                                             analysis_md=analysis_md, step=step, executor=executor))
     t = {"start": time.perf_counter()}
     step("finding the beam, bright configurations around it, measuring them")
     measured = yield from measure_bright(beamline, chamber, **asdict(design), md=measurement_md)
@@ -284,6 +308,38 @@ def calibration_session(beamline, chamber, twin, forward_model, *, design: Measu
                                                   "analysed_configurations": [int(i) for i in analysed]})
     t["analysis"] = time.perf_counter()
     return Session(measured, found, analysis, t)
+
+
+def _designed_session(beamline, chamber, twin, *, design: DesignOptions, candidates, rounds, fit, scan, fit_top,
+                      resolution, measurement_md, analysis_md, step, executor) -> MsgGenerator[Session]:
+    from bluesky_offsets.model.state import ModelState
+
+    from .design import measure_designed, measure_validation
+    from .diagnose import analyse_measurement
+
+    t = {"start": time.perf_counter()}
+    step(f"finding the beam, then frames designed for the offsets ({design.frames} frames in all, "
+         f"{design.criterion}-optimal batches of {design.batch} on the twin's exact Jacobians)")
+    d = yield from measure_designed(beamline, chamber, options=design, md=measurement_md)
+    m = d.measurement
+    measured = Measured(d.beam, m, 0, np.arange(m.n), d)
+    t["measure"] = t["finder"] = time.perf_counter()
+    starts = [ModelState(label="twin"), ModelState(np.asarray(d.offsets, float), {}, "design estimate")]
+    step(f"compare → fit offsets (differentiable twin, exact Jacobians) → diagnose → add the winning effect "
+         f"→ refit → diagnose again ({m.n} designed frames)")
+    analysis = yield from analyse_measurement(m.for_analysis(resolution=resolution), twin, starts=starts,
+                                              candidates=candidates, rounds=rounds, fit_options=fit,
+                                              scan_options=scan, fit_top=fit_top, seed=design.seed,
+                                              executor=executor, md=dict(analysis_md or {}))
+    t["analysis"] = time.perf_counter()
+    validation = None
+    if design.validation:
+        step(f"{design.validation} validation frames far from the fitted ones, the calibrated model against them")
+        validation = yield from measure_validation(beamline, chamber, analysis, m, twin, n=design.validation,
+                                                   options=design, md={"purpose": "validation frames"})
+        log.info("  %s", validation.line())
+    t["validation"] = time.perf_counter()
+    return Session(measured, None, analysis, t, validation)
 
 
 # --------------------------------------------------------------------------- #

@@ -44,6 +44,8 @@ from bluesky_offsets.physics import effects as E
 from bluesky_offsets.model.fit import FitOptions
 from bluesky_offsets.physics.parameters import METRIXS
 
+from bluesky_offsets.design import DesignOptions
+
 if TYPE_CHECKING:  # plans (bluesky) load when the demo runs, not with every command
     from plans.workflow import MeasurementDesign
 
@@ -68,8 +70,11 @@ class DemoSettings:
     # faster than a real motor: the ~55 frames of the beam search and the measurement took 27 s
     # with 0.5 and 22 s with 0.1, the same frames and results
     move_time: float = 0.1
-    # what is searched and measured: 16 bright configurations, 4 of them again with the slits open,
-    # 14 fitted, 40 candidates, the beam search's range and frames (its seed is the demo's ``seed``)
+    # what is measured: frames designed for the offsets ("optimal": ``optimal``'s budget, batches,
+    # criterion) or the bright design ("bright": ``measurement``'s 16 bright configurations, 4 of
+    # them again with the slits open, 14 fitted); their seeds are the demo's ``seed``
+    design_kind: str = "optimal"
+    optimal: DesignOptions = field(default_factory=DesignOptions)
     measurement: MeasurementDesign = field(default_factory=lambda: _design())
     # hidden effects, ((name, values), ...): found one after the other
     effects: tuple = (DEMO_EFFECT,)
@@ -106,8 +111,10 @@ class DemoSettings:
         return 6 if self.optimize else 5
 
     @property
-    def design(self) -> MeasurementDesign:
-        """What :func:`plans.workflow.measure_bright` looks for and measures, drawn from ``seed``."""
+    def design(self) -> DesignOptions | MeasurementDesign:
+        """What the session measures (:func:`plans.workflow.calibration_session`), drawn from ``seed``."""
+        if self.design_kind == "optimal":
+            return self.optimal.replace(seed=self.seed)
         return replace(self.measurement, seed=self.seed)
 
     @property
@@ -348,9 +355,15 @@ def run_demo(out: Path, settings: DemoSettings | None = None, store_location: st
         uids = list(result.run_start_uids)
         analysis, m, n_open = session.analysis, session.measured.measurement, session.measured.n_open
         beam = session.measured.beam
-        # the beam search's runs come first, then the bright search's
-        steps = {"find_beam": beam.uids[-1], "search": uids[len(beam.uids)], "measurement": m.uid,
-                 "find_offsets": session.offsets.uid, **{k: v for k, v in analysis.uids.items() if v}}
+        designed, validation = session.measured.designed, session.validation
+        if designed is None:  # the beam search's runs come first, then the bright search's
+            steps = {"find_beam": beam.uids[-1], "search": uids[len(beam.uids)], "measurement": m.uid,
+                     "find_offsets": session.offsets.uid}
+        else:
+            steps = {"find_beam": beam.uids[-1], "measurement": m.uid}
+        steps.update({k: v for k, v in analysis.uids.items() if v})
+        if validation is not None:
+            steps["validation"] = validation.uid
         t = session.times
         best = None
         if beam_result is not None:
@@ -366,28 +379,47 @@ def run_demo(out: Path, settings: DemoSettings | None = None, store_location: st
         what = (f"hidden offsets in all {len(METRIXS)} parameters (uniform within ±{s.offsets_fraction:g} of each "
                 f"range)" if s.offsets_fraction > 0 else
                 f"hidden offsets in {len(offsets)} of the {len(METRIXS)} parameters ({', '.join(offsets)})")
+        how = (f"{len(m)} frames designed for the offsets ({designed.steps[0]['criterion'] if designed.steps else 'D'}"
+               f"-optimal batches on the twin's exact Jacobians, the chamber's stage moved along the beam) after "
+               f"{beam.frames} frames of the beam search, {session.measured.frames} in all; the offsets fitted through "
+               f"the differentiable twin to all of them" if designed is not None else
+               f"{len(m)} configurations measured through EPICS ({len(m) - n_open} bright ones, {n_open} of them again "
+               f"with the slits open); offsets found with the shipped surrogate (on the configurations inside its "
+               f"box) and fitted through the differentiable twin on {analysis.measurement.n}")
         intro = [("What this is", paragraph(
             f"bluesky-offsets demo: a simulated METRIXS beamline (caproto IOC, RAYX twin at the hidden true state, "
             f"{s.n_rays} rays per frame) with {what} and hidden effects: "
-            f"{', '.join(f'{k} {v}' for k, v in hidden.items()) or 'none'}; {len(m)} configurations measured "
-            f"through EPICS "
-            f"({len(m) - n_open} bright ones, {n_open} of them again with the slits open); offsets found "
-            f"with the shipped surrogate (on the configurations inside its box) and fitted through the differentiable "
-            f"twin on {analysis.measurement.n}; the missing effects diagnosed, added and refitted one after the "
-            f"other. Every step is a run in the store {store.location}.")),
-            ("Measurement", table_([{"configurations": len(m), "with open slits": n_open,
+            f"{', '.join(f'{k} {v}' for k, v in hidden.items()) or 'none'}; {how}; the missing effects diagnosed, "
+            f"added and refitted one after the other"
+            + ("; then frames that no fit used, far from the fitted ones, to test the calibration" if validation
+               else "") + f". Every step is a run in the store {store.location}.")),
+            ("Measurement", table_([{"frames in all": session.measured.frames, "beam search": beam.frames,
+                                     "measured for the fits": len(m), "with open slits": n_open,
                                      "analysed": analysis.measurement.n, "rays per frame": s.n_rays,
                                      "measurement uid": m.uid, "truth id": m.truth_id or ""}]))]
-        timing = {"IOC up": t["start"] - t0, "beam search + measure": t["measure"] - t["start"],
-                  "surrogate finder": t["finder"] - t["measure"], "compare/fit/diagnose/refit":
-                  t["analysis"] - t["finder"], **({"optimize, move, measure": t["optimize"] - t["analysis"]}
-                                                  if beam_result is not None else {})}
-        from bluesky_offsets.commands.report import beam_section
+        timing = {"IOC up": t["start"] - t0, "beam search + measure" + (" (designed)" if designed else ""):
+                  t["measure"] - t["start"],
+                  **({} if designed else {"surrogate finder": t["finder"] - t["measure"]}),
+                  "compare/fit/diagnose/refit": t["analysis"] - t["finder"],
+                  **({"validation frames": t["validation"] - t["analysis"]} if validation is not None else {}),
+                  **({"optimize, move, measure": t["optimize"] - t.get("validation", t["analysis"])}
+                     if beam_result is not None else {})}
+        from bluesky_offsets.commands.report import beam_section, design_section, validation_section
+        from bluesky_offsets.model.export import write_calibration
+        from bluesky_offsets.model.posterior import Posterior
+        posterior = Posterior.of(analysis)
+        calibration = None
+        if posterior is not None:
+            calibration = write_calibration(out / "calibration.json", analysis, measurement_uid=m.uid,
+                                            validation=None if validation is None else validation.summary())
         beam_secs = [] if beam_result is None else [
             ("The smallest focus with the calibrated twin", beam_section(beam_result, out, best=best))]
+        design_secs = [] if designed is None else [("The designed measurement", design_section(designed))]
+        valid_secs = [] if validation is None else [("Validation frames", validation_section(validation))]
         report = write_analysis_report(out / "report.html", analysis, analysis.measurement.spec, title="bluesky-offsets demo",
-                                       intro=intro, truth=hidden, uids=steps, store_location=store.location,
-                                       extra=[*beam_secs,
+                                       intro=intro + design_secs, truth=hidden, uids=steps,
+                                       store_location=store.location,
+                                       extra=[*valid_secs, *beam_secs,
                                               ("Timing", table_([{k: f"{v:.0f} s" for k, v in timing.items()}]))])
         flush_live(live)
         seconds = time.perf_counter() - t0
@@ -395,11 +427,18 @@ def run_demo(out: Path, settings: DemoSettings | None = None, store_location: st
             "seconds": seconds, "load_average_start": load, "threads": s.threads, "timing_s": timing,
             "store": store.location,
             "uids": steps, "all_run_uids": uids, "report": str(report), "n_configurations": len(m),
+            "frames": session.measured.frames, "design": s.design_kind,
+            "design_steps": [] if designed is None else [{k: np.asarray(v).tolist() if np.ndim(v) else v
+                                                          for k, v in row.items()} for row in designed.steps],
             "n_open_configurations": n_open, "n_analysed_configurations": analysis.measurement.n,
             "beam_search": {"frames": beam.frames, "bright": beam.bright, "intensity": beam.intensity,
                             "steps": beam.log, "uids": beam.uids},
+            "offsets": None if posterior is None else posterior.as_dict(),
+            "validation": None if validation is None else validation.summary(),
+            "calibration": None if calibration is None else str(calibration),
             "n_rays": s.n_rays, "hidden_offsets": offsets, "offsets_fraction": s.offsets_fraction,
-            "hidden_effects": hidden, "verdict": analysis.verdict,
+            "hidden_effects": hidden,
+            "verdict": analysis.verdict + ("" if validation is None or validation.passed else "; " + validation.line()),
             # a within-noise verdict: how large each candidate could be and still hide
             "could_hide": analysis.could_hide_json,
             "rankings": [[c.name for c in r.diagnosis.candidates] for r in analysis.rankings],
@@ -479,6 +518,14 @@ def _print_summary(summary: dict, analysis, location: str) -> None:
     print("error history (a correct model: chi2/dof ≈ 1, MSE ≈ its noise expectation):")
     for line in history_lines(analysis):
         print(line)
+    if summary.get("offsets"):
+        c = summary["offsets"]["counts"]
+        print(f"offsets ({summary['frames']} frames in all): {c['determined']} determined, {c['weak']} weak, "
+              f"{c['undetermined']} undetermined; each as value ± sigma in {summary.get('calibration')}")
+    if summary.get("validation"):
+        v = summary["validation"]
+        print(f"validation on {v['configurations']} frames no fit used: chi2/dof = {v['chi2_reduced']:.2f}, "
+              f"MSE/noise = {v['mse_over_noise']:.2f} ({'passed' if v['passed'] else 'FAILED'})")
     print("runs in the store:")
     for k, v in summary["uids"].items():
         print(f"  {k:16s} {v}")
@@ -509,7 +556,17 @@ def add_cli(sub) -> None:
     p.add_argument("--out", default="bluesky-offsets-demo", help="output folder (default ./bluesky-offsets-demo)")
     p.add_argument("--store", default=None, help="run store (default: the embedded store, $BLUESKY_OFFSETS_STORE)")
     p.add_argument("--rays", type=int, default=5000, help="source rays per measured frame (default %(default)s)")
-    p.add_argument("--configurations", type=int, default=16, help="bright configurations to measure (>= 16)")
+    p.add_argument("--design", choices=("optimal", "bright"), default="optimal",
+                   help="what is measured: frames designed for the offsets (default) or the bright configurations "
+                        "around the beam (the paper's 16, 4 of them again with the slits open)")
+    p.add_argument("--frames", type=int, default=DesignOptions.frames,
+                   help="frames in all, the beam search's included (the designed measurement's budget; default "
+                        "%(default)s)")
+    p.add_argument("--validation-frames", type=int, default=DesignOptions.validation,
+                   help="frames after the calibration, far from the fitted ones, that no fit uses (default "
+                        "%(default)s; 0: none)")
+    p.add_argument("--configurations", type=int, default=16, help="with --design bright: bright configurations to "
+                                                                   "measure (>= 16)")
     p.add_argument("--open-configurations", type=int, default=None,
                    help="bright configurations measured again with the slits open, ASBL 4 x 4 mm and exit slit "
                         "100 µm (default 4)")
@@ -576,6 +633,10 @@ def _cmd_demo(args) -> int:
         raise CliError("--analysed-configurations must be at least 2")
     if args.rays < 100:
         raise CliError("--rays must be at least 100")
+    if args.frames < 4:
+        raise CliError("--frames must be at least 4 (the beam search's and the designed ones)")
+    if args.validation_frames < 0:
+        raise CliError("--validation-frames must be 0 or more")
     if not 0 <= args.offsets_fraction <= 0.2:
         raise CliError("--offsets-fraction must lie in [0, 0.2] (offsets beyond 20 % of a range are outside the model)")
     check_analysis_options(args)
@@ -591,7 +652,8 @@ def _cmd_demo(args) -> int:
     if any(E.get(n).level == "detector" for n in names):
         raise CliError("--effect: the simulated IOC hides twin-level effects only (detector-level ones: "
                        + ", ".join(n for n in names if E.get(n).level == "detector") + ")")
-    s = DemoSettings(n_rays=args.rays, effects=effects,
+    s = DemoSettings(n_rays=args.rays, effects=effects, design_kind=args.design,
+                     optimal=DesignOptions(frames=args.frames, validation=args.validation_frames),
                      measurement=_design(bright=args.configurations, reopened=n_open,
                                          analysed=args.analysed_configurations),
                      offsets_fraction=args.offsets_fraction, rounds=args.rounds, seed=args.seed,

@@ -275,12 +275,52 @@ def analysis_sections(analysis, spec, work: Path, *, truth: Mapping | None = Non
         secs.append(("Fits through the differentiable twin",
                      image(fig, "χ²/dof at each iteration (features, profiles, bins: each on its own scale)")))
 
-    # offsets of the final model
-    st = comps[-1].state
-    off_rows = [{"parameter": p.name, "offset (normalized)": float(o), "offset": float(o * p.span), "unit": p.unit}
-                for p, o in zip(table, st.offsets) if abs(o) > 1e-4]
-    secs.append(("Offsets of the final model", table_(off_rows) if off_rows else paragraph("none")))
+    secs.append(("Offsets of the final model", offsets_section(analysis, table)))
     return secs
+
+
+def design_section(designed) -> str:
+    """The designed measurement's batches (:class:`plans.design.Designed`): what each chose and why."""
+    rows = [{"batch": r["step"] + 1, "frames before": r["frames_before"], "frames": r["frames"],
+             "criterion": f"{r['criterion']}: {r['criterion_before']:.1f} → {r['criterion_after']:.1f}",
+             "candidates kept / drawn": f"{r['allowed']} / {r['candidates']}",
+             "determined before → predicted after": f"{r['measured_determined']} → {r['predicted_determined']}",
+             "seconds": f"{r['seconds']:.1f}"} for r in designed.steps]
+    return (paragraph(f"{designed.frames} frames in all: {designed.beam.frames} to find the beam, then "
+                      f"{designed.measurement.n} chosen batch by batch for what they tell about the offsets (the "
+                      "twin's exact Jacobian at the current estimate; only settings whose beam stays on the screen "
+                      "under the posterior), the offsets refitted between batches.")
+            + (table_(rows) if rows else paragraph("no batch was designed")))
+
+
+def validation_section(validation) -> str:
+    """The calibrated model on frames no fit used (:class:`plans.design.Validation`)."""
+    v = validation.summary()
+    return (verdict(validation.line(), warn=not validation.passed)
+            + table_([{"frames": v["configurations"], "chi2/dof": f"{v['chi2_reduced']:.2f}",
+                       "MSE / noise": f"{v['mse_over_noise']:.2f}", "limit": f"{v['limit']:g}",
+                       "run uid": v["uid"] or ""}]))
+
+
+def offsets_section(model, table) -> str:
+    """Each offset of the calibrated ``model`` as value ± σ with its class and the offsets it trades
+    with (:class:`bluesky_offsets.model.posterior.Posterior`)."""
+    from bluesky_offsets.model.posterior import Posterior
+    post = Posterior.of(model, table)
+    if post is None:
+        return paragraph("The final model has no covariance: its offsets are not reported without their "
+                         "uncertainty.")
+    c = post.counts()
+    head = paragraph(f"{c['determined']} offsets determined (σ below a tenth of the prior's, the prior uniform "
+                     f"within ±20 % of each range), {c['weak']} weak, {c['undetermined']} undetermined (σ above half "
+                     "the prior's: the data barely beat it). σ after compensation by all other offsets; "
+                     "'trades with': the offsets most correlated with it in the posterior.")
+    combos = ""
+    if post.combinations:
+        combos = paragraph("Combinations the data determine though their parts may not be:") + table_(
+            [{"σ (of the ranges)": f"{d['sigma']:.3g}",
+              "combination": " ".join(f"{w:+.2f} × {n}" for n, w in d["components"])} for d in post.combinations])
+    return head + table_(post.rows()) + combos
 
 
 def table_(rows, columns=None, fmt: str = "{:.4g}") -> str:

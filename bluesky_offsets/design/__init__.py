@@ -16,6 +16,7 @@ from bluesky_offsets.design.choose import (
     candidate_settings,
     classes,
     criterion_value,
+    far_from,
     predicted_sigma,
     prior_precision,
     select,
@@ -23,5 +24,5 @@ from bluesky_offsets.design.choose import (
 from bluesky_offsets.design.information import FrameInformation, design_spec, frame_information
 
 __all__ = ["CRITERIA", "DETERMINED", "PRIOR_SIGMA", "UNDETERMINED", "Choice", "DesignOptions", "FrameInformation",
-           "candidate_settings", "classes", "criterion_value", "design_spec", "frame_information",
+           "candidate_settings", "classes", "criterion_value", "design_spec", "far_from", "frame_information",
            "predicted_sigma", "prior_precision", "select"]

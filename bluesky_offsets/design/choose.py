@@ -58,10 +58,10 @@ class DesignOptions:
 
     frames: int = 60
     batch: int = 8
-    candidates: int = 160
+    candidates: int = 120
     criterion: str = "D"
-    rays: int = 2000
-    fit_rays: int = 3000
+    rays: int = 1600
+    fit_rays: int = 2000
     floor: float = 0.02
     confidence: float = 2.0
     screen: bool = True
@@ -208,3 +208,27 @@ def select(fisher: np.ndarray, precision: np.ndarray, k: int, *, criterion: str 
         ok[i] = False
         P = P + fisher[i]
     return Choice(chosen, gains, P)
+
+
+def far_from(fitted: tuple[np.ndarray, np.ndarray], candidates: tuple[np.ndarray, np.ndarray], n: int, *,
+             allowed: np.ndarray | None = None, table: ParameterTable = METRIXS) -> list[int]:
+    """``n`` of the ``candidates`` (configurations, screen) as far as possible from the ``fitted``
+    settings and from each other (farthest-point order): distances over the motors in units of
+    their travel and the stage's axes in units of theirs.  The frames a calibration is tested on."""
+    def coords(cfg, screen):
+        lo = np.array([p.limits[0] for p in table])
+        hi = np.array([p.limits[1] for p in table])
+        z = (np.asarray(cfg) - lo) / (hi - lo)
+        s = np.asarray(screen) / np.array([ax.span for ax in STAGE])
+        return np.hstack([z[:, table.motorized], s])
+    have = coords(*fitted)
+    cand = coords(*candidates)
+    ok = np.ones(len(cand), bool) if allowed is None else np.asarray(allowed, bool).copy()
+    d = np.min(np.linalg.norm(cand[:, None] - have[None], axis=-1), axis=1)
+    out = []
+    for _ in range(min(n, int(ok.sum()))):
+        i = int(np.argmax(np.where(ok, d, -np.inf)))
+        out.append(i)
+        ok[i] = False
+        d = np.minimum(d, np.linalg.norm(cand - cand[i], axis=-1))
+    return out

@@ -94,7 +94,10 @@ def frame_information(engine, configurations: np.ndarray, offsets: np.ndarray, *
         w = inv_var_scale / p
         cross = np.einsum("cbp,cb,cbq->cpq", ja, w, jb)
         fisher[a:b] = _psd(0.5 * (cross + np.swapaxes(cross, 1, 2)))
+        # on the screen: within the x window (x profile) and the y window (y profile), the lesser
         nx = spec.bins_x
-        inten[a:b] = 0.5 * (ha[:, :nx].sum(1) + hb[:, :nx].sum(1))
-        grad[a:b] = 0.5 * (ja[:, :nx].sum(1) + jb[:, :nx].sum(1))
+        sx, sy = 0.5 * (ha[:, :nx].sum(1) + hb[:, :nx].sum(1)), 0.5 * (ha[:, nx:].sum(1) + hb[:, nx:].sum(1))
+        gx, gy = 0.5 * (ja[:, :nx].sum(1) + jb[:, :nx].sum(1)), 0.5 * (ja[:, nx:].sum(1) + jb[:, nx:].sum(1))
+        inten[a:b] = np.minimum(sx, sy)
+        grad[a:b] = np.where((sx <= sy)[:, None], gx, gy)
     return FrameInformation(fisher, inten, grad)

@@ -23,11 +23,15 @@ the soft beam instead (a smooth objective whose derivative the Jacobian is exact
 
 Each stage is Levenberg-Marquardt within the bounds (offsets within ±``MAX_OFFSET``, effect
 parameters within their priors), on the twin's exact Jacobian (optionally its secant updates
-between exact ones, ``FitOptions.secant``).  The uncertainty of the result is the Gauss-Newton
-covariance of the last stage at the solution, inflated by χ²/dof where the model does not
-reach the noise, and widened to the spread over configurations where that is larger
+between exact ones, ``FitOptions.secant``).  The uncertainty of the result is the inverse of the
+last stage's information at the solution, inflated by χ²/dof where the model does not reach the
+noise, and widened to the spread over configurations where that is larger
 (:func:`jackknife_covariance`: what one configuration alone pulls the solution by, which the
-Gauss-Newton covariance does not see when the model or the fit's end is off).
+information does not see when the model or the fit's end is off).  The information is the cross
+product of two Jacobians from independent rays (:meth:`_Model.fisher`): a Jacobian estimated
+from rays carries their noise, and squared that noise reads as information the frames do not
+hold (at the camera's bins, 5,000 rays a frame, it made offsets look up to 30 times better known
+than the fit's ends were: benchmarks/bench_design.py).
 
 Fits that do not depend on each other (the starts of one fit, its ray draws, a diagnosis's
 candidates) run side by side on an executor where one is given (:func:`gather`: threads, or the
@@ -46,6 +50,7 @@ from typing import TypeVar
 
 import numpy as np
 import torch
+from scipy.stats import chi2 as chi2_dist
 
 from bluesky_offsets.options import refuse_unknown
 from bluesky_offsets.physics import effects as E
@@ -62,6 +67,8 @@ FRESH_SEED = 1_000_003
 #: ``k`` times this added to a fit's seed: the model's rays of its ``k``-th ray draw
 #: (:attr:`FitOptions.ray_draws`), streams neither the first draw nor the fresh rays trace
 RAY_DRAW_SEED = 3_000_017
+#: added to a fit's seed for the second, independent Jacobian of its uncertainty (:meth:`_Model.fisher`)
+CROSS_SEED = 5_000_011
 
 
 @dataclass(frozen=True)
@@ -193,6 +200,8 @@ class FitResult:
     ridge: np.ndarray | None = field(default=None, repr=False)      # the prior's diagonal (normal matrix)
     widened: np.ndarray | None = field(default=None, repr=False)    # σ over the Gauss-Newton σ (jackknife)
     draws: np.ndarray | None = field(default=None, repr=False)      # where each ray draw ended (ray_draws > 1)
+    # the other starts' ends within the joint 95 % region of the kept one (their spread is in the covariance)
+    alternatives: np.ndarray | None = field(default=None, repr=False)
 
     @property
     def chi2_reduced(self) -> float:
@@ -413,6 +422,27 @@ class _Model:
         return r.reshape(-1)[keep], G, dof, rows
 
 
+def _fisher(mdl: _Model, other: _Model, stage: str, z: np.ndarray, pa: _Products | None = None) -> np.ndarray:
+    """The information of ``stage``'s residuals in z at ``z``: ``(Jaᵀ W Jb + Jbᵀ W Ja) / 2`` of the
+    Jacobians of two models with independent rays (``mdl``'s and ``other``'s), whose expectation is
+    the information itself (one Jacobian squared adds its rays' noise), its negative eigenvalues
+    (that noise) set to 0.  The weights are the residuals' (:meth:`_Model.residuals`) at the mean of
+    both models' values.  ``pa``: ``mdl``'s products at ``z`` with their Jacobian, when at hand."""
+    pa = pa if pa is not None and pa.jacobian is not None else mdl.products(stage, z, True)
+    pb = other.products(stage, z, True)
+    if stage == "features":
+        w = 1.0 / (mdl.vm + 0.5 * (pa.variance + pb.variance))
+    else:
+        if stage not in mdl._measured:
+            mdl.residuals(stage, pa)  # caches the measured values at this stage's bins
+        m, f = mdl._measured[stage], 0.5 * (pa.values + pb.values)
+        var = bin_variance(m, f, float(mdl.meas.n_rays), pa.rays)
+        w = np.where((m > 0) | (f > 0), 1.0 / var, 0.0)
+    x = np.einsum("cbp,cb,cbq->pq", pa.jacobian, w, pb.jacobian)
+    vals, vecs = np.linalg.eigh(0.5 * (x + x.T))
+    return (vecs * np.clip(vals, 0.0, None)) @ vecs.T
+
+
 @dataclass
 class _Products:
     """A stage's model values (C, K), their Jacobian in z (C, K, P + p) or None, the rays they
@@ -585,7 +615,9 @@ def fit(meas, state, engine, options: FitOptions | Mapping | None = None, *,
         the README's demo: the surrogate finder's offsets, for a defocus it cannot represent,
         start lower than no offsets and end their first stage lower, but end the fit at χ²/dof
         4.85 against 4.35, and the effect refitted from there at z = 23.2 mm against 21.4 for 20;
-        docs/diagnosis.md).  Why other rays: each fit ends fitted to its own rays' noise, and
+        docs/diagnosis.md).  The ends of the other starts that the frames do not tell from the kept
+        one widen its covariance (:attr:`FitResult.alternatives`).  Why other rays: each fit ends
+        fitted to its own rays' noise, and
         the end that is lowest on them need not be (measured on a fresh clone, hidden source
         divergence 0.5: the start kept on the fit's own rays compared at χ²/dof 3.92 on fresh
         rays, and the divergence refitted from there at 0.39 ± 0.018; docs/diagnosis.md).
@@ -613,6 +645,11 @@ def fit(meas, state, engine, options: FitOptions | Mapping | None = None, *,
         mdl.n_traces += fresh.n_traces
     kept = min(ends, key=lambda e: (e[0], e[1]))
     _, _, z, pr, exact, _ = kept
+    # the other starts' ends that the frames do not tell from the kept one (their χ² on fresh rays
+    # within the fitted parameters' joint 95 % region of it): the posterior is at least that wide
+    # where the χ² has several valleys, which no curvature at one of them shows
+    region = float(chi2_dist.ppf(0.95, len(z)))
+    others = [e[2] for e in ends if e is not kept and e[0] - kept[0] <= region]
     for e in sorted(ends, key=lambda e: e is kept):  # the kept run's iterations last
         history += e[5]
     # the same fit on other rays, from where the first draw ended
@@ -649,9 +686,12 @@ def fit(meas, state, engine, options: FitOptions | Mapping | None = None, *,
                         "ray_draw": "mean", **({"start": kept[1]} if len(starts) > 1 else {})})
         if progress:
             progress(history[-1])
-    # the covariance of the last stage: Gauss-Newton at the solution; a bound that holds a
-    # parameter does not shrink its uncertainty below what the data say
-    cov = _gauss_newton_covariance(G, ridge)
+    # the covariance of the last stage: its information at the solution (two independent ray
+    # sets' Jacobians); a bound that holds a parameter does not shrink its uncertainty below
+    # what the data say
+    cross = _Model(meas, state, engine, o.replace(seed=o.seed + CROSS_SEED), table)
+    cov = _posterior_covariance(_fisher(mdl, cross, o.stages[-1][0], z, pr), ridge)
+    mdl.n_traces += cross.n_traces
     chi2 = float(r @ r)
     inflation = max(1.0, chi2 / max(dof, 1.0))
     cov = cov * inflation
@@ -669,15 +709,21 @@ def fit(meas, state, engine, options: FitOptions | Mapping | None = None, *,
     if spread is not None:
         # where the rays decided the end: what another draw would have moved it by
         cov = cov + np.where(np.isnan(cov), 0.0, spread)
+    if others:
+        # each other end at two standard deviations from the solution, along its own direction
+        d = np.asarray(others) - z
+        cov = cov + np.where(np.isnan(cov), 0.0, d.T @ d / 4.0)
     return FitResult(mdl.state(z), history, cov, mdl.names, chi2, dof, inflation, mdl.n_traces, G, r,
-                     rows, o.stages[-1][0], ridge, widen, None if spread is None else np.asarray(draws))
+                     rows, o.stages[-1][0], ridge, widen, None if spread is None else np.asarray(draws),
+                     np.asarray(others) if others else None)
 
 
-def _gauss_newton_covariance(G: np.ndarray, ridge: np.ndarray) -> np.ndarray:
-    """(Gᵀ G + prior)⁻¹, scaled to unit diagonal first (the columns' units differ by orders of
-    magnitude).  A parameter the data do not see at all (a thermal bump below its threshold: no
-    bump, a zero column) has no uncertainty to give: NaN, not the pseudo-inverse's "± 0"."""
-    A = G.T @ G + np.diag(ridge)
+def _posterior_covariance(F: np.ndarray, ridge: np.ndarray) -> np.ndarray:
+    """(F + prior)⁻¹ for the information ``F``, scaled to unit diagonal first (the columns' units
+    differ by orders of magnitude).  A parameter the data do not see at all (a thermal bump below
+    its threshold: no bump, a zero column) has no uncertainty to give: NaN, not the
+    pseudo-inverse's "± 0"."""
+    A = F + np.diag(ridge)
     d = np.sqrt(np.clip(np.diag(A), 1e-300, None))
     cov = np.linalg.pinv(A / np.outer(d, d), rcond=1e-12) / np.outer(d, d)
     blind = np.diag(A) <= 0
@@ -688,18 +734,21 @@ def _gauss_newton_covariance(G: np.ndarray, ridge: np.ndarray) -> np.ndarray:
 def information(meas, state, engine, options: FitOptions | Mapping | None = None, *,
                 table: ParameterTable = METRIXS) -> FitResult:
     """``state`` looked at as it stands, no step taken: the last stage's residuals and the twin's
-    exact Jacobian there, and the Gauss-Newton covariance they give (not inflated, not widened:
-    what the data could say about each parameter there, the others free).  One Jacobian of the
-    twin; :func:`bluesky_offsets.model.diagnosis.detection_limits` reads from it how large an
-    effect could be and still hide behind the offsets."""
+    exact Jacobian there, and the covariance their information gives (two independent ray sets'
+    Jacobians, :func:`_fisher`; not inflated, not widened: what the data could say about each
+    parameter there, the others free).  Two Jacobians of the twin;
+    :func:`bluesky_offsets.model.diagnosis.detection_limits` reads from it how large an effect
+    could be and still hide behind the offsets."""
     o = FitOptions.resolve(options)
     mdl = _Model(meas, state, engine, o, table)
     z = np.clip(mdl.vector(state), *mdl.bounds())
     stage = o.stages[-1][0]
     r, G, dof, rows = mdl.residuals(stage, mdl.products(stage, z, True))
     ridge = _ridge(mdl, o)
-    return FitResult(mdl.state(z), [], _gauss_newton_covariance(G, ridge), mdl.names, float(r @ r), dof, 1.0,
-                     mdl.n_traces, G, r, rows, stage, ridge)
+    cross = _Model(meas, state, engine, o.replace(seed=o.seed + CROSS_SEED), table)
+    cov = _posterior_covariance(_fisher(mdl, cross, stage, z), ridge)
+    return FitResult(mdl.state(z), [], cov, mdl.names, float(r @ r), dof, 1.0,
+                     mdl.n_traces + cross.n_traces, G, r, rows, stage, ridge)
 
 
 def jackknife_covariance(G: np.ndarray, r: np.ndarray, rows: np.ndarray, ridge: np.ndarray,

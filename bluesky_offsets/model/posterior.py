@@ -1,0 +1,176 @@
+"""What a calibration knows about each offset: value ± σ, whether the data determine it, with whom
+it trades.
+
+A fit's covariance (:class:`~bluesky_offsets.model.state.CalibratedState`) holds the offsets'
+posterior in normalized units (fractions of each range); this module says it per parameter in
+its physical unit, after compensation by all others:
+
+* ``determined``: σ below a tenth of the prior's (the offsets' prior: uniform within ±20 % of each
+  range, σ = 0.2/√3 of the range);
+* ``undetermined``: σ above half the prior's (the data barely beat the prior);
+* ``weak`` in between.
+
+Each offset's strongest compensating partners are the largest correlations of the posterior;
+the determined combinations are the posterior's directions with σ below a tenth of the prior's
+that are not one offset alone (two mirrors tilted against each other move the focus back:
+their difference may be known where neither is).  An undetermined offset is always printed as
+such, never as a value alone.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass
+
+import numpy as np
+
+from bluesky_offsets.physics import effects as E
+from bluesky_offsets.physics.parameters import MAX_OFFSET, METRIXS, ParameterTable
+
+PRIOR_SIGMA = MAX_OFFSET / math.sqrt(3.0)
+DETERMINED, UNDETERMINED = 0.1, 0.5
+PARTNER_CORRELATION = 0.5
+"""A partner is an offset correlated with this one beyond this (in absolute value)."""
+
+
+def classify(ratio: float) -> str:
+    """``determined`` / ``weak`` / ``undetermined`` for a posterior σ over the prior's σ."""
+    if not math.isfinite(ratio):
+        return "undetermined"
+    return "determined" if ratio < DETERMINED else "undetermined" if ratio >= UNDETERMINED else "weak"
+
+
+@dataclass(frozen=True)
+class Estimate:
+    """One parameter's posterior: value and σ in its unit, the same normalized by its range, the
+    class, the strongest compensating partners ``[(name, correlation)]`` and whether a bound
+    holds it."""
+
+    name: str
+    unit: str
+    value: float
+    sigma: float
+    normalized: float
+    normalized_sigma: float
+    cls: str
+    partners: tuple[tuple[str, float], ...] = ()
+    at_bound: bool = False
+
+    def text(self) -> str:
+        """``-1.49 ± 0.30 mrad``; an undetermined one says so first."""
+        v = f"{self.value:+.4g} ± {self.sigma:.2g} {self.unit}" if math.isfinite(self.sigma) else \
+            f"{self.value:+.4g} {self.unit} (no σ)"
+        return f"undetermined ({v})" if self.cls == "undetermined" else v
+
+    def as_dict(self) -> dict:
+        return {"value": self.value, "sigma": self.sigma, "unit": self.unit, "class": self.cls,
+                "normalized": self.normalized, "normalized_sigma": self.normalized_sigma,
+                "partners": [[n, c] for n, c in self.partners], "at_bound": self.at_bound}
+
+
+@dataclass(frozen=True)
+class Posterior:
+    """The posterior of a calibrated model: its offsets (table order) and effect parameters."""
+
+    offsets: tuple[Estimate, ...]
+    effects: dict[str, dict[str, Estimate]]
+    combinations: tuple[dict, ...]
+    covariance: np.ndarray
+    names: tuple[str, ...]
+
+    @classmethod
+    def of(cls, model, table: ParameterTable = METRIXS) -> Posterior | None:
+        """The posterior of a calibrated state (or an analysis, or a state with a covariance); None
+        where no covariance is known."""
+        from bluesky_offsets.model.state import CalibratedState
+        cal = CalibratedState.of(model)
+        if cal.covariance is None or cal.names is None:
+            return None
+        cov = np.asarray(cal.covariance, float)
+        names = tuple(cal.names)
+        st = cal.state
+        n = len(table)
+        sig = np.sqrt(np.clip(np.nan_to_num(np.diag(cov), nan=np.inf), 0.0, None))
+        d = np.where(np.isfinite(sig) & (sig > 0), sig, np.nan)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            corr = cov / np.outer(d, d)
+        offs = []
+        for i, p in enumerate(table):
+            z, s = float(st.offsets[i]), float(sig[i])
+            offs.append(Estimate(p.name, p.unit, z * p.span, s * p.span, z, s, classify(s / PRIOR_SIGMA),
+                                 _partners(corr, i, names[:n]), bool(abs(abs(z) - MAX_OFFSET) < 1e-6)))
+        effects: dict[str, dict[str, Estimate]] = {}
+        k = n
+        for eff in st.effects:
+            for q in E.get(eff).parameters:
+                v, s = float(st.effects[eff][q.name]), float(sig[k]) if k < len(sig) else math.nan
+                prior = q.span / math.sqrt(12.0)
+                effects.setdefault(eff, {})[q.name] = Estimate(
+                    f"{eff}.{q.name}", q.unit, v, s, v, s, classify(s / prior),
+                    _partners(corr, k, names), bool(min(abs(v - q.low), abs(v - q.high)) < 1e-9 * max(q.span, 1)))
+                k += 1
+        return cls(tuple(offs), effects, _combinations(cov[:n, :n], names[:n]), cov, names)
+
+    def counts(self) -> dict[str, int]:
+        out = {"determined": 0, "weak": 0, "undetermined": 0}
+        for e in self.offsets:
+            out[e.cls] += 1
+        return out
+
+    def as_dict(self) -> dict:
+        """For ``summary.json`` and the calibration file: per offset and effect parameter, the
+        counts and the determined combinations."""
+        return {"offsets": {e.name: e.as_dict() for e in self.offsets},
+                "effects": {eff: {q: e.as_dict() for q, e in d.items()} for eff, d in self.effects.items()},
+                "counts": self.counts(), "combinations": list(self.combinations),
+                "prior_sigma_normalized": PRIOR_SIGMA, "thresholds": [DETERMINED, UNDETERMINED]}
+
+    def rows(self) -> list[dict]:
+        """One row per offset for a report's table."""
+        return [{"parameter": e.name, "offset": e.text(), "class": e.cls,
+                 "σ / prior": f"{e.normalized_sigma / PRIOR_SIGMA:.2f}",
+                 "trades with": ", ".join(f"{n} ({c:+.2f})" for n, c in e.partners) or "-",
+                 **({"note": "at the ±20 % bound"} if e.at_bound else {})} for e in self.offsets]
+
+    def lines(self) -> list[str]:
+        c = self.counts()
+        out = [f"offsets: {c['determined']} determined, {c['weak']} weak, {c['undetermined']} undetermined "
+               f"(σ below 0.1 / above 0.5 of the prior's)"]
+        for e in self.offsets:
+            partners = "; trades with " + ", ".join(f"{n} {v:+.2f}" for n, v in e.partners) if e.partners else ""
+            out.append(f"  {e.name:32s} {e.text():36s} {e.cls}{partners}")
+        for d in self.combinations:
+            comp = " ".join(f"{w:+.2f}*{n}" for n, w in d["components"])
+            out.append(f"  determined combination (σ {d['sigma']:.3g} of the ranges): {comp}")
+        return out
+
+
+def _partners(corr: np.ndarray, i: int, names, k: int = 2) -> tuple[tuple[str, float], ...]:
+    row = np.nan_to_num(np.array(corr[i, :len(names)], float))
+    if i < len(row):
+        row[i] = 0.0
+    order = np.argsort(-np.abs(row))[:k]
+    return tuple((names[j], float(row[j])) for j in order if abs(row[j]) >= PARTNER_CORRELATION)
+
+
+def _combinations(cov: np.ndarray, names, top: int = 4, most: int = 6) -> tuple[dict, ...]:
+    """The posterior's well-determined directions (σ below a tenth of the prior's) that mix
+    offsets (no component above 0.9), best first."""
+    c = np.nan_to_num(cov)
+    lam, vec = np.linalg.eigh(0.5 * (c + c.T))
+    out = []
+    for j in np.argsort(lam):
+        s = math.sqrt(max(lam[j], 0.0))
+        if s >= DETERMINED * PRIOR_SIGMA or len(out) >= most:
+            break
+        v = vec[:, j] * np.sign(vec[np.argmax(np.abs(vec[:, j])), j])
+        if np.max(np.abs(v)) > 0.9:
+            continue
+        idx = np.argsort(-np.abs(v))[:top]
+        out.append({"sigma": s, "components": [(names[i], float(v[i])) for i in idx]})
+    return tuple(out)
+
+
+def summary(posterior: Posterior | None) -> Mapping | None:
+    return None if posterior is None else posterior.as_dict()

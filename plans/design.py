@@ -1,0 +1,299 @@
+"""The measurement designed for the offsets, as a Bluesky plan.
+
+:func:`measure_designed` finds the beam (:func:`plans.find_beam`), then takes frames in batches,
+each batch the most informative about the offsets of the settings the beamline can reach
+(:mod:`bluesky_offsets.design`), the offsets refitted to every frame so far between batches,
+until the frame budget is spent (or the offsets' predicted σ reach the target).  All designed
+frames are events of one measurement run, each with its configuration and the chamber stage's
+position; the run's ``design`` stream has one event per batch: the criterion before and after,
+the predicted gain, the offsets' predicted σ, the candidates drawn and kept.  A pause resumes at
+the next frame (every frame is a checkpoint).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from collections.abc import Mapping
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+from bluesky.utils import MsgGenerator
+
+from bluesky_offsets.design import DesignOptions, classes, predicted_sigma
+from bluesky_offsets.model.measurement import Measurement
+from bluesky_offsets.physics.parameters import METRIXS, ParameterTable
+
+from ._stubs import Record, emit_rows, run_in_thread
+
+log = logging.getLogger("bluesky_offsets.workflow")
+
+
+@dataclass
+class Designed:
+    """What :func:`measure_designed` did: the beam search, the measurement, each batch's design
+    record, the offsets' estimate and the design's precision after the last batch."""
+
+    beam: object                      # bluesky_offsets.offsets.beam_search.SearchResult
+    measurement: Measurement
+    steps: list[dict] = field(default_factory=list)
+    offsets: np.ndarray | None = None
+    precision: np.ndarray | None = None
+
+    @property
+    def frames(self) -> int:
+        """Frames taken in all: the beam search's and the designed ones."""
+        return int(self.beam.frames) + self.measurement.n
+
+    @property
+    def uid(self) -> str | None:
+        return self.measurement.uid
+
+
+class _Loop:
+    """The design's state between batches: the estimate of the offsets and the precision."""
+
+    def __init__(self, options: DesignOptions, here: np.ndarray, budget: int, photons: int,
+                 table: ParameterTable):
+        from bluesky_offsets.offsets.beam_search import acceptance
+        from bluesky_offsets.physics.torch_engine import TorchEngine
+        from bluesky_offsets.physics.twin import Twin
+        self.o, self.budget, self.photons, self.table = options, budget, photons, table
+        self.engine = TorchEngine(table=table, options={"common_rays": False})
+        self.acceptance = acceptance(Twin(TorchEngine(table=table)), here, open_slits=False, table=table)
+        self.here = np.asarray(here, float)
+        self.offsets = np.zeros(len(table))
+        self.precision: np.ndarray | None = None
+        self.steps: list[dict] = []
+
+    def anchors(self, meas: Measurement) -> np.ndarray:
+        """The settings of the frames that put the beam on the screen (the beam search's otherwise)."""
+        from plans import enough_rays
+        bright = enough_rays(meas.hist_x, meas.hist_y)  # sums: the same at any binning
+        return meas.configurations[bright] if bright.any() else self.here[None]
+
+    def step(self, meas: Measurement, progress) -> tuple | None:
+        """Refit, then choose the next batch; None once the budget is spent or the target met."""
+        from bluesky_offsets.design.sequence import measured_precision, next_batch, update
+        from bluesky_offsets.model.fit import engine_for
+        k = len(self.steps)
+        left = self.budget - meas.n
+        if left <= 0:
+            return None
+        fit = None
+        a = meas.for_analysis(table=self.table)
+        if meas.n >= 2:
+            progress({"step": k, "stage": "update"})
+            fit = update(a, self.offsets, engine_for(a, _fit_options(self.o)), options=self.o, step=k,
+                         table=self.table)
+            self.offsets = fit.state.offsets
+        self.precision = measured_precision(self.engine, a, self.offsets, options=self.o, photons=self.photons,
+                                            table=self.table)
+        sigma = predicted_sigma(self.precision)
+        if self.o.target is not None and np.all(sigma / _prior() < self.o.target):
+            return None
+        progress({"step": k, "stage": "design"})
+        st = next_batch(self.engine, self.offsets, self.precision, self.anchors(meas), self.acceptance,
+                        k=min(self.o.batch, left), step=k, photons=self.photons, options=self.o, table=self.table)
+        if not len(st.gains):
+            return None
+        row = {key: v for key, v in st.row().items() if key not in ("gains", "predicted_intensity")}
+        row.update(frames_before=meas.n, measured_determined=classes(sigma).count("determined"),
+                   update_chi2_reduced=float("nan") if fit is None else float(fit.chi2_reduced),
+                   gains_json=json.dumps([float(g) for g in st.gains]),
+                   predicted_intensity_json=json.dumps([float(v) for v in st.intensity]))
+        self.steps.append(row)
+        return st, row
+
+
+def _prior() -> float:
+    from bluesky_offsets.design import PRIOR_SIGMA
+    return PRIOR_SIGMA
+
+
+def _fit_options(o: DesignOptions):
+    from bluesky_offsets.model.fit import FitOptions
+    return FitOptions(rays=o.fit_rays, feature_rays=min(2000, o.fit_rays))
+
+
+def measure_designed(beamline, chamber, *, options: DesignOptions | Mapping | None = None, fraction: float = 0.15,
+                     table: ParameterTable = METRIXS, md: Mapping | None = None,
+                     show: bool = True) -> MsgGenerator[Designed]:
+    """Find the beam, then measure frames designed for what they tell about the offsets.
+
+    Parameters
+    ----------
+    beamline, chamber : devices
+        The motors (with the chamber's stage as ``chamber_stage`` where it has one: without it the
+        screen stays where it is) and the focus chamber.
+    options : DesignOptions or mapping
+        The frame budget (the beam search's frames included), batch size, criterion ...
+        (:class:`bluesky_offsets.design.DesignOptions`; an unknown key is refused).
+    fraction : float
+        The offsets the beam search assumes (normalized; :func:`plans.find_beam`).
+
+    Returns
+    -------
+    Designed
+        The beam search, the measurement (one run: ``uid``), each batch's design record, the
+        offsets' last estimate and the design's precision.
+
+    Raises :class:`plans.workflow.DarkBeamline` when the beam search ends dim.
+    """
+    from plans import HIGH_RAY_THRESHOLD, find_beam
+
+    from .measure import _optional_read, scan_configurations
+    from .motion import resolve_stage
+    from .workflow import DarkBeamline
+
+    o = options if isinstance(options, DesignOptions) else DesignOptions.from_mapping(options)
+    if resolve_stage(beamline) is None and o.screen:
+        log.info("the beamline has no chamber stage: the design keeps the screen where it is")
+        o = o.replace(screen=False)
+    log.info("finding the beam (offsets up to ±%g of each range assumed)", fraction)
+    beam = yield from find_beam(beamline, chamber, fraction=fraction, max_frames=max(1, o.frames - 2), table=table)
+    for line in beam.log:
+        log.info("  %s", line)
+    if not beam.bright:
+        raise DarkBeamline(f"the beam search ended dim after {beam.frames} frames ({beam.intensity:.3g} of the "
+                           f"source rays on the screen, {HIGH_RAY_THRESHOLD:.3g} needed): check the shutter, the "
+                           f"source and the slits, or widen the search (fraction)")
+    photons = yield from _optional_read(chamber, "num_rays")
+    loop = _Loop(o, beam.configuration, o.frames - beam.frames, int(photons or 10_000), table)
+    log.info("designing %d frames (%s-optimal, batches of %d, %d candidates each) around the beam found in %d "
+             "frames", loop.budget, o.criterion, o.batch, o.candidates, beam.frames)
+
+    record = Record("design")
+
+    def more(meas: Measurement):
+        got = yield from run_in_thread(lambda progress: loop.step(meas, progress), stream=None,
+                                       desc=f"design step {len(loop.steps) + 1}", show=show)
+        if got is None:
+            return None
+        st, row = got
+        yield from emit_rows("design", [row], record)
+        log.info("  step %d: %d frames (criterion %s %.1f -> %.1f, %d of %d candidates keep the beam; offsets "
+                 "determined so far %d, predicted after it %d)", st.step + 1, len(st.gains), o.criterion,
+                 st.before, st.after, st.allowed, st.candidates, row["measured_determined"], st.n_determined)
+        return st.configurations, st.screen
+
+    screen = np.zeros((1, 3)) if o.screen else None
+    m = yield from scan_configurations(beam.configuration[None], beamline, chamber, table=table, screen=screen,
+                                       more=more, md={"purpose": "calibration measurement (designed)",
+                                                      "design_options": asdict(o), "beam_search_frames": beam.frames,
+                                                      "beam_search_uids": list(beam.uids),
+                                                      "n_configurations": loop.budget, **dict(md or {})})
+    return Designed(beam, m, loop.steps, loop.offsets, loop.precision)
+
+
+# --------------------------------------------------------------------------- #
+# validation frames
+# --------------------------------------------------------------------------- #
+VALIDATION_LIMIT = 1.3
+"""χ²/dof on the validation frames above which the calibration is said to fail its validation."""
+
+
+@dataclass
+class Validation:
+    """Frames no fit used, far from the fitted ones, and the calibrated model against them."""
+
+    measurement: Measurement
+    comparison: object                # plans.diagnose.Comparison
+    uid: str | None = None
+
+    @property
+    def chi2_reduced(self) -> float:
+        return float(self.comparison.misfit.chi2_reduced_total)
+
+    @property
+    def mse_over_noise(self) -> float:
+        mf = self.comparison.misfit
+        return float(mf.mse_total / max(mf.expected_mse_total, 1e-300))
+
+    @property
+    def passed(self) -> bool:
+        return self.chi2_reduced <= VALIDATION_LIMIT
+
+    def summary(self) -> dict:
+        return {"chi2_reduced": self.chi2_reduced, "mse_over_noise": self.mse_over_noise,
+                "configurations": self.measurement.n, "uid": self.uid, "passed": self.passed,
+                "limit": VALIDATION_LIMIT}
+
+    def line(self) -> str:
+        how = "passed" if self.passed else f"FAILED (above {VALIDATION_LIMIT:g}): the offsets reproduce the frames " \
+                                           "they were fitted to, not the beamline elsewhere"
+        return (f"validation on {self.measurement.n} frames no fit used: chi2/dof = {self.chi2_reduced:.2f}, "
+                f"MSE/noise = {self.mse_over_noise:.2f}, {how}")
+
+
+def validation_settings(model, fitted: Measurement, n: int, *, options: DesignOptions,
+                        table: ParameterTable = METRIXS) -> tuple[np.ndarray, np.ndarray]:
+    """``n`` settings (configurations, screen) far from the ``fitted`` frames' and from each other
+    (:func:`bluesky_offsets.design.far_from`), among candidates on which the calibrated ``model``
+    puts at least twice the design's floor on the screen."""
+    import torch
+
+    from bluesky_offsets.design import candidate_settings, far_from
+    from bluesky_offsets.model.state import CalibratedState
+    from bluesky_offsets.offsets.beam_search import acceptance
+    from bluesky_offsets.physics import effects as E
+    from bluesky_offsets.physics.screen import add_overrides, tensor_overrides
+    from bluesky_offsets.physics.torch_engine import TorchEngine, histograms
+    from bluesky_offsets.physics.twin import HistogramSpec, Twin
+    from plans import enough_rays
+
+    state = CalibratedState.of(model).state
+    bright = enough_rays(fitted.hist_x, fitted.hist_y)
+    anchors = fitted.configurations[bright] if bright.any() else fitted.configurations
+    acc = acceptance(Twin(TorchEngine(table=table)), anchors[0], open_slits=False, table=table)
+    rng = np.random.default_rng([options.seed, 2])  # the validation's own stream
+    cfg, screen = candidate_settings(anchors, 4 * options.candidates, rng, acceptance=acc,
+                                     options=options.replace(move=min(1.0, 2 * options.move)), table=table)
+    twin_eff = {e: v for e, v in state.effects.items() if E.get(e).level == "twin"}
+    ov = E.twin_overrides(twin_eff) if twin_eff else None
+    stage = tensor_overrides(screen, len(cfg))
+    engine = TorchEngine(table=table, options={"common_rays": False})
+    with torch.no_grad():
+        beam = engine.beam(cfg + np.clip(state.offsets, -0.2, 0.2) * table.span,
+                           add_overrides(ov, stage) if stage else ov, n_rays=1000, seed=options.seed)
+    hx, hy = histograms(beam, HistogramSpec())
+    allowed = np.minimum(hx.sum(1).numpy(), hy.sum(1).numpy()) >= 2 * options.floor  # on the screen both ways
+    fitted_screen = fitted.screen if fitted.screen is not None else np.zeros((fitted.n, 3))
+    idx = far_from((fitted.configurations, fitted_screen), (cfg, screen), n, allowed=allowed, table=table)
+    return cfg[idx], screen[idx]
+
+
+def measure_validation(beamline, chamber, model, fitted: Measurement, twin, *, n: int = 6,
+                       options: DesignOptions | Mapping | None = None, table: ParameterTable = METRIXS,
+                       md: Mapping | None = None, show: bool = True) -> MsgGenerator[Validation]:
+    """Frames at ``n`` settings no fit used, far from the ``fitted`` ones (other motor settings,
+    other screen positions: :func:`validation_settings`), and the calibrated ``model`` compared with
+    them in the same run (its ``misfit`` and ``misfit_total`` streams): the test that the offsets
+    are right, not only the frames.  ``model``: a calibrated state or an analysis."""
+    from bluesky_offsets.model.state import CalibratedState
+
+    from .diagnose import compare_model
+    from .measure import scan_configurations
+    from .motion import resolve_stage
+
+    o = options if isinstance(options, DesignOptions) else DesignOptions.from_mapping(options)
+    if resolve_stage(beamline) is None:
+        o = o.replace(screen=False)
+    cal = CalibratedState.of(model)
+    cfg, screen = yield from run_in_thread(
+        lambda progress: validation_settings(cal, fitted, n, options=o, table=table), stream=None,
+        desc="choose validation frames", show=show)
+    if not len(cfg):
+        raise ValueError("no setting far from the fitted frames keeps the beam on the screen: no validation frames")
+    box = {}
+
+    def compare(meas: Measurement):
+        box["c"] = yield from compare_model(meas.for_analysis(table=table), cal.state, twin, label="validation",
+                                            open_run=False, show=show, table=table)
+
+    m = yield from scan_configurations(cfg, beamline, chamber, table=table, screen=screen if o.screen else None,
+                                       finish=compare, md={"purpose": "validation frames",
+                                                           "plan_name": "measure_validation",
+                                                           "calibrated_uid": cal.uid or "",
+                                                           "measurement_uid": fitted.uid or "", **dict(md or {})})
+    return Validation(m, box["c"], m.uid)

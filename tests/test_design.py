@@ -1,0 +1,146 @@
+"""The designed measurement's parts: options, candidates, what a frame would teach, the choice,
+frames far from the fitted ones; the posterior per offset and the calibration file."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from bluesky_offsets.design import (
+    PRIOR_SIGMA,
+    DesignOptions,
+    candidate_settings,
+    far_from,
+    frame_information,
+    prior_precision,
+    select,
+)
+from bluesky_offsets.model.export import CalibrationFileError, load_calibration, write_calibration
+from bluesky_offsets.model.posterior import Posterior
+from bluesky_offsets.model.state import CalibratedState, ModelState
+from bluesky_offsets.physics.parameters import METRIXS as T
+from bluesky_offsets.physics.screen import STAGE
+from bluesky_offsets.physics.torch_engine import TorchEngine
+from sim_iocs.truth import default_start
+
+
+def test_design_options_refuse_unknown_keys_and_bad_values():
+    with pytest.raises(ValueError, match="unknown design option"):
+        DesignOptions.from_mapping({"frame": 10})
+    for bad in ({"criterion": "E"}, {"frames": 0}, {"floor": 1.5}, {"move": -0.1}, {"target": 2.0},
+                {"validation": -1}):
+        with pytest.raises(ValueError):
+            DesignOptions(**bad)
+    assert DesignOptions().replace(batch=3).batch == 3
+
+
+def test_candidates_stay_within_every_motor_s_limits_and_the_stage_s_travel():
+    rng = np.random.default_rng(0)
+    acc = np.full(len(T), 0.2)
+    cfg, screen = candidate_settings(default_start()[None], 200, rng, acceptance=acc, options=DesignOptions())
+    lo = np.array([p.limits[0] for p in T])
+    hi = np.array([p.limits[1] for p in T])
+    assert np.all(cfg >= lo - 1e-12) and np.all(cfg <= hi + 1e-12)
+    assert np.array_equal(cfg[:, ~T.motorized], np.tile(T.reference[~T.motorized], (200, 1)))
+    for k, ax in enumerate(STAGE):
+        assert np.all(screen[:, k] >= ax.low) and np.all(screen[:, k] <= ax.high)
+    assert (screen[:, 2] != 0).mean() > 0.5  # the screen moves along the beam in most
+    none = candidate_settings(default_start()[None], 20, rng, acceptance=acc,
+                              options=DesignOptions(screen=False))[1]
+    assert not none.any()
+
+
+def test_the_d_optimal_batch_adds_what_the_chosen_frames_leave_open():
+    """Two frames that see the same direction teach it once: the second pick is the frame that sees
+    another direction, though it sees it less."""
+    p = 4
+    e = np.eye(p)
+    fisher = np.array([1e4 * np.outer(e[0], e[0]), 1e4 * np.outer(e[0], e[0]), 1e2 * np.outer(e[1], e[1]),
+                       np.zeros((p, p))])
+    ch = select(fisher, prior_precision(p), 2, criterion="D")
+    assert ch.indices == [0, 2] and ch.gains[0] > ch.gains[1] > 0
+    assert select(fisher, prior_precision(p), 2, allowed=[False, True, True, True]).indices == [1, 2]
+    assert select(fisher, prior_precision(p), 2, criterion="A").indices[0] in (0, 1)
+
+
+def test_frame_information_is_symmetric_positive_and_sees_the_beam():
+    eng = TorchEngine(options={"common_rays": False})
+    cfg = np.tile(T.reference, (3, 1))
+    cfg[1, T.index("E1.rotationXerror")] += 4.0   # the beam 15 mm off the screen horizontally ...
+    cfg[1, T.index("E2.rotationXerror")] += 2.0   # ... and 4 mm vertically: dark
+    info = frame_information(eng, cfg, np.zeros(len(T)), photons=5000, model_rays=5000, rays=600,
+                             screen=np.array([[0, 0, 0], [0, 0, 0], [0, 0, 20.0]]))
+    assert info.fisher.shape == (3, len(T), len(T))
+    for f in info.fisher:
+        assert np.allclose(f, f.T) and np.linalg.eigvalsh(f).min() > -1e-6 * max(1.0, np.abs(f).max())
+    assert info.intensity[0] > 0.05 and info.intensity[1] < 0.01
+    assert np.trace(info.fisher[0]) > 100 * np.trace(info.fisher[1])
+    # the exit slit's position along the beam is seen where the beam is
+    j = T.index("E2.rotationXerror")
+    assert info.fisher[0][j, j] > 0 and np.isfinite(info.intensity_sigma(np.eye(len(T)) * PRIOR_SIGMA ** 2)).all()
+
+
+def test_far_from_takes_the_farthest_and_spreads_them():
+    fitted = (np.tile(default_start(), (2, 1)), np.zeros((2, 3)))
+    cand = np.tile(default_start(), (4, 1))
+    scr = np.array([[0, 0, 1.0], [0, 0, 25.0], [0, 0, 26.0], [0, 0, -14.0]])
+    assert far_from(fitted, (cand, scr), 2) == [2, 3]  # 26 mm, then -14 mm (25 mm is next to 26)
+    assert far_from(fitted, (cand, scr), 2, allowed=[True, True, False, True]) == [1, 3]
+
+
+def _calibrated() -> CalibratedState:
+    n = len(T)
+    names = tuple(T.names) + ("chamber_z.z",)
+    sig = np.full(n + 1, 0.5 * PRIOR_SIGMA)
+    sig[0], sig[1] = 0.01 * PRIOR_SIGMA, 0.3 * PRIOR_SIGMA
+    sig[-1] = 1.2
+    corr = np.eye(n + 1)
+    corr[2, 3] = corr[3, 2] = -0.8
+    cov = corr * np.outer(sig, sig)
+    offsets = np.zeros(n)
+    offsets[:4] = [0.02, -0.05, 0.1, 0.2]
+    st = ModelState(offsets, {"chamber_z": {"z": 21.0}}, "+ chamber_z")
+    return CalibratedState(st, cov, names, "uid-of-the-fit")
+
+
+def test_the_posterior_says_each_offset_s_value_sigma_class_and_partners():
+    post = Posterior.of(_calibrated())
+    e0, e1, e2, e3 = post.offsets[:4]
+    assert e0.cls == "determined" and e1.cls == "weak" and e2.cls == "undetermined"
+    assert e0.unit == "mm" and e0.value == pytest.approx(0.02 * T.span[0]) and e0.sigma == pytest.approx(
+        0.01 * PRIOR_SIGMA * T.span[0])
+    assert e2.partners == ((T.names[3], pytest.approx(-0.8)),) and e3.at_bound
+    assert e2.text().startswith("undetermined (") and "±" in e0.text() and not e0.text().startswith("undet")
+    z = post.effects["chamber_z"]["z"]
+    assert z.value == 21.0 and z.sigma == pytest.approx(1.2) and z.cls == "determined"
+    c = post.counts()
+    assert c["determined"] == 1 and c["weak"] == 1 and sum(c.values()) == len(T)
+    assert all(line for line in post.lines()) and "undetermined" in "\n".join(post.lines())
+    assert Posterior.of(ModelState()) is None  # no covariance: nothing to say
+
+
+def test_the_calibration_file_round_trips_and_refuses_what_it_cannot_use(tmp_path):
+    cal = _calibrated()
+    path = write_calibration(tmp_path / "calibration.json", cal, measurement_uid="m-uid",
+                             validation={"chi2_reduced": 1.0})
+    rec = json.loads(path.read_text())
+    assert rec["parameter_table_version"] == T.version and rec["measurement_uid"] == "m-uid"
+    e = rec["offsets"]["U41_318eV.translationXerror"]
+    assert e["unit"] == "mm" and e["class"] == "determined" and math.isclose(e["value"], 0.02 * T.span[0])
+    back = load_calibration(path)
+    assert np.allclose(back.state.offsets, cal.state.offsets) and back.state.effects == {"chamber_z": {"z": 21.0}}
+    assert np.allclose(back.covariance, cal.covariance) and back.names == cal.names and back.uid == "uid-of-the-fit"
+    import bluesky_offsets
+    assert bluesky_offsets.load_calibration(path).uid == "uid-of-the-fit"
+    other = dict(rec, parameter_table_version="0123456789ab")
+    (tmp_path / "other.json").write_text(json.dumps(other))
+    (tmp_path / "corrupt.json").write_text(path.read_text()[:200])
+    (tmp_path / "partial.json").write_text(json.dumps({k: v for k, v in rec.items() if k != "covariance"}))
+    for name, why in (("other.json", "parameter table"), ("corrupt.json", "not JSON"),
+                      ("partial.json", "incomplete"), ("missing.json", "No such file")):
+        with pytest.raises(CalibrationFileError, match=why) as err:
+            load_calibration(tmp_path / name)
+        assert len(str(err.value).splitlines()) == 1 and name in str(err.value)
