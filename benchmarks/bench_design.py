@@ -36,8 +36,8 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _machine import machine  # noqa: E402
 
-from bluesky_offsets.design import DesignOptions, classes, prior_precision  # noqa: E402
-from bluesky_offsets.design.sequence import measured_precision, next_batch, update  # noqa: E402
+from bluesky_offsets.design import DesignOptions, classes  # noqa: E402
+from bluesky_offsets.design.sequence import DesignLoop  # noqa: E402
 from bluesky_offsets.model import diagnosis as D  # noqa: E402
 from bluesky_offsets.model.fit import engine_for, fit  # noqa: E402
 from bluesky_offsets.model.measurement import Measurement  # noqa: E402
@@ -90,45 +90,18 @@ def find_beam(bl: Beamline, start, fraction=0.15):
         return stop.value
 
 
-def concat(a: Measurement | None, b: Measurement) -> Measurement:
-    if a is None:
-        return b
-    sa = a.screen if a.screen is not None else np.zeros((a.n, 3))
-    sb = b.screen if b.screen is not None else np.zeros((b.n, 3))
-    return Measurement(np.vstack([a.configurations, b.configurations]), np.vstack([a.hist_x, b.hist_x]),
-                       np.vstack([a.hist_y, b.hist_y]), n_rays=a.n_rays, spec=a.spec, screen=np.vstack([sa, sb]))
-
-
 def designed(bl: Beamline, beam, opts: DesignOptions, log) -> tuple[Measurement, np.ndarray, list]:
-    eng = TorchEngine(options={"common_rays": False})
-    acc = acceptance(Twin(TorchEngine()), beam.configuration, open_slits=False)
+    """The plan's loop (bluesky_offsets.design.sequence.DesignLoop) with RAYX's frames at the truth."""
+    loop = DesignLoop(opts, beam.configuration, opts.frames - beam.frames, bl.photons)
     meas = bl.measure(beam.configuration[None], np.zeros((1, 3)))
-    mean = np.zeros(len(T))
-    P = measured_precision(eng, meas, mean, options=opts, photons=bl.photons)
-    steps = []
-    k = 0
-    while bl.frames < opts.frames:
-        bright = paper_intensity(meas) > HIGH_RAY_THRESHOLD
-        anchors = meas.configurations[bright] if bright.any() else beam.configuration[None]
-        st = next_batch(eng, mean, P, anchors, acc, k=min(opts.batch, opts.frames - bl.frames), step=k,
-                        photons=bl.photons, options=opts)
-        if not len(st.gains):
-            log(f"    step {k}: no candidate keeps the beam on the screen; stopping")
-            break
-        meas = concat(meas, bl.measure(st.configurations, st.screen))
-        t0 = time.perf_counter()
-        res = update(meas, mean, engine_for(meas, D.FIT), options=opts, step=k)
-        mean = res.state.offsets
-        P = measured_precision(eng, meas, mean, options=opts, photons=bl.photons)
-        sig = np.sqrt(np.diag(np.linalg.inv(P)))
-        steps.append({**{kk: v for kk, v in st.row().items() if not isinstance(v, np.ndarray)},
-                      "fit_seconds": time.perf_counter() - t0, "chi2_reduced": res.chi2_reduced,
-                      "determined_measured": classes(sig).count("determined")})
-        log(f"    step {k}: {meas.n} frames ({bl.frames} with the search), {st.allowed}/{st.candidates} candidates "
-            f"allowed, design {st.seconds:.0f} s, fit {steps[-1]['fit_seconds']:.0f} s chi2/dof "
-            f"{res.chi2_reduced:.2f}, determined {steps[-1]['determined_measured']} (predicted {st.n_determined})")
-        k += 1
-    return meas, mean, steps
+    while (got := loop.step(meas)) is not None:
+        st, row = got
+        meas = meas.joined(bl.measure(st.configurations, st.screen))
+        log(f"    step {st.step}: {meas.n} frames ({bl.frames} with the search), {st.allowed}/{st.candidates} "
+            f"candidates allowed, {st.seconds:.0f} s to design, determined before {row['measured_determined']} "
+            f"(predicted after {st.n_determined}), update chi2/dof {row['update_chi2_reduced']:.2f}")
+    steps = [{k: v for k, v in r.items() if not isinstance(v, np.ndarray)} for r in loop.steps]
+    return meas, loop.offsets, steps
 
 
 def bright_design(bl: Beamline, beam, seed: int) -> Measurement:
@@ -174,8 +147,14 @@ def one(seed: int, how: str, a, log) -> dict:
     else:
         meas, start = bright_design(bl, beam, seed), np.zeros(len(T))
     t1 = time.perf_counter()
-    fo = D.FIT.replace(seed=seed)
-    res = fit(meas, ModelState(start.copy()), engine_for(meas, fo), fo)
+    # as the analysis fits the offsets: from the design's estimate and from the bare twin, the end
+    # lowest on fresh rays kept, the other's end widening the covariance where the frames do not
+    # tell them apart (bluesky_offsets.model.fit.fit)
+    fo = (D.FIT if how == "bright" else D.FIT.replace(rays=a.analysis_rays)).replace(seed=seed)
+    from concurrent.futures import ThreadPoolExecutor
+    with ThreadPoolExecutor(2) as pool:
+        res = fit(meas, ModelState(start.copy()), engine_for(meas, fo), fo,
+                  also_from=[ModelState()] if start.any() else [], executor=pool)
     out = {"seed": seed, "design": how, "frames_total": bl.frames, "frames_fitted": meas.n,
            "beam_search_frames": beam.frames, **metrics(truth, res), "seconds_measure_design": t1 - t0,
            "seconds_final_fit": time.perf_counter() - t1, "steps": steps,
@@ -194,9 +173,11 @@ def main() -> None:
     p.add_argument("--design", nargs="+", default=["optimal", "bright"])
     p.add_argument("--frames", type=int, default=60)
     p.add_argument("--batch", type=int, default=8)
-    p.add_argument("--candidates", type=int, default=160)
-    p.add_argument("--rays", type=int, default=2000)
-    p.add_argument("--fit-rays", type=int, default=3000)
+    p.add_argument("--candidates", type=int, default=DesignOptions.candidates)
+    p.add_argument("--rays", type=int, default=DesignOptions.rays)
+    p.add_argument("--fit-rays", type=int, default=DesignOptions.fit_rays)
+    p.add_argument("--analysis-rays", type=int, default=2000, help="model rays per frame of the final fit "
+                   "(designed; the bright design's is the analysis's 5000)")
     p.add_argument("--photons", type=int, default=5000)
     p.add_argument("--criterion", default="D")
     p.add_argument("--effect", action="append", default=[], help="NAME:PARAM=VALUE (hidden effect)")

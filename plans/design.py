@@ -12,7 +12,6 @@ the next frame (every frame is a checkpoint).
 
 from __future__ import annotations
 
-import json
 import logging
 from collections.abc import Mapping
 from dataclasses import asdict, dataclass, field
@@ -20,7 +19,8 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 from bluesky.utils import MsgGenerator
 
-from bluesky_offsets.design import DesignOptions, classes, predicted_sigma
+from bluesky_offsets.design import DesignOptions
+from bluesky_offsets.design.sequence import DesignLoop
 from bluesky_offsets.model.measurement import Measurement
 from bluesky_offsets.physics.parameters import METRIXS, ParameterTable
 
@@ -48,72 +48,6 @@ class Designed:
     @property
     def uid(self) -> str | None:
         return self.measurement.uid
-
-
-class _Loop:
-    """The design's state between batches: the estimate of the offsets and the precision."""
-
-    def __init__(self, options: DesignOptions, here: np.ndarray, budget: int, photons: int,
-                 table: ParameterTable):
-        from bluesky_offsets.offsets.beam_search import acceptance
-        from bluesky_offsets.physics.torch_engine import TorchEngine
-        from bluesky_offsets.physics.twin import Twin
-        self.o, self.budget, self.photons, self.table = options, budget, photons, table
-        self.engine = TorchEngine(table=table, options={"common_rays": False})
-        self.acceptance = acceptance(Twin(TorchEngine(table=table)), here, open_slits=False, table=table)
-        self.here = np.asarray(here, float)
-        self.offsets = np.zeros(len(table))
-        self.precision: np.ndarray | None = None
-        self.steps: list[dict] = []
-
-    def anchors(self, meas: Measurement) -> np.ndarray:
-        """The settings of the frames that put the beam on the screen (the beam search's otherwise)."""
-        from plans import enough_rays
-        bright = enough_rays(meas.hist_x, meas.hist_y)  # sums: the same at any binning
-        return meas.configurations[bright] if bright.any() else self.here[None]
-
-    def step(self, meas: Measurement, progress) -> tuple | None:
-        """Refit, then choose the next batch; None once the budget is spent or the target met."""
-        from bluesky_offsets.design.sequence import measured_precision, next_batch, update
-        from bluesky_offsets.model.fit import engine_for
-        k = len(self.steps)
-        left = self.budget - meas.n
-        if left <= 0:
-            return None
-        fit = None
-        a = meas.for_analysis(table=self.table)
-        if meas.n >= 2:
-            progress({"step": k, "stage": "update"})
-            fit = update(a, self.offsets, engine_for(a, _fit_options(self.o)), options=self.o, step=k,
-                         table=self.table)
-            self.offsets = fit.state.offsets
-        self.precision = measured_precision(self.engine, a, self.offsets, options=self.o, photons=self.photons,
-                                            table=self.table)
-        sigma = predicted_sigma(self.precision)
-        if self.o.target is not None and np.all(sigma / _prior() < self.o.target):
-            return None
-        progress({"step": k, "stage": "design"})
-        st = next_batch(self.engine, self.offsets, self.precision, self.anchors(meas), self.acceptance,
-                        k=min(self.o.batch, left), step=k, photons=self.photons, options=self.o, table=self.table)
-        if not len(st.gains):
-            return None
-        row = {key: v for key, v in st.row().items() if key not in ("gains", "predicted_intensity")}
-        row.update(frames_before=meas.n, measured_determined=classes(sigma).count("determined"),
-                   update_chi2_reduced=float("nan") if fit is None else float(fit.chi2_reduced),
-                   gains_json=json.dumps([float(g) for g in st.gains]),
-                   predicted_intensity_json=json.dumps([float(v) for v in st.intensity]))
-        self.steps.append(row)
-        return st, row
-
-
-def _prior() -> float:
-    from bluesky_offsets.design import PRIOR_SIGMA
-    return PRIOR_SIGMA
-
-
-def _fit_options(o: DesignOptions):
-    from bluesky_offsets.model.fit import FitOptions
-    return FitOptions(rays=o.fit_rays, feature_rays=min(2000, o.fit_rays))
 
 
 def measure_designed(beamline, chamber, *, options: DesignOptions | Mapping | None = None, fraction: float = 0.15,
@@ -159,7 +93,7 @@ def measure_designed(beamline, chamber, *, options: DesignOptions | Mapping | No
                            f"source rays on the screen, {HIGH_RAY_THRESHOLD:.3g} needed): check the shutter, the "
                            f"source and the slits, or widen the search (fraction)")
     photons = yield from _optional_read(chamber, "num_rays")
-    loop = _Loop(o, beam.configuration, o.frames - beam.frames, int(photons or 10_000), table)
+    loop = DesignLoop(o, beam.configuration, o.frames - beam.frames, int(photons or 10_000), table)
     log.info("designing %d frames (%s-optimal, batches of %d, %d candidates each) around the beam found in %d "
              "frames", loop.budget, o.criterion, o.batch, o.candidates, beam.frames)
 

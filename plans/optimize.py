@@ -276,6 +276,4 @@ def _joined(a: Measurement, b: Measurement) -> Measurement:
     if a.spec != b.spec:
         raise ValueError(f"the new frames are binned as {b.spec.fingerprint()}, the calibration measurement as "
                          f"{a.spec.fingerprint()}")
-    return Measurement(np.vstack([a.configurations, b.configurations]), np.vstack([a.hist_x, b.hist_x]),
-                       np.vstack([a.hist_y, b.hist_y]), n_rays=a.n_rays, spec=a.spec, names=a.names, uid=a.uid,
-                       metadata=dict(a.metadata))
+    return a.joined(b)

@@ -30,12 +30,13 @@ from bluesky_offsets.design import DesignOptions
 from bluesky_offsets.model import diagnosis as D
 from bluesky_offsets.model.measurement import Measurement
 from bluesky_offsets.physics.parameters import METRIXS
+from bluesky_offsets.physics.screen import as_screen
 
 log = logging.getLogger("bluesky_offsets.workflow")
 
-__all__ = ["DarkBeamline", "MeasurementDesign", "Measured", "Session", "analyse", "calibration_session", "candidate_configurations",
-           "find_offsets_in_store", "measure", "measure_bright",
-           "measurement_design", "resolve_run"]
+__all__ = ["DarkBeamline", "MeasurementDesign", "Measured", "Session", "analyse", "calibration_session",
+           "candidate_configurations", "export_calibration", "find_offsets_in_store", "measure", "measure_bright",
+           "measure_for_offsets", "measurement_design", "resolve_run", "validate"]
 
 
 # --------------------------------------------------------------------------- #
@@ -241,9 +242,10 @@ def surrogate_offsets(m: Measurement, forward_model, *, evaluations: int = 3000,
     from bluesky_offsets.offsets.finder import Budget
     from plans import find_offsets
 
-    inside = D.in_box(m.configurations, METRIXS)
+    # the surrogate sees the chamber at its stage's zero: frames with the screen moved are not its
+    inside = D.in_box(m.configurations, METRIXS) & ~np.any(as_screen(m.screen, m.n) != 0, axis=1)
     if not inside.any():
-        raise ValueError(f"measurement {m.uid}: no configuration inside the surrogate's box")
+        raise ValueError(f"measurement {m.uid}: no configuration inside the surrogate's box with the screen at 0")
     finder = OffsetFinder(model=forward_model, budget=Budget(evaluations=evaluations), seed=seed)
     log.info("finding the offsets with the surrogate on the %d configurations in its box (%d evaluations)",
              int(inside.sum()), evaluations)
@@ -387,7 +389,9 @@ def analyse(measurement: str = "last", offsets: str | None = "last", *, candidat
     store = _store(store)
     uid = resolve_run(store, measurement, "measurement")
     m = store.load_measurement(uid, table=METRIXS)
-    fit_opts, scan_opts = FitOptions.resolve(fit, D.FIT), FitOptions.resolve(scan, D.SCAN)
+    designed = "design_options" in m.metadata  # plans.design.measure_designed's: its fits and its estimate
+    fit_opts = FitOptions.resolve(fit, D.DESIGNED_FIT if designed else D.FIT)
+    scan_opts = FitOptions.resolve(scan, D.DESIGNED_SCAN if designed else D.SCAN)
     for n in candidates or ():
         from bluesky_offsets.physics import effects as E
         E.get(n)  # an unknown name fails before anything runs
@@ -396,6 +400,11 @@ def analyse(measurement: str = "last", offsets: str | None = "last", *, candidat
     if idx is not None:
         meas = meas.subset(np.asarray(idx, dtype=int))
     starts = [ModelState(label="twin")]
+    if designed:
+        from .diagnose import load_results
+        rows = load_results(store, uid).get("design") or []
+        if rows:
+            starts.append(ModelState(np.asarray(rows[-1]["offsets"], float), {}, "design estimate"))
     off_uid = None
     if offsets is not None:
         try:
@@ -450,3 +459,54 @@ def optimize(beamline, chamber, target: dict | None = None, model: str = "last",
     return (yield from optimize_beam(target or "smallest_focus", cal, beamline, chamber, frames=frames,
                                      constraints=constraints, options=options,
                                      md={"model_uid": cal.uid, **dict(md or {})}))
+
+
+# --------------------------------------------------------------------------- #
+# the designed measurement, its validation and the calibration file, for a queue
+# --------------------------------------------------------------------------- #
+def measure_for_offsets(beamline, chamber, *, frames: int = 60, batch: int = 8, criterion: str = "D",
+                        seed: int = 0, options: dict | None = None, md: dict | None = None) -> MsgGenerator:
+    """:func:`plans.design.measure_designed` with plain values: the frame budget (the beam search's
+    included), the batch size, the criterion, the seed, and any other
+    :class:`~bluesky_offsets.design.DesignOptions` field in ``options`` (an unknown key is refused).
+    The queue's default measurement; :func:`analyse` then fits it (``measurement="last"``)."""
+    from .design import measure_designed
+    o = DesignOptions.from_mapping(options, frames=frames, batch=batch, criterion=criterion, seed=seed)
+    return (yield from measure_designed(beamline, chamber, options=o, md=md))
+
+
+def validate(beamline, chamber, model: str = "last", measurement: str = "last", *, frames: int = 6,
+             seed: int = 0, rays: int | None = None, scheduler: str | None = None, store=None,
+             md: dict | None = None) -> MsgGenerator:
+    """:func:`plans.design.measure_validation` with plain values: ``frames`` settings far from the
+    fitted frames of ``measurement`` (a run uid or ``"last"``), measured, and the calibrated
+    ``model`` (a fitted model's run uid or ``"last"``) compared with them."""
+    from bluesky_offsets.physics.twin import Twin
+
+    from .design import measure_validation
+    store = _store(store)
+    cal = calibrated_in_store(model, store)
+    m = store.load_measurement(resolve_run(store, measurement, "measurement"), table=METRIXS).for_analysis()
+    twin = Twin(n_rays=int(rays or 10_000), scheduler=scheduler)
+    try:
+        v = yield from measure_validation(beamline, chamber, cal, m, twin, n=frames,
+                                          options=DesignOptions(seed=seed), md=md)
+    finally:
+        twin.close()
+    log.info("%s", v.line())
+    return v
+
+
+def export_calibration(path: str, model: str = "last", measurement: str = "last", *, store=None) -> MsgGenerator:
+    """Write the calibrated ``model`` (a fitted model's run uid or ``"last"``) as a calibration file
+    (:func:`bluesky_offsets.model.export.write_calibration`) at ``path``, linked to ``measurement``."""
+    import bluesky.plan_stubs as bps
+
+    from bluesky_offsets.model.export import write_calibration
+    store = _store(store)
+    cal = calibrated_in_store(model, store)
+    uid = resolve_run(store, measurement, "measurement")
+    out = write_calibration(path, cal, measurement_uid=uid)
+    log.info("calibration written to %s", out)
+    yield from bps.null()
+    return str(out)

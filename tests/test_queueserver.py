@@ -14,6 +14,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 import yaml
 
@@ -100,17 +101,21 @@ def test_the_session_runs_from_the_queue_and_every_run_loads_back(queue):
     with pytest.raises(Exception, match="unexpected keyword|got an unexpected"):
         RM.item_add(BPlan("analyse", "last", no_such_option=1))
 
-    RM.item_add(BPlan("measure_bright", "metrixs", "chamber", bright=4, reopened=1, analysed=5, candidates=8))
-    RM.item_add(BPlan("find_offsets_in_store", "last", evaluations=200))
-    RM.item_add(BPlan("analyse", "last", candidates=["intensity_scale"], rounds=1, fit=FIT, scan=FIT, resolution="paper",
+    # the default measurement: frames designed for the offsets (a small budget), then its analysis, the
+    # validation frames and the calibration file
+    RM.item_add(BPlan("measure_for_offsets", "metrixs", "chamber", frames=8, batch=4,
+                      options={"candidates": 16, "rays": 400, "fit_rays": 600}))
+    RM.item_add(BPlan("analyse", "last", offsets=None, candidates=["intensity_scale"], rounds=1, fit=FIT, scan=FIT, resolution="paper",
                       rays=2000, scheduler="inline"))
+    RM.item_add(BPlan("validate", "metrixs", "chamber", "last", "last", frames=2, rays=2000, scheduler="inline"))
+    RM.item_add(BPlan("export_calibration", str(work / "calibration.json")))
     # the better beam on the model just fitted ("last"), a small configuration
     RM.item_add(BPlan("optimize", "metrixs", "chamber", {"kind": "smallest_focus"}, "last",
                       options={"rays": 2000, "starts": 1, "iterations": 4, "check_rays": 20000, "samples": 4}))
     RM.queue_start()
     RM.wait_for_idle(timeout=400)
     items = RM.history_get()["items"]
-    assert [i["name"] for i in items] == ["measure_bright", "find_offsets_in_store", "analyse", "optimize"]
+    assert [i["name"] for i in items] == ["measure_for_offsets", "analyse", "validate", "export_calibration", "optimize"]
     for item in items:
         r = item["result"]
         assert r["exit_status"] == "completed", (item["name"], r.get("msg"), r.get("traceback"))
@@ -126,20 +131,26 @@ def test_the_session_runs_from_the_queue_and_every_run_loads_back(queue):
             for uid in runs:
                 assert store[uid].metadata["start"]["uid"] == uid
                 assert store[uid].metadata["stop"]["exit_status"] == "success", (name, uid)
-        # the measurement (the last run of measure_bright), with its design
-        m = store.load_measurement(uids["measure_bright"][-1])
-        assert len(m) == 5 and m.metadata["n_open"] == 1 and len(m.metadata["analysed_configurations"]) == 5
-        assert m.truth_id
-        # "last" found that measurement, and the analysis found the offsets run
-        (off_uid,) = uids["find_offsets_in_store"]
-        assert store[off_uid].metadata["start"]["measurement_uid"] == m.uid
+        # the measurement (the last run of measure_for_offsets), with its design stream
+        m = store.load_measurement(uids["measure_for_offsets"][-1])
+        assert 1 < len(m) < 8 and m.screen is not None and m.metadata["design_options"]["frames"] == 8
+        assert m.truth_id and load_results(store, m.uid)["design"]
+        # "last" found that measurement
         analysis = [load_results(store, u) for u in uids["analyse"]]
         assert all(a["start"]["measurement_uid"] == m.uid for a in analysis)
-        assert all(a["start"]["offsets_uid"] == off_uid for a in analysis)
         plans = [a["start"]["plan_name"] for a in analysis]
-        assert plans[:4] == ["compare_model", "compare_model", "refine_offsets", "diagnose_effects"]
+        # the bare twin and the design's estimate compared, then the offsets fitted from both
+        assert plans[:4] == ["compare_model"] * 2 + ["refine_offsets", "diagnose_effects"]
+        assert [a["start"]["version_label"] for a in analysis[:2]] == ["twin", "design estimate"]
         ranking = next(a for a in analysis if a["start"]["plan_name"] == "diagnose_effects")["ranking"]
         assert [r["effect"] for r in ranking] == ["intensity_scale"]
+        # the validation frames judged the model "last" found, linked to the measurement; the file holds it
+        (val_uid,) = uids["validate"]
+        val = load_results(store, val_uid)
+        assert val["start"]["measurement_uid"] == m.uid and np.isfinite(val["misfit_total"][0]["chi2_reduced_total"])
+        from bluesky_offsets import load_calibration
+        cal = load_calibration(work / "calibration.json")
+        assert cal.uid == val["start"]["calibrated_uid"]
         # "last" found the analysis's fitted model; the frames before and after the move load back
         (beam_uid,) = uids["optimize"]
         start = store[beam_uid].metadata["start"]

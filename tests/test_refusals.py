@@ -45,7 +45,7 @@ def test_a_dark_beamline_ends_in_one_line(tmp_path):
         exe = Path(sys.executable).parent / "bluesky-offsets"
         proc = subprocess.run([str(exe) if exe.exists() else shutil.which("bluesky-offsets"), "calibrate",
                                "--prefix", ioc.prefix, "--store", str(tmp_path / "store"), "--out",
-                               str(tmp_path / "out"), "--max-frames", "3"],
+                               str(tmp_path / "out"), "--frames", "5"],  # the beam search may take 3
                               capture_output=True, text=True, timeout=300, env=ioc.env)
     finally:
         ioc.stop()

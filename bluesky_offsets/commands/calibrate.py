@@ -45,6 +45,7 @@ def _cmd_calibrate(args) -> int:
     from bluesky_offsets.offsets.finder import FinderError, load_forward_model
     from bluesky_offsets.physics import effects as E
     from bluesky_offsets.store import open_store
+    from bluesky_offsets.design import DesignOptions
     from plans.workflow import MeasurementDesign
 
     check_analysis_options(args)
@@ -53,9 +54,12 @@ def _cmd_calibrate(args) -> int:
     if args.connect_timeout <= 0:
         raise CliError("--connect-timeout must be positive")
     try:
-        design = MeasurementDesign(bright=args.bright, reopened=args.reopened, analysed=args.analysed,
-                                   candidates=args.candidates, fraction=args.fraction, max_frames=args.max_frames,
-                                   seed=args.seed)
+        if args.design == "optimal":
+            design = DesignOptions(frames=args.frames, validation=args.validation_frames, seed=args.seed)
+        else:
+            design = MeasurementDesign(bright=args.bright, reopened=args.reopened, analysed=args.analysed,
+                                       candidates=args.candidates, fraction=args.fraction,
+                                       max_frames=args.max_frames, seed=args.seed)
     except ValueError as exc:
         raise CliError(str(exc)) from None
     effects = [n.strip() for n in args.effects.split(",")] if args.effects else None
@@ -110,11 +114,16 @@ def _calibrate(args, design, effects, pv_map, forward_model, store) -> int:
             RE.subscribe(cb)
 
         twin = Twin(n_rays=10_000, scheduler=args.scheduler, n_workers=args.threads)
+        from bluesky_offsets.design import DesignOptions
+        from bluesky_offsets.model import diagnosis as D
+        designed = isinstance(design, DesignOptions)
+        fit, scan = (D.DESIGNED_FIT, D.DESIGNED_SCAN) if designed else (D.FIT, D.SCAN)
         try:
             with analysis_executor(args.threads, twin) as executor:
                 session = RE(calibration_session(
                     beamline, chamber, twin, forward_model, design=design, evaluations=args.evaluations,
-                    candidates=effects, rounds=args.rounds, fit={"rays": args.fit_rays} if args.fit_rays else None,
+                    candidates=effects, rounds=args.rounds, fit=fit.replace(rays=args.fit_rays or fit.rays),
+                    scan=scan.replace(rays=min(args.fit_rays or scan.rays, scan.rays)),
                     fit_top=args.fit_top or None, resolution=args.resolution, measurement_md={"purpose": "calibrate"},
                     analysis_md={"purpose": "calibration analysis"}, step=say, executor=executor)).plan_result
         except DarkBeamline as exc:
@@ -124,20 +133,36 @@ def _calibrate(args, design, effects, pv_map, forward_model, store) -> int:
             raise KeyboardInterrupt from None
         finally:
             twin.close()
-        measured, analysis = session.measured, session.analysis
+        measured, analysis, validation = session.measured, session.analysis, session.validation
         out = Path(args.out)
         out.mkdir(parents=True, exist_ok=True)
-        uids = {"measurement": measured.uid, "find_offsets": session.offsets.uid, **analysis.uids}
+        uids = {"measurement": measured.uid, **({"find_offsets": session.offsets.uid} if session.offsets else {}),
+                **analysis.uids, **({"validation": validation.uid} if validation is not None else {})}
+        how = (f"{len(measured.measurement)} frames designed for the offsets" if designed else
+               f"{len(measured.measurement)} configurations measured ({measured.n_open} with the slits open), "
+               f"offsets found with the surrogate")
+        extra = []
+        if designed:
+            from bluesky_offsets.commands.report import design_section, validation_section
+            extra = [("The designed measurement", design_section(measured.designed))]
+            if validation is not None:
+                extra.append(("Validation frames", validation_section(validation)))
         report = write_analysis_report(
             out / "report.html", analysis, analysis.measurement.spec, title=f"bluesky-offsets calibrate: {pv_map.name}",
             intro=[("What this is", paragraph(
-                f"The calibration session on {pv_map.name}: the beam found in {measured.beam.frames} frames, "
-                f"{len(measured.measurement)} configurations measured ({measured.n_open} with the slits open), "
-                f"offsets found with the surrogate and fitted through the differentiable twin, the missing "
-                f"effects diagnosed, added and refitted."))],
-            uids=uids, store_location=store.location)
+                f"The calibration session on {pv_map.name}: the beam found in {measured.beam.frames} frames, {how}, "
+                f"fitted through the differentiable twin, the missing effects diagnosed, added and refitted."))],
+            uids=uids, store_location=store.location, extra=extra)
+        from bluesky_offsets.model.export import write_calibration
+        from bluesky_offsets.model.posterior import Posterior
+        calibration = None
+        if Posterior.of(analysis) is not None:
+            calibration = write_calibration(out / "calibration.json", analysis, measurement_uid=measured.uid,
+                                            validation=None if validation is None else validation.summary())
         print()
         print(f"verdict: {analysis.verdict}")
+        if validation is not None:
+            print(validation.line())
         if analysis.could_hide:
             print(analysis.could_hide_line)
         print("error history (a correct model: chi2/dof ≈ 1, MSE ≈ its noise expectation):")
@@ -147,6 +172,8 @@ def _calibrate(args, design, effects, pv_map, forward_model, store) -> int:
         for k, v in uids.items():
             print(f"  {k:16s} {v}")
         print(f"report: {report}")
+        if calibration is not None:
+            print(f"calibration (every offset as value ± sigma, its class, the covariance): {calibration}")
         flush_live(live)
         print(f"live views: {sum(len(cb.written) for cb in live)} figures in {Path(args.out) / 'live'}")
         print(f"done in {time.perf_counter() - t0:.0f} s")
@@ -168,6 +195,15 @@ def add_cli(sub) -> None:
     where.add_argument("--prefix", default=SIM_PREFIX, help="the simulated IOC's PV prefix (default %(default)s)")
     p.add_argument("--store", default=None, help="run store (default: the embedded store, $BLUESKY_OFFSETS_STORE)")
     p.add_argument("--out", default="bluesky-offsets-calibrate", help="folder of the report (default ./%(default)s)")
+    p.add_argument("--design", choices=("optimal", "bright"), default="optimal",
+                   help="what is measured: frames designed for the offsets (default) or the bright configurations "
+                        "around the beam (--bright, --reopened, --analysed, --candidates, --max-frames)")
+    p.add_argument("--frames", type=int, default=60,
+                   help="frames in all, the beam search's included (the designed measurement's budget; default "
+                        "%(default)s)")
+    p.add_argument("--validation-frames", type=int, default=6,
+                   help="frames after the calibration, far from the fitted ones, that no fit uses (default "
+                        "%(default)s)")
     p.add_argument("--bright", type=int, default=16, help="bright configurations to measure (default %(default)s)")
     p.add_argument("--reopened", type=int, default=4,
                    help="of them measured again with the slits open (default %(default)s)")
@@ -181,7 +217,8 @@ def add_cli(sub) -> None:
     p.add_argument("--checkpoint", default=None, help="surrogate checkpoint (default: the shipped one)")
     p.add_argument("--effects", default=None, help="effects to rank, comma separated (default: all)")
     add_analysis_options(p, fit_rays=None, fit_rays_help=f"model rays per configuration in the fits (default "
-                                                         f"{D.FIT.rays})",
+                                                         f"{D.DESIGNED_FIT.rays} for the designed measurement, "
+                                                         f"{D.FIT.rays} for the bright one)",
                          resolution_help="histograms the diagnosis fits: the camera's profiles (default) or the "
                                          "paper's 50 x 50 bins")
     p.add_argument("--scheduler", default=None,

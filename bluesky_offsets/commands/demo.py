@@ -84,8 +84,8 @@ class DemoSettings:
     offsets: dict = field(default_factory=lambda: dict(DEMO_OFFSETS))
     # an evaluation budget, never a time budget: the same command gives the same result under any load
     finder_evaluations: int = 3000
-    fit: FitOptions = D.FIT           # the offsets fit and the refits
-    scan: FitOptions = D.SCAN         # the diagnosis's candidate fits
+    fit: FitOptions = D.DESIGNED_FIT  # the offsets fit and the refits (D.FIT for the bright design)
+    scan: FitOptions = D.DESIGNED_SCAN  # the diagnosis's candidate fits (D.SCAN for the bright design)
     rounds: int = D.ROUNDS            # diagnoses at most
     fit_top: int | None = D.FIT_TOP   # screen every start, fit this many candidates (None: fit all)
     # the diagnosis reads the camera-resolution profiles ("camera") or the paper's histograms ("paper")
@@ -284,7 +284,7 @@ def demo_plan(s: DemoSettings, beamline, chamber, twin, forward_model, log, exec
         beam = yield from optimize_beam("smallest_focus", session.analysis, beamline, chamber, frames=s.frames,
                                         options={"seed": s.seed + 11}, md={"purpose": "bluesky-offsets demo"},
                                         closed_loop=s.closed_loop, measurement=session.analysis.measurement,
-                                        executor=executor)
+                                        refit=s.fit.replace(ray_draws=1), executor=executor)
     session.times["optimize"] = time.perf_counter()
     return session, beam
 
@@ -579,9 +579,11 @@ def add_cli(sub) -> None:
                    help="hidden offsets in all 34 parameters, uniform within ± this fraction of each range "
                         "(default %(default)s; the paper's is 0.2; 0: 7 fixed offsets of 1-2 %% instead)")
     p.add_argument("--candidates", default=None, help="effects to rank, comma separated (default: all)")
-    add_analysis_options(p, fit_rays=D.FIT.rays,
-                         fit_rays_help="model rays per configuration in the fits (default %(default)s; the "
-                                       f"diagnosis's candidate fits use at most {D.SCAN.rays})",
+    add_analysis_options(p, fit_rays=None,
+                         fit_rays_help=f"model rays per configuration in the fits (default {D.DESIGNED_FIT.rays} for "
+                                       f"the designed measurement's frames, {D.FIT.rays} for the bright design's; the "
+                                       f"diagnosis's candidate fits use at most {D.DESIGNED_SCAN.rays} and "
+                                       f"{D.SCAN.rays})",
                          resolution_help="histograms the diagnosis fits: the camera's profiles (20 µm x 5 µm bins, "
                                          "default) or the paper's 50 x 50 bins")
     p.add_argument("--seed", type=int, default=0,
@@ -652,13 +654,14 @@ def _cmd_demo(args) -> int:
     if any(E.get(n).level == "detector" for n in names):
         raise CliError("--effect: the simulated IOC hides twin-level effects only (detector-level ones: "
                        + ", ".join(n for n in names if E.get(n).level == "detector") + ")")
+    fit, scan = (D.DESIGNED_FIT, D.DESIGNED_SCAN) if args.design == "optimal" else (D.FIT, D.SCAN)
     s = DemoSettings(n_rays=args.rays, effects=effects, design_kind=args.design,
                      optimal=DesignOptions(frames=args.frames, validation=args.validation_frames),
                      measurement=_design(bright=args.configurations, reopened=n_open,
                                          analysed=args.analysed_configurations),
                      offsets_fraction=args.offsets_fraction, rounds=args.rounds, seed=args.seed,
-                     fit_top=args.fit_top or None, fit=D.FIT.replace(rays=args.fit_rays),
-                     scan=D.SCAN.replace(rays=min(args.fit_rays, D.SCAN.rays)),
+                     fit_top=args.fit_top or None, fit=fit.replace(rays=args.fit_rays or fit.rays),
+                     scan=scan.replace(rays=min(args.fit_rays or scan.rays, scan.rays)),
                      resolution=args.resolution, optimize=not args.no_optimize, closed_loop=not args.open_loop,
                      threads=args.threads,
                      candidates_effects=[c.strip() for c in args.candidates.split(",")] if args.candidates else None)

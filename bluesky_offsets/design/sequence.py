@@ -10,12 +10,14 @@ benchmark drives the same functions with simulated frames.
 
 from __future__ import annotations
 
+import json
 import time
 from dataclasses import dataclass
 
 import numpy as np
 
 from bluesky_offsets.design.choose import (
+    PRIOR_SIGMA,
     DesignOptions,
     candidate_settings,
     classes,
@@ -97,12 +99,73 @@ def measured_precision(engine, meas, offsets: np.ndarray, *, options: DesignOpti
     return prior_precision(len(table)) + info.fisher.sum(0)
 
 
-def update(meas, offsets: np.ndarray, fit_engine, *, options: DesignOptions, step: int,
-           table: ParameterTable = METRIXS):
+def update(meas, offsets: np.ndarray, *, options: DesignOptions, step: int, table: ParameterTable = METRIXS):
     """The offsets refitted to every frame of ``meas`` from ``offsets`` (a short fit: the features,
     then the camera's bins; the analysis fits again in full at the end).  Returns the fit's result."""
-    from bluesky_offsets.model.fit import FitOptions, fit
+    from bluesky_offsets.model.fit import FitOptions, engine_for, fit
     from bluesky_offsets.model.state import ModelState
     o = FitOptions(rays=options.fit_rays, feature_rays=min(2000, options.fit_rays), seed=options.seed + step,
                    stages=(("features", 8), ("bins", 4)))
-    return fit(meas, ModelState(np.asarray(offsets, float).copy(), {}, "design"), fit_engine, o, table=table)
+    return fit(meas, ModelState(np.asarray(offsets, float).copy(), {}, "design"), engine_for(meas, o, table), o,
+               table=table)
+
+
+class DesignLoop:
+    """The designed measurement between its batches: where the beam was found, the estimate of the
+    offsets and the design's precision, and each batch's record.  :meth:`step` takes the frames so
+    far and returns the next batch (or None); the plan (:func:`plans.design.measure_designed`) and
+    the benchmark measure them."""
+
+    def __init__(self, options: DesignOptions, here: np.ndarray, budget: int, photons: int,
+                 table: ParameterTable = METRIXS):
+        from bluesky_offsets.offsets.beam_search import acceptance
+        from bluesky_offsets.physics.torch_engine import TorchEngine
+        from bluesky_offsets.physics.twin import Twin
+        self.o, self.budget, self.photons, self.table = options, int(budget), int(photons), table
+        self.engine = TorchEngine(table=table, options={"common_rays": False})
+        self.acceptance = acceptance(Twin(TorchEngine(table=table)), here, open_slits=False, table=table)
+        self.here = np.asarray(here, float)
+        self.offsets = np.zeros(len(table))
+        self.precision: np.ndarray | None = None
+        self.steps: list[dict] = []
+
+    def anchors(self, meas) -> np.ndarray:
+        """The settings of the frames that put the beam on the screen, both ways above twice the
+        floor (where the beam was found, before any)."""
+        lit = np.minimum(meas.hist_x.sum(1), meas.hist_y.sum(1)) >= 2 * self.o.floor
+        return meas.configurations[lit] if lit.any() else self.here[None]
+
+    def step(self, meas, progress=None) -> tuple[DesignStep, dict] | None:
+        """Refit to the frames so far (two or more), then choose the next batch: the batch and its
+        record (a row of the ``design`` stream); None once the budget is spent or the target met."""
+        progress = progress or (lambda d: None)
+        k = len(self.steps)
+        left = self.budget - meas.n
+        if left <= 0:
+            return None
+        res = None
+        a = meas.for_analysis(table=self.table)
+        if meas.n >= 2:
+            progress({"step": k, "stage": "update"})
+            res = update(a, self.offsets, options=self.o, step=k, table=self.table)
+            self.offsets = res.state.offsets
+        self.precision = measured_precision(self.engine, a, self.offsets, options=self.o, photons=self.photons,
+                                            table=self.table)
+        sigma = predicted_sigma(self.precision)
+        if self.o.target is not None and np.all(sigma / PRIOR_SIGMA < self.o.target):
+            return None
+        progress({"step": k, "stage": "design"})
+        # a remainder smaller than half a batch goes with this batch: a step costs a refit
+        size = left if left <= 1.5 * self.o.batch else self.o.batch
+        st = next_batch(self.engine, self.offsets, self.precision, self.anchors(meas), self.acceptance,
+                        k=size, step=k, photons=self.photons, options=self.o, table=self.table)
+        if not len(st.gains):
+            return None
+        row = {key: v for key, v in st.row().items() if key not in ("gains", "predicted_intensity")}
+        row.update(frames_before=meas.n, offsets=np.asarray(self.offsets, float),
+                   measured_determined=classes(sigma).count("determined"),
+                   update_chi2_reduced=float("nan") if res is None else float(res.chi2_reduced),
+                   gains_json=json.dumps([float(g) for g in st.gains]),
+                   predicted_intensity_json=json.dumps([float(v) for v in st.intensity]))
+        self.steps.append(row)
+        return st, row

@@ -304,6 +304,11 @@ def _folds(n: int, k: int, seed: int) -> list[np.ndarray]:
 # fits with effects on four draws of the model's rays (FitOptions.ray_draws; "Ray draws").
 FIT = FitOptions(rays=5000, stages=(("features", 15), ("profiles", 8), ("bins", 10)), ray_draws=4)
 SCAN = FitOptions(rays=3000, stages=(("features", 5), ("bins", 5)))
+DESIGNED_FIT = FIT.replace(rays=2000, feature_rays=1500)
+DESIGNED_SCAN = SCAN.replace(rays=1500)
+"""The fits of a designed measurement (:mod:`bluesky_offsets.design`): three to four times the
+frames of the bright design, each fitted with fewer model rays, all frames together about as
+many as the bright design's 14 at :data:`FIT`'s and :data:`SCAN`'s."""
 ROUNDS = 3
 """Diagnoses of an analysis at most (``plans.diagnose.analyse_measurement``): two hidden effects
 and one more.  Measured on the scenario grid: an effect the offsets half mimic (photon energy,

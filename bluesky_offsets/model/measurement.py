@@ -126,6 +126,20 @@ class Measurement:
                        hist_y=self.hist_y[idx], total_counts=pick(self.total_counts), images=pick(self.images),
                        profile_x=pick(self.profile_x), profile_y=pick(self.profile_y), screen=pick(self.screen))
 
+    def joined(self, other: Measurement) -> Measurement:
+        """This measurement's frames, then ``other``'s, as one (binned alike; this one's uid and
+        metadata); each frame keeps where the chamber's stage stood."""
+        if self.spec != other.spec:
+            raise MeasurementError(f"cannot join frames binned as {other.spec.fingerprint()} to frames binned as "
+                                   f"{self.spec.fingerprint()}")
+        screen = None
+        if self.screen is not None or other.screen is not None:
+            screen = np.vstack([as_screen(self.screen, self.n), as_screen(other.screen, other.n)])
+        return Measurement(np.vstack([self.configurations, other.configurations]),
+                           np.vstack([self.hist_x, other.hist_x]), np.vstack([self.hist_y, other.hist_y]),
+                           n_rays=self.n_rays, spec=self.spec, names=self.names, uid=self.uid,
+                           metadata=dict(self.metadata), screen=screen)
+
     def rebinned(self, coarse: HistogramSpec) -> Measurement:
         """The same measurement in coarser bins (e.g. the paper's, for the surrogate)."""
         hx, hy = self.spec.rebin(self.hist_x, self.hist_y, coarse)

@@ -9,9 +9,11 @@ What the worker's namespace holds:
 * ``RE``, a RunEngine whose documents go to the run store (``$BLUESKY_OFFSETS_STORE``, default
   the embedded one);
 * the plans, whose arguments are plain values (device names, numbers, names, run uids or
-  ``"last"``): :func:`~plans.workflow.measure_bright` (find the beam, find bright
-  configurations, measure them), :func:`~plans.workflow.measure` (given configurations),
-  :func:`~plans.workflow.find_offsets_in_store`, :func:`~plans.workflow.analyse`,
+  ``"last"``): :func:`~plans.workflow.measure_for_offsets` (find the beam, then frames designed
+  for the offsets: the default measurement), :func:`~plans.workflow.measure_bright` (find the
+  beam, find bright configurations, measure them), :func:`~plans.workflow.measure` (given
+  configurations), :func:`~plans.workflow.find_offsets_in_store`, :func:`~plans.workflow.analyse`,
+  :func:`~plans.workflow.validate` (frames no fit used), :func:`~plans.workflow.export_calibration`,
   :func:`~plans.workflow.optimize` (the beam on the calibrated twin).
 """
 
@@ -21,7 +23,16 @@ from bluesky import RunEngine
 
 from bluesky_offsets.epics.pvmap import PVMap
 from bluesky_offsets.store import shared_store
-from plans.workflow import analyse, find_offsets_in_store, measure, measure_bright, optimize  # noqa: F401 - the plans
+from plans.workflow import (  # noqa: F401 - the plans
+    analyse,
+    export_calibration,
+    find_offsets_in_store,
+    measure,
+    measure_bright,
+    measure_for_offsets,
+    optimize,
+    validate,
+)
 
 logging.getLogger("bluesky_offsets.workflow").setLevel(logging.INFO)
 if not logging.getLogger().handlers:

@@ -1,0 +1,83 @@
+"""The Fisher ceiling of the design space: how many offsets a designed measurement can determine,
+against the photons a frame counts and the model rays a fit traces per frame.
+
+For hidden offsets drawn as the demo draws them (±``--fraction`` of each range), the beam found
+from the motors' start by the real search, a pool of candidate settings drawn as the design draws
+them (:func:`bluesky_offsets.design.candidate_settings`: motors, slits, the chamber's stage), each
+candidate's information at the truth from the twin's exact Jacobian (two halves of the rays:
+unbiased), then the greedy D-optimal batch of ``--frames`` minus the search's frames.  The
+information of a frame scales as 1 / (1/N + 1/K) for N photons a frame and K model rays; the
+table gives the determined count (σ below a tenth of the prior's) for each (N, K) — the best a
+design from this pool can do, before any fit: a ceiling.
+
+    python benchmarks/bench_design_ceiling.py --seeds 0 1 2 [--frames 60] [--pool 400]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _machine import machine  # noqa: E402
+
+from bluesky_offsets.design import DesignOptions, candidate_settings, classes, frame_information  # noqa: E402
+from bluesky_offsets.design import predicted_sigma, prior_precision, select  # noqa: E402
+from bluesky_offsets.offsets.beam_search import acceptance  # noqa: E402
+from bluesky_offsets.physics.parameters import METRIXS as T  # noqa: E402
+from bluesky_offsets.physics.torch_engine import TorchEngine  # noqa: E402
+from bluesky_offsets.physics.twin import Twin  # noqa: E402
+from sim_iocs.truth import default_start  # noqa: E402
+
+BUDGETS = ((5_000, 2_000), (5_000, 5_000), (50_000, 5_000), (50_000, 50_000), (500_000, 500_000),
+           (5_000_000, 5_000_000))
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
+    p.add_argument("--fraction", type=float, default=0.05)
+    p.add_argument("--frames", type=int, default=60)
+    p.add_argument("--pool", type=int, default=400)
+    p.add_argument("--rays", type=int, default=4000, help="model rays per candidate's Jacobian (two halves)")
+    p.add_argument("--out", type=Path, default=None)
+    a = p.parse_args()
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    from bench_design import Beamline, find_beam
+    rows = []
+    for seed in a.seeds:
+        t0 = time.perf_counter()
+        truth = np.random.default_rng([seed, 17]).uniform(-a.fraction, a.fraction, len(T))
+        beam = find_beam(Beamline(truth, {}, 5000, seed), default_start())
+        acc = acceptance(Twin(TorchEngine()), beam.configuration, open_slits=False)
+        opts = DesignOptions(seed=seed)
+        cfg, screen = candidate_settings(beam.configuration[None], a.pool, np.random.default_rng([seed, 5]),
+                                         acceptance=acc, options=opts)
+        unit = frame_information(TorchEngine(options={"common_rays": False}), cfg, truth, photons=10 ** 12,
+                                 model_rays=10 ** 12, rays=a.rays, screen=screen, seed=seed)
+        bright = unit.intensity >= opts.floor
+        k = a.frames - beam.frames
+        for n, m in BUDGETS:
+            scale = 1.0 / (1.0 / n + 1.0 / m) / 1e12  # the pool's information was for 1e12 photons a frame
+            ch = select(unit.fisher * scale, prior_precision(len(T)), k, allowed=bright)
+            sig = predicted_sigma(ch.precision)
+            rows.append({"seed": seed, "photons": n, "model_rays": m, "frames_designed": len(ch.indices),
+                         "search_frames": beam.frames, "determined": classes(sig).count("determined"),
+                         "undetermined": classes(sig).count("undetermined")})
+            print(f"seed {seed}: N={n:>9,} K={m:>9,}: {rows[-1]['determined']:2d} determined, "
+                  f"{rows[-1]['undetermined']:2d} undetermined of 34 with {len(ch.indices)} designed frames "
+                  f"(+{beam.frames} search)", flush=True)
+        print(f"seed {seed}: {time.perf_counter() - t0:.0f} s", flush=True)
+    if a.out:
+        a.out.parent.mkdir(parents=True, exist_ok=True)
+        a.out.write_text(json.dumps({"machine": machine(), "args": {k: v for k, v in vars(a).items() if k != "out"},
+                                     "rows": rows}, indent=1, default=str))
+
+
+if __name__ == "__main__":
+    main()
