@@ -12,6 +12,7 @@ the next frame (every frame is a checkpoint).
 
 from __future__ import annotations
 
+import json
 import logging
 from collections.abc import Mapping
 from dataclasses import asdict, dataclass, field
@@ -74,24 +75,15 @@ def measure_designed(beamline, chamber, *, options: DesignOptions | Mapping | No
 
     Raises :class:`plans.workflow.DarkBeamline` when the beam search ends dim.
     """
-    from plans import HIGH_RAY_THRESHOLD, find_beam
-
     from .measure import _optional_read, scan_configurations
     from .motion import resolve_stage
-    from .workflow import DarkBeamline
+    from .workflow import bright_beam
 
     o = options if isinstance(options, DesignOptions) else DesignOptions.from_mapping(options)
     if resolve_stage(beamline) is None and o.screen:
         log.info("the beamline has no chamber stage: the design keeps the screen where it is")
         o = o.replace(screen=False)
-    log.info("finding the beam (offsets up to ±%g of each range assumed)", fraction)
-    beam = yield from find_beam(beamline, chamber, fraction=fraction, max_frames=max(1, o.frames - 2), table=table)
-    for line in beam.log:
-        log.info("  %s", line)
-    if not beam.bright:
-        raise DarkBeamline(f"the beam search ended dim after {beam.frames} frames ({beam.intensity:.3g} of the "
-                           f"source rays on the screen, {HIGH_RAY_THRESHOLD:.3g} needed): check the shutter, the "
-                           f"source and the slits, or widen the search (fraction)")
+    beam = yield from bright_beam(beamline, chamber, fraction=fraction, max_frames=max(1, o.frames - 2), table=table)
     photons = yield from _optional_read(chamber, "num_rays")
     loop = DesignLoop(o, beam.configuration, o.frames - beam.frames, int(photons or 10_000), table)
     log.info("designing %d frames (%s-optimal, batches of %d, %d candidates each) around the beam found in %d "
@@ -231,3 +223,36 @@ def measure_validation(beamline, chamber, model, fitted: Measurement, twin, *, n
                                                            "calibrated_uid": cal.uid or "",
                                                            "measurement_uid": fitted.uid or "", **dict(md or {})})
     return Validation(m, box["c"], m.uid)
+
+
+# --------------------------------------------------------------------------- #
+# the posterior of the offsets, as a run
+# --------------------------------------------------------------------------- #
+def record_posterior(model, *, measurement_uid: str | None = None, table: ParameterTable = METRIXS,
+                     md: Mapping | None = None) -> MsgGenerator[str | None]:
+    """A run (``plan_name`` "record_posterior") whose ``posterior`` stream has one event per offset and
+    effect parameter of the calibrated ``model``: value ± σ in its unit, its class and the parameters
+    it trades with (:class:`bluesky_offsets.model.posterior.Posterior`); its start document names the
+    parameter table's version, the fit's run and the measurement.  None (no run) where the model has
+    no covariance."""
+    from bluesky_offsets.model.posterior import Posterior
+    from bluesky_offsets.model.state import CalibratedState
+
+    from ._stubs import in_run
+    cal = CalibratedState.of(model)
+    post = Posterior.of(cal, table)
+    if post is None:
+        return None
+    estimates = [*post.offsets, *(e for d in post.effects.values() for e in d.values())]
+    rows = [{"parameter": e.name, "value": e.value, "sigma": e.sigma, "unit": e.unit, "class": e.cls,
+             "normalized": e.normalized, "normalized_sigma": e.normalized_sigma, "at_bound": e.at_bound,
+             "partners_json": json.dumps([[n, c] for n, c in e.partners])} for e in estimates]
+    _md = {"plan_name": "record_posterior", "purpose": "the calibration's posterior, per parameter",
+           "parameter_table": table.name, "parameter_table_version": table.version, "model_uid": cal.uid or "",
+           "measurement_uid": measurement_uid or "", "counts": post.counts(), **dict(md or {})}
+
+    def body():
+        yield from emit_rows("posterior", rows)
+
+    _, uid = yield from in_run(body, _md, True)
+    return uid

@@ -121,6 +121,21 @@ class DarkBeamline(RuntimeError):
     """The beam search or the bright-configuration search came back without enough light."""
 
 
+def bright_beam(beamline, chamber, *, fraction: float, max_frames: int,
+                table=METRIXS) -> MsgGenerator[object]:
+    """:func:`plans.find_beam`, its steps logged; :class:`DarkBeamline` where it ends dim."""
+    from plans import HIGH_RAY_THRESHOLD, find_beam
+    log.info("finding the beam (offsets up to ±%g of each range assumed)", fraction)
+    beam = yield from find_beam(beamline, chamber, fraction=fraction, max_frames=max_frames, table=table)
+    for line in beam.log:
+        log.info("  %s", line)
+    if not beam.bright:
+        raise DarkBeamline(f"the beam search ended dim after {beam.frames} frames ({beam.intensity:.3g} of the "
+                           f"source rays on the screen, {HIGH_RAY_THRESHOLD:.3g} needed): check the shutter, the "
+                           f"source and the slits, or widen the search (fraction, the frames it may take)")
+    return beam
+
+
 def measure_bright(beamline, chamber, *, bright: int = 16, reopened: int = 4, analysed: int = 14,
                    candidates: int = 40, fraction: float = 0.15, max_frames: int = 120, seed: int = 0,
                    md: dict | None = None) -> MsgGenerator[Measured]:
@@ -143,18 +158,11 @@ def measure_bright(beamline, chamber, *, bright: int = 16, reopened: int = 4, an
         The beam search, the measurement (``uid``), how many were measured with the slits open,
         the analysed indices.  ``md`` goes into the measurement run's metadata.
     """
-    from plans import HIGH_RAY_THRESHOLD, find_beam, find_high_ray_configurations, measure_configurations
+    from plans import find_high_ray_configurations, measure_configurations
 
     design = MeasurementDesign(bright=bright, reopened=reopened, analysed=analysed, candidates=candidates,
                                fraction=fraction, max_frames=max_frames, seed=seed)
-    log.info("finding the beam (offsets up to ±%g of each range assumed)", fraction)
-    beam = yield from find_beam(beamline, chamber, fraction=fraction, max_frames=max_frames, table=METRIXS)
-    for line in beam.log:
-        log.info("  %s", line)
-    if not beam.bright:
-        raise DarkBeamline(f"the beam search ended dim after {beam.frames} frames ({beam.intensity:.3g} of the "
-                           f"source rays on the screen, {HIGH_RAY_THRESHOLD:.3g} needed): check the shutter, the "
-                           f"source and the slits, or widen the search (fraction, max_frames)")
+    beam = yield from bright_beam(beamline, chamber, fraction=fraction, max_frames=max_frames)
     here = beam.configuration
     cand = candidate_configurations(design, here)
     log.info("searching %d candidate configurations around it for %d bright ones (beam found in %d frames)",
@@ -316,7 +324,7 @@ def _designed_session(beamline, chamber, twin, *, design: DesignOptions, candida
                       resolution, measurement_md, analysis_md, step, executor) -> MsgGenerator[Session]:
     from bluesky_offsets.model.state import ModelState
 
-    from .design import measure_designed, measure_validation
+    from .design import measure_designed, measure_validation, record_posterior
     from .diagnose import analyse_measurement
 
     t = {"start": time.perf_counter()}
@@ -334,6 +342,7 @@ def _designed_session(beamline, chamber, twin, *, design: DesignOptions, candida
                                               scan_options=scan, fit_top=fit_top, seed=design.seed,
                                               executor=executor, md=dict(analysis_md or {}))
     t["analysis"] = time.perf_counter()
+    analysis.uids["posterior"] = yield from record_posterior(analysis, measurement_uid=m.uid, md=analysis_md)
     validation = None
     if design.validation:
         step(f"{design.validation} validation frames far from the fitted ones, the calibrated model against them")
@@ -436,7 +445,11 @@ def analyse(measurement: str = "last", offsets: str | None = "last", *, candidat
 def calibrated_in_store(uid: str = "last", store=None):
     """The calibrated state (:class:`bluesky_offsets.model.state.CalibratedState`) of a stored
     ``add_effect_and_refit`` or ``refine_offsets`` run (``"last"``: the newest), with its fit's
-    covariance."""
+    covariance; or of a calibration file (a path ending in ``.json``:
+    :func:`bluesky_offsets.model.export.load_calibration`)."""
+    if str(uid).endswith(".json"):
+        from bluesky_offsets.model.export import load_calibration
+        return load_calibration(uid)
     from .diagnose import load_results, restore_refinement, restore_refit
     store = _store(store)
     uid = resolve_run(store, uid, "model")
@@ -451,7 +464,7 @@ def optimize(beamline, chamber, target: dict | None = None, model: str = "last",
              md: dict | None = None) -> MsgGenerator:
     """:func:`plans.optimize.optimize_beam` with plain values, for a queue: ``target`` a mapping
     (``{"kind": "spot_size", "rms_x": 0.2, "rms_y": 0.05}``; default the smallest focus),
-    ``model`` the uid of a fitted model's run or ``"last"`` (:func:`calibrated_in_store`),
+    ``model`` the uid of a fitted model's run, ``"last"`` or a calibration file (:func:`calibrated_in_store`),
     ``constraints``/``options`` mappings of :class:`bluesky_offsets.optimize.Constraints` /
     :class:`~bluesky_offsets.optimize.OptimizeOptions` fields."""
     from .optimize import optimize_beam

@@ -157,7 +157,7 @@ class TestChamberZ(_HiddenEffect):
         tmp_path, summary, proc = demo
         assert _gone(summary["ioc"]["pid"])  # the simulated IOC is stopped
         uids = summary["uids"]
-        assert {"find_beam", "measurement", "compare", "refine_offsets", "diagnose", "add_effect",
+        assert {"find_beam", "measurement", "compare", "refine_offsets", "diagnose", "add_effect", "posterior",
                 "validation"} <= set(uids)
         n = summary["n_configurations"]
         assert summary["design"] == "optimal" and summary["frames"] <= int(MAIN_JOB[1])
@@ -195,6 +195,9 @@ class TestChamberZ(_HiddenEffect):
             assert [h["label"] for h in hist] == labels
             assert hist[-1]["chi2_reduced"] == pytest.approx(summary["history"][-1]["chi2_reduced"])
             assert load_results(store, uids["validation"])["start"]["plan_name"] == "measure_validation"
+            rows = load_results(store, uids["posterior"])["posterior"]  # the posterior in the store too
+            assert [r["parameter"] for r in rows[:len(METRIXS)]] == list(METRIXS.names)
+            assert [r["class"] for r in rows[:len(METRIXS)]] == [post[k]["class"] for k in METRIXS.names]
 
         # the load-back line the summary prints works as printed
         line = next(l_ for l_ in out.splitlines() if l_.strip().startswith("python -c"))

@@ -109,8 +109,8 @@ def test_the_session_runs_from_the_queue_and_every_run_loads_back(queue):
                       rays=2000, scheduler="inline"))
     RM.item_add(BPlan("validate", "metrixs", "chamber", "last", "last", frames=2, rays=2000, scheduler="inline"))
     RM.item_add(BPlan("export_calibration", str(work / "calibration.json")))
-    # the better beam on the model just fitted ("last"), a small configuration
-    RM.item_add(BPlan("optimize", "metrixs", "chamber", {"kind": "smallest_focus"}, "last",
+    # the better beam on the model of the calibration file (the fitted model "last" found), a small configuration
+    RM.item_add(BPlan("optimize", "metrixs", "chamber", {"kind": "smallest_focus"}, str(work / "calibration.json"),
                       options={"rays": 2000, "starts": 1, "iterations": 4, "check_rays": 20000, "samples": 4}))
     RM.queue_start()
     RM.wait_for_idle(timeout=400)
@@ -142,8 +142,10 @@ def test_the_session_runs_from_the_queue_and_every_run_loads_back(queue):
         # the bare twin and the design's estimate compared, then the offsets fitted from both
         assert plans[:4] == ["compare_model"] * 2 + ["refine_offsets", "diagnose_effects"]
         assert [a["start"]["version_label"] for a in analysis[:2]] == ["twin", "design estimate"]
-        ranking = next(a for a in analysis if a["start"]["plan_name"] == "diagnose_effects")["ranking"]
-        assert [r["effect"] for r in ranking] == ["intensity_scale"]
+        diag = next(a for a in analysis if a["start"]["plan_name"] == "diagnose_effects")
+        # the frames' noise is fresh: the offsets may already reach it, and then nothing is ranked
+        assert [r["effect"] for r in diag.get("ranking", [])] == ([] if diag["diagnosis"][0]["within_noise"]
+                                                                  else ["intensity_scale"])
         # the validation frames judged the model "last" found, linked to the measurement; the file holds it
         (val_uid,) = uids["validate"]
         val = load_results(store, val_uid)
@@ -151,12 +153,12 @@ def test_the_session_runs_from_the_queue_and_every_run_loads_back(queue):
         from bluesky_offsets import load_calibration
         cal = load_calibration(work / "calibration.json")
         assert cal.uid == val["start"]["calibrated_uid"]
-        # "last" found the analysis's fitted model; the frames before and after the move load back
+        # the file held the analysis's fitted model; the frames before and after the move load back
         (beam_uid,) = uids["optimize"]
         start = store[beam_uid].metadata["start"]
         fitted = [u for u, a in zip(uids["analyse"], analysis)
                   if a["start"]["plan_name"] in ("refine_offsets", "add_effect_and_refit")]
-        assert start["plan_name"] == "optimize_beam" and start["model_uid"] == fitted[-1]
+        assert start["plan_name"] == "optimize_beam" and start["model_uid"] == fitted[-1]  # the file's model
         assert len(store.load_measurement(beam_uid)) == 2 and start["predicted"]["rms_x"] > 0
 
 

@@ -191,6 +191,11 @@ class RefineResult:
     def offset_sigma(self) -> np.ndarray:
         return self.fit.offset_sigma
 
+    @property
+    def calibrated(self) -> CalibratedState:
+        """The fitted state with the fit's covariance (what the posterior and the calibration file read)."""
+        return CalibratedState(self.state, self.fit.covariance, tuple(self.fit.names))
+
 
 def refine(meas: Measurement, state: ModelState, twin=None, forward_model=None, *,
            options: FitOptions | Mapping | None = None, progress=None, engine=None,
