@@ -134,7 +134,7 @@ def _optimum_md(o: BeamOptimum, table: ParameterTable) -> dict:
             "moved": list(o.moved), "predicted": o.predicted.as_dict(), "predicted_before": o.predicted_before.as_dict(),
             "predicted_sigma": {a: float(v) for a, v in o.sigma.items()}, "trusted": bool(o.trusted),
             "flags": [f.text() for f in o.flags], "at_limit": list(o.at_limit), "cost": float(o.cost),
-            "starts": [{k: float(v) if isinstance(v, (int, float)) else v for k, v in s.items()} for s in o.starts]}
+            "posterior_states": int(o.states), "starts": [{k: float(v) if isinstance(v, (int, float)) else v for k, v in s.items()} for s in o.starts]}
 
 
 def _beam_rows(before: Focus, o: BeamOptimum, after: Focus) -> list[dict]:

@@ -26,7 +26,7 @@ from bluesky_offsets.optimize import (
 from bluesky_offsets.physics.parameters import METRIXS
 from bluesky_offsets.physics.twin import CAMERA
 
-SMALL = {"rays": 3000, "starts": 1, "iterations": 8, "check_rays": 20000}
+SMALL = {"rays": 3000, "starts": 1, "iterations": 8, "check_rays": 20000, "screen": 8, "global_starts": 1}
 DEFOCUSED = {"ImagePlane": {"translationZerror": 20.0}}   # the screen 20 mm behind the focus
 
 
@@ -76,6 +76,27 @@ def test_smallest_focus_on_a_defocused_twin_shrinks_within_limits():
     res2 = optimize_settings("smallest_focus", ModelState(), start, overrides=DEFOCUSED, options=SMALL,
                              covariance=cov, names=METRIXS.names)
     assert all(np.isfinite(res2.sigma[a]) and res2.sigma[a] > 0 for a in "xy")
+
+
+def test_global_starts_and_an_objective_averaged_over_the_posterior():
+    """Settings drawn over the reachable box seed starts beside the local ones; with a covariance the
+    objective averages the fitted state and states drawn from it (those that keep the light)."""
+    from bluesky_offsets.optimize.optimizer import posterior_draws
+    start = METRIXS.reference.copy()
+    cov = np.diag(np.full(len(METRIXS), 1e-4))
+    draws = posterior_draws(ModelState(), cov, 400, seed=3)
+    assert draws.shape == (400, len(METRIXS)) and np.all(np.abs(draws) <= 0.2)
+    assert np.std(draws, axis=0) == pytest.approx(np.full(len(METRIXS), 1e-2), rel=0.2)
+    assert posterior_draws(ModelState(), None, 4) is None and posterior_draws(ModelState(), cov, 0) is None
+    opts = {**SMALL, "screen": 8, "global_starts": 1, "draws": 3}
+    res = optimize_settings("smallest_focus", ModelState(), start, overrides=DEFOCUSED, options=opts,
+                            covariance=cov, names=METRIXS.names)
+    labels = [s["start"] for s in res.starts]
+    assert labels[0] == "current" and sum(n.startswith("global") for n in labels) == 1, labels
+    assert res.states == 4 and res.cost == min(s["cost"] for s in res.starts)
+    assert res.predicted.rms_x < res.predicted_before.rms_x or res.predicted.rms_y < res.predicted_before.rms_y
+    with pytest.raises(ValueError, match="draws"):
+        optimize_settings("smallest_focus", ModelState(), start, options={**SMALL, "draws": -1})
 
 
 def test_a_target_beyond_the_limits_is_refused_before_anything_moves():

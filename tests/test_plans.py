@@ -189,14 +189,17 @@ def test_frames_with_the_screen_moved_follow_the_truth_and_the_stage_returns(RE,
     at_truth = twin.trace_batch(np.array([truth.true_values(c) for c in configs]), seed=99, progress=False,
                                 overrides=per_frame_overrides(truth.overrides, screen, 3), n_rays=N_RAYS)
     meas = np.concatenate([_counts(m.hist_x, N_RAYS), _counts(m.hist_y, N_RAYS)], axis=1)
-    model = np.concatenate([_counts(at_truth.hist_x, N_RAYS), _counts(at_truth.hist_y, N_RAYS)], axis=1)
     flat = twin.trace_batch(np.array([truth.true_values(c) for c in configs]), seed=98, progress=False,
                             overrides=truth.overrides, n_rays=N_RAYS)
     unmoved = np.concatenate([_counts(flat.hist_x, N_RAYS), _counts(flat.hist_y, N_RAYS)], axis=1)
-    same = np.array([chi2_two_sample(a, b) for a, b in zip(meas, model)])
     other = np.array([chi2_two_sample(a, b) for a, b in zip(meas, unmoved)])
-    assert same[:, 0].sum() / same[:, 1].sum() < 1.5, same
     assert np.all(other[:, 0] / other[:, 1] > 3), other
+    # x and y apart (the same rays in both), each summed over the frames below its chi^2 quantile at
+    # p = 1e-4: with three frames a pooled chi^2/dof bound of 1.5 is only 1.3 sigma of its noise
+    for axis in ("hist_x", "hist_y"):
+        same = np.array([chi2_two_sample(_counts(a, N_RAYS), _counts(b, N_RAYS))
+                         for a, b in zip(getattr(m, axis), getattr(at_truth, axis))]).sum(0)
+        assert same[0] < chi2_quantile(int(same[1]), 3.72), (axis, same)
     assert [float(RE(bps.rd(getattr(beamline.chamber_stage, a))).plan_result) for a in "xyz"] == [0.0, 0.0, 0.0]
 
 

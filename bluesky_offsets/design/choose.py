@@ -171,7 +171,11 @@ def criterion_value(precision: np.ndarray, criterion: str = "D") -> float:
 
 def _gains(precision: np.ndarray, fisher: np.ndarray, criterion: str) -> np.ndarray:
     if criterion == "D":
-        L = np.linalg.cholesky(precision)
+        try:
+            L = np.linalg.cholesky(precision)
+        except np.linalg.LinAlgError:  # rounding at very large precisions: a ridge of 1e-12 of the mean
+            sym = 0.5 * (precision + precision.T)
+            L = np.linalg.cholesky(sym + 1e-12 * np.trace(sym) / len(sym) * np.eye(len(sym)))
         Li = np.linalg.inv(L)
         M = Li @ fisher @ Li.T  # (C, P, P)
         eye = np.eye(len(precision))

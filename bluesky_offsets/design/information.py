@@ -56,21 +56,25 @@ class FrameInformation:
         return np.sqrt(np.clip(np.einsum("cp,pq,cq->c", g, covariance, g), 0.0, None))
 
 
-def _psd(f: np.ndarray) -> np.ndarray:
+def positive_part(f: np.ndarray) -> np.ndarray:
+    """The symmetric matrix (or stack) ``f`` with its negative eigenvalues set to 0."""
     w, v = np.linalg.eigh(0.5 * (f + np.swapaxes(f, -1, -2)))
     return np.einsum("...ij,...j,...kj->...ik", v, np.clip(w, 0.0, None), v)
 
 
 def frame_information(engine, configurations: np.ndarray, offsets: np.ndarray, *, photons: int, model_rays: int,
                       rays: int = 2000, screen=None, seed: int = 0, spec: HistogramSpec | None = None,
-                      table: ParameterTable = METRIXS, chunk: int = 64) -> FrameInformation:
+                      table: ParameterTable = METRIXS, chunk: int = 64, psd: bool = True) -> FrameInformation:
     """The Fisher information of frames at ``configurations`` ((C, P) twin coordinates) and stage
     positions ``screen`` ((C, 3) mm or None), for a beamline whose offsets are ``offsets``
     (normalized), each frame of ``photons`` source photons fitted with ``model_rays`` model rays.
 
     ``engine`` is a :class:`~bluesky_offsets.physics.torch_engine.TorchEngine` with a random stream
     per configuration (``common_rays=False``); ``rays`` of it per candidate, in two halves.
-    ``spec``: the profiles' binning (default :func:`design_spec`).
+    ``spec``: the profiles' binning (default :func:`design_spec`).  ``psd``: each frame's matrix
+    with its negative eigenvalues (the rays' noise) set to 0, as a choice needs it; False keeps the
+    unbiased estimate, whose sum over frames is to be made positive semi-definite only as a whole
+    (clipping frame by frame keeps every frame's positive noise: information that is not there).
     """
     cfg = table.validate(np.atleast_2d(configurations), "candidate configurations")
     off = np.clip(table.validate(offsets, "offsets"), -MAX_OFFSET, MAX_OFFSET)
@@ -93,7 +97,8 @@ def frame_information(engine, configurations: np.ndarray, offsets: np.ndarray, *
         p = np.maximum(0.5 * (ha + hb), 1.0 / photons)
         w = inv_var_scale / p
         cross = np.einsum("cbp,cb,cbq->cpq", ja, w, jb)
-        fisher[a:b] = _psd(0.5 * (cross + np.swapaxes(cross, 1, 2)))
+        sym = 0.5 * (cross + np.swapaxes(cross, 1, 2))
+        fisher[a:b] = positive_part(sym) if psd else sym
         # on the screen: within the x window (x profile) and the y window (y profile), the lesser
         nx = spec.bins_x
         sx, sy = 0.5 * (ha[:, :nx].sum(1) + hb[:, :nx].sum(1)), 0.5 * (ha[:, nx:].sum(1) + hb[:, nx:].sum(1))

@@ -26,7 +26,7 @@ from bluesky_offsets.design.choose import (
     prior_precision,
     select,
 )
-from bluesky_offsets.design.information import frame_information
+from bluesky_offsets.design.information import frame_information, positive_part
 from bluesky_offsets.physics.parameters import METRIXS, ParameterTable
 
 STEP_SEED = 7_919
@@ -95,8 +95,8 @@ def measured_precision(engine, meas, offsets: np.ndarray, *, options: DesignOpti
     """The posterior precision of the normalized offsets from the frames of ``meas`` (their
     settings, at ``offsets``), the prior's added."""
     info = frame_information(engine, meas.configurations, offsets, photons=photons, model_rays=options.fit_rays,
-                             rays=options.rays, screen=meas.screen, seed=options.seed, table=table)
-    return prior_precision(len(table)) + info.fisher.sum(0)
+                             rays=options.rays, screen=meas.screen, seed=options.seed, table=table, psd=False)
+    return prior_precision(len(table)) + positive_part(info.fisher.sum(0))  # made semi-definite as a whole
 
 
 def update(meas, offsets: np.ndarray, *, options: DesignOptions, step: int, table: ParameterTable = METRIXS):

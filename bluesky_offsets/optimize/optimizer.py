@@ -7,11 +7,16 @@ the model predicts there and how far the calibration's uncertainty lets that pre
 trusted.
 
 How: Levenberg-Marquardt within the limits (the fit engine's step,
-:func:`bluesky_offsets.model.fit.lm_step`) on the target's residuals, from the current setting
-and ``starts - 1`` random ones around it, on one set of rays (common random numbers: the
-objective is a deterministic function of the settings).  The residuals' Jacobian in the motors
-is exact: every ray's derivatives from :meth:`TorchEngine.ray_jacobian`, pushed through the
-target's residual function by forward-mode differentiation.
+:func:`bluesky_offsets.model.fit.lm_step`) on the target's residuals, from the current setting,
+``starts - 1`` random ones near it and the ``global_starts`` best of ``screen`` settings drawn
+over the reachable box (half-widths up to each free motor's whole range: the focus a local
+search misses lies elsewhere), on one set of rays (common random numbers: the objective is a
+deterministic function of the settings).  With ``draws`` and the calibration's covariance the
+objective is the target's residuals averaged over the fitted state and states drawn from the
+posterior: a setting whose beam is right only for the fitted offsets pays for it.  The
+residuals' Jacobian in the motors is exact: every ray's derivatives from
+:meth:`TorchEngine.ray_jacobian`, pushed through the target's residual function by forward-mode
+differentiation.
 
 The prediction is the hard beam (RAYX's survival) traced with fresh rays and read as a frame is
 read (:func:`~bluesky_offsets.optimize.targets.focus_from_profiles` of the camera profiles,
@@ -69,6 +74,14 @@ class OptimizeOptions:
     rays, seed : the model rays of the optimization (one set: common random numbers).
     starts : the current setting and ``starts - 1`` random ones within ``spread`` of each free
         motor's range around it.
+    screen, global_starts : ``screen`` settings drawn over the reachable box (half-widths from
+        ``spread`` to each free motor's whole range), the objective evaluated at each; the
+        ``global_starts`` best are started from too (0: the local starts alone).
+    draws : states drawn from the calibration's covariance that the objective averages over,
+        beside the fitted one (0, the default, or no covariance: the fitted state alone); each
+        traces ``rays // (draws + 1)`` rays.  Off by default: where most offsets are
+        undetermined the draws' average favours a compromise over the fitted state's focus
+        (docs/optimize.md).
     iterations : Levenberg-Marquardt steps per start at most; ``tolerance`` the relative gain
         below which a start ends.
     check_rays, check_seed : the prediction: the hard beam, fresh rays.
@@ -84,6 +97,9 @@ class OptimizeOptions:
     seed: int = 11
     starts: int = 3
     spread: float = 0.03
+    screen: int = 48
+    global_starts: int = 2
+    draws: int = 0
     iterations: int = 30
     tolerance: float = 1e-4
     check_rays: int = 100_000
@@ -94,8 +110,9 @@ class OptimizeOptions:
     engine: Mapping | None = None
 
     def __post_init__(self):
-        if int(self.samples) < 0:
-            raise ValueError(f"optimize option samples must be >= 0, got {self.samples!r}")
+        for k in ("samples", "screen", "global_starts", "draws"):
+            if int(getattr(self, k)) < 0:
+                raise ValueError(f"optimize option {k} must be >= 0, got {getattr(self, k)!r}")
         for k in ("rays", "starts", "iterations", "check_rays"):
             if int(getattr(self, k)) < 1:
                 raise ValueError(f"optimize option {k} must be at least 1, got {getattr(self, k)!r}")
@@ -148,6 +165,7 @@ class BeamOptimum:
     history: list[dict] = field(default_factory=list)
     starts: list[dict] = field(default_factory=list)
     profiles: tuple[np.ndarray, np.ndarray] | None = None   # predicted camera profiles at ``settings``
+    states: int = 1                 # states the objective averaged over (the fitted one and the posterior's draws)
 
     def relative_sigma(self, axis: str) -> float:
         return self.sigma[axis] / getattr(self.predicted, f"rms_{axis}")
@@ -168,12 +186,18 @@ class BeamOptimum:
 # the model as a function of the settings
 # --------------------------------------------------------------------------- #
 class _Problem:
+    """The target's residuals as a function of the free motors (``u``: fractions of each range
+    from the current setting), over the fitted state and the posterior's draws (rows of
+    ``offsets``, physical units; the first the fitted state's)."""
+
     def __init__(self, target: Target, state, current, lo, hi, free, options: OptimizeOptions, engine, overrides,
-                 table: ParameterTable):
+                 table: ParameterTable, draws: np.ndarray | None = None):
         self.target, self.state, self.o, self.engine, self.table = target, state, options, engine, table
         self.current = np.asarray(current, float)
         self.lo, self.hi, self.free = lo, hi, free
-        self.offsets = table.offsets_to_physical(np.clip(state.offsets, -MAX_OFFSET, MAX_OFFSET))
+        normalized = np.atleast_2d(state.offsets) if draws is None else np.vstack([state.offsets, draws])
+        self.offsets = table.offsets_to_physical(np.clip(normalized, -MAX_OFFSET, MAX_OFFSET))
+        self.n = max(1, options.rays // len(self.offsets))   # rays per state
         self.twin_effects = _twin_effects(state)
         self.extra = dict(overrides or {})
         self.overrides = _rml_overrides(state, overrides)
@@ -190,39 +214,61 @@ class _Problem:
         return (self.lo[self.free] - self.current[self.free]) / self.span, \
                (self.hi[self.free] - self.current[self.free]) / self.span
 
+    def keep(self, states) -> None:
+        """Keep these states (indices; the fitted state, 0, always)."""
+        self.offsets = self.offsets[sorted({0, *states})]
+        self.n = max(1, self.o.rays // len(self.offsets))
+
     def values(self, cfg) -> np.ndarray:
-        return np.asarray(cfg, float) + self.offsets
+        """(S, P) physical values of the setting ``cfg`` in each state."""
+        return np.asarray(cfg, float)[None] + self.offsets
 
-    def rays(self, cfg) -> Rays:
+    def rays(self, cfgs) -> list[list[Rays]]:
+        """The rays of each setting of ``cfgs`` (N, P) in each state, one batch."""
+        vals = np.concatenate([self.values(c) for c in np.atleast_2d(cfgs)])
         with torch.no_grad():
-            b = self.engine.beam(self.values(cfg)[None], self.overrides or None, n_rays=self.o.rays, seed=self.o.seed,
+            b = self.engine.beam(vals, self.overrides or None, n_rays=self.n, seed=self.o.seed,
                                  edge=self.engine.options.edge)
-        keep = b.weight[0] > 0
-        return Rays(b.x[0][keep], b.y[0][keep], b.weight[0][keep], self.o.rays)
+        out = [Rays(b.x[k][keep], b.y[k][keep], b.weight[k][keep], self.n) for k, keep in enumerate(b.weight > 0)]
+        S = len(self.offsets)
+        return [out[i:i + S] for i in range(0, len(out), S)]
 
-    def residuals(self, rays: Rays) -> torch.Tensor:
-        r = self.target.residuals(rays, self.start)
+    def residuals(self, rays: list[Rays]) -> torch.Tensor:
+        """The target's residuals of every state, scaled so that their sum of squares is the mean
+        cost over the states, and the transmission floor on the mean intensity."""
+        r = torch.cat([self.target.residuals(x, self.start).reshape(-1) for x in rays]) / math.sqrt(len(rays))
         if self.floor > 0:  # the transmission floor, a steep wall
-            r = torch.cat([r, (30.0 * torch.relu(math.log(self.floor) - torch.log(rays.intensity.clamp(min=1e-300))))[None]])
+            mean = torch.stack([x.intensity for x in rays]).mean()
+            r = torch.cat([r, (30.0 * torch.relu(math.log(self.floor) - torch.log(mean.clamp(min=1e-300))))[None]])
         return r
 
-    def cost(self, cfg) -> float:
-        rays = self.rays(cfg)
-        if float(rays.w.sum()) <= 0:
+    def _cost(self, rays: list[Rays]) -> float:
+        if any(float(x.w.sum()) <= 0 for x in rays):
             return math.inf
         r = self.residuals(rays)
         c = float(r @ r)
         return c if math.isfinite(c) else math.inf
 
-    def ray_jacobian(self, cfg, effects: bool = False, columns=None):
-        return self.engine.ray_jacobian(self.values(cfg)[None], self.twin_effects if effects else None,
-                                        n_rays=self.o.rays, seed=self.o.seed, overrides=self.overrides if not effects
-                                        else (self.extra or None), columns=columns)
+    def cost(self, cfg) -> float:
+        return self._cost(self.rays(cfg)[0])
 
-    def linearized(self, cfg, func: Callable[[Rays], torch.Tensor], columns=None, effects: bool = False):
-        """``func``'s residuals at the rays of ``cfg``, their Jacobian (m, n) in the inputs
-        ``columns`` (indices into the ray Jacobian's inputs; default the free motors) with the
-        rays' weights held, and the exact gradient (n,) of their sum of squares.
+    def costs(self, cfgs, batch: int = 8) -> np.ndarray:
+        """The cost of each setting of ``cfgs`` (N, P), ``batch`` settings per trace."""
+        cfgs = np.atleast_2d(cfgs)
+        return np.array([self._cost(r) for i in range(0, len(cfgs), batch) for r in self.rays(cfgs[i:i + batch])])
+
+    def ray_jacobian(self, cfg, effects: bool = False, columns=None):
+        # with the effects as inputs (the prediction's uncertainty): the fitted state alone
+        vals, n = (self.values(cfg)[:1], self.o.rays) if effects else (self.values(cfg), self.n)
+        return self.engine.ray_jacobian(vals, self.twin_effects if effects else None, n_rays=n, seed=self.o.seed,
+                                        overrides=self.overrides if not effects else (self.extra or None),
+                                        columns=columns), n
+
+    def linearized(self, cfg, func: Callable[[list[Rays]], torch.Tensor], columns=None, effects: bool = False):
+        """``func``'s residuals at the rays of ``cfg`` (one :class:`Rays` per state), their
+        Jacobian (m, n) in the inputs ``columns`` (indices into the ray Jacobian's inputs; default
+        the free motors) with the rays' weights held, and the exact gradient (n,) of their sum of
+        squares.
 
         Why two: a ray in an aperture's soft edge has a weight derivative of the order of the
         weight over the edge's width.  Summed over the rays (the gradient) these average into
@@ -230,17 +276,21 @@ class _Problem:
         not, and would swamp it.  So the curvature comes from the rays' moves, the slope from
         everything."""
         cols = np.flatnonzero(self.free) if columns is None else np.asarray(columns)
-        rj = self.ray_jacobian(cfg, effects, cols)  # the derivatives in these inputs only
+        rj, n = self.ray_jacobian(cfg, effects, cols)  # the derivatives in these inputs only
         rows = rj.rows
         x, y, w = (t.reshape(-1)[rows].detach() for t in (rj.x, rj.y, rj.weight))
         tx, ty, tw = (t.T.contiguous() for t in (rj.rows_jx, rj.rows_jy, rj.rows_jw))
-        n = self.o.rays
+        state = torch.as_tensor(rows) // n
+        groups = [torch.nonzero(state == k).reshape(-1) for k in range(rj.x.shape[0])]
+
+        def split(a, b, c):
+            return [Rays(a[g], b[g], c[g], n) for g in groups]
 
         def moved(a, b):
-            return func(Rays(a, b, w, n))
+            return func(split(a, b, w))
 
         def total(a, b, c):
-            r = func(Rays(a, b, c, n))
+            r = func(split(a, b, c))
             return (r * r).sum()
 
         value = moved(x, y)
@@ -351,6 +401,38 @@ def _lm(pb: _Problem, u0: np.ndarray, progress, label: str) -> tuple[np.ndarray,
     return u, cost, hist
 
 
+def posterior_draws(state, covariance, n: int, *, seed: int = 0, table: ParameterTable = METRIXS) -> np.ndarray | None:
+    """``n`` normalized offset vectors drawn from the calibration's covariance around ``state``'s
+    offsets (its first ``len(table)`` rows and columns), within the offsets' bounds; None without
+    a covariance or draws."""
+    if covariance is None or n < 1:
+        return None
+    P = len(table)
+    cov = np.asarray(covariance, float)[:P, :P]
+    cov = np.where(np.isfinite(cov), cov, 0.0)
+    w, V = np.linalg.eigh(0.5 * (cov + cov.T))
+    root = V * np.sqrt(np.clip(w, 0, None))
+    z = np.random.default_rng([seed, 7]).standard_normal((n, P))
+    return np.clip(np.asarray(state.offsets, float)[None] + z @ root.T, -MAX_OFFSET, MAX_OFFSET)
+
+
+def _starts(pb: _Problem, o: OptimizeOptions) -> list[tuple[str, np.ndarray]]:
+    """The labelled starts (``u``): the current setting, ``starts - 1`` random ones near it, and
+    the ``global_starts`` lowest-cost of ``screen`` settings drawn over the reachable box."""
+    rng = np.random.default_rng(o.seed)
+    ulo, uhi = pb.bounds_u()
+    m = len(ulo)
+    out = [("current", np.zeros(m))]
+    out += [(f"random {k}", np.clip(rng.uniform(-o.spread, o.spread, m), ulo, uhi)) for k in range(1, o.starts)]
+    if o.screen and o.global_starts:
+        radii = np.geomspace(o.spread, 1.0, o.screen)   # from near to the whole range
+        cand = np.clip(rng.uniform(-1.0, 1.0, (o.screen, m)) * radii[:, None], ulo, uhi)
+        c = pb.costs(np.array([pb.config(u) for u in cand]))
+        order = [int(i) for i in np.argsort(c) if math.isfinite(c[i])][:o.global_starts]
+        out += [(f"global {k + 1} (cost {c[i]:.3g})", cand[i]) for k, i in enumerate(order)]
+    return out
+
+
 def predict(state, configuration, *, rays: int = 100_000, seed: int = 12_345, overrides=None, engine=None,
             table: ParameterTable = METRIXS) -> tuple[Focus, np.ndarray, np.ndarray]:
     """The model's footprint at ``configuration`` as a frame reads it: the hard beam (fresh rays),
@@ -440,7 +522,7 @@ def _uncertainty(pb: _Problem, cfg, covariance, names, o: OptimizeOptions, table
     C = cov[np.ix_(cov_idx, cov_idx)]
     sig, contrib = {}, {}
     for axis in "xy":
-        r, J, g = pb.linearized(cfg, lambda rays, a=axis: per_ray(rays, a), columns=rj_cols, effects=True)
+        r, J, g = pb.linearized(cfg, lambda rays, a=axis: per_ray(rays[0], a), columns=rj_cols, effects=True)
         var = float(r @ r)                     # g: d var / d state
         JtJ = J.T @ J                          # half the Gauss-Newton Hessian of var
         first = float(g @ C @ g)
@@ -498,8 +580,12 @@ def optimize_settings(target, state, current, *, limits=None, constraints: Const
     current = table.validate(current, "current setting").astype(float)
     lo, hi, free = bounds(current, cons, limits, table)
     engine = engine or TorchEngine(table=table, options=dict(o.engine or {}))
-    pb = _Problem(target, state, current, lo, hi, free, o, engine, overrides, table)
-    start_rays = pb.rays(current)
+    pb = _Problem(target, state, current, lo, hi, free, o, engine, overrides, table,
+                  posterior_draws(state, covariance, o.draws, seed=o.seed, table=table))
+    at_current = pb.rays(current)[0]
+    start_rays = at_current[0]
+    # draws that lose the light where the motors stand contradict the frames just measured
+    pb.keep([k for k, r in enumerate(at_current) if float(r.intensity) >= 0.5 * float(start_rays.intensity)])
     if float(start_rays.intensity) < 1e-4:
         raise DarkStart(f"no light on the screen at the current setting ({float(start_rays.intensity):.2g} of the "
                         f"source rays in the model): find the beam first (plans.find_beam)")
@@ -509,14 +595,10 @@ def optimize_settings(target, state, current, *, limits=None, constraints: Const
     if not free.any():
         raise ValueError("no motor is free to move (all held, fixed or at zero travel)")
 
-    rng = np.random.default_rng(o.seed)
-    ulo, uhi = pb.bounds_u()
-    inits = [np.zeros(int(free.sum()))]
-    for _ in range(o.starts - 1):
-        inits.append(np.clip(rng.uniform(-o.spread, o.spread, int(free.sum())), ulo, uhi))
     from bluesky_offsets.model.fit import gather
-    runs = gather([lambda k=k, u0=u0: _lm(pb, u0, progress, "current" if k == 0 else f"random {k}")
-                   for k, u0 in enumerate(inits)], executor)
+    inits = _starts(pb, o)
+    ulo, uhi = pb.bounds_u()
+    runs = gather([lambda u0=u0, label=label: _lm(pb, u0, progress, label) for label, u0 in inits], executor)
     best, history, starts = None, [], []
     for u, cost, hist in runs:
         history += hist
@@ -554,4 +636,4 @@ def optimize_settings(target, state, current, *, limits=None, constraints: Const
     trusted = known and rel < o.trust_below
     moved = [table.names[i] for i in np.flatnonzero(free) if abs(settings[i] - current[i]) > 1e-9 * table.span[i]]
     return BeamOptimum(target, settings, current, moved, predicted, before, sigma, flags, trusted, at_limit, cost,
-                       history, starts, (px, py))
+                       history, starts, (px, py), len(pb.offsets))
