@@ -144,3 +144,23 @@ def test_the_calibration_file_round_trips_and_refuses_what_it_cannot_use(tmp_pat
         with pytest.raises(CalibrationFileError, match=why) as err:
             load_calibration(tmp_path / name)
         assert len(str(err.value).splitlines()) == 1 and name in str(err.value)
+
+
+def test_a_prior_wide_posterior_still_gets_frames_where_the_estimate_sees_light():
+    """Where the posterior's spread leaves no candidate above the light floor with confidence (offsets
+    drawn at ±20 %), the candidates the current estimate lights are taken rather than none; and the
+    unclipped matrices of ``psd=False`` are the clipped ones' symmetric source."""
+    from bluesky_offsets.design.information import positive_part
+    from bluesky_offsets.design.sequence import next_batch
+    eng = TorchEngine(options={"common_rays": False})
+    opts = DesignOptions(candidates=6, rays=400, fit_rays=400, seed=3)
+    wide = prior_precision(len(T)) * 1e-6   # a posterior far wider than any candidate's light
+    st = next_batch(eng, np.zeros(len(T)), wide, T.reference[None], T.span * 1e-3, k=2, step=0, photons=5000,
+                    options=opts)
+    assert len(st.gains) == 2 and np.all(st.intensity >= opts.floor)
+    raw = frame_information(eng, np.tile(T.reference, (2, 1)), np.zeros(len(T)), photons=5000, model_rays=5000,
+                            rays=400, psd=False)
+    clipped = frame_information(eng, np.tile(T.reference, (2, 1)), np.zeros(len(T)), photons=5000,
+                                model_rays=5000, rays=400)
+    assert np.allclose(raw.fisher, np.swapaxes(raw.fisher, 1, 2))
+    assert np.allclose(positive_part(raw.fisher), clipped.fisher, atol=1e-9 * np.abs(clipped.fisher).max())

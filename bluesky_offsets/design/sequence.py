@@ -82,6 +82,8 @@ def next_batch(engine, offsets: np.ndarray, precision: np.ndarray, anchors: np.n
                              screen=screen, seed=options.seed + STEP_SEED * (step + 1), table=table)
     spread = info.intensity_sigma(np.linalg.inv(precision))
     allowed = info.intensity - options.confidence * spread >= options.floor
+    if not allowed.any():  # a prior-wide posterior: the estimate's own light, rather than no frame at all
+        allowed = info.intensity >= options.floor
     choice = select(info.fisher, precision, k, criterion=options.criterion, allowed=allowed)
     idx = choice.indices
     return DesignStep(step, cfg[idx], screen[idx], np.asarray(choice.gains), info.intensity[idx], options.criterion,
