@@ -148,16 +148,26 @@ def test_the_calibration_file_round_trips_and_refuses_what_it_cannot_use(tmp_pat
 
 def test_a_prior_wide_posterior_still_gets_frames_where_the_estimate_sees_light():
     """Where the posterior's spread leaves no candidate above the light floor with confidence (offsets
-    drawn at ±20 %), the candidates the current estimate lights are taken rather than none; and the
-    unclipped matrices of ``psd=False`` are the clipped ones' symmetric source."""
+    drawn at ±20 %), the candidates the current estimate lights are taken rather than none, and where
+    it lights none the screen scans along the beam; the unclipped matrices of ``psd=False`` are the
+    clipped ones' symmetric source."""
     from bluesky_offsets.design.information import positive_part
     from bluesky_offsets.design.sequence import next_batch
     eng = TorchEngine(options={"common_rays": False})
     opts = DesignOptions(candidates=6, rays=400, fit_rays=400, seed=3)
     wide = prior_precision(len(T)) * 1e-6   # a posterior far wider than any candidate's light
-    st = next_batch(eng, np.zeros(len(T)), wide, T.reference[None], T.span * 1e-3, k=2, step=0, photons=5000,
+    st = next_batch(eng, np.zeros(len(T)), wide, T.reference[None], np.full(len(T), 1e-4), k=2, step=0, photons=5000,
                     options=opts)
     assert len(st.gains) == 2 and np.all(st.intensity >= opts.floor)
+    # where the estimate lights nothing around the beam (M1 and both mirrors tilted to their bounds:
+    # 1 % of the source on the screen), the screen is moved along the beam where the beam was found
+    dark = np.zeros(len(T))
+    for name in ("M1_Cylinder.rotationZerror", "E1.rotationXerror", "E2.rotationXerror"):
+        dark[T.index(name)] = 0.2
+    scan = next_batch(eng, dark, wide, T.reference[None], np.full(len(T), 1e-4), k=3, step=1, photons=5000,
+                      options=opts.replace(slits=0.0))   # an opened slit may light one candidate
+    assert scan.allowed == 0 and np.allclose(scan.configurations, T.reference) and len(scan.gains) == 3
+    assert np.allclose(scan.screen[:, 2], [-15.0, 7.5, 30.0]) and np.all(scan.screen[:, :2] == 0)
     raw = frame_information(eng, np.tile(T.reference, (2, 1)), np.zeros(len(T)), photons=5000, model_rays=5000,
                             rays=400, psd=False)
     clipped = frame_information(eng, np.tile(T.reference, (2, 1)), np.zeros(len(T)), photons=5000,

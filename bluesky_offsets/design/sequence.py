@@ -28,6 +28,7 @@ from bluesky_offsets.design.choose import (
 )
 from bluesky_offsets.design.information import frame_information, positive_part
 from bluesky_offsets.physics.parameters import METRIXS, ParameterTable
+from bluesky_offsets.physics.screen import STAGE
 
 STEP_SEED = 7_919
 """Multiplies a step's number in the seed of its candidates' model rays."""
@@ -67,6 +68,18 @@ class DesignStep:
                 "candidates": self.candidates, "allowed": self.allowed, "seconds": self.seconds}
 
 
+def _screen_scan(anchor: np.ndarray, k: int, step: int, precision: np.ndarray, candidates: int,
+                 options: DesignOptions, t0: float) -> DesignStep:
+    """``k`` frames at ``anchor`` (where the beam was found) with the screen spread along the beam
+    over the stage's travel: where the estimate lights no candidate, the real beam is still there,
+    and these frames give the next refit something to move the estimate with."""
+    z = np.linspace(STAGE[2].low, STAGE[2].high, k)
+    screen = np.column_stack([np.zeros(k), np.zeros(k), z])
+    c = criterion_value(precision, options.criterion)
+    return DesignStep(step, np.tile(anchor, (k, 1)), screen, np.zeros(k), np.zeros(k), options.criterion, c, c,
+                      predicted_sigma(precision), candidates, 0, time.perf_counter() - t0)
+
+
 def next_batch(engine, offsets: np.ndarray, precision: np.ndarray, anchors: np.ndarray, acceptance: np.ndarray,
                *, k: int, step: int, photons: int, options: DesignOptions,
                table: ParameterTable = METRIXS) -> DesignStep:
@@ -86,6 +99,8 @@ def next_batch(engine, offsets: np.ndarray, precision: np.ndarray, anchors: np.n
         allowed = info.intensity >= options.floor
     choice = select(info.fisher, precision, k, criterion=options.criterion, allowed=allowed)
     idx = choice.indices
+    if not idx and options.screen:
+        return _screen_scan(anchors[-1], k, step, precision, len(cfg), options, t0)
     return DesignStep(step, cfg[idx], screen[idx], np.asarray(choice.gains), info.intensity[idx], options.criterion,
                       criterion_value(precision, options.criterion), criterion_value(choice.precision,
                                                                                      options.criterion),
