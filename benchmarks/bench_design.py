@@ -14,8 +14,9 @@ frame, fresh noise), the beam is found from the motors' start by the real search
 
 and the offsets are fitted once more in full (:data:`bluesky_offsets.model.diagnosis.FIT`).  Per
 draw: the offsets' RMSE over the truth's RMS, the share within 2σ, the determined ones (σ below a
-tenth of the prior's) and the share of those within 2σ, offsets at a bound, the Fisher ceiling of
-the design space at the budget (the predicted determined count), frames, seconds.
+tenth of the prior's) and the share of those within 2σ, offsets at a bound, each batch's record
+(its predicted determined count is judged on the rays that chose it: optimistic; the ceiling is
+``bench_design_ceiling.py``), frames, seconds.
 
     python benchmarks/bench_design.py --seeds 0 1 2 --fraction 0.05 [--design optimal bright]
         [--frames 60] [--photons 5000] [--criterion D] [--out benchmarks/results/design.json]
