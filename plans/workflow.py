@@ -399,8 +399,8 @@ def analyse(measurement: str = "last", offsets: str | None = "last", *, candidat
     uid = resolve_run(store, measurement, "measurement")
     m = store.load_measurement(uid, table=METRIXS)
     designed = "design_options" in m.metadata  # plans.design.measure_designed's: its fits and its estimate
-    fit_opts = FitOptions.resolve(fit, D.DESIGNED_FIT if designed else D.FIT)
-    scan_opts = FitOptions.resolve(scan, D.DESIGNED_SCAN if designed else D.SCAN)
+    base_fit, base_scan = D.fits_for(designed)
+    fit_opts, scan_opts = FitOptions.resolve(fit, base_fit), FitOptions.resolve(scan, base_scan)
     for n in candidates or ():
         from bluesky_offsets.physics import effects as E
         E.get(n)  # an unknown name fails before anything runs

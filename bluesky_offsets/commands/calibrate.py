@@ -117,13 +117,12 @@ def _calibrate(args, design, effects, pv_map, forward_model, store) -> int:
         from bluesky_offsets.design import DesignOptions
         from bluesky_offsets.model import diagnosis as D
         designed = isinstance(design, DesignOptions)
-        fit, scan = (D.DESIGNED_FIT, D.DESIGNED_SCAN) if designed else (D.FIT, D.SCAN)
+        fit, scan = D.fits_for(designed, args.fit_rays)
         try:
             with analysis_executor(args.threads, twin) as executor:
                 session = RE(calibration_session(
                     beamline, chamber, twin, forward_model, design=design, evaluations=args.evaluations,
-                    candidates=effects, rounds=args.rounds, fit=fit.replace(rays=args.fit_rays or fit.rays),
-                    scan=scan.replace(rays=min(args.fit_rays or scan.rays, scan.rays)),
+                    candidates=effects, rounds=args.rounds, fit=fit, scan=scan,
                     fit_top=args.fit_top or None, resolution=args.resolution, measurement_md={"purpose": "calibrate"},
                     analysis_md={"purpose": "calibration analysis"}, step=say, executor=executor)).plan_result
         except DarkBeamline as exc:

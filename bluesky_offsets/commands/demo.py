@@ -654,14 +654,13 @@ def _cmd_demo(args) -> int:
     if any(E.get(n).level == "detector" for n in names):
         raise CliError("--effect: the simulated IOC hides twin-level effects only (detector-level ones: "
                        + ", ".join(n for n in names if E.get(n).level == "detector") + ")")
-    fit, scan = (D.DESIGNED_FIT, D.DESIGNED_SCAN) if args.design == "optimal" else (D.FIT, D.SCAN)
+    fit, scan = D.fits_for(args.design == "optimal", args.fit_rays)
     s = DemoSettings(n_rays=args.rays, effects=effects, design_kind=args.design,
                      optimal=DesignOptions(frames=args.frames, validation=args.validation_frames),
                      measurement=_design(bright=args.configurations, reopened=n_open,
                                          analysed=args.analysed_configurations),
                      offsets_fraction=args.offsets_fraction, rounds=args.rounds, seed=args.seed,
-                     fit_top=args.fit_top or None, fit=fit.replace(rays=args.fit_rays or fit.rays),
-                     scan=scan.replace(rays=min(args.fit_rays or scan.rays, scan.rays)),
+                     fit_top=args.fit_top or None, fit=fit, scan=scan,
                      resolution=args.resolution, optimize=not args.no_optimize, closed_loop=not args.open_loop,
                      threads=args.threads,
                      candidates_effects=[c.strip() for c in args.candidates.split(",")] if args.candidates else None)

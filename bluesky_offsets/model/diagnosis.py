@@ -309,6 +309,15 @@ DESIGNED_SCAN = SCAN.replace(rays=1500)
 """The fits of a designed measurement (:mod:`bluesky_offsets.design`): three to four times the
 frames of the bright design, each fitted with fewer model rays, all frames together about as
 many as the bright design's 14 at :data:`FIT`'s and :data:`SCAN`'s."""
+
+
+def fits_for(designed: bool, rays: int | None = None) -> tuple[FitOptions, FitOptions]:
+    """The offsets fit's and the candidate fits' options for a designed (or the bright) measurement;
+    ``rays`` (``--fit-rays``): the fit's model rays, and the candidate fits' at most."""
+    fit, scan = (DESIGNED_FIT, DESIGNED_SCAN) if designed else (FIT, SCAN)
+    return fit.replace(rays=rays or fit.rays), scan.replace(rays=min(rays or scan.rays, scan.rays))
+
+
 ROUNDS = 3
 """Diagnoses of an analysis at most (``plans.diagnose.analyse_measurement``): two hidden effects
 and one more.  Measured on the scenario grid: an effect the offsets half mimic (photon energy,
