@@ -401,6 +401,14 @@ def _lm(pb: _Problem, u0: np.ndarray, progress, label: str) -> tuple[np.ndarray,
     return u, cost, hist
 
 
+def _root(covariance) -> np.ndarray:
+    """A square root ``R`` (``R Rᵀ = C``) of the covariance, its non-finite entries as 0 and its
+    negative eigenvalues clipped: ``state + R z`` for standard normal ``z`` draws from it."""
+    cov = np.where(np.isfinite(covariance), covariance, 0.0)
+    w, V = np.linalg.eigh(0.5 * (cov + cov.T))
+    return V * np.sqrt(np.clip(w, 0, None))
+
+
 def posterior_draws(state, covariance, n: int, *, seed: int = 0, table: ParameterTable = METRIXS) -> np.ndarray | None:
     """``n`` normalized offset vectors drawn from the calibration's covariance around ``state``'s
     offsets (its first ``len(table)`` rows and columns), within the offsets' bounds; None without
@@ -408,10 +416,7 @@ def posterior_draws(state, covariance, n: int, *, seed: int = 0, table: Paramete
     if covariance is None or n < 1:
         return None
     P = len(table)
-    cov = np.asarray(covariance, float)[:P, :P]
-    cov = np.where(np.isfinite(cov), cov, 0.0)
-    w, V = np.linalg.eigh(0.5 * (cov + cov.T))
-    root = V * np.sqrt(np.clip(w, 0, None))
+    root = _root(np.asarray(covariance, float)[:P, :P])
     z = np.random.default_rng([seed, 7]).standard_normal((n, P))
     return np.clip(np.asarray(state.offsets, float)[None] + z @ root.T, -MAX_OFFSET, MAX_OFFSET)
 
@@ -473,9 +478,7 @@ def sampled_sigma(state, configuration, covariance, names, *, samples: int = 24,
     centroid lands the spot on other pixels, is in it."""
     from bluesky_offsets.model.state import ModelState
     P = len(table)
-    cov = np.where(np.isfinite(covariance), covariance, 0.0)
-    w, V = np.linalg.eigh(0.5 * (cov + cov.T))
-    root = V * np.sqrt(np.clip(w, 0, None))
+    root = _root(covariance)
     eff_names = list(names[P:]) if names is not None else []
     z0 = np.r_[state.offsets, [state.effects.get(n.split(".", 1)[0], {}).get(n.split(".", 1)[1], 0.0)
                                for n in eff_names]]
