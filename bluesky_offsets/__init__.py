@@ -5,24 +5,22 @@ import platform as _platform
 
 
 def _pin_blas_kernels() -> None:
-    """Pin MKL's (torch's BLAS) and OpenBLAS's (numpy's) kernels to their AVX2 code paths on an
-    x86-64 CPU that has AVX2, unless the environment already says otherwise.
+    """Pin MKL's (torch's BLAS) kernels to its one vendor-neutral code path on x86-64, and
+    OpenBLAS's (numpy's) to its AVX2 kernels where the CPU has AVX2, unless the environment
+    already says otherwise.
 
     Why: both libraries pick their kernels by CPU, and their sums then round differently; a fit
     on RAYX's hard counts amplifies such a last-bit difference along its path (the normal
-    equations of 34 offsets are ill-conditioned), so the same command gave other fitted digits
-    on another CPU (the README's analysis, emulated as an AVX2-only machine with
-    ``ATEN_CPU_CAPABILITY=avx2 MKL_ENABLE_INSTRUCTIONS=AVX2 OPENBLAS_CORETYPE=Haswell``: chamber_z
-    21.36 ± 0.9 mm instead of 21.44 ± 0.74, χ²/dof 3.66 instead of 3.87 after the offsets fit;
-    the same verdict).  Pinned, the two gave the same bits: torch's own kernels are the same at
-    any vector width (tests/test_fit.py).  Cost: about 7 % of a per-ray Jacobian on an AVX-512
-    CPU (docs/benchmarks.md, "Per-ray Jacobian").  It must happen before numpy or torch is
-    imported: the command line imports this package first, and every process it starts (the
-    IOC, the Dask workers) inherits the environment; a session that imported numpy first keeps
-    numpy's own choice.
+    equations of 34 offsets are ill-conditioned; docs/diagnosis.md, "Another CPU's arithmetic").
+    MKL honours a named branch such as ``AVX2`` on Intel CPUs only and runs its automatic
+    dispatch elsewhere, so an AMD and an Intel CPU took different paths; ``COMPATIBLE`` is the
+    one branch it runs alike on every x86-64 CPU, at no measurable cost to the per-ray Jacobian.
+    It must happen before numpy or torch is imported: the command line imports this package
+    first, and every process it starts (the IOC, the Dask workers) inherits the environment.
     ``MKL_CBWR=AUTO`` and ``OPENBLAS_CORETYPE=`` (empty) in the environment undo it."""
+    if _platform.machine().lower() in ("x86_64", "amd64"):
+        _os.environ.setdefault("MKL_CBWR", "COMPATIBLE")
     if _x86_with_avx2():
-        _os.environ.setdefault("MKL_CBWR", "AVX2")
         _os.environ.setdefault("OPENBLAS_CORETYPE", "Haswell")
 
 
