@@ -60,6 +60,19 @@ from .truth import Truth
 
 log = logging.getLogger("sim_iocs.metrixs")
 
+
+class RefusedPutInOneLine(logging.Filter):
+    """caproto logs a refused put with its whole traceback (25 lines a put); the refusal's own
+    message names the field and the reason, so one line says it."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        if record.exc_info and str(record.msg).startswith("Invalid write request"):
+            ex = record.exc_info[1]
+            user, host = (record.args or ("?", "?"))[:2]
+            record.msg, record.args = "refused put by %s (%s): %s: %s", (user, host, type(ex).__name__, ex)
+            record.exc_info = record.exc_text = None
+        return True
+
 HIST = HistogramSpec()
 DEFAULT_PREFIX = "SIM:METRIXS:"
 MAX_RAYS = 1_000_000  # per frame: RAYX's worker holds ~4 kB per ray (≈4 GB at the bound)
@@ -497,6 +510,9 @@ def _beacon_environment(interfaces: list[str]) -> None:
 def serve(args) -> int:
     """Run the IOC until interrupted (SIGINT or SIGTERM)."""
     ioc = _build(args)
+    circuit_log = logging.getLogger("caproto.circ")
+    if not any(isinstance(f, RefusedPutInOneLine) for f in circuit_log.filters):
+        circuit_log.addFilter(RefusedPutInOneLine())
     origin = "from a file" if args.truth else "drawn from a seed"
     # the truth's source (a seed) is the truth: only its salted id is shown
     print(f"METRIXS simulation IOC, prefix {args.prefix!r}, backend {ioc.backend.name}, "

@@ -38,6 +38,14 @@ from caproto.server import PVGroup, PvpropertyDouble, pvproperty
 from caproto._data import SkipWrite
 
 MAX_ACCEL_TIME = 10.0  # s: longer ACCL is clamped (a 0.2 mm move would otherwise take minutes)
+MAX_MOVE_TIME = 600.0  # s: a VELO that would take longer over the whole travel is refused
+STEPS_MAX = 2**31 - 1  # RVAL/RRBV are DBF_LONG: a count beyond saturates, never wraps
+
+
+def steps(position: float, resolution: float) -> int:
+    """``position`` in motor steps of ``resolution``, saturated to the record's 32-bit range."""
+    n = position / resolution if resolution > 0 else 0.0
+    return int(round(min(max(n, -STEPS_MAX - 1.0), float(STEPS_MAX))))
 
 
 def _finite(value, field: str, *, above: float | None = None, at_least: float | None = None) -> float:
@@ -323,9 +331,9 @@ class MotorRecord(PVGroup):
         if setpoint:
             await self.dval.write(self._target_dial, verify_value=False, timestamp=ts)
             await self.val.write(self._user_from_dial(self._target_dial), verify_value=False, timestamp=ts)
-            await self.rval.write(int(round(self._target_dial / res)), timestamp=ts)
+            await self.rval.write(steps(self._target_dial, res), timestamp=ts)
         await self.drbv.write(dial, timestamp=ts)
-        await self.rrbv.write(int(round(dial / res)), timestamp=ts)
+        await self.rrbv.write(steps(dial, res), timestamp=ts)
         await self.diff.write(self._target_dial - dial, timestamp=ts)
         await self.rbv.write(self._user_from_dial(dial), timestamp=ts)
 
@@ -559,9 +567,20 @@ class MotorRecord(PVGroup):
         await self._publish_limits()
         await self._publish_position(setpoint=True)
 
+    def _check_user(self, *, offset: float | None = None, dial_limits: tuple[float, float] | None = None,
+                    field: str) -> None:
+        """Refuse a put after which a user coordinate (position or limit) would not be finite."""
+        off = self._offset if offset is None else offset
+        lo, hi = dial_limits or (self.dllm.value, self.dhlm.value)
+        for dial in (lo, hi, self._dial(), self._target_dial):
+            if not math.isfinite(self._sign * dial + off):
+                raise ValueError(f"{field}: the user coordinates would not be finite")
+
     @off.putter
     async def off(self, instance, value):
-        self._offset = _finite(value, "OFF")
+        off = _finite(value, "OFF")
+        self._check_user(offset=off, field="OFF")
+        self._offset = off
         await self._publish_limits()
         await self._publish_position(setpoint=True)
         return self._offset
@@ -589,42 +608,58 @@ class MotorRecord(PVGroup):
         return SkipWrite
 
     async def _set_user_limit(self, user_value: float, *, high: bool):
-        dial = self._dial_from_user(user_value)
+        dial = _finite(self._dial_from_user(user_value), "HLM" if high else "LLM")
         # With DIR=Neg the user high limit is the dial low limit.
         dial_high = high if self._sign > 0 else not high
-        await (self.dhlm if dial_high else self.dllm).write(dial, verify_value=False)
+        await self._set_dial_limit(dial, high=dial_high)
+
+    async def _set_dial_limit(self, dial: float, *, high: bool):
+        lo, hi = (self.dllm.value, dial) if high else (dial, self.dhlm.value)
+        self._check_user(dial_limits=(lo, hi), field="DHLM" if high else "DLLM")
+        await (self.dhlm if high else self.dllm).write(dial, verify_value=False)
         await self._publish_limits()
 
     @dhlm.putter
     async def dhlm(self, instance, value):
-        await self.dhlm.write(_finite(value, "DHLM"), verify_value=False)
+        await self._set_dial_limit(_finite(value, "DHLM"), high=True)
         await self._publish_limits()
         return SkipWrite
 
     @dllm.putter
     async def dllm(self, instance, value):
-        await self.dllm.write(_finite(value, "DLLM"), verify_value=False)
+        await self._set_dial_limit(_finite(value, "DLLM"), high=False)
         await self._publish_limits()
         return SkipWrite
 
+    def _slowest(self) -> float:
+        """The least speed that crosses the whole travel within :data:`MAX_MOVE_TIME`."""
+        return (self._axis_high - self._axis_low) / MAX_MOVE_TIME
+
     @velo.putter
     async def velo(self, instance, value):
-        v = abs(_finite(value, "VELO"))
+        v = _finite(value, "VELO", above=0.0)
+        if v < self._slowest():
+            raise ValueError(f"VELO must be >= {self._slowest():.3g} (the whole travel within {MAX_MOVE_TIME:g} s)")
         vmax = self.vmax.value
-        if vmax > 0:
-            v = min(v, vmax)
-        v = max(v, self.vbas.value)
-        if v <= 0:
-            raise ValueError("VELO must be positive")
-        return v
+        return max(min(v, vmax) if vmax > 0 else v, self.vbas.value)  # within [VBAS, VMAX], as the record
 
     @vmax.putter
     async def vmax(self, instance, value):
-        return _finite(value, "VMAX", at_least=0.0)  # 0: no maximum
+        vmax = _finite(value, "VMAX", at_least=0.0)  # 0: no maximum
+        if 0 < vmax < max(self.vbas.value, self._slowest()):
+            raise ValueError(f"VMAX must be 0 or >= max(VBAS, {self._slowest():.3g})")
+        if vmax > 0 and self.velo.value > vmax:
+            await self.velo.write(vmax, verify_value=False)
+        return vmax
 
     @vbas.putter
     async def vbas(self, instance, value):
-        return _finite(value, "VBAS", at_least=0.0)
+        vbas = _finite(value, "VBAS", at_least=0.0)
+        if self.vmax.value > 0 and vbas > self.vmax.value:
+            raise ValueError("VBAS must be <= VMAX")
+        if self.velo.value < vbas:
+            await self.velo.write(vbas, verify_value=False)
+        return vbas
 
     @hvel.putter
     async def hvel(self, instance, value):

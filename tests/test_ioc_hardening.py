@@ -18,7 +18,7 @@ import pytest
 from conftest import METRIXS_IOC_ARGS, start_metrixs_ioc
 
 from sim_iocs.metrixs import MAX_RAYS
-from sim_iocs.motor_record import MAX_ACCEL_TIME
+from sim_iocs.motor_record import MAX_ACCEL_TIME, STEPS_MAX
 from sim_iocs.ports import free_port, stop_process_group
 
 NAN, INF = float("nan"), float("inf")
@@ -64,6 +64,39 @@ def test_bad_motor_puts_are_refused_and_every_put_completes(metrixs_ioc, ca):
         for field, value in saved.items():
             ca.put(rec + field, value)
         ca.put(rec, start, wait=True, timeout=30)
+
+
+def test_extreme_puts_keep_steps_limits_and_speeds_sane(metrixs_ioc, ca):
+    """Issue 52's probe: a tiny MRES once hung a put-with-completion (the step count overflowed
+    the 32-bit RRBV) or wrapped it silently; finite limits and offsets published infinities; a
+    VELO of 1e-320 made a move that never ends, a negative one was made positive; VMAX lowered
+    below VELO left VELO above it. Each refusal is one line in the IOC's log."""
+    rec = metrixs_ioc.prefix + "e1:tz"
+    saved = {f: ca.get(rec + f) for f in (".MRES", ".VELO", ".VMAX", ".DHLM", ".OFF")}
+    start = ca.get(rec + ".RBV")
+    try:
+        ca.put(rec + ".MRES", 1e-20)
+        assert not _failed(ca.put(rec, start + 0.01, wait=True, timeout=30))  # completes
+        saturated = (STEPS_MAX, -STEPS_MAX - 1)
+        assert ca.get(rec + ".DMOV") == 1 and ca.get(rec + ".RRBV") in saturated
+        ca.put(rec + ".MRES", 1e-12)  # beyond 2**31 steps: saturated, not wrapped
+        assert ca.get(rec + ".RVAL") in saturated
+        ca.put(rec + ".MRES", saved[".MRES"])
+        ca.put(rec + ".DHLM", 1e308)
+        assert _failed(ca.put(rec + ".OFF", 1e308))  # the user high limit would be infinite
+        assert math.isfinite(ca.get(rec + ".HLM")) and ca.get(rec + ".OFF") == saved[".OFF"]
+        ca.put(rec + ".DHLM", saved[".DHLM"])
+        for bad in (1e-320, -0.5):
+            assert _failed(ca.put(rec + ".VELO", bad)), bad
+        assert ca.get(rec + ".VELO") == saved[".VELO"]
+        ca.put(rec + ".VMAX", saved[".VELO"] / 2)  # VELO follows VMAX down
+        assert ca.get(rec + ".VELO") == pytest.approx(saved[".VELO"] / 2)
+    finally:
+        for field in (".VMAX", ".VELO", ".MRES", ".DHLM", ".OFF"):
+            ca.put(rec + field, saved[field])
+        ca.put(rec, start, wait=True, timeout=30)
+    log = metrixs_ioc.log()
+    assert "refused put by" in log and "Traceback" not in log, log[-3000:]
 
 
 def test_pause_and_stop_behave_like_the_record(metrixs_ioc, ca):
