@@ -44,6 +44,7 @@ import socket
 import sys
 import time
 from collections.abc import Callable, Sequence
+from pathlib import Path
 
 import numpy as np
 from caproto import ChannelType
@@ -436,7 +437,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--list-pvs", action="store_true", help="print the records and detector PVs at start-up")
     src = parser.add_mutually_exclusive_group()
     src.add_argument("--truth", metavar="FILE.json", help="hidden offsets/effects/start positions (JSON)")
-    src.add_argument("--seed", type=int, help="draw hidden offsets of all 34 parameters (default: a random seed)")
+    src.add_argument("--seed-file", metavar="FILE",
+                     help=f"draw hidden offsets of all 34 parameters from the integer seed in FILE (or "
+                          f"${SEED_VARIABLE}; default: a random seed); never on the command line, where "
+                          f"every process could read it")
+    src.add_argument("--seed", type=int, help=argparse.SUPPRESS)  # refused: see _seed
     parser.add_argument("--max-offset", type=float, default=0.2,
                         help="largest drawn offset, fraction of each range (default 0.2, the paper's)")
     parser.add_argument("--dump-truth", metavar="FILE.json",
@@ -463,12 +468,35 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("-v", "--verbose", action="store_true", help="log more")
 
 
+SEED_VARIABLE = "BLUESKY_OFFSETS_IOC_SEED"
+"""The environment variable that may hold the seed of the hidden truth (as ``--seed-file``)."""
+
+
+def _seed(args) -> int | None:
+    """The truth's seed from ``--seed-file`` or :data:`SEED_VARIABLE`; None: a random one."""
+    if args.seed is not None:
+        raise ParameterError(f"--seed puts the hidden truth in every process list; use --seed-file FILE or "
+                             f"${SEED_VARIABLE}")
+    text = os.environ.get(SEED_VARIABLE)
+    if args.seed_file:
+        try:
+            text = Path(args.seed_file).read_text()
+        except OSError as exc:
+            raise ParameterError(f"--seed-file: {exc.strerror}: {args.seed_file}") from None
+    if text is None or not text.strip():
+        return None
+    try:
+        return int(text.strip())
+    except ValueError:
+        raise ParameterError("the truth's seed must be an integer") from None
+
+
 def _build(args) -> MetrixsIOC:
-    truth = Truth.from_file(args.truth) if args.truth else Truth.from_seed(args.seed, limit=args.max_offset)
+    truth = Truth.from_file(args.truth) if args.truth else Truth.from_seed(_seed(args), limit=args.max_offset)
     if not 0 <= args.rays <= args.max_rays or args.move_time <= 0 or args.accel_time <= 0 or args.tick <= 0:
         raise ParameterError("--rays must lie in [0, --max-rays]; --move-time, --accel-time, --tick must be positive")
     if args.dump_truth:
-        with open(args.dump_truth, "w") as f:
+        with _private(args.dump_truth, "w") as f:
             json.dump(truth.to_dict(), f, indent=2)
     try:
         return MetrixsIOC(args.prefix, truth, args.backend, n_rays=args.rays, move_time=args.move_time,
@@ -479,12 +507,20 @@ def _build(args) -> MetrixsIOC:
         raise ParameterError(str(exc)) from None
 
 
+def _private(path: str, mode: str):
+    """``path`` opened for writing, readable by its owner only (0600, also when it existed)."""
+    flags = os.O_WRONLY | os.O_CREAT | (os.O_APPEND if mode == "a" else os.O_TRUNC)
+    fd = os.open(path, flags, 0o600)
+    os.fchmod(fd, 0o600)
+    return os.fdopen(fd, mode)
+
+
 def _truth_logger(path: str | None) -> Callable[[str], None] | None:
     if not path:
         return None
 
     def write(text: str) -> None:
-        with open(path, "a") as f:
+        with _private(path, "a") as f:
             f.write(f"{time.strftime('%Y-%m-%d %H:%M:%S')} {text}\n")
     return write
 

@@ -525,8 +525,9 @@ def test_motor_dynamics_follow_the_range(metrixs_ioc, ca):
 
 def test_seeded_truth_is_dumped_not_published(ioc_factory, tmp_path, ca):
     from conftest import METRIXS_IOC_ARGS
-    dump = tmp_path / "truth-11.json"
-    ioc = ioc_factory(args=["--seed", 11, "--max-offset", 0.05, "--dump-truth", dump, *METRIXS_IOC_ARGS],
+    dump, seed = tmp_path / "truth-11.json", tmp_path / "seed"
+    seed.write_text("11\n")
+    ioc = ioc_factory(args=["--seed-file", seed, "--max-offset", 0.05, "--dump-truth", dump, *METRIXS_IOC_ARGS],
                       ready="chamber:Message", ready_value="ready", timeout=90)
     truth = Truth.from_file(dump)
     assert np.abs(truth.offsets).max() <= 0.05 and np.count_nonzero(truth.offsets) == 34

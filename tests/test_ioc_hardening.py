@@ -214,14 +214,21 @@ def test_an_impossible_true_state_looks_like_any_dark_frame(tmp_path, ca):
 def test_the_start_up_banner_and_truth_id_give_nothing_away(tmp_path, ca):
     from sim_iocs.truth import Truth
     from conftest import start_ioc
-    dump = tmp_path / "t.json"
-    ioc = start_ioc("sim_iocs.metrixs", ["--seed", 4242, "--dump-truth", dump, *METRIXS_IOC_ARGS],
+    dump, seed = tmp_path / "t.json", tmp_path / "seed"
+    seed.write_text("4242")
+    ioc = start_ioc("sim_iocs.metrixs", ["--seed-file", seed, "--dump-truth", dump, *METRIXS_IOC_ARGS],
                     log_dir=tmp_path, ready="chamber:Message", ready_value="ready", timeout=90)
     try:
         published = ca.get(ioc.prefix + "chamber:TruthId", as_string=True)
+        assert b"4242" not in Path(f"/proc/{ioc.proc.pid}/cmdline").read_bytes()  # in no process list
     finally:
         ioc.stop()
     assert "4242" not in ioc.log() and "±" not in ioc.log()
+    assert dump.stat().st_mode & 0o777 == 0o600  # the truth file: its owner's only
+    # the seed on the command line is refused in one line
+    refused = subprocess.run([sys.executable, "-m", "sim_iocs.metrixs", "--seed", "7"], capture_output=True,
+                             text=True, timeout=60)
+    assert refused.returncode == 2 and "--seed-file" in refused.stderr and len(refused.stderr.splitlines()) == 1
     truth = Truth.from_file(dump)
     assert published == truth.truth_id
     # the seed's offsets hashed without the secret salt do not give the published id
@@ -251,6 +258,11 @@ def test_no_temporary_files_remain(tmp_path, monkeypatch, ca):
     try:
         for _ in range(2):
             ca.put(ioc.prefix + "chamber:Acquire", 1, wait=True, timeout=60)
+        for k in range(10):  # aborted within tens of ms of their start: RAYX's input held in memory
+            ca.put(ioc.prefix + "chamber:Acquire", 1, wait=False)
+            time.sleep(0.005 * k)
+            ca.put(ioc.prefix + "chamber:Acquire", 0)
+            assert not list(scratch.iterdir()), list(scratch.iterdir())
     finally:
         ioc.stop()
     assert not list(scratch.iterdir()), list(scratch.iterdir())

@@ -297,14 +297,23 @@ def _ensure_random_stream() -> None:
 
 
 def _import_rml(beamline):
-    """RAYX's beamline from ours.  RAYX imports from a path only; the file (which holds the
-    state traced, a simulated beamline's hidden truth included) lives only for the import, in
-    the system's temporary folder (no folder of ours is left behind, even by a killed worker)."""
+    """RAYX's beamline from ours.  RAYX imports from a path only; the file holds the state traced
+    (a simulated beamline's hidden truth included), so on Linux it lives in memory
+    (``memfd_create``): no file another process could open by name, none left by a killed worker.
+    Elsewhere it lives only for the import in the system's temporary folder."""
     import rayx
+    text = beamline.to_xml().encode()
+    if hasattr(os, "memfd_create") and os.path.isdir("/proc/self/fd"):
+        fd = os.memfd_create("bluesky-offsets.rml")
+        try:
+            os.write(fd, text)
+            return rayx.import_beamline(f"/proc/self/fd/{fd}")
+        finally:
+            os.close(fd)
     fd, name = tempfile.mkstemp(prefix="bluesky-offsets-", suffix=".rml")
     try:
-        with os.fdopen(fd, "w") as f:
-            f.write(beamline.to_xml())
+        with os.fdopen(fd, "wb") as f:
+            f.write(text)
         return rayx.import_beamline(name)
     finally:
         os.unlink(name)
