@@ -30,6 +30,7 @@ from __future__ import annotations
 import asyncio
 import logging
 import math
+import re
 import time
 from dataclasses import dataclass
 
@@ -130,7 +131,24 @@ class AxisSettings:
         return int(min(max(-math.floor(math.log10(self.resolution)), 0), 12))
 
 
-class _UnclampedDouble(PvpropertyDouble):
+_NUMBER = re.compile(rb"\s*[+-]?(\d+\.?\d*|\.\d+)([eE][+-]?\d+)?\s*")
+
+
+class _StrictDouble(PvpropertyDouble):
+    """A double that takes a put as text only when the text is a plain number: caproto reads
+    ``''`` as 0 and Python's ``'1_0'`` as 10, which the record would refuse."""
+
+    async def write_from_dbr(self, data, data_type, metadata, *, flags=0):
+        if data_type in (ChannelType.STRING, ChannelType.CHAR):
+            texts = [data] if isinstance(data, (str, bytes)) else list(data)
+            for t in texts:
+                raw = t.encode("latin-1") if isinstance(t, str) else bytes(t)
+                if not _NUMBER.fullmatch(raw.rstrip(b"\0")):
+                    raise ValueError(f"not a number: {raw.rstrip(bytes(1))!r}")
+        return await super().write_from_dbr(data, data_type, metadata, flags=flags)
+
+
+class _UnclampedDouble(_StrictDouble):
     """A double whose control limits are published but not enforced by caproto.
 
     The motor record enforces its limits itself (``LVIO``) instead of failing
@@ -175,8 +193,8 @@ class MotorRecord(PVGroup):
     rval = _ro(0, ".RVAL", "Raw desired value (steps)", _LONG)
     rrbv = _ro(0, ".RRBV", "Raw readback value (steps)", _LONG)
     diff = _ro(0.0, ".DIFF", "Difference DVAL - DRBV")
-    rlv = pvproperty(value=0.0, name=".RLV", doc="Relative value (EGU)")
-    off = pvproperty(value=0.0, name=".OFF", doc="User offset (EGU)")
+    rlv = pvproperty(dtype=_StrictDouble, value=0.0, name=".RLV", doc="Relative value (EGU)")
+    off = pvproperty(dtype=_StrictDouble, value=0.0, name=".OFF", doc="User offset (EGU)")
     dir = pvproperty(value="Pos", name=".DIR", dtype=_ENUM, enum_strings=("Pos", "Neg"),
                      doc="User direction")
     foff = pvproperty(value="Variable", name=".FOFF", dtype=_ENUM, enum_strings=("Variable", "Frozen"),
@@ -199,28 +217,28 @@ class MotorRecord(PVGroup):
                       doc="Stop/Pause/Move/Go")
     cnen = pvproperty(value="Enable", name=".CNEN", dtype=_ENUM, enum_strings=("Disable", "Enable"),
                       doc="Enable control (torque)")
-    twv = pvproperty(value=0.0, name=".TWV", doc="Tweak step size (EGU)")
+    twv = pvproperty(dtype=_StrictDouble, value=0.0, name=".TWV", doc="Tweak step size (EGU)")
     twf = pvproperty(value=0, name=".TWF", dtype=_SHORT, doc="Tweak motor forward")
     twr = pvproperty(value=0, name=".TWR", dtype=_SHORT, doc="Tweak motor reverse")
     homf = pvproperty(value=0, name=".HOMF", dtype=_SHORT, doc="Home forward")
     homr = pvproperty(value=0, name=".HOMR", dtype=_SHORT, doc="Home reverse")
     # --- limits ---------------------------------------------------------------
-    hlm = pvproperty(value=0.0, name=".HLM", doc="User high limit")
-    llm = pvproperty(value=0.0, name=".LLM", doc="User low limit")
-    dhlm = pvproperty(value=0.0, name=".DHLM", doc="Dial high limit")
-    dllm = pvproperty(value=0.0, name=".DLLM", doc="Dial low limit")
+    hlm = pvproperty(dtype=_StrictDouble, value=0.0, name=".HLM", doc="User high limit")
+    llm = pvproperty(dtype=_StrictDouble, value=0.0, name=".LLM", doc="User low limit")
+    dhlm = pvproperty(dtype=_StrictDouble, value=0.0, name=".DHLM", doc="Dial high limit")
+    dllm = pvproperty(dtype=_StrictDouble, value=0.0, name=".DLLM", doc="Dial low limit")
     # --- dynamics and resolution ----------------------------------------------
-    velo = pvproperty(value=1.0, name=".VELO", doc="Velocity (EGU/s)")
-    vmax = pvproperty(value=10.0, name=".VMAX", doc="Max. velocity (EGU/s)")
-    vbas = pvproperty(value=0.0, name=".VBAS", doc="Base velocity (EGU/s)")
-    hvel = pvproperty(value=1.0, name=".HVEL", doc="Home velocity (EGU/s)")
-    accl = pvproperty(value=0.2, name=".ACCL", doc="Seconds to velocity")
-    mres = pvproperty(value=1e-6, name=".MRES", doc="Motor step size (EGU)")
-    eres = pvproperty(value=1e-6, name=".ERES", doc="Encoder step size (EGU)")
-    rres = pvproperty(value=1e-6, name=".RRES", doc="Readback step size (EGU)")
-    rdbd = pvproperty(value=1e-6, name=".RDBD", doc="Retry deadband (EGU)")
+    velo = pvproperty(dtype=_StrictDouble, value=1.0, name=".VELO", doc="Velocity (EGU/s)")
+    vmax = pvproperty(dtype=_StrictDouble, value=10.0, name=".VMAX", doc="Max. velocity (EGU/s)")
+    vbas = pvproperty(dtype=_StrictDouble, value=0.0, name=".VBAS", doc="Base velocity (EGU/s)")
+    hvel = pvproperty(dtype=_StrictDouble, value=1.0, name=".HVEL", doc="Home velocity (EGU/s)")
+    accl = pvproperty(dtype=_StrictDouble, value=0.2, name=".ACCL", doc="Seconds to velocity")
+    mres = pvproperty(dtype=_StrictDouble, value=1e-6, name=".MRES", doc="Motor step size (EGU)")
+    eres = pvproperty(dtype=_StrictDouble, value=1e-6, name=".ERES", doc="Encoder step size (EGU)")
+    rres = pvproperty(dtype=_StrictDouble, value=1e-6, name=".RRES", doc="Readback step size (EGU)")
+    rdbd = pvproperty(dtype=_StrictDouble, value=1e-6, name=".RDBD", doc="Retry deadband (EGU)")
     srev = pvproperty(value=200, name=".SREV", dtype=_LONG, doc="Steps per revolution")
-    urev = pvproperty(value=2e-4, name=".UREV", doc="EGUs per revolution")
+    urev = pvproperty(dtype=_StrictDouble, value=2e-4, name=".UREV", doc="EGUs per revolution")
     # --- description --------------------------------------------------------
     egu = pvproperty(value="", name=".EGU", dtype=_STR, doc="Engineering units")
     desc = pvproperty(value="", name=".DESC", dtype=_STR, doc="Descriptor")

@@ -70,9 +70,10 @@ def test_extreme_puts_keep_steps_limits_and_speeds_sane(metrixs_ioc, ca):
     """Issue 52's probe: a tiny MRES once hung a put-with-completion (the step count overflowed
     the 32-bit RRBV) or wrapped it silently; finite limits and offsets published infinities; a
     VELO of 1e-320 made a move that never ends, a negative one was made positive; VMAX lowered
-    below VELO left VELO above it. Each refusal is one line in the IOC's log."""
+    below VELO left VELO above it; text such as "1_0" was read as 10. Each refusal is one line
+    in the IOC's log."""
     rec = metrixs_ioc.prefix + "e1:tz"
-    saved = {f: ca.get(rec + f) for f in (".MRES", ".VELO", ".VMAX", ".DHLM", ".OFF")}
+    saved = {f: ca.get(rec + f) for f in (".MRES", ".VELO", ".VMAX", ".DHLM", ".OFF", ".TWV")}
     start = ca.get(rec + ".RBV")
     try:
         ca.put(rec + ".MRES", 1e-20)
@@ -91,8 +92,11 @@ def test_extreme_puts_keep_steps_limits_and_speeds_sane(metrixs_ioc, ca):
         assert ca.get(rec + ".VELO") == saved[".VELO"]
         ca.put(rec + ".VMAX", saved[".VELO"] / 2)  # VELO follows VMAX down
         assert ca.get(rec + ".VELO") == pytest.approx(saved[".VELO"] / 2)
+        for text in ("", "1_0", "0x10"):  # as text only a plain number (caproto read '' as 0, '1_0' as 10)
+            assert _failed(ca.put(rec + ".TWV", text)), text
+        assert not _failed(ca.put(rec + ".TWV", " 0.002 ")) and ca.get(rec + ".TWV") == 0.002
     finally:
-        for field in (".VMAX", ".VELO", ".MRES", ".DHLM", ".OFF"):
+        for field in (".VMAX", ".VELO", ".MRES", ".DHLM", ".OFF", ".TWV"):
             ca.put(rec + field, saved[field])
         ca.put(rec, start, wait=True, timeout=30)
     log = metrixs_ioc.log()
