@@ -74,6 +74,7 @@ class RefusedPutInOneLine(logging.Filter):
             record.exc_info = record.exc_text = None
         return True
 
+
 HIST = HistogramSpec()
 DEFAULT_PREFIX = "SIM:METRIXS:"
 MAX_RAYS = 1_000_000  # per frame: RAYX's worker holds ~4 kB per ray (≈4 GB at the bound)

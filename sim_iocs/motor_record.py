@@ -142,9 +142,9 @@ class _StrictDouble(PvpropertyDouble):
         if data_type in (ChannelType.STRING, ChannelType.CHAR):
             texts = [data] if isinstance(data, (str, bytes)) else list(data)
             for t in texts:
-                raw = t.encode("latin-1") if isinstance(t, str) else bytes(t)
-                if not _NUMBER.fullmatch(raw.rstrip(b"\0")):
-                    raise ValueError(f"not a number: {raw.rstrip(bytes(1))!r}")
+                raw = (t.encode("latin-1") if isinstance(t, str) else bytes(t)).rstrip(b"\0")
+                if not _NUMBER.fullmatch(raw):
+                    raise ValueError(f"not a number: {raw!r}")
         return await super().write_from_dbr(data, data_type, metadata, flags=flags)
 
 
@@ -630,12 +630,12 @@ class MotorRecord(PVGroup):
         # With DIR=Neg the user high limit is the dial low limit.
         dial_high = high if self._sign > 0 else not high
         await self._set_dial_limit(dial, high=dial_high)
+        await self._publish_limits()
 
     async def _set_dial_limit(self, dial: float, *, high: bool):
         lo, hi = (self.dllm.value, dial) if high else (dial, self.dhlm.value)
         self._check_user(dial_limits=(lo, hi), field="DHLM" if high else "DLLM")
         await (self.dhlm if high else self.dllm).write(dial, verify_value=False)
-        await self._publish_limits()
 
     @dhlm.putter
     async def dhlm(self, instance, value):
