@@ -18,15 +18,19 @@ def _pin_blas_kernels() -> None:
     It must happen before numpy or torch is imported: the command line imports this package
     first, and every process it starts (the IOC, the Dask workers) inherits the environment.
     ``MKL_CBWR=AUTO`` and ``OPENBLAS_CORETYPE=`` (empty) in the environment undo it."""
-    if _platform.machine().lower() in ("x86_64", "amd64"):
+    if _x86_64():
         _os.environ.setdefault("MKL_CBWR", "COMPATIBLE")
     if _x86_with_avx2():
         _os.environ.setdefault("OPENBLAS_CORETYPE", "Haswell")
 
 
+def _x86_64() -> bool:
+    return _platform.machine().lower() in ("x86_64", "amd64")
+
+
 def _x86_with_avx2() -> bool:
     """An x86-64 CPU with AVX2, as Linux reports it (elsewhere: False, the libraries' own choice)."""
-    if _platform.machine().lower() not in ("x86_64", "amd64"):
+    if not _x86_64():
         return False
     try:
         with open("/proc/cpuinfo") as f:

@@ -304,12 +304,10 @@ def _import_rml(beamline):
     import rayx
     text = beamline.to_xml().encode()
     if hasattr(os, "memfd_create") and os.path.isdir("/proc/self/fd"):
-        fd = os.memfd_create("bluesky-offsets.rml")
-        try:
-            os.write(fd, text)
-            return rayx.import_beamline(f"/proc/self/fd/{fd}")
-        finally:
-            os.close(fd)
+        with os.fdopen(os.memfd_create("bluesky-offsets.rml"), "wb") as f:
+            f.write(text)
+            f.flush()
+            return rayx.import_beamline(f"/proc/self/fd/{f.fileno()}")
     fd, name = tempfile.mkstemp(prefix="bluesky-offsets-", suffix=".rml")
     try:
         with os.fdopen(fd, "wb") as f:
