@@ -100,7 +100,8 @@ def designed(bl: Beamline, beam, opts: DesignOptions, log) -> tuple[Measurement,
         meas = meas.joined(bl.measure(st.configurations, st.screen))
         log(f"    step {st.step}: {meas.n} frames ({bl.frames} with the search), {st.allowed}/{st.candidates} "
             f"candidates allowed, {st.seconds:.0f} s to design, determined before {row['measured_determined']} "
-            f"(predicted after {st.n_determined}), update chi2/dof {row['update_chi2_reduced']:.2f}")
+            f"(predicted after {st.n_determined}), update chi2/dof {row['update_chi2_reduced']:.2f}"
+            f"{' (also from a global start)' if row['global_start'] else ''}")
     steps = [{k: v for k, v in r.items() if not isinstance(v, np.ndarray)} for r in loop.steps]
     return meas, loop.offsets, steps
 

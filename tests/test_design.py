@@ -174,3 +174,34 @@ def test_a_prior_wide_posterior_still_gets_frames_where_the_estimate_sees_light(
                                 model_rays=5000, rays=400)
     assert np.allclose(raw.fisher, np.swapaxes(raw.fisher, 1, 2))
     assert np.allclose(positive_part(raw.fisher), clipped.fisher, atol=1e-9 * np.abs(clipped.fisher).max())
+
+
+def test_an_estimate_dark_where_the_beamline_was_lit_is_refitted_from_a_global_start():
+    """At ±20 % the estimate can put no light where the beamline did (here the source shifted up and
+    M1 and both mirrors tilted the other way): the update's fit has no light to follow.  :func:`global_starts` finds
+    offsets that light the frames, and the refit from them comes nearer the frames than the one
+    from the dark estimate."""
+    from bluesky_offsets.design.sequence import dark_where_lit, global_starts, update
+    from bluesky_offsets.model.measurement import Measurement
+    from bluesky_offsets.model.state import simulate_raw
+    from bluesky_offsets.physics.twin import HistogramSpec, Twin
+    truth = np.zeros(len(T))
+    for name in ("U41_318eV.translationYerror", "M1_Cylinder.rotationZerror", "E1.rotationXerror",
+                 "E2.rotationXerror"):
+        truth[T.index(name)] = 0.2
+    cfg = np.tile(T.reference - truth * T.span, (4, 1))   # where the motors put the true beam on the screen
+    screen = np.column_stack([np.zeros(4), np.zeros(4), [-15.0, 0.0, 15.0, 30.0]])
+    spec = HistogramSpec(250, (-10.0, 10.0), 300, (-3.0, 3.0))  # a quarter of the camera's resolution
+    twin = Twin(TorchEngine(hist=spec), scheduler="inline")
+    hx, hy = simulate_raw(twin, cfg, ModelState(truth), 5000, [11, 12, 13, 14], screen=screen)
+    meas = Measurement(cfg, hx, hy, n_rays=5000, spec=spec, screen=screen)
+    ex, ey = simulate_raw(twin, cfg, ModelState(np.zeros(len(T))), 2000, 0, screen=screen)
+    assert dark_where_lit(meas, np.minimum(ex.sum(1), ey.sum(1)), 0.02)
+    assert not dark_where_lit(meas, np.minimum(hx.sum(1), hy.sum(1)), 0.02)
+    starts = global_starts(meas, np.zeros(len(T)), photons=5000, seed=2, keep=1, draws=192, rounds=2, rays=200)
+    assert starts.shape == (1, len(T)) and np.all(np.abs(starts) <= 0.2)
+    opts = DesignOptions(fit_rays=1000, seed=2)
+    refit, stuck = (update(meas, x, options=opts, step=1) for x in (starts[0], np.zeros(len(T))))
+    assert refit.chi2 < stuck.chi2
+    rx, ry = simulate_raw(twin, cfg, refit.state, 2000, 0, screen=screen)
+    assert not dark_where_lit(meas, np.minimum(rx.sum(1), ry.sum(1)), 0.02)

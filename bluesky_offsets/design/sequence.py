@@ -4,8 +4,9 @@ A designed measurement alternates: :func:`next_batch` (candidates, their informa
 current estimate of the offsets, the batch the criterion prefers), the frames measured, then
 :func:`update` (the offsets refitted to every frame so far, from where the last fit ended, and
 the precision of the posterior taken anew at the refitted offsets from the frames actually
-measured).  The plan that drives the beamline is :func:`plans.design.measure_designed`; a
-benchmark drives the same functions with simulated frames.
+measured; where the refitted model is dark where the beamline was lit, refits from
+:func:`global_starts`, the best kept).  The plan that drives the beamline is
+:func:`plans.design.measure_designed`; a benchmark drives the same functions with simulated frames.
 """
 
 from __future__ import annotations
@@ -107,13 +108,24 @@ def next_batch(engine, offsets: np.ndarray, precision: np.ndarray, anchors: np.n
                       predicted_sigma(choice.precision), len(cfg), int(allowed.sum()), time.perf_counter() - t0)
 
 
-def measured_precision(engine, meas, offsets: np.ndarray, *, options: DesignOptions, photons: int,
-                       table: ParameterTable = METRIXS) -> np.ndarray:
-    """The posterior precision of the normalized offsets from the frames of ``meas`` (their
-    settings, at ``offsets``), the prior's added."""
-    info = frame_information(engine, meas.configurations, offsets, photons=photons, model_rays=options.fit_rays,
+def measured_information(engine, meas, offsets: np.ndarray, *, options: DesignOptions, photons: int,
+                         table: ParameterTable = METRIXS):
+    """The information of the frames of ``meas`` (their settings, at ``offsets``), unbiased frame by frame."""
+    return frame_information(engine, meas.configurations, offsets, photons=photons, model_rays=options.fit_rays,
                              rays=options.rays, screen=meas.screen, seed=options.seed, table=table, psd=False)
+
+
+def posterior_precision(info, table: ParameterTable = METRIXS) -> np.ndarray:
+    """The posterior precision of the normalized offsets from measured frames' information, the prior's added."""
     return prior_precision(len(table)) + positive_part(info.fisher.sum(0))  # made semi-definite as a whole
+
+
+def dark_where_lit(meas, intensity: np.ndarray, floor: float) -> bool:
+    """Whether the model puts less than ``floor`` of the source on the screen (``intensity``, per
+    frame of ``meas``) in at least half the frames where the beamline put twice that: a fit from
+    there has no light to follow."""
+    lit = np.minimum(meas.hist_x.sum(1), meas.hist_y.sum(1)) >= 2 * floor
+    return bool(lit.any()) and int(np.sum(lit & (np.asarray(intensity) < floor))) >= 0.5 * lit.sum()
 
 
 def update(meas, offsets: np.ndarray, *, options: DesignOptions, step: int, table: ParameterTable = METRIXS):
@@ -125,6 +137,50 @@ def update(meas, offsets: np.ndarray, *, options: DesignOptions, step: int, tabl
                    stages=(("features", 8), ("bins", 4)))
     return fit(meas, ModelState(np.asarray(offsets, float).copy(), {}, "design"), engine_for(meas, o, table), o,
                table=table)
+
+
+GLOBAL_DRAWS = 384
+"""Offset vectors a round of :func:`global_starts` traces."""
+GLOBAL_ROUNDS = 4
+"""Rounds of :func:`global_starts` at most: the first over the prior, each next around the best of the last."""
+GLOBAL_ELITE = 24
+"""The draws whose spread the next round of :func:`global_starts` draws from."""
+GLOBAL_SEED = 53
+"""Names the random stream of :func:`global_starts`."""
+
+
+def global_starts(meas, offsets: np.ndarray, *, photons: int, seed: int, keep: int = 3, draws: int = GLOBAL_DRAWS,
+                  rounds: int = GLOBAL_ROUNDS, rays: int = 400, table: ParameterTable = METRIXS) -> np.ndarray:
+    """Starts for a fit whose estimate ``offsets`` is dark where the beamline was lit: the ``keep``
+    offset vectors whose twin frames at the settings of ``meas`` come nearest the measured ones
+    (χ² of the profiles, ``rays`` model rays a frame, common random numbers), searched by the
+    cross-entropy method: ``draws`` over the prior, then rounds drawn from the mean and spread of
+    the best :data:`GLOBAL_ELITE`, until the best explains half the light or ``rounds`` are done."""
+    from bluesky_offsets.model.state import ModelState, simulate_raw_many
+    from bluesky_offsets.physics.parameters import MAX_OFFSET
+    from bluesky_offsets.physics.torch_engine import TorchEngine
+    from bluesky_offsets.physics.twin import Twin
+    rng = np.random.default_rng([seed, GLOBAL_SEED])
+    twin = Twin(TorchEngine(table=table, hist=meas.spec), scheduler="inline")
+    h = np.concatenate([meas.hist_x, meas.hist_y], 1)
+    var = h / photons + 1.0 / (photons * rays)
+    dark = float(np.sum(h ** 2 / var))  # a model with no light on the screen
+
+    def cost(x: np.ndarray) -> np.ndarray:
+        sims = simulate_raw_many(twin, meas.configurations, [ModelState(c) for c in x], rays,
+                                 [seed + i for i in range(meas.n)], table, screen=meas.screen)
+        return np.array([float(np.sum((np.concatenate(s, 1) - h) ** 2 / var)) for s in sims])
+
+    x = np.vstack([np.asarray(offsets, float)[None], rng.uniform(-MAX_OFFSET, MAX_OFFSET, (draws, len(table)))])
+    c = cost(x)
+    for _ in range(rounds - 1):
+        if c.min() <= 0.5 * dark:
+            break
+        elite = x[np.argsort(c)[:GLOBAL_ELITE]]
+        new = np.clip(elite.mean(0) + np.maximum(elite.std(0), 0.01) * rng.standard_normal((draws, len(table))),
+                      -MAX_OFFSET, MAX_OFFSET)
+        x, c = np.vstack([x, new]), np.concatenate([c, cost(new)])
+    return x[np.argsort(c)[:keep]]
 
 
 class DesignLoop:
@@ -145,6 +201,7 @@ class DesignLoop:
         self.offsets = np.zeros(len(table))
         self.precision: np.ndarray | None = None
         self.steps: list[dict] = []
+        self.global_starts: list[int] = []  # the steps whose update also started from :func:`global_starts`
 
     def anchors(self, meas) -> np.ndarray:
         """The settings of the frames that put the beam on the screen, both ways above twice the
@@ -166,8 +223,19 @@ class DesignLoop:
             progress({"step": k, "stage": "update"})
             res = update(a, self.offsets, options=self.o, step=k, table=self.table)
             self.offsets = res.state.offsets
-        self.precision = measured_precision(self.engine, a, self.offsets, options=self.o, photons=self.photons,
+        info = measured_information(self.engine, a, self.offsets, options=self.o, photons=self.photons,
+                                    table=self.table)
+        if res is not None and dark_where_lit(a, info.intensity, self.o.floor):
+            progress({"step": k, "stage": "global start"})
+            for start in global_starts(a, self.offsets, photons=self.photons, seed=self.o.seed + k,
+                                       table=self.table):
+                other = update(a, start, options=self.o, step=k, table=self.table)
+                if other.chi2 < res.chi2:
+                    res, self.offsets = other, other.state.offsets
+                info = measured_information(self.engine, a, self.offsets, options=self.o, photons=self.photons,
                                             table=self.table)
+            self.global_starts.append(k)
+        self.precision = posterior_precision(info, self.table)
         sigma = predicted_sigma(self.precision)
         if self.o.target is not None and np.all(sigma / PRIOR_SIGMA < self.o.target):
             return None
@@ -182,6 +250,7 @@ class DesignLoop:
         row.update(frames_before=meas.n, offsets=np.asarray(self.offsets, float),
                    measured_determined=classes(sigma).count("determined"),
                    update_chi2_reduced=float("nan") if res is None else float(res.chi2_reduced),
+                   global_start=k in self.global_starts,
                    gains_json=json.dumps([float(g) for g in st.gains]),
                    predicted_intensity_json=json.dumps([float(v) for v in st.intensity]))
         self.steps.append(row)
