@@ -56,7 +56,7 @@ from bluesky_offsets.physics.screen import STAGE
 from bluesky_offsets.physics.twin import CAMERA, HistogramSpec
 
 from .backends import FootprintBackend, Frame, FrameAborted, make_backend
-from .motor_record import AxisSettings, MotorRecord
+from .motor_record import AxisSettings, MotorRecord, StrictDouble, StrictLong
 from .truth import Truth
 
 log = logging.getLogger("sim_iocs.metrixs")
@@ -126,9 +126,9 @@ class FocusChamber(PVGroup):
 
     acquire = pvproperty(value="Done", name="Acquire", dtype=ChannelType.ENUM, enum_strings=("Done", "Acquire"),
                          doc="Acquire one frame (put-completion when ready); write 0 to abort")
-    acquire_time = pvproperty(value=0.0, name="AcquireTime", units="s", precision=3,
+    acquire_time = pvproperty(value=0.0, name="AcquireTime", dtype=StrictDouble, units="s", precision=3,
                               doc="Minimum duration of a frame (s)")
-    num_rays = pvproperty(value=10000, name="NumRays", dtype=ChannelType.LONG,
+    num_rays = pvproperty(value=10000, name="NumRays", dtype=StrictLong,
                           doc="Ray budget: source rays per frame")
     hist_x = pvproperty(value=_zeros(HIST.bins_x), name="HistX", read_only=True, max_length=HIST.bins_x,
                         doc="x histogram, fraction of source rays per bin")

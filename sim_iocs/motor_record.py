@@ -35,7 +35,7 @@ import time
 from dataclasses import dataclass
 
 from caproto import ChannelType
-from caproto.server import PVGroup, PvpropertyDouble, pvproperty
+from caproto.server import PVGroup, PvpropertyDouble, PvpropertyInteger, PvpropertyShort, pvproperty
 from caproto._data import SkipWrite
 
 MAX_ACCEL_TIME = 10.0  # s: longer ACCL is clamped (a 0.2 mm move would otherwise take minutes)
@@ -132,23 +132,42 @@ class AxisSettings:
 
 
 _NUMBER = re.compile(rb"\s*[+-]?(\d+\.?\d*|\.\d+)([eE][+-]?\d+)?\s*")
+_INTEGER = re.compile(rb"\s*[+-]?\d+\s*")
 
 
-class _StrictDouble(PvpropertyDouble):
-    """A double that takes a put as text only when the text is a plain number: caproto reads
-    ``''`` as 0 and Python's ``'1_0'`` as 10, which the record would refuse."""
+class StrictText:
+    """A numeric field that takes a put as text only when the text is a plain number of its kind:
+    caproto reads ``''`` as 0 and Python's ``'1_0'`` as 10, which the record would refuse."""
+
+    pattern = _NUMBER
 
     async def write_from_dbr(self, data, data_type, metadata, *, flags=0):
         if data_type in (ChannelType.STRING, ChannelType.CHAR):
             texts = [data] if isinstance(data, (str, bytes)) else list(data)
             for t in texts:
                 raw = (t.encode("latin-1") if isinstance(t, str) else bytes(t)).rstrip(b"\0")
-                if not _NUMBER.fullmatch(raw):
-                    raise ValueError(f"not a number: {raw!r}")
+                if not self.pattern.fullmatch(raw):
+                    raise ValueError(f"not {'an integer' if self.pattern is _INTEGER else 'a number'}: {raw!r}")
         return await super().write_from_dbr(data, data_type, metadata, flags=flags)
 
 
-class _UnclampedDouble(_StrictDouble):
+class StrictDouble(StrictText, PvpropertyDouble):
+    """A double that refuses text other than a plain number."""
+
+
+class StrictShort(StrictText, PvpropertyShort):
+    """A 16-bit integer that refuses text other than a plain integer."""
+
+    pattern = _INTEGER
+
+
+class StrictLong(StrictText, PvpropertyInteger):
+    """A 32-bit integer that refuses text other than a plain integer."""
+
+    pattern = _INTEGER
+
+
+class _UnclampedDouble(StrictDouble):
     """A double whose control limits are published but not enforced by caproto.
 
     The motor record enforces its limits itself (``LVIO``) instead of failing
@@ -193,8 +212,8 @@ class MotorRecord(PVGroup):
     rval = _ro(0, ".RVAL", "Raw desired value (steps)", _LONG)
     rrbv = _ro(0, ".RRBV", "Raw readback value (steps)", _LONG)
     diff = _ro(0.0, ".DIFF", "Difference DVAL - DRBV")
-    rlv = pvproperty(dtype=_StrictDouble, value=0.0, name=".RLV", doc="Relative value (EGU)")
-    off = pvproperty(dtype=_StrictDouble, value=0.0, name=".OFF", doc="User offset (EGU)")
+    rlv = pvproperty(dtype=StrictDouble, value=0.0, name=".RLV", doc="Relative value (EGU)")
+    off = pvproperty(dtype=StrictDouble, value=0.0, name=".OFF", doc="User offset (EGU)")
     dir = pvproperty(value="Pos", name=".DIR", dtype=_ENUM, enum_strings=("Pos", "Neg"),
                      doc="User direction")
     foff = pvproperty(value="Variable", name=".FOFF", dtype=_ENUM, enum_strings=("Variable", "Frozen"),
@@ -212,37 +231,37 @@ class MotorRecord(PVGroup):
     hls = _ro(0, ".HLS", "At high limit switch", _SHORT)
     lls = _ro(0, ".LLS", "At low limit switch", _SHORT)
     # --- commands -----------------------------------------------------------
-    stop = pvproperty(value=0, name=".STOP", dtype=_SHORT, doc="Stop")
+    stop = pvproperty(value=0, name=".STOP", dtype=StrictShort, doc="Stop")
     spmg = pvproperty(value="Go", name=".SPMG", dtype=_ENUM, enum_strings=("Stop", "Pause", "Move", "Go"),
                       doc="Stop/Pause/Move/Go")
     cnen = pvproperty(value="Enable", name=".CNEN", dtype=_ENUM, enum_strings=("Disable", "Enable"),
                       doc="Enable control (torque)")
-    twv = pvproperty(dtype=_StrictDouble, value=0.0, name=".TWV", doc="Tweak step size (EGU)")
-    twf = pvproperty(value=0, name=".TWF", dtype=_SHORT, doc="Tweak motor forward")
-    twr = pvproperty(value=0, name=".TWR", dtype=_SHORT, doc="Tweak motor reverse")
-    homf = pvproperty(value=0, name=".HOMF", dtype=_SHORT, doc="Home forward")
-    homr = pvproperty(value=0, name=".HOMR", dtype=_SHORT, doc="Home reverse")
+    twv = pvproperty(dtype=StrictDouble, value=0.0, name=".TWV", doc="Tweak step size (EGU)")
+    twf = pvproperty(value=0, name=".TWF", dtype=StrictShort, doc="Tweak motor forward")
+    twr = pvproperty(value=0, name=".TWR", dtype=StrictShort, doc="Tweak motor reverse")
+    homf = pvproperty(value=0, name=".HOMF", dtype=StrictShort, doc="Home forward")
+    homr = pvproperty(value=0, name=".HOMR", dtype=StrictShort, doc="Home reverse")
     # --- limits ---------------------------------------------------------------
-    hlm = pvproperty(dtype=_StrictDouble, value=0.0, name=".HLM", doc="User high limit")
-    llm = pvproperty(dtype=_StrictDouble, value=0.0, name=".LLM", doc="User low limit")
-    dhlm = pvproperty(dtype=_StrictDouble, value=0.0, name=".DHLM", doc="Dial high limit")
-    dllm = pvproperty(dtype=_StrictDouble, value=0.0, name=".DLLM", doc="Dial low limit")
+    hlm = pvproperty(dtype=StrictDouble, value=0.0, name=".HLM", doc="User high limit")
+    llm = pvproperty(dtype=StrictDouble, value=0.0, name=".LLM", doc="User low limit")
+    dhlm = pvproperty(dtype=StrictDouble, value=0.0, name=".DHLM", doc="Dial high limit")
+    dllm = pvproperty(dtype=StrictDouble, value=0.0, name=".DLLM", doc="Dial low limit")
     # --- dynamics and resolution ----------------------------------------------
-    velo = pvproperty(dtype=_StrictDouble, value=1.0, name=".VELO", doc="Velocity (EGU/s)")
-    vmax = pvproperty(dtype=_StrictDouble, value=10.0, name=".VMAX", doc="Max. velocity (EGU/s)")
-    vbas = pvproperty(dtype=_StrictDouble, value=0.0, name=".VBAS", doc="Base velocity (EGU/s)")
-    hvel = pvproperty(dtype=_StrictDouble, value=1.0, name=".HVEL", doc="Home velocity (EGU/s)")
-    accl = pvproperty(dtype=_StrictDouble, value=0.2, name=".ACCL", doc="Seconds to velocity")
-    mres = pvproperty(dtype=_StrictDouble, value=1e-6, name=".MRES", doc="Motor step size (EGU)")
-    eres = pvproperty(dtype=_StrictDouble, value=1e-6, name=".ERES", doc="Encoder step size (EGU)")
-    rres = pvproperty(dtype=_StrictDouble, value=1e-6, name=".RRES", doc="Readback step size (EGU)")
-    rdbd = pvproperty(dtype=_StrictDouble, value=1e-6, name=".RDBD", doc="Retry deadband (EGU)")
-    srev = pvproperty(value=200, name=".SREV", dtype=_LONG, doc="Steps per revolution")
-    urev = pvproperty(dtype=_StrictDouble, value=2e-4, name=".UREV", doc="EGUs per revolution")
+    velo = pvproperty(dtype=StrictDouble, value=1.0, name=".VELO", doc="Velocity (EGU/s)")
+    vmax = pvproperty(dtype=StrictDouble, value=10.0, name=".VMAX", doc="Max. velocity (EGU/s)")
+    vbas = pvproperty(dtype=StrictDouble, value=0.0, name=".VBAS", doc="Base velocity (EGU/s)")
+    hvel = pvproperty(dtype=StrictDouble, value=1.0, name=".HVEL", doc="Home velocity (EGU/s)")
+    accl = pvproperty(dtype=StrictDouble, value=0.2, name=".ACCL", doc="Seconds to velocity")
+    mres = pvproperty(dtype=StrictDouble, value=1e-6, name=".MRES", doc="Motor step size (EGU)")
+    eres = pvproperty(dtype=StrictDouble, value=1e-6, name=".ERES", doc="Encoder step size (EGU)")
+    rres = pvproperty(dtype=StrictDouble, value=1e-6, name=".RRES", doc="Readback step size (EGU)")
+    rdbd = pvproperty(dtype=StrictDouble, value=1e-6, name=".RDBD", doc="Retry deadband (EGU)")
+    srev = pvproperty(value=200, name=".SREV", dtype=StrictLong, doc="Steps per revolution")
+    urev = pvproperty(dtype=StrictDouble, value=2e-4, name=".UREV", doc="EGUs per revolution")
     # --- description --------------------------------------------------------
     egu = pvproperty(value="", name=".EGU", dtype=_STR, doc="Engineering units")
     desc = pvproperty(value="", name=".DESC", dtype=_STR, doc="Descriptor")
-    prec = pvproperty(value=6, name=".PREC", dtype=_SHORT, doc="Display precision")
+    prec = pvproperty(value=6, name=".PREC", dtype=StrictShort, doc="Display precision")
     rtyp = _ro("motor", ".RTYP", "Record type", _STR)
     out = _ro("asyn(SIM_METRIXS)", ".OUT", "Output specification", _STR)
 

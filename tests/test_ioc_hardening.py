@@ -73,7 +73,7 @@ def test_extreme_puts_keep_steps_limits_and_speeds_sane(metrixs_ioc, ca):
     below VELO left VELO above it; text such as "1_0" was read as 10. Each refusal is one line
     in the IOC's log."""
     rec = metrixs_ioc.prefix + "e1:tz"
-    saved = {f: ca.get(rec + f) for f in (".MRES", ".VELO", ".VMAX", ".DHLM", ".OFF", ".TWV")}
+    saved = {f: ca.get(rec + f) for f in (".MRES", ".VELO", ".VMAX", ".DHLM", ".OFF", ".TWV", ".PREC")}
     start = ca.get(rec + ".RBV")
     try:
         ca.put(rec + ".MRES", 1e-20)
@@ -95,8 +95,16 @@ def test_extreme_puts_keep_steps_limits_and_speeds_sane(metrixs_ioc, ca):
         for text in ("", "1_0", "0x10"):  # as text only a plain number (caproto read '' as 0, '1_0' as 10)
             assert _failed(ca.put(rec + ".TWV", text)), text
         assert not _failed(ca.put(rec + ".TWV", " 0.002 ")) and ca.get(rec + ".TWV") == 0.002
+        chamber = metrixs_ioc.prefix + "chamber:"
+        for pv, texts in ((rec + ".PREC", ("", "1_0", "2.5")), (rec + ".SREV", ("", "2_00")),
+                          (chamber + "NumRays", ("", "1_000")), (chamber + "AcquireTime", ("", "1_0"))):
+            before = ca.get(pv)
+            for text in texts:  # integer fields: only a plain integer
+                assert _failed(ca.put(pv, text)), (pv, text)
+            assert ca.get(pv) == before, pv
+        assert not _failed(ca.put(rec + ".PREC", " 5 ")) and ca.get(rec + ".PREC") == 5
     finally:
-        for field in (".VMAX", ".VELO", ".MRES", ".DHLM", ".OFF", ".TWV"):
+        for field in (".VMAX", ".VELO", ".MRES", ".DHLM", ".OFF", ".TWV", ".PREC"):
             ca.put(rec + field, saved[field])
         ca.put(rec, start, wait=True, timeout=30)
     log = metrixs_ioc.log()
