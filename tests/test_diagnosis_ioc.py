@@ -7,12 +7,12 @@ the IOC into the run store and compare → fit the offsets → diagnose (camera-
 profiles) → add the winner → refit → diagnose again, every step a run in the store.  The
 chamber_z scenario is the README's main job, the designed measurement (a smaller frame budget
 than the demo's default, for the suite's time) ranking all 15 candidates, read back from the
-store by uid.  The thermal bump and the scenario with no hidden effect measure as the bright
-design does (``--design bright``: 16 bright configurations and 4 of them again with the slits
-open, the surrogate finder on the 16); the bump's diagnosis ranks, for the suite's time, the six
-candidates whose signatures widen or move the focus (:data:`FOCUS_CANDIDATES`), the one without
-an effect all 15.  Other effects (the source's divergence among them) and the whole grid over
-all 15 are ``benchmarks/bench_diagnosis_grid.py``.  The checks read ``summary.json``.
+store by uid.  The scenario with no hidden effect measures as the bright design does
+(``--design bright``: 16 bright configurations and 4 of them again with the slits open, the
+surrogate finder on the 16) and ranks all 15 candidates.  Other effects (a thermal bump on M1
+and the source's divergence among them) through the IOC, and the whole grid over all 15, are
+``benchmarks/bench_diagnosis_grid.py``; in-process, ``tests/test_diagnosis.py``.  The checks
+read ``summary.json``.
 
 About 2-4 minutes per scenario on two cores (docs/diagnosis.md).
 ``BLUESKY_OFFSETS_SKIP_ACCEPTANCE=1`` skips them for a quick local run.
@@ -42,7 +42,6 @@ pytestmark = [pytest.mark.slow, pytest.mark.timeout(1200),
 # (hidden effect as given to --effect, its name, the parameter checked, its hidden value)
 SCENARIOS = {
     "chamber_z": ("chamber_z:z=20", "chamber_z", "z", 20.0),
-    "thermal_bump_m1": ("thermal_bump_m1:height=450", "thermal_bump_m1", "height", 450.0),
 }
 
 
@@ -62,15 +61,13 @@ def _demo(tmp_path: Path, effect: str, *extra: str) -> tuple[dict, subprocess.Co
 
 # the main job's designed measurement with a smaller budget than the demo's 60 frames
 MAIN_JOB = ("--frames", "36")
-# the candidates that widen or move the focus, each the others' nearest confusion
-FOCUS_CANDIDATES = "chamber_z,source_size,source_divergence,slope_error_m1,thermal_bump_m1,detector_blur"
 
 
 class _Scenario:
     """One scenario's demo, run once for the tests of its class: pytest-xdist (``--dist
     loadscope``) runs a class on one worker, so the demos spread over the workers.  Only the
-    main job's scenario ends with the beam optimization (``optimize``); the others stop after
-    the diagnosis (``--no-optimize``), the step they test."""
+    main job's scenario ends with the beam optimization (``optimize``); the other stops after
+    the diagnosis (``--no-optimize``), the step it tests."""
 
     optimize = False
     options: tuple[str, ...] = ("--design", "bright")
@@ -215,11 +212,6 @@ class TestChamberZ(_HiddenEffect):
         for text in ("Error history", "ranking", summary["verdict"], uids["measurement"], uids["diagnose"],
                      "The designed measurement", "Validation frames", "Offsets of the final model"):
             assert text in html
-
-
-@_scenario("thermal_bump_m1")
-class TestThermalBump(_HiddenEffect):
-    options = ("--design", "bright", "--candidates", FOCUS_CANDIDATES)
 
 
 @_scenario("none")
