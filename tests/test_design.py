@@ -177,10 +177,10 @@ def test_a_prior_wide_posterior_still_gets_frames_where_the_estimate_sees_light(
 
 
 def test_an_estimate_dark_where_the_beamline_was_lit_is_refitted_from_a_global_start():
-    """At ±20 % the estimate can put no light where the beamline did (here the source shifted up and
-    M1 and both mirrors tilted the other way): the update's fit has no light to follow.  :func:`global_starts` finds
-    offsets that light the frames, and the refit from them comes nearer the frames than the one
-    from the dark estimate."""
+    """At ±20 % the estimate can put no light where the beamline did (here the source shifted up,
+    M1 and both mirrors tilted the other way): the update's fit has no light to follow.
+    :func:`global_starts` finds offsets nearer the frames, and the refit from them lights the
+    frames and ends nearer them than the one from the dark estimate."""
     from bluesky_offsets.design.sequence import dark_where_lit, global_starts, update
     from bluesky_offsets.model.measurement import Measurement
     from bluesky_offsets.model.state import simulate_raw

@@ -227,11 +227,12 @@ class DesignLoop:
                                     table=self.table)
         if res is not None and dark_where_lit(a, info.intensity, self.o.floor):
             progress({"step": k, "stage": "global start"})
-            for start in global_starts(a, self.offsets, photons=self.photons, seed=self.o.seed + k,
-                                       table=self.table):
-                other = update(a, start, options=self.o, step=k, table=self.table)
-                if other.chi2 < res.chi2:
-                    res, self.offsets = other, other.state.offsets
+            ends = [update(a, start, options=self.o, step=k, table=self.table)
+                    for start in global_starts(a, self.offsets, photons=self.photons, seed=self.o.seed + k,
+                                               table=self.table)]
+            best = min([res, *ends], key=lambda e: e.chi2)
+            if best is not res:
+                res, self.offsets = best, best.state.offsets
                 info = measured_information(self.engine, a, self.offsets, options=self.o, photons=self.photons,
                                             table=self.table)
             self.global_starts.append(k)
