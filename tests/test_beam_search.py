@@ -110,7 +110,8 @@ def test_find_beam_plan_on_the_simulated_ioc(tmp_path):
         assert len(res.uids) == len(out.run_start_uids) and all(u in out.run_start_uids for u in res.uids)
         here = RE(current_configuration(beamline)).plan_result
         np.testing.assert_allclose(here[METRIXS.motorized], res.configuration[METRIXS.motorized], atol=1e-3)
-        again = RE(measure_configurations([here], beamline, chamber)).plan_result
-        assert intensity(again.hist_x, again.hist_y)[0] > HIGH_RAY_THRESHOLD
+        # the search may stop just above the threshold: judge the mean of three fresh frames, not one
+        again = RE(measure_configurations([here] * 3, beamline, chamber)).plan_result
+        assert intensity(again.hist_x, again.hist_y).mean() > HIGH_RAY_THRESHOLD, res.log
     finally:
         ioc.stop()
