@@ -29,11 +29,11 @@ from .motion import (
     as_configurations,
     check_limits,
     move_to,
-    read_positions,
-    resolutions,
+    read_setpoints,
     resolve_motors,
     resolve_stage,
     return_to,
+    tolerances,
 )
 
 
@@ -131,7 +131,8 @@ def scan_configurations(configurations, beamline, chamber, *, reference=None, ta
     motors = resolve_motors(beamline, table)
     configs = as_configurations(configurations, table)
     motors, stage = _with_stage(beamline, motors, screen)
-    start = yield from read_positions(motors)
+    tolerance = yield from tolerances(motors)
+    start = yield from read_setpoints(motors, tolerance)
     ref = _reference_vector(reference, {n: v for n, v in start.items() if n in table.names}, table)
     col = {n: table.index(n) for n in motors if n not in (stage or {})}
 
@@ -152,8 +153,6 @@ def scan_configurations(configurations, beamline, chamber, *, reference=None, ta
         return cfgs, tgts, scrs
 
     configs, targets, screens = yield from plan_targets(configs, screen)
-    steps = yield from resolutions(motors)
-
     truth_id = yield from _optional_read(chamber, "truth_id")
     n_rays = yield from _optional_read(chamber, "num_rays")
     profile_axes = []
@@ -205,7 +204,7 @@ def scan_configurations(configurations, beamline, chamber, *, reference=None, ta
         for cfg, target, scr in zip(cfgs, tgts, scrs if scrs is not None else [None] * len(cfgs)):
             yield from bps.checkpoint()  # a paused scan resumes at this configuration
             at, here["at"] = here["at"], None
-            yield from move_to(motors, target, resolution=steps, current=at)
+            yield from move_to(motors, target, tolerance=tolerance, current=at)
             here["at"] = target
             commanded.update(len(readings), cfg, scr)
             reading = yield from bps.trigger_and_read(devices)

@@ -21,16 +21,12 @@ import bluesky.plan_stubs as bps
 import numpy as np
 from bluesky.utils import MsgGenerator
 
-from bluesky_offsets.epics.pvs import STAGE_AXES
+from bluesky_offsets.epics.pvs import STAGE_AXES, MotionError
 from bluesky_offsets.physics.parameters import METRIXS, ParameterError, ParameterTable
 
 
 class MotorLimitError(ValueError):
     """A requested configuration lies outside a motor's limits; nothing was moved."""
-
-
-class MotionError(RuntimeError):
-    """A motor did not arrive where it was sent."""
 
 
 def resolve_motors(beamline, table: ParameterTable = METRIXS) -> dict:
@@ -115,6 +111,24 @@ def read_positions(motors: Mapping) -> MsgGenerator[dict]:
     return out
 
 
+def read_setpoints(motors: Mapping, tolerance: Mapping) -> MsgGenerator[dict]:
+    """Where the motors were last sent, ``{parameter name: setpoint}`` (the readback for a motor
+    without a ``user_setpoint``): relative moves count from there, not from a noisy readback.
+
+    Raises :class:`MotionError` naming each motor whose readback is further from its setpoint
+    than ``tolerance`` (it did not arrive at its last move)."""
+    readback = yield from read_positions(motors)
+    out, off = {}, []
+    for name, m in motors.items():
+        sp = getattr(m, "user_setpoint", None)
+        out[name] = readback[name] if sp is None else float((yield from bps.rd(sp)))
+        if abs(out[name] - readback[name]) > _allowed(tolerance.get(name, 0.0), out[name]):
+            off.append(f"{name}: at {readback[name]:.6g}, sent to {out[name]:.6g}")
+    if off:
+        raise MotionError("motors stand away from their setpoints (a move that did not arrive): " + "; ".join(off))
+    return out
+
+
 def current_configuration(beamline, table: ParameterTable = METRIXS) -> MsgGenerator[np.ndarray]:
     """The motors' readbacks as a configuration vector (table order; fixed parameters at design value)."""
     motors = resolve_motors(beamline, table)
@@ -136,18 +150,38 @@ def _limits(motor) -> MsgGenerator[tuple[float, float] | None]:
     return min(lo, hi), max(lo, hi)
 
 
-def _resolution(motor) -> MsgGenerator[float]:
-    for attr in ("motor_resolution", "deadband"):
-        sig = getattr(motor, attr, None)
-        if sig is not None:
-            try:
-                return abs(float((yield from bps.rd(sig))))
-            except Exception:
-                pass
-    prec = getattr(motor, "precision", None)
-    if isinstance(prec, (int, np.integer)):
-        return 10.0 ** -int(prec)
-    return 0.0
+def _read_optional(motor, attr: str) -> MsgGenerator[float | None]:
+    sig = getattr(motor, attr, None)
+    if sig is None:
+        return None
+    try:
+        return abs(float((yield from bps.rd(sig))))
+    except Exception:
+        return None
+
+
+def _step(motor) -> MsgGenerator[float]:
+    step = yield from _read_optional(motor, "motor_resolution")
+    if step is None:
+        prec = getattr(motor, "precision", None)
+        step = 10.0 ** -int(prec) if isinstance(prec, (int, np.integer)) else 0.0
+    return step
+
+
+def _tolerance(motor) -> MsgGenerator[float]:
+    """How far from its target a motor may stand after a move: two steps (``MRES``, else
+    ``10**-precision``), or the retry deadband ``RDBD`` when wider (an encoder-read axis)."""
+    step = yield from _step(motor)
+    band = yield from _read_optional(motor, "deadband")
+    return max(2 * step, band or 0.0)
+
+
+def resolutions(motors: Mapping) -> MsgGenerator[dict]:
+    """Each motor's step size (``MRES``, else ``10**-precision``), ``{name: resolution}``."""
+    out = {}
+    for name, m in motors.items():
+        out[name] = yield from _step(m)
+    return out
 
 
 def check_limits(motors: Mapping, targets: Sequence[Mapping]) -> MsgGenerator[None]:
@@ -173,15 +207,15 @@ def check_limits(motors: Mapping, targets: Sequence[Mapping]) -> MsgGenerator[No
                               + "; ".join(problems[:5]) + more)
 
 
-def resolutions(motors: Mapping) -> MsgGenerator[dict]:
-    """Each motor's step size (``MRES``, else ``10**-precision``), ``{name: resolution}``."""
+def tolerances(motors: Mapping) -> MsgGenerator[dict]:
+    """Each motor's arrival tolerance (:func:`_tolerance`), ``{name: tolerance}``."""
     out = {}
     for name, m in motors.items():
-        out[name] = yield from _resolution(m)
+        out[name] = yield from _tolerance(m)
     return out
 
 
-def move_to(motors: Mapping, target: Mapping, *, verify: bool = True, resolution: Mapping | None = None,
+def move_to(motors: Mapping, target: Mapping, *, verify: bool = True, tolerance: Mapping | None = None,
             current: Mapping | None = None) -> MsgGenerator[None]:
     """Move all motors to ``target`` together, wait, and check that each arrived.
 
@@ -200,26 +234,28 @@ def move_to(motors: Mapping, target: Mapping, *, verify: bool = True, resolution
     if args:
         yield from bps.mv(*args)
     if verify and moving:
-        yield from verify_positions(moving, target, resolution)
+        yield from verify_positions(moving, target, tolerance)
 
 
 def _same(a: float, b: float) -> bool:
     return abs(float(a) - float(b)) <= 1e-12 * max(1.0, abs(float(b)))
 
 
-def verify_positions(motors: Mapping, target: Mapping, resolution: Mapping | None = None) -> MsgGenerator[None]:
-    """Raise :class:`MotionError` for motors further from ``target`` than twice their resolution."""
-    if resolution is None:
-        resolution = yield from resolutions(motors)
+def _allowed(tolerance: float, target: float) -> float:
+    return max(tolerance * (1 + 1e-9), 1e-9 * max(1.0, abs(target)))
+
+
+def verify_positions(motors: Mapping, target: Mapping, tolerance: Mapping | None = None) -> MsgGenerator[None]:
+    """Raise :class:`MotionError` for motors further from ``target`` than their tolerance (:func:`tolerances`)."""
+    if tolerance is None:
+        tolerance = yield from tolerances(motors)
     off = []
     for name, m in motors.items():
         pos = float((yield from bps.rd(m)))
-        res = resolution.get(name, 0.0)
-        tol = max(2 * res, 1e-9 * max(1.0, abs(target[name])))
-        if abs(pos - target[name]) > tol:
+        if abs(pos - target[name]) > _allowed(tolerance.get(name, 0.0), target[name]):
             off.append(f"{name}: at {pos:.6g}, sent to {target[name]:.6g}")
     if off:
-        raise MotionError("motors did not reach their targets (stopped, limit or controller refusal): "
+        raise MotionError("motors did not arrive (stalled, stopped, at a limit or refused by the controller): "
                           + "; ".join(off))
 
 

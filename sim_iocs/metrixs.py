@@ -35,6 +35,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import dataclasses
 import json
 import logging
 import math
@@ -56,7 +57,7 @@ from bluesky_offsets.physics.screen import STAGE
 from bluesky_offsets.physics.twin import CAMERA, HistogramSpec
 
 from .backends import FootprintBackend, Frame, FrameAborted, make_backend
-from .motor_record import AxisSettings, MotorRecord, StrictDouble, StrictLong
+from .motor_record import AxisSettings, Mechanics, MotorRecord, StrictDouble, StrictLong
 from .truth import Truth
 
 log = logging.getLogger("sim_iocs.metrixs")
@@ -105,6 +106,26 @@ def stage_settings(axis, *, move_time: float = 4.0, accel_time: float = 0.2) -> 
     at 0 at start, 0.1 µm steps, a full-travel move in ``move_time`` seconds."""
     return AxisSettings(description=f"chamber stage {axis.name}", egu=axis.unit, low=axis.low, high=axis.high,
                         start=0.0, velocity=axis.span / move_time, accel_time=accel_time, resolution=1e-4)
+
+
+MOTOR_PROFILES = ("perfect", "realistic")
+"""``--motors``: perfect axes, or every axis as a typical encoder-read stage (:func:`motor_profile`)."""
+
+
+def motor_profile(kind: str, settings: AxisSettings) -> tuple[Mechanics, AxisSettings]:
+    """The mechanics and record settings of one axis under a ``--motors`` profile.
+
+    ``realistic``, in steps of the axis's resolution ``MRES`` (10 nm on a 2 mm travel): an
+    encoder read with 3 steps of noise (σ), 200 steps of backlash taken out by a final approach of
+    ``BDST`` = 400 steps, retries (``RTRY`` 10) until within ``RDBD`` = 10 steps.
+    """
+    if kind not in MOTOR_PROFILES:
+        raise ParameterError(f"--motors must be one of {', '.join(MOTOR_PROFILES)}, got {kind!r}")
+    if kind == "perfect":
+        return Mechanics(), settings
+    r = settings.resolution
+    return (Mechanics(encoder=True, readback_noise=3 * r, backlash=200 * r),
+            dataclasses.replace(settings, deadband=10 * r, backlash_distance=400 * r))
 
 
 def _zeros(n):
@@ -365,7 +386,8 @@ class MetrixsIOC:
                  backend: FootprintBackend | str = "twin", *, table: ParameterTable = METRIXS,
                  n_rays: int = 10000, move_time: float = 4.0, accel_time: float = 0.2, tick: float = 0.05,
                  noise_seed: int | None = None, max_rays: int = MAX_RAYS,
-                 truth_log: Callable[[str], None] | None = None, leave_out: Sequence[str] = ()):
+                 truth_log: Callable[[str], None] | None = None, leave_out: Sequence[str] = (),
+                 motors: str = "perfect"):
         self.prefix = prefix
         self.table = table
         self.truth = truth or Truth.from_seed(None, table)
@@ -377,13 +399,19 @@ class MetrixsIOC:
             raise ValueError(f"--leave-out: {', '.join(unknown)} are not motorized parameters")
         self.motors: dict[str, MotorRecord] = {}
         self._fixed_start = np.array(self.truth.start, dtype=float)
+        def record(name, pv, settings, k):
+            mechanics, settings = motor_profile(motors, settings)
+            rng = None if noise_seed is None else [noise_seed, 7, k]  # the encoders' own stream
+            return MotorRecord(prefix=pv, settings=settings, tick=tick, name=name, rng=rng,
+                               mechanics=self.truth.mechanics(name, mechanics))
+
         for i, p in enumerate(table):
             if p.motorized and p.name not in leave_out:
                 settings = axis_settings(p, self.truth.start[i], move_time=move_time, accel_time=accel_time)
-                self.motors[p.name] = MotorRecord(prefix=motor_pv(p, prefix), settings=settings, tick=tick,
-                                                  name=p.name)
-        self.stage = {ax.name: MotorRecord(prefix=f"{prefix}{CHAMBER}{ax.name}", settings=stage_settings(
-            ax, move_time=move_time, accel_time=accel_time), tick=tick, name=f"chamber.{ax.name}") for ax in STAGE}
+                self.motors[p.name] = record(p.name, motor_pv(p, prefix), settings, i)
+        self.stage = {ax.name: record(f"chamber.{ax.name}", f"{prefix}{CHAMBER}{ax.name}",
+                                      stage_settings(ax, move_time=move_time, accel_time=accel_time), len(table) + k)
+                      for k, ax in enumerate(STAGE)}
         self.chamber = FocusChamber(prefix=prefix + CHAMBER, state=self.true_state, backend=backend,
                                     truth_id=self.truth.truth_id, table=table, n_rays=n_rays, max_rays=max_rays,
                                     truth_log=truth_log, screen=self.screen, name="chamber")
@@ -461,6 +489,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--move-time", type=float, default=4.0, help="seconds for a full-range move (VELO)")
     parser.add_argument("--accel-time", type=float, default=0.2, help="motor acceleration time ACCL (s)")
     parser.add_argument("--tick", type=float, default=0.05, help="readback update period while moving (s)")
+    parser.add_argument("--motors", choices=MOTOR_PROFILES, default="perfect",
+                        help="perfect axes (default), or encoder noise, backlash and retries on every axis "
+                             "(typical values: sim_iocs.metrixs.motor_profile)")
     parser.add_argument("--interfaces", nargs="+", default=None,
                         help="interfaces to serve on (default: $EPICS_CAS_INTF_ADDR_LIST, else loopback only)")
     parser.add_argument("--leave-out", action="append", default=[], metavar="PARAMETER",
@@ -503,7 +534,7 @@ def _build(args) -> MetrixsIOC:
         return MetrixsIOC(args.prefix, truth, args.backend, n_rays=args.rays, move_time=args.move_time,
                           accel_time=args.accel_time, tick=args.tick, noise_seed=args.noise_seed,
                           max_rays=args.max_rays, truth_log=_truth_logger(args.truth_log),
-                          leave_out=args.leave_out)
+                          leave_out=args.leave_out, motors=args.motors)
     except ValueError as exc:
         raise ParameterError(str(exc)) from None
 

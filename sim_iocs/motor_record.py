@@ -21,8 +21,13 @@ The motion runs in a task owned by the record, not by the client's write:
 a client that disconnects mid-move leaves the move running to its end.
 
 The physical position of the axis (what the beamline model sees) is
-:attr:`MotorRecord.axis_position`; it differs from the dial position only
-after the dial has been redefined in ``SET``/``Frozen`` mode.
+:attr:`MotorRecord.axis_position`.  With perfect :class:`Mechanics` (the
+default) it differs from the dial position only after the dial has been
+redefined in ``SET``/``Frozen`` mode.  Real :class:`Mechanics` add what a real
+axis does: a step-scale error and backlash between the motor and the load, a
+load that stalls, and an encoder (``UEIP``) whose noisy readback the record
+corrects with retries (``RDBD``, ``RTRY``, ``RCNT``, ``MISS``); backlash is
+taken out, as by the record, with a final approach of ``BDST`` at ``BVEL``.
 """
 
 from __future__ import annotations
@@ -33,6 +38,8 @@ import math
 import re
 import time
 from dataclasses import dataclass
+
+import numpy as np
 
 from caproto import ChannelType
 from caproto.server import PVGroup, PvpropertyDouble, PvpropertyInteger, PvpropertyShort, pvproperty
@@ -69,7 +76,8 @@ log = logging.getLogger("sim_iocs.motor_record")
 
 # MSTA bits of the motor record (motor record documentation, "MSTA").
 MSTA_DIRECTION, MSTA_DONE, MSTA_PLUS_LS, MSTA_HOME_LS = 1 << 0, 1 << 1, 1 << 2, 1 << 3
-MSTA_POSITION, MSTA_HOME, MSTA_PRESENT, MSTA_PROBLEM = 1 << 5, 1 << 7, 1 << 8, 1 << 9
+MSTA_POSITION, MSTA_SLIP_STALL, MSTA_HOME, MSTA_PRESENT = 1 << 5, 1 << 6, 1 << 7, 1 << 8  # PRESENT: an encoder
+MSTA_PROBLEM = 1 << 9
 MSTA_MOVING, MSTA_GAIN_SUPPORT, MSTA_MINUS_LS, MSTA_HOMED = 1 << 10, 1 << 11, 1 << 13, 1 << 14
 
 
@@ -125,10 +133,37 @@ class AxisSettings:
     accel_time: float = 0.2   # ACCL, s
     resolution: float = 1e-6  # MRES, EGU per step
     travel_margin: float = 0.25  # hardware limit switches this fraction of the range beyond the soft limits
+    deadband: float = 0.0     # RDBD (0: one step)
+    backlash_distance: float = 0.0  # BDST: the final approach, from its sign's side
 
     @property
     def precision(self) -> int:
         return int(min(max(-math.floor(math.log10(self.resolution)), 0), 12))
+
+
+@dataclass(frozen=True, kw_only=True)
+class Mechanics:
+    """How an axis really moves (EGU).  The default is a perfect axis: the load follows the
+    commanded steps exactly and the readback is the step count."""
+
+    encoder: bool = False        # readback from an encoder on the load (UEIP) instead of the step count
+    readback_noise: float = 0.0  # encoder noise, σ
+    backlash: float = 0.0        # lost motion between motor and load when the direction reverses
+    step_scale: float = 0.0      # the load moves (1 + step_scale) times the commanded distance
+    stalled: bool = False        # the load does not follow the motor at all
+
+    def __post_init__(self):
+        for name in ("readback_noise", "backlash", "step_scale"):
+            if not math.isfinite(getattr(self, name)):
+                raise ValueError(f"mechanics: {name} must be finite")
+        if self.readback_noise < 0 or self.backlash < 0 or not -0.5 < self.step_scale < 0.5:
+            raise ValueError("mechanics: readback_noise and backlash >= 0, |step_scale| < 0.5")
+        if self.readback_noise and not self.encoder:
+            raise ValueError("mechanics: readback noise needs an encoder (a step count has none)")
+
+    @property
+    def perfect(self) -> bool:
+        return not (self.backlash or self.step_scale or self.stalled)
 
 
 _NUMBER = re.compile(rb"\s*[+-]?(\d+\.?\d*|\.\d+)([eE][+-]?\d+)?\s*")
@@ -202,6 +237,10 @@ class MotorRecord(PVGroup):
         Limits, start position, velocity, resolution, units and description.
     tick : float
         Readback update period during motion (s).
+    mechanics : Mechanics
+        How the axis really moves (hidden from clients but through its readback).
+    rng : numpy.random.Generator or int, optional
+        The encoder noise's random stream.
     """
 
     # --- positions ---------------------------------------------------------
@@ -256,6 +295,14 @@ class MotorRecord(PVGroup):
     eres = pvproperty(dtype=StrictDouble, value=1e-6, name=".ERES", doc="Encoder step size (EGU)")
     rres = pvproperty(dtype=StrictDouble, value=1e-6, name=".RRES", doc="Readback step size (EGU)")
     rdbd = pvproperty(dtype=StrictDouble, value=1e-6, name=".RDBD", doc="Retry deadband (EGU)")
+    rtry = pvproperty(value=10, name=".RTRY", dtype=StrictShort, doc="Max retry count")
+    rcnt = _ro(0, ".RCNT", "Retry count", _SHORT)
+    miss = _ro(0, ".MISS", "Ran out of retries", _SHORT)
+    ueip = pvproperty(value="No", name=".UEIP", dtype=_ENUM, enum_strings=("No", "Yes"),
+                      doc="Use encoder if present")
+    bdst = pvproperty(dtype=StrictDouble, value=0.0, name=".BDST", doc="Backlash distance (EGU)")
+    bvel = pvproperty(dtype=StrictDouble, value=1.0, name=".BVEL", doc="Backlash velocity (EGU/s)")
+    bacc = pvproperty(dtype=StrictDouble, value=0.2, name=".BACC", doc="Backlash seconds to velocity")
     srev = pvproperty(value=200, name=".SREV", dtype=StrictLong, doc="Steps per revolution")
     urev = pvproperty(dtype=StrictDouble, value=2e-4, name=".UREV", doc="EGUs per revolution")
     # --- description --------------------------------------------------------
@@ -265,16 +312,21 @@ class MotorRecord(PVGroup):
     rtyp = _ro("motor", ".RTYP", "Record type", _STR)
     out = _ro("asyn(SIM_METRIXS)", ".OUT", "Output specification", _STR)
 
-    def __init__(self, *args, settings: AxisSettings, tick: float = 0.05, **kwargs):
+    def __init__(self, *args, settings: AxisSettings, tick: float = 0.05, mechanics: Mechanics = Mechanics(),
+                 rng: np.random.Generator | int | None = None, **kwargs):
         super().__init__(*args, **kwargs)
         self.settings = settings
         self.tick = float(tick)
+        self.mechanics = mechanics
+        self._rng = np.random.default_rng(rng)
         s = settings
         # Internal state (plain floats; the PVs mirror them).
         self._sign = 1.0
         self._offset = 0.0
-        self._dial_shift = 0.0          # dial = axis + dial_shift
-        self._axis = self._quantize(s.start, s.resolution)
+        self._dial_shift = 0.0          # dial = motor (steps) or load (encoder) + dial_shift
+        self._axis = self._quantize(s.start, s.resolution)   # the load: what the beamline sees
+        self._motor = self._drive = self._axis               # the step count; what the load is driven to
+        self._noise = 0.0                                    # the encoder's last reading error
         self._axis_low = s.low - s.travel_margin * (s.high - s.low)   # hardware travel (axis units)
         self._axis_high = s.high + s.travel_margin * (s.high - s.low)
         self._target_dial = self._axis
@@ -299,8 +351,31 @@ class MotorRecord(PVGroup):
     def moving(self) -> bool:
         return self._motion is not None and not self._motion.done()
 
+    def _uses_encoder(self) -> bool:
+        return self.mechanics.encoder and self.ueip.value == "Yes"
+
     def _dial(self) -> float:
-        return self._axis + self._dial_shift
+        """The dial readback: the encoder's last reading when it is used, else the step count."""
+        if self._uses_encoder():
+            return self._quantize(self._axis + self._dial_shift + self._noise, self.eres.value)
+        return self._motor + self._dial_shift
+
+    def _sample(self) -> None:
+        """A fresh encoder reading."""
+        sigma = self.mechanics.readback_noise if self._uses_encoder() else 0.0
+        self._noise = float(self._rng.normal(0.0, sigma)) if sigma else 0.0
+
+    def _advance(self, motor: float) -> None:
+        """The motor (axis units) steps to ``motor``; the load follows through the mechanics."""
+        delta, self._motor = motor - self._motor, motor
+        m = self.mechanics
+        if m.perfect:
+            self._axis = self._drive = motor
+            return
+        if not m.stalled:
+            self._drive += (1.0 + m.step_scale) * delta
+        half = 0.5 * m.backlash
+        self._axis = min(max(self._axis, self._drive - half), self._drive + half)
 
     def _user_from_dial(self, dial: float) -> float:
         return self._sign * dial + self._offset
@@ -309,7 +384,11 @@ class MotorRecord(PVGroup):
         return (user - self._offset) * self._sign
 
     def _msta(self) -> int:
-        bits = MSTA_PRESENT | MSTA_GAIN_SUPPORT | MSTA_POSITION
+        bits = MSTA_GAIN_SUPPORT | MSTA_POSITION
+        if self.mechanics.encoder:
+            bits |= MSTA_PRESENT
+        if self.miss.value:
+            bits |= MSTA_SLIP_STALL
         if self.tdir.value:
             bits |= MSTA_DIRECTION
         if not self.moving:
@@ -338,13 +417,18 @@ class MotorRecord(PVGroup):
         await self.egu.write(s.egu)
         await self.desc.write(s.description[:40])
         await self.prec.write(prec)
-        for pv in (self.mres, self.eres, self.rres, self.rdbd):
+        for pv in (self.mres, self.eres, self.rres):
             await pv.write(s.resolution)
+        await self.rdbd.write(s.deadband or s.resolution)
+        await self.bdst.write(s.backlash_distance)
         await self.urev.write(s.resolution * self.srev.value)
         await self.vmax.write(10 * s.velocity)  # before VELO, which is clamped to VMAX
         await self.velo.write(s.velocity)
         await self.hvel.write(s.velocity)
+        await self.bvel.write(s.velocity)
         await self.accl.write(s.accel_time)
+        await self.bacc.write(s.accel_time)
+        await self.ueip.write("Yes" if self.mechanics.encoder else "No")
         await self.twv.write(abs(s.high - s.low) / 100)
         await self.dhlm.write(s.high, verify_value=False)
         await self.dllm.write(s.low, verify_value=False)
@@ -407,37 +491,34 @@ class MotorRecord(PVGroup):
         self._motion = asyncio.get_running_loop().create_task(self._move(self._target_dial, self._generation))
 
     async def _move(self, dial_target: float, generation: int):
-        s_start = self._dial()
-        distance = dial_target - s_start
-        velo = max(abs(self.velo.value), 1e-12)
-        duration, profile = trapezoid(distance, velo, self.accl.value)
-        res = self.mres.value
         limit_hit = None
         try:
             async with self._lock:
                 await self.dmov.write(0)
                 await self.movn.write(1)
                 await self.mip.write(1)
-                await self.tdir.write(1 if distance >= 0 else 0)
+                await self.tdir.write(1 if dial_target >= self._dial() else 0)
                 await self.athm.write(0)
                 await self.hls.write(0)
                 await self.lls.write(0)
+                await self.rcnt.write(0)
+                await self.miss.write(0)
                 await self.msta.write(self._msta())
-            t0 = time.monotonic()
-            while True:
-                # Sleep at least one tick: DMOV=0 is visible even for a zero-length move.
-                remaining = duration - (time.monotonic() - t0)
-                await asyncio.sleep(min(self.tick, remaining) if remaining > 0 else self.tick)
-                t = time.monotonic() - t0
-                dial = self._quantize(s_start + profile(t), res)
-                axis = dial - self._dial_shift
-                if axis >= self._axis_high or axis <= self._axis_low:
-                    limit_hit = "high" if axis >= self._axis_high else "low"
-                    axis = min(max(axis, self._axis_low), self._axis_high)
-                self._axis = axis
-                if limit_hit or t >= duration:
+            limit_hit = await self._approach(dial_target - self._dial())
+            tries = 0
+            while limit_hit is None and self._uses_encoder():
+                self._sample()
+                error = dial_target - self._dial()
+                if abs(error) <= self.rdbd.value:
                     break
-                await self._publish_position()
+                if tries >= self.rtry.value:
+                    await self.miss.write(1)
+                    log.warning("%s: not within RDBD after %d retries (%.6g from the target)", self.prefix,
+                                tries, error)
+                    break
+                tries += 1
+                await self.rcnt.write(tries)
+                limit_hit = await self._approach(error)
         except asyncio.CancelledError:
             # Stopped, paused or retargeted: the axis stays where it is.
             await self._publish_position()
@@ -447,6 +528,44 @@ class MotorRecord(PVGroup):
             await self._finish_motion(generation, stopped=True)
             return
         await self._finish_motion(generation, limit_hit)
+
+    async def _approach(self, distance: float) -> str | None:
+        """Step the motor by ``distance`` (dial units), the last ``BDST`` of it at ``BVEL`` from
+        ``BDST``'s side, as the record takes out backlash; the limit switch hit, if any."""
+        bdst = self.bdst.value
+        if not bdst:
+            legs = [(distance, self.velo.value, self.accl.value)]
+        elif distance * bdst > 0 and abs(distance) <= abs(bdst):
+            legs = [(distance, self.bvel.value, self.bacc.value)]
+        else:
+            legs = [(distance - bdst, self.velo.value, self.accl.value), (bdst, self.bvel.value, self.bacc.value)]
+        for leg in legs:
+            if limit_hit := await self._leg(*leg):
+                return limit_hit
+        return None
+
+    async def _leg(self, distance: float, velocity: float, accel_time: float) -> str | None:
+        """One trapezoidal move of the motor by ``distance``; the limit switch hit, if any."""
+        m0 = self._motor + self._dial_shift
+        duration, profile = trapezoid(distance, max(abs(velocity), 1e-12), accel_time)
+        res = self.mres.value
+        t0 = time.monotonic()
+        while True:
+            # Sleep at least one tick: DMOV=0 is visible even for a zero-length move.
+            remaining = duration - (time.monotonic() - t0)
+            await asyncio.sleep(min(self.tick, remaining) if remaining > 0 else self.tick)
+            t = time.monotonic() - t0
+            self._advance(self._quantize(m0 + profile(t), res) - self._dial_shift)
+            limit_hit = None
+            if self._axis >= self._axis_high or self._axis <= self._axis_low:
+                limit_hit = "high" if self._axis >= self._axis_high else "low"
+                self._axis = min(max(self._axis, self._axis_low), self._axis_high)
+                if self.mechanics.perfect:
+                    self._motor = self._drive = self._axis
+            self._sample()
+            if limit_hit or t >= duration:
+                return limit_hit
+            await self._publish_position()
 
     async def _finish_motion(self, generation: int, limit_hit: str | None = None, *, stopped: bool = False):
         async with self._lock:
@@ -722,6 +841,34 @@ class MotorRecord(PVGroup):
     @rdbd.putter
     async def rdbd(self, instance, value):
         return _finite(value, "RDBD", at_least=0.0)
+
+    @rtry.putter
+    async def rtry(self, instance, value):
+        return min(max(int(value), 0), 255)  # the record's RTRY is an unsigned char
+
+    @ueip.putter
+    async def ueip(self, instance, value):
+        if value == "Yes" and not self.mechanics.encoder:
+            raise ValueError("UEIP: this axis has no encoder")
+        return value
+
+    @bdst.putter
+    async def bdst(self, instance, value):
+        bdst = _finite(value, "BDST")
+        if abs(bdst) > self._axis_high - self._axis_low:
+            raise ValueError("BDST must be shorter than the axis's travel")
+        return bdst
+
+    @bvel.putter
+    async def bvel(self, instance, value):
+        v = _finite(value, "BVEL", above=0.0)
+        if v < self._slowest():
+            raise ValueError(f"BVEL must be >= {self._slowest():.3g} (the whole travel within {MAX_MOVE_TIME:g} s)")
+        return v
+
+    @bacc.putter
+    async def bacc(self, instance, value):
+        return min(max(_finite(value, "BACC"), 1e-3), MAX_ACCEL_TIME)
 
     @urev.putter
     async def urev(self, instance, value):

@@ -16,17 +16,21 @@ Truth file (JSON), every key optional::
       "offsets_physical": {"E2.rotationXerror": -0.05},
       "overrides": {"ImagePlane": {"translationZerror": 5.0}},
       "start": {"E1.rotationZerror": 10.0},
+      "motors": {"E1.rotationXerror": {"step_scale": 0.02}, "chamber.z": {"stalled": true}},
       "salt": "…"
     }
 
 ``offsets`` are normalized (fractions of each parameter's range, at most
 ±0.2, as in the paper), ``offsets_physical`` in mm/mrad; unnamed parameters
 have no offset.  ``start`` sets motor positions at IOC start (default: the
-centre of each motor's range).
+centre of each motor's range).  ``motors`` changes how single axes (a motorized parameter or
+``chamber.x``/``y``/``z``) really move, on top of the IOC's ``--motors`` profile: any field of
+:class:`sim_iocs.motor_record.Mechanics` (a step-scale error, a stalled load, backlash, ...).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import json
 import os
@@ -37,6 +41,32 @@ from pathlib import Path
 import numpy as np
 
 from bluesky_offsets.physics.parameters import METRIXS, ParameterError, ParameterTable
+from bluesky_offsets.physics.screen import STAGE
+
+from .motor_record import Mechanics
+
+_MECHANICS = {f.name: f.type for f in dataclasses.fields(Mechanics)}
+
+
+def _motor_faults(spec, table: ParameterTable) -> dict:
+    """``{axis: {Mechanics field: value}}`` checked: known axes and fields, values that make a Mechanics."""
+    if not isinstance(spec, Mapping) or not all(isinstance(v, Mapping) for v in spec.values()):
+        raise ParameterError("motors must be {axis name: {mechanics field: value}}")
+    axes = set(table.motorized_names) | {f"chamber.{ax.name}" for ax in STAGE}
+    out = {}
+    for axis, fields in spec.items():
+        if axis not in axes:
+            raise ParameterError(f"motors: {axis!r} is not a motorized parameter or chamber.x/y/z")
+        if unknown := set(fields) - set(_MECHANICS):
+            raise ParameterError(f"motors: {axis}: unknown fields {sorted(unknown)}; expected some of "
+                                 f"{sorted(_MECHANICS)}")
+        clean = {k: (bool(v) if k in ("encoder", "stalled") else float(v)) for k, v in fields.items()}
+        try:
+            Mechanics(**{**({"encoder": True} if clean.get("readback_noise") else {}), **clean})
+        except (TypeError, ValueError) as exc:
+            raise ParameterError(f"motors: {axis}: {exc}") from None
+        out[str(axis)] = clean
+    return out
 
 
 def default_start(table: ParameterTable = METRIXS) -> np.ndarray:
@@ -71,6 +101,7 @@ class Truth:
     table: ParameterTable = METRIXS
     source: str = ""
     salt: str = ""  # a random secret for a truth drawn from a seed (see the module text)
+    motors: dict = field(default_factory=dict)  # {axis: {Mechanics field: value}}, hidden too
 
     def __post_init__(self):
         self.offsets = self.table.validate(self.offsets, "hidden offsets").astype(float)
@@ -84,6 +115,7 @@ class Truth:
             raise ParameterError("overrides must be {object name: {RML field: value}}")
         self.overrides = {str(k): {str(f): _field_value(k, f, x) for f, x in v.items()}
                           for k, v in self.overrides.items()}
+        self.motors = _motor_faults(self.motors, self.table)
 
     # -- construction -------------------------------------------------------
     @classmethod
@@ -97,7 +129,7 @@ class Truth:
 
     @classmethod
     def from_mapping(cls, spec: Mapping, table: ParameterTable = METRIXS, source: str = "") -> Truth:
-        known = {"offsets", "offsets_physical", "overrides", "start", "comment", "salt"}
+        known = {"offsets", "offsets_physical", "overrides", "start", "comment", "salt", "motors"}
         unknown = set(spec) - known
         if unknown:
             raise ParameterError(f"truth: unknown keys {sorted(unknown)}; expected some of {sorted(known)}")
@@ -114,7 +146,7 @@ class Truth:
                 raise ParameterError(f"truth: start position given for {name!r}, which is not a motor")
             start[i] = float(v)
         return cls(off, dict(spec.get("overrides", {})), start, table=table, source=source,
-                   salt=str(spec.get("salt", "")))
+                   salt=str(spec.get("salt", "")), motors=spec.get("motors", {}))
 
     @classmethod
     def from_file(cls, path: str | Path, table: ParameterTable = METRIXS) -> Truth:
@@ -134,9 +166,17 @@ class Truth:
         return {"offsets": {n: float(v) for n, v in zip(self.table.names, self.offsets)},
                 "overrides": self.overrides,
                 "start": {n: float(v) for n, v, m in zip(self.table.names, self.start, self.table.motorized) if m},
+                "motors": self.motors,
                 "salt": self.salt}
 
     # -- use ------------------------------------------------------------------
+    def mechanics(self, axis: str, profile: Mechanics) -> Mechanics:
+        """How ``axis`` really moves: the IOC's ``profile`` with this truth's faults on top."""
+        fields = self.motors.get(axis, {})
+        if fields.get("readback_noise") and not profile.encoder and "encoder" not in fields:
+            fields = {**fields, "encoder": True}
+        return dataclasses.replace(profile, **fields)
+
     @property
     def physical_offsets(self) -> np.ndarray:
         return self.offsets * self.table.span
@@ -153,6 +193,8 @@ class Truth:
         """Short hash of offsets, effects and parameter-table version (safe to publish)."""
         spec = {"table": self.table.version, "offsets": [float(f"{v:.12g}") for v in self.offsets],
                 "overrides": self.overrides}
+        if self.motors:  # absent when perfect: the ids of every earlier truth stay as they were
+            spec["motors"] = self.motors
         if self.salt:
             spec["salt"] = self.salt
         blob = json.dumps(spec, sort_keys=True).encode()

@@ -17,6 +17,7 @@ import sys
 
 import numpy as np
 
+from bluesky_offsets.epics.pvs import ChamberError, MotionError
 from bluesky_offsets.physics.parameters import METRIXS, ParameterError
 from bluesky_offsets.store import StoreError
 
@@ -313,6 +314,12 @@ def main(argv: list[str] | None = None) -> int:
             raise
         print(f"bluesky-offsets {args.command}: error: {exc}", file=sys.stderr)
         return 2
+    except (MotionError, ChamberError) as exc:
+        # the beamline did not do what it was told (a stalled motor, a failed frame): say which
+        if args.verbose:
+            raise
+        print(f"bluesky-offsets {args.command}: beamline error: {exc}", file=sys.stderr)
+        return 3
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         return 130

@@ -70,6 +70,8 @@ class DemoSettings:
     # faster than a real motor: the ~55 frames of the beam search and the measurement took 27 s
     # with 0.5 and 22 s with 0.1, the same frames and results
     move_time: float = 0.1
+    # "perfect" axes, or "realistic" ones: encoder noise, backlash, retries (sim_iocs.metrixs.motor_profile)
+    motors: str = "perfect"
     # what is measured: frames designed for the offsets ("optimal": ``optimal``'s budget, batches,
     # criterion) or the bright design ("bright": ``measurement``'s 16 bright configurations, 4 of
     # them again with the slits open, 14 fitted); their seeds are the demo's ``seed``
@@ -148,7 +150,8 @@ def demo_truth(s: DemoSettings) -> dict:
 class SimulatedBeamline:
     """The METRIXS IOC in a subprocess on loopback, a free port; :meth:`stop` always kills it."""
 
-    def __init__(self, truth: Mapping, n_rays: int, work: Path, move_time: float = 0.5, noise_seed: int = 0):
+    def __init__(self, truth: Mapping, n_rays: int, work: Path, move_time: float = 0.5, noise_seed: int = 0,
+                 motors: str = "perfect"):
         from sim_iocs.ports import free_port, loopback_env
         self.port = free_port()
         self.prefix = f"DEMO{self.port}:"
@@ -167,7 +170,8 @@ class SimulatedBeamline:
         self.proc = subprocess.Popen(
             [sys.executable, "-m", "sim_iocs.metrixs", "--prefix", self.prefix, "--truth", str(self.truth_path),
              "--backend", "twin", "--rays", str(n_rays), "--noise-seed", str(noise_seed),
-             "--move-time", str(move_time), "--accel-time", "0.02", "--tick", "0.02", "--interfaces", "127.0.0.1"],
+             "--move-time", str(move_time), "--accel-time", "0.02", "--tick", "0.02", "--interfaces", "127.0.0.1",
+             "--motors", motors],
             env=env, stdout=self._log, stderr=subprocess.STDOUT, start_new_session=True)
 
     def log(self) -> str:
@@ -308,7 +312,7 @@ def run_demo(out: Path, settings: DemoSettings | None = None, store_location: st
         f"{len(METRIXS)} parameters, hidden effects: {', '.join(hidden) or 'none'}); load average {load:.1f} on "
         f"{os.cpu_count()} cores; the analysis's fits {s.threads} at a time)")
     # seeded frame noise: the same settings give the same demo, --seed another draw of it
-    ioc = SimulatedBeamline(truth, s.n_rays, work, move_time=s.move_time, noise_seed=s.seed + 2)
+    ioc = SimulatedBeamline(truth, s.n_rays, work, move_time=s.move_time, noise_seed=s.seed + 2, motors=s.motors)
     twin = RE = steps_log = None
     pool = contextlib.ExitStack()  # the analysis's executor (one torch and BLAS thread a fit) to the end
     try:
@@ -588,6 +592,9 @@ def add_cli(sub) -> None:
                                          "default) or the paper's 50 x 50 bins")
     p.add_argument("--seed", type=int, default=0,
                    help="another draw of the demo: candidate design, frame noise, fit seeds (default %(default)s)")
+    p.add_argument("--motors", choices=("perfect", "realistic"), default="perfect",
+                   help="the simulated motors: perfect (default), or every axis with encoder noise, backlash "
+                        "and retries at typical values (sim_iocs.metrixs.motor_profile)")
     p.add_argument("--no-optimize", action="store_true",
                    help="end after the diagnosis, without the last step (the smallest focus with the calibrated "
                         "twin: computed, moved there, measured)")
@@ -662,7 +669,7 @@ def _cmd_demo(args) -> int:
                      offsets_fraction=args.offsets_fraction, rounds=args.rounds, seed=args.seed,
                      fit_top=args.fit_top or None, fit=fit, scan=scan,
                      resolution=args.resolution, optimize=not args.no_optimize, closed_loop=not args.open_loop,
-                     threads=args.threads,
+                     threads=args.threads, motors=args.motors,
                      candidates_effects=[c.strip() for c in args.candidates.split(",")] if args.candidates else None)
     for n in s.candidates_effects or ():
         try:

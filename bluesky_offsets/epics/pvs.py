@@ -22,6 +22,10 @@ class ChamberError(RuntimeError):
     """The focus chamber reported a failed or aborted acquisition."""
 
 
+class MotionError(RuntimeError):
+    """A motor did not arrive where it was sent (stalled, stopped, at a limit switch)."""
+
+
 def fixed_message(p: Parameter) -> str:
     return (f"{p.name} ({p.description}) is a fixed parameter, not a motor: it cannot be set. "
             f"Its true value is unknown; the offset finder estimates it as an offset from the "

@@ -1,0 +1,84 @@
+"""The calibration with realistic motors against perfect ones, on the same draws.
+
+Each draw runs the README's main job (``bluesky-offsets demo --seed S``) twice: with perfect
+simulated motors and with ``--motors realistic`` (every axis read by an encoder with noise, with
+backlash taken out by ``BDST`` and retries within ``RDBD``: ``sim_iocs.metrixs.motor_profile``).
+Per run: the offsets' RMSE against the hidden truth over the truth's own RMS (normalized), the
+share of offsets within 2σ of the truth, the hidden effect's fitted value, the focus reached.
+
+    python benchmarks/bench_motors.py [--seeds 3 4] [--out DIR] [-- extra demo options]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _machine import machine  # noqa: E402
+
+PROFILES = ("perfect", "realistic")
+
+
+def run(seed: int, motors: str, out: Path, extra: list[str]) -> dict:
+    out.mkdir(parents=True, exist_ok=True)
+    summary = out / "out" / "summary.json"
+    if not summary.exists():  # resumable: a finished draw is read back
+        exe = Path(sys.executable).parent / "bluesky-offsets"
+        cmd = [str(exe), "demo", "--seed", str(seed), "--motors", motors, "--out", str(out / "out"),
+               "--store", str(out / "store"), *extra]
+        t = time.perf_counter()
+        proc = subprocess.run(cmd, capture_output=True, text=True)
+        (out / "log").write_text(proc.stdout + proc.stderr + f"\nwall {time.perf_counter() - t:.0f} s\n")
+        if proc.returncode:
+            raise SystemExit(f"seed {seed}, {motors}: the demo failed ({proc.returncode}); log: {out / 'log'}")
+    return score(json.loads(summary.read_text()), seed, motors)
+
+
+def score(s: dict, seed: int, motors: str) -> dict:
+    post = s["offsets"]["offsets"]
+    names = list(post)
+    truth = np.array([s["hidden_offsets"].get(n, 0.0) for n in names])
+    fitted = np.array([post[n]["normalized"] for n in names])
+    sigma = np.array([post[n]["normalized_sigma"] for n in names])
+    err = fitted - truth
+    beam = s.get("beam") or {}
+    return {"seed": seed, "motors": motors, "seconds": s["seconds"],
+            "rmse_over_rms": float(np.sqrt(np.mean(err ** 2)) / np.sqrt(np.mean(truth ** 2))),
+            "within_2sigma": float(np.mean(np.abs(err) <= 2 * sigma)),
+            "hidden_effects": s["hidden_effects"], "fitted_effects": s["fitted_effects"],
+            "focus_um": [1e3 * beam["after"]["rms_x"], 1e3 * beam["after"]["rms_y"]] if beam else None,
+            "verdict": s["verdict"]}
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--seeds", type=int, nargs="+", default=[3, 4])
+    p.add_argument("--out", type=Path, default=None, help="keep (and resume) each run's output here")
+    p.add_argument("extra", nargs="*", help="more demo options (after --)")
+    a = p.parse_args()
+    root = a.out or Path(tempfile.mkdtemp(prefix="bench-motors-"))
+    rows = []
+    for seed in a.seeds:
+        for motors in PROFILES:
+            r = run(seed, motors, root / f"seed{seed}-{motors}", a.extra)
+            rows.append(r)
+            eff = "; ".join(f"{e} {', '.join(f'{k} {v[0]:.3g} ± {v[1]:.2g}' for k, v in d.items())}"
+                            for e, d in r["fitted_effects"].items()) or "none"
+            focus = "-" if r["focus_um"] is None else f"{r['focus_um'][0]:.1f} x {r['focus_um'][1]:.1f} µm"
+            print(f"seed {seed:3d} {motors:9s} RMSE/RMS {r['rmse_over_rms']:.2f}  within 2σ "
+                  f"{r['within_2sigma']:.2f}  effects: {eff}  focus {focus}  {r['seconds']:.0f} s", flush=True)
+    res = Path(__file__).resolve().parent / "results" / f"motors_seeds{'-'.join(map(str, a.seeds))}.json"
+    res.write_text(json.dumps({"machine": machine(), "command": " ".join(sys.argv), "rows": rows}, indent=1))
+    print(f"written: {res}")
+
+
+if __name__ == "__main__":
+    main()
