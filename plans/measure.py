@@ -29,7 +29,9 @@ from .motion import (
     as_configurations,
     check_limits,
     move_to,
+    pull_inside,
     read_setpoints,
+    resolutions,
     resolve_motors,
     resolve_stage,
     return_to,
@@ -135,22 +137,31 @@ def scan_configurations(configurations, beamline, chamber, *, reference=None, ta
     start = yield from read_setpoints(motors, tolerance)
     ref = _reference_vector(reference, {n: v for n, v in start.items() if n in table.names}, table)
     col = {n: table.index(n) for n in motors if n not in (stage or {})}
+    steps = yield from resolutions(motors)
+    margin = {n: tolerance[n] + steps[n] for n in motors}  # the readback stays inside the limits
 
     def plan_targets(cfgs, scr):
-        """Each frame's motor targets and stage positions (None: no stage), checked against the limits."""
-        cfgs = as_configurations(cfgs, table)
+        """Each frame's motor targets and stage positions (None: no stage), checked against the limits
+        and kept a step inside them (:func:`plans.motion.pull_inside`; the configurations follow)."""
+        cfgs = np.array(as_configurations(cfgs, table), dtype=float)
         tgts = [{n: start[n] + (cfg[col[n]] - ref[col[n]]) for n in col} for cfg in cfgs]
         scrs = None
         if stage is not None:
             here = np.array([start[n] for n in stage])
-            scrs = np.tile(here, (len(cfgs), 1)) if scr is None else as_screen(scr, len(cfgs))
+            scrs = np.tile(here, (len(cfgs), 1)) if scr is None else np.array(as_screen(scr, len(cfgs)), float)
             check_travel(scrs)
             for t, row in zip(tgts, scrs):
                 t.update(zip(stage, map(float, row)))
         elif moved(scr):
             raise ValueError("the beamline has no chamber stage: frames with the screen moved cannot be taken")
         yield from check_limits(motors, tgts)  # all of them, before anything moves
-        return cfgs, tgts, scrs
+        inside = yield from pull_inside(motors, tgts, margin)
+        for k, (t, new) in enumerate(zip(tgts, inside)):
+            for n in col:
+                cfgs[k, col[n]] += new[n] - t[n]
+            for i, n in enumerate(stage or ()):
+                scrs[k, i] += new[n] - t[n]
+        return cfgs, inside, scrs
 
     configs, targets, screens = yield from plan_targets(configs, screen)
     truth_id = yield from _optional_read(chamber, "truth_id")

@@ -176,6 +176,23 @@ def _tolerance(motor) -> MsgGenerator[float]:
     return max(2 * step, band or 0.0)
 
 
+def pull_inside(motors: Mapping, targets: Sequence[Mapping], margin: Mapping) -> MsgGenerator[list[dict]]:
+    """``targets`` with each position nearer a soft limit than ``margin`` (at it, or a rounding
+    beyond it: :func:`check_limits` passed them) moved ``margin`` inside: a record rounds a target
+    to its steps (-1.5 at 1e-5 steps reads back -1.5000000000000002) and an encoder reads around
+    it, and a client that checks the readback against the limits (ophyd-async's ``Motor``) then
+    refuses every later move."""
+    out = [dict(t) for t in targets]
+    for name, m in motors.items():
+        lim = yield from _limits(m)
+        gap = margin.get(name, 0.0)
+        if lim is None or not gap or lim[1] - lim[0] <= 2 * gap:
+            continue
+        for t in out:
+            t[name] = min(max(t[name], lim[0] + gap), lim[1] - gap)
+    return out
+
+
 def resolutions(motors: Mapping) -> MsgGenerator[dict]:
     """Each motor's step size (``MRES``, else ``10**-precision``), ``{name: resolution}``."""
     out = {}

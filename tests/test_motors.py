@@ -93,3 +93,25 @@ def test_the_plans_take_frames_with_realistic_motors_and_refuse_a_stalled_one(io
         RE(measure_configurations([bad], beamline, chamber))
     assert STALLED in str(err.value) and "\n" not in str(err.value)
     assert not any(name == "event" for name, _ in docs)  # no frame from a motor that did not arrive
+
+
+def test_a_frame_at_a_limit_is_taken_a_margin_inside_and_the_motor_moves_on(ioc):
+    """A target at a soft limit, rounded to the steps or read by a noisy encoder, would leave a
+    readback beyond it, and ophyd-async's Motor refuses every move from there."""
+    from bluesky import RunEngine
+    from ophyd_async.core import init_devices
+
+    from bluesky_offsets.epics.devices import FocusChamber, MetrixsBeamline
+    from plans import measure_configurations
+
+    RE = RunEngine({}, call_returns_result=True)
+    with init_devices():
+        beamline = MetrixsBeamline(ioc.prefix, name="metrixs")
+        chamber = FocusChamber(ioc.prefix + "chamber:", name="chamber")
+    j = METRIXS.index(PLAIN)
+    edge = default_start()
+    edge[j] = METRIXS[PLAIN].limits[1]
+    m = RE(measure_configurations([edge, default_start()], beamline, chamber)).plan_result
+    assert edge[j] - 1e-3 * METRIXS.span[j] < m.configurations[0, j] < edge[j]  # recorded as taken
+    np.testing.assert_array_equal(np.delete(m.configurations[0], j), np.delete(edge, j))
+    assert m.configurations[1, j] == default_start()[j]  # and it moved back from there
