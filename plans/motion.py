@@ -170,10 +170,11 @@ def _step(motor) -> MsgGenerator[float]:
 
 def _tolerance(motor) -> MsgGenerator[float]:
     """How far from its target a motor may stand after a move: two steps (``MRES``, else
-    ``10**-precision``), or the retry deadband ``RDBD`` when wider (an encoder-read axis)."""
+    ``10**-precision``), or the retry deadband ``RDBD`` and the step the record rounds the target
+    to, when wider (an encoder-read axis)."""
     step = yield from _step(motor)
     band = yield from _read_optional(motor, "deadband")
-    return max(2 * step, band or 0.0)
+    return max(2 * step, band + step if band else 0.0)
 
 
 def pull_inside(motors: Mapping, targets: Sequence[Mapping], margin: Mapping) -> MsgGenerator[list[dict]]:
