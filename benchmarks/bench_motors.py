@@ -55,6 +55,10 @@ def score(s: dict, seed: int, motors: str) -> dict:
             "within_2sigma": float(np.mean(np.abs(err) <= 2 * sigma)),
             "hidden_effects": s["hidden_effects"], "fitted_effects": s["fitted_effects"],
             "focus_um": [1e3 * beam["after"]["rms_x"], 1e3 * beam["after"]["rms_y"]] if beam else None,
+            "focus_over_best": ([beam["after"]["rms_x"] / beam["true_best"]["rms_x"],
+                                 beam["after"]["rms_y"] / beam["true_best"]["rms_y"]]
+                                if beam and beam.get("true_best") else None),
+            "validation_chi2": (s.get("validation") or {}).get("chi2_reduced"),
             "verdict": s["verdict"]}
 
 
@@ -72,7 +76,8 @@ def main() -> None:
             rows.append(r)
             eff = "; ".join(f"{e} {', '.join(f'{k} {v[0]:.3g} ± {v[1]:.2g}' for k, v in d.items())}"
                             for e, d in r["fitted_effects"].items()) or "none"
-            focus = "-" if r["focus_um"] is None else f"{r['focus_um'][0]:.1f} x {r['focus_um'][1]:.1f} µm"
+            focus = "-" if r["focus_um"] is None else (f"{r['focus_um'][0]:.1f} x {r['focus_um'][1]:.1f} µm (best x "
+                                                      f"{r['focus_over_best'][0]:.2f}, {r['focus_over_best'][1]:.2f})")
             print(f"seed {seed:3d} {motors:9s} RMSE/RMS {r['rmse_over_rms']:.2f}  within 2σ "
                   f"{r['within_2sigma']:.2f}  effects: {eff}  focus {focus}  {r['seconds']:.0f} s", flush=True)
     res = Path(__file__).resolve().parent / "results" / f"motors_seeds{'-'.join(map(str, a.seeds))}.json"

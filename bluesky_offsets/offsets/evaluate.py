@@ -91,7 +91,10 @@ def _band(rs: Sequence[F.FinderResult], key: str, grid: np.ndarray):
         idx = np.searchsorted(x, grid, side="right") - 1
         curves.append(np.where(idx >= 0, y[np.clip(idx, 0, None)], np.nan))
     c = np.log10(np.asarray(curves))
-    return 10 ** np.nanmean(c, axis=0), 10 ** np.nanstd(c, axis=0)
+    seen = np.isfinite(c).any(axis=0)  # grid points before any run's first value: no band
+    mean, std = np.full(len(grid), np.nan), np.full(len(grid), np.nan)
+    mean[seen], std[seen] = np.nanmean(c[:, seen], axis=0), np.nanstd(c[:, seen], axis=0)
+    return 10 ** mean, 10 ** std
 
 
 def plot_curves(results: Mapping[str, Sequence[F.FinderResult]], path, *, title: str = "",
