@@ -28,10 +28,10 @@ from bluesky_offsets.store import consistent_profiles
 from .motion import (
     as_configurations,
     check_limits,
+    limit_margins,
     move_to,
     pull_inside,
     read_setpoints,
-    resolutions,
     resolve_motors,
     resolve_stage,
     return_to,
@@ -137,12 +137,11 @@ def scan_configurations(configurations, beamline, chamber, *, reference=None, ta
     start = yield from read_setpoints(motors, tolerance)
     ref = _reference_vector(reference, {n: v for n, v in start.items() if n in table.names}, table)
     col = {n: table.index(n) for n in motors if n not in (stage or {})}
-    steps = yield from resolutions(motors)
-    margin = {n: tolerance[n] + steps[n] for n in motors}  # the readback stays inside the limits
+    margin = yield from limit_margins(motors)
 
     def plan_targets(cfgs, scr):
         """Each frame's motor targets and stage positions (None: no stage), checked against the limits
-        and kept a step inside them (:func:`plans.motion.pull_inside`; the configurations follow)."""
+        and kept a margin inside them (:func:`plans.motion.pull_inside`; the configurations follow)."""
         cfgs = np.array(as_configurations(cfgs, table), dtype=float)
         tgts = [{n: start[n] + (cfg[col[n]] - ref[col[n]]) for n in col} for cfg in cfgs]
         scrs = None

@@ -233,6 +233,14 @@ def tolerances(motors: Mapping) -> MsgGenerator[dict]:
     return out
 
 
+def limit_margins(motors: Mapping) -> MsgGenerator[dict]:
+    """How far inside its soft limits each motor is sent (:func:`pull_inside`): its arrival
+    tolerance and one step, so that its readback stays inside them, ``{name: margin}``."""
+    tol = yield from tolerances(motors)
+    steps = yield from resolutions(motors)
+    return {n: tol[n] + steps[n] for n in motors}
+
+
 def move_to(motors: Mapping, target: Mapping, *, verify: bool = True, tolerance: Mapping | None = None,
             current: Mapping | None = None) -> MsgGenerator[None]:
     """Move all motors to ``target`` together, wait, and check that each arrived.

@@ -33,7 +33,7 @@ from bluesky_offsets.physics.parameters import METRIXS, ParameterTable
 
 from ._stubs import emit_rows, run_in_thread
 from .measure import scan_configurations
-from .motion import _limits, read_positions, resolutions, resolve_motors
+from .motion import _limits, limit_margins, read_positions, resolve_motors
 
 log = logging.getLogger(__name__)
 
@@ -95,21 +95,21 @@ class BeamResult:
 
 def motor_limits(motors: Mapping, table: ParameterTable = METRIXS) -> MsgGenerator[tuple[np.ndarray, np.ndarray]]:
     """Each motor's soft limits as (lo, hi) arrays in table order, intersected with its parameter's
-    travel (the twin's domain) and brought one motor step inside; fixed parameters at their design
-    values."""
+    travel (the twin's domain) and brought as far inside as the scans send a motor
+    (:func:`plans.motion.limit_margins`); fixed parameters at their design values."""
     lo = np.array([p.limits[0] if p.motorized else p.reference for p in table], float)
     hi = np.array([p.limits[1] if p.motorized else p.reference for p in table], float)
-    steps = yield from resolutions(motors)
+    margins = yield from limit_margins(motors)
     for name, m in motors.items():
         lim = yield from _limits(m)
         i = table.index(name)
         if lim is not None:
             lo[i], hi[i] = max(lo[i], lim[0]), min(hi[i], lim[1])
-        # one step inside: a controller rounds a target to its steps, and 14 - 1e-9 rounded to
-        # 1e-4 steps reads back as 14.000000000000002, past the limit (measured on E1 roll)
-        step = steps.get(name, 0.0)
-        if hi[i] - lo[i] > 2 * step:
-            lo[i], hi[i] = lo[i] + step, hi[i] - step
+        # inside: a controller rounds a target to its steps, and 14 - 1e-9 rounded to 1e-4 steps
+        # reads back as 14.000000000000002, past the limit (measured on E1 roll)
+        gap = margins.get(name, 0.0)
+        if hi[i] - lo[i] > 2 * gap:
+            lo[i], hi[i] = lo[i] + gap, hi[i] - gap
     return lo, hi
 
 

@@ -399,6 +399,7 @@ class MetrixsIOC:
             raise ValueError(f"--leave-out: {', '.join(unknown)} are not motorized parameters")
         self.motors: dict[str, MotorRecord] = {}
         self._fixed_start = np.array(self.truth.start, dtype=float)
+
         def record(name, pv, settings, k):
             mechanics, settings = motor_profile(motors, settings)
             rng = None if noise_seed is None else [noise_seed, 7, k]  # the encoders' own stream

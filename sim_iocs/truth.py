@@ -60,8 +60,8 @@ def _motor_faults(spec, table: ParameterTable) -> dict:
         if unknown := set(fields) - set(_MECHANICS):
             raise ParameterError(f"motors: {axis}: unknown fields {sorted(unknown)}; expected some of "
                                  f"{sorted(_MECHANICS)}")
-        clean = {k: (bool(v) if k in ("encoder", "stalled") else float(v)) for k, v in fields.items()}
         try:
+            clean = {k: (bool(v) if k in ("encoder", "stalled") else float(v)) for k, v in fields.items()}
             Mechanics(**{**({"encoder": True} if clean.get("readback_noise") else {}), **clean})
         except (TypeError, ValueError) as exc:
             raise ParameterError(f"motors: {axis}: {exc}") from None
