@@ -249,6 +249,7 @@ class RunStore:
         loc = str(location) if location is not None else default_store_location()
         self.location = loc
         self._context = None
+        self._frames: Path | None = None
         if loc.startswith(("http://", "https://")):
             from tiled.client import from_uri
             self._client = from_uri(loc, api_key=api_key or os.environ.get("TILED_API_KEY"))
@@ -296,8 +297,12 @@ class RunStore:
                     raise StoreError(f"run store: cannot read the catalog {db}: {_first_line(exc)}") from None
                 if old is not None:
                     log.warning("run store %s: made at %s; its catalog now points at the files here", path, old)
+            # a camera's HDF5 files are registered where they lie: under frames/, which tiled may read
+            self._frames = path / "frames"
+            self._frames.mkdir(exist_ok=True)
             adapter = catalog_from_uri(f"sqlite:///{db}",
-                                       writable_storage=[str(path / "data"), f"duckdb:///{path / 'tables.duckdb'}"])
+                                       writable_storage=[str(path / "data"), f"duckdb:///{path / 'tables.duckdb'}"],
+                                       readable_storage=[str(self._frames)])
             self._context = Context.from_app(build_app(adapter))
             try:
                 client = from_context(self._context)
@@ -308,6 +313,15 @@ class RunStore:
                 raise StoreError(f"run store: cannot open {path}: {first} (an embedded store serves one process "
                                  f"at a time; several need a tiled server: BLUESKY_OFFSETS_STORE=http://...)") from None
         return client
+
+    @property
+    def frames_directory(self) -> Path:
+        """Where a camera writes its files so that this embedded store can serve them (a tiled server
+        serves the directories its own configuration names: this raises StoreError)."""
+        if self._frames is None:
+            raise StoreError(f"run store {self.location}: a tiled server reads the camera's files where its "
+                             "configuration allows (readable_storage); give the camera that directory")
+        return self._frames
 
     @property
     def writer(self):

@@ -42,7 +42,8 @@ class Frame:
     """One focus-chamber frame; histograms are fractions of the source rays.
 
     ``profile_x``/``profile_y`` are the same footprint projected at the camera's own
-    resolution (:data:`bluesky_offsets.physics.twin.CAMERA`); None when the backend has no rays."""
+    resolution (:data:`bluesky_offsets.physics.twin.CAMERA`) and ``xy`` the rays' screen points;
+    None when the backend has no rays."""
 
     hist_x: np.ndarray
     hist_y: np.ndarray
@@ -52,12 +53,14 @@ class Frame:
     seconds: float = 0.0
     profile_x: np.ndarray | None = None
     profile_y: np.ndarray | None = None
+    xy: np.ndarray | None = None  # (n_hits, 2) screen points of the rays (mm), for a camera
 
     @classmethod
     def dark(cls, hist: HistogramSpec, n_rays: int = 0) -> Frame:
         """A frame without rays: all zeros, never NaN."""
         return cls(np.zeros(hist.bins_x), np.zeros(hist.bins_y), np.zeros((hist.bins_y, hist.bins_x)),
-                   0, int(n_rays), profile_x=np.zeros(CAMERA.bins_x), profile_y=np.zeros(CAMERA.bins_y))
+                   0, int(n_rays), profile_x=np.zeros(CAMERA.bins_x), profile_y=np.zeros(CAMERA.bins_y),
+                   xy=np.empty((0, 2), np.float32))
 
 
 @runtime_checkable
@@ -124,7 +127,7 @@ def _twin_frame(values: np.ndarray, overrides: Mapping, n_rays: int, seed: int |
     image = hist.image(x, y, n_rays)
     px, py = CAMERA.histograms(x, y, n_rays)
     return Frame(np.nan_to_num(r.hist_x), np.nan_to_num(r.hist_y), np.nan_to_num(image), int(r.n_hits),
-                 int(n_rays), time.perf_counter() - t0, px, py), note
+                 int(n_rays), time.perf_counter() - t0, px, py, np.column_stack([x, y]).astype(np.float32)), note
 
 
 def _worker_loop(conn) -> None:

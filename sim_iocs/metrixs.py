@@ -9,6 +9,8 @@
 * the focus chamber's translation stage: motor records ``BL:chamber:x``, ``BL:chamber:y`` and
   ``BL:chamber:z`` (mm; :data:`bluesky_offsets.physics.screen.STAGE`), standing at 0 at start;
   the screen truly stands at their position plus the chamber's hidden displacement (an effect);
+* the focus chamber's camera as an areaDetector, ``BL:cam:cam1:*`` and ``BL:cam:HDF1:*``
+  (:mod:`sim_iocs.camera`);
 * the focus-chamber detector ``BL:chamber:*``: ``Acquire`` (put-completion
   when the frame is ready), ``NumRays`` (ray budget), ``AcquireTime``,
   ``HistX``/``HistY`` (50 bins each, fraction of source rays per bin),
@@ -57,6 +59,7 @@ from bluesky_offsets.physics.screen import STAGE
 from bluesky_offsets.physics.twin import CAMERA, HistogramSpec
 
 from .backends import FootprintBackend, Frame, FrameAborted, make_backend
+from .camera import FocusCamera
 from .motor_record import AxisSettings, Mechanics, MotorRecord, StrictDouble, StrictLong
 from .truth import Truth
 
@@ -81,6 +84,7 @@ DEFAULT_PREFIX = "SIM:METRIXS:"
 MAX_RAYS = 1_000_000  # per frame: RAYX's worker holds ~4 kB per ray (≈4 GB at the bound)
 MAX_ACQUIRE_TIME = 3600.0  # s
 CHAMBER = "chamber:"
+CAMERA_PREFIX = "cam:"
 STATUS = ("Idle", "Acquiring", "Error", "Aborted")
 
 
@@ -416,9 +420,15 @@ class MetrixsIOC:
         self.chamber = FocusChamber(prefix=prefix + CHAMBER, state=self.true_state, backend=backend,
                                     truth_id=self.truth.truth_id, table=table, n_rays=n_rays, max_rays=max_rays,
                                     truth_log=truth_log, screen=self.screen, name="chamber")
+        self.camera = FocusCamera(prefix + CAMERA_PREFIX, trace=self._trace, max_rays=max_rays,
+                                  rng=np.random.default_rng(None if noise_seed is None else [noise_seed, 11]))
         self.pvdb = {}
-        for group in (*self.motors.values(), *self.stage.values(), self.chamber):
+        for group in (*self.motors.values(), *self.stage.values(), self.chamber, self.camera):
             self.pvdb.update(group.pvdb)
+
+    def _trace(self, n_rays: int):
+        """A frame of ``n_rays`` at the true state, the screen where the stage stands (a future)."""
+        return submit_frame(self.backend, self.true_state(), n_rays, self.screen())
 
     def positions(self) -> np.ndarray:
         """Physical axis positions, table order (fixed parameters at design value)."""
@@ -453,6 +463,8 @@ class MetrixsIOC:
             n = getattr(inst, "max_length", 1) or 1
             kind = type(inst).__name__.replace("Pvproperty", "").replace("RO", " (read-only)")
             lines.append(f"  {pv:34s} {kind}{f'[{n}]' if n > 1 else ''}")
+        lines.append(f"focus-chamber camera (areaDetector: {self.camera.prefix}cam1:, {self.camera.prefix}HDF1:, "
+                     f"{len(self.camera.pvdb)} PVs)")
         return "\n".join(lines)
 
     def close(self) -> None:

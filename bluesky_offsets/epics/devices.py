@@ -197,3 +197,21 @@ class FocusChamber(StandardReadable):
             raise ChamberError(f"{self.name}: acquisition {status.value.lower()}: {msg}")
 
 
+
+
+def focus_camera(prefix: str, directory, *, name: str = "camera"):
+    """The focus chamber's camera: ophyd-async's areaDetector classes as they are, its frames written by
+    the camera's HDF5 plugin into ``directory`` (a path the IOC can write and this process can read).
+
+    ``prefix`` is the detector's (``BL:cam:``, serving ``cam1:`` and ``HDF1:``).  A plain bluesky
+    ``count([camera])`` takes frames; the run store records them as ``StreamResource``/``StreamDatum``
+    documents and reads them back from the files.
+    """
+    from pathlib import Path
+
+    from ophyd_async.core import StaticPathProvider, UUIDFilenameProvider
+    from ophyd_async.epics.adcore import ADWriterFactory
+    from ophyd_async.epics.adsimdetector import SimDetector
+
+    provider = StaticPathProvider(UUIDFilenameProvider(), Path(directory))
+    return SimDetector(prefix, ADWriterFactory.hdf(provider), name=name)

@@ -1,0 +1,221 @@
+"""The focus chamber as a camera: pixel geometry, frames to profiles, the gain from frames.
+
+A camera images the chamber's screen on a grid of pixels: :class:`CameraGeometry` says where
+each pixel lies on the screen (its size, the screen point at the sensor's centre, and how the
+sensor is mounted: mirrored or turned).  :func:`screen_image` turns a frame as the camera
+delivers it into screen orientation, :func:`profiles` sums the dark-subtracted counts of a
+region of interest into x and y profiles in photons with their variances, and
+:func:`photon_transfer` measures the gain (ADU per photon) and the read noise from repeated
+frames at one setting and dark frames, as the photon-transfer method does: the variance of a
+pixel grows with its mean by the gain.
+
+Examples
+--------
+>>> import numpy as np
+>>> geo = CameraGeometry(width=4, height=3, pixel_x_mm=1.0, pixel_y_mm=1.0)
+>>> geo.photons(np.array([[0.2, 0.1], [1.5, -1.2]])).tolist()
+[[0, 0, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Mapping
+from dataclasses import dataclass
+
+import numpy as np
+
+from bluesky_offsets.physics.twin import CAMERA, HistogramSpec
+
+
+@dataclass(frozen=True, kw_only=True)
+class CameraGeometry:
+    """Where the camera's pixels lie on the screen.
+
+    Parameters
+    ----------
+    width, height : int
+        Pixels along the screen's x and y (before the mounting turns the sensor).
+    pixel_x_mm, pixel_y_mm : float
+        A pixel's size on the screen (mm); the optics' magnification included.
+    center_x_mm, center_y_mm : float
+        The screen point imaged on the sensor's centre (mm).
+    flip_x, flip_y, transpose : bool
+        The mounting: the frame's columns run against the screen's x, its rows against y, or
+        rows and columns are swapped (a camera turned by 90 degrees), applied in this order.
+    """
+
+    width: int = CAMERA.bins_x
+    height: int = CAMERA.bins_y
+    pixel_x_mm: float = (CAMERA.range_x[1] - CAMERA.range_x[0]) / CAMERA.bins_x
+    pixel_y_mm: float = (CAMERA.range_y[1] - CAMERA.range_y[0]) / CAMERA.bins_y
+    center_x_mm: float = 0.5 * (CAMERA.range_x[0] + CAMERA.range_x[1])
+    center_y_mm: float = 0.5 * (CAMERA.range_y[0] + CAMERA.range_y[1])
+    flip_x: bool = False
+    flip_y: bool = False
+    transpose: bool = False
+
+    def __post_init__(self):
+        if not (self.width > 0 and self.height > 0 and self.pixel_x_mm > 0 and self.pixel_y_mm > 0):
+            raise ValueError("a camera needs positive pixel counts and pixel sizes")
+        if not (np.isfinite(self.center_x_mm) and np.isfinite(self.center_y_mm)):
+            raise ValueError("the camera's centre must be finite")
+
+    @classmethod
+    def from_dict(cls, fields: Mapping) -> CameraGeometry:
+        """From a mapping such as a PV map's ``camera`` table; unknown keys are refused."""
+        known = {f.name for f in dataclasses.fields(cls)}
+        unknown = sorted(set(fields) - known)
+        if unknown:
+            raise ValueError(f"camera: unknown keys {unknown}; known: {sorted(known)}")
+        return cls(**fields)
+
+    @property
+    def spec(self) -> HistogramSpec:
+        """The screen window the pixels cover, as the twin's histogram binning."""
+        hx, hy = 0.5 * self.width * self.pixel_x_mm, 0.5 * self.height * self.pixel_y_mm
+        return HistogramSpec(self.width, (self.center_x_mm - hx, self.center_x_mm + hx),
+                             self.height, (self.center_y_mm - hy, self.center_y_mm + hy))
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        """The frame's shape as the camera delivers it (rows, columns)."""
+        return (self.width, self.height) if self.transpose else (self.height, self.width)
+
+    def photons(self, xy: np.ndarray) -> np.ndarray:
+        """Photons per pixel of the points ``xy`` (n, 2; mm on the screen), as the camera delivers them."""
+        s = self.spec
+        xy = np.asarray(xy, float).reshape(-1, 2)
+        img, _, _ = np.histogram2d(xy[:, 1], xy[:, 0], bins=(s.bins_y, s.bins_x), range=(s.range_y, s.range_x))
+        return self.mount(img.astype(np.int64))
+
+    def mount(self, screen: np.ndarray) -> np.ndarray:
+        """A screen-oriented array (rows y, columns x) as this camera delivers it."""
+        out = screen[:, ::-1] if self.flip_x else screen
+        out = out[::-1, :] if self.flip_y else out
+        return out.T if self.transpose else out
+
+    def unmount(self, frame: np.ndarray) -> np.ndarray:
+        """A frame as the camera delivers it, turned to the screen's orientation (rows y, columns x)."""
+        frame = np.asarray(frame)
+        if frame.shape[-2:] != self.shape:
+            raise ValueError(f"a frame of shape {frame.shape[-2:]} from a camera of shape {self.shape}")
+        out = np.swapaxes(frame, -1, -2) if self.transpose else frame
+        out = out[..., ::-1, :] if self.flip_y else out
+        return out[..., :, ::-1] if self.flip_x else out
+
+
+screen_image = CameraGeometry.unmount
+
+
+@dataclass(frozen=True, kw_only=True)
+class Roi:
+    """A region of interest in screen pixels: columns ``x0:x1``, rows ``y0:y1`` (None: to the edge)."""
+
+    x0: int = 0
+    x1: int | None = None
+    y0: int = 0
+    y1: int | None = None
+
+    def cut(self, screen: np.ndarray) -> np.ndarray:
+        return screen[..., self.y0:self.y1, self.x0:self.x1]
+
+
+@dataclass(frozen=True)
+class Profiles:
+    """x and y profiles of a frame in photons per screen pixel column/row, with their variances."""
+
+    x: np.ndarray
+    y: np.ndarray
+    var_x: np.ndarray
+    var_y: np.ndarray
+
+    @property
+    def photons(self) -> float:
+        return float(self.x.sum())
+
+    def binned(self, geometry: CameraGeometry, spec: HistogramSpec) -> Profiles:
+        """The profiles summed into the bins of ``spec`` (the paper's 50 x 50, or the camera's own),
+        whose edges must fall on pixel edges of ``geometry``'s window."""
+        own = geometry.spec
+        ix = _groups(own.edges_x, spec.edges_x, "x")
+        iy = _groups(own.edges_y, spec.edges_y, "y")
+        return Profiles(np.add.reduceat(self.x, ix), np.add.reduceat(self.y, iy),
+                        np.add.reduceat(self.var_x, ix), np.add.reduceat(self.var_y, iy))
+
+
+def _groups(pixel_edges: np.ndarray, bin_edges: np.ndarray, axis: str) -> np.ndarray:
+    """The first pixel of each bin; the bins must tile the camera's window on pixel edges."""
+    step = pixel_edges[1] - pixel_edges[0]
+    k = np.clip(np.rint((bin_edges - pixel_edges[0]) / step).astype(int), 0, len(pixel_edges) - 1)
+    if (k[0] != 0 or k[-1] != len(pixel_edges) - 1 or np.any(np.diff(k) <= 0)
+            or not np.allclose(pixel_edges[k], bin_edges, atol=1e-6 * step)):
+        raise ValueError(f"the histogram's {axis} bins do not tile the camera's window on pixel edges")
+    return k[:-1]
+
+
+def profiles(frame: np.ndarray, geometry: CameraGeometry, *, dark: np.ndarray | float, gain: float,
+             read_noise: float, roi: Roi | None = None, dark_frames: float | None = None) -> Profiles:
+    """The dark-subtracted profiles of ``frame`` in photons, over the region of interest.
+
+    The profiles span the whole screen window (zero outside the ROI).  A pixel holding ``n``
+    photons reads ``gain * n + dark`` plus read noise, so a profile bin's variance is its photons
+    (Poisson) plus the read noise of the pixels summed into it, in photons²; a dark that is the
+    mean of ``dark_frames`` frames adds its own read noise.  For the sum of ``k`` frames pass
+    ``k * dark``, ``sqrt(k) * read_noise`` and ``dark_frames / k`` (the dark's noise is in each alike).
+    """
+    if not gain > 0:
+        raise ValueError(f"the gain must be positive, got {gain}")
+    signal = (screen_image(geometry, np.asarray(frame, float) - dark)) / gain
+    mask = np.zeros(signal.shape, bool)
+    (roi or Roi()).cut(mask)[...] = True
+    inside = np.where(mask, signal, 0.0)
+    px, py = inside.sum(axis=0), inside.sum(axis=1)
+    per_pixel = (read_noise / gain) ** 2 * (1.0 + (1.0 / dark_frames if dark_frames else 0.0))
+    vx = np.clip(px, 0.0, None) + per_pixel * mask.sum(axis=0)
+    vy = np.clip(py, 0.0, None) + per_pixel * mask.sum(axis=1)
+    return Profiles(px, py, vx, vy)
+
+
+@dataclass(frozen=True)
+class PhotonTransfer:
+    """The gain (ADU per photon) and read noise (ADU) measured from frames, with the gain's σ."""
+
+    gain: float
+    gain_sigma: float
+    read_noise: float
+    pixels: int
+
+
+def photon_transfer(frames: np.ndarray, darks: np.ndarray, *, saturation: float = 65535.0) -> PhotonTransfer:
+    """The gain from four or more frames at one setting and two or more dark frames, by photon transfer.
+
+    Over repeated frames a pixel of mean level ``m`` (ADU above dark) varies by
+    ``gain * m + read^2``; the dark frames' variance is ``read^2``.  Summed over every pixel (a
+    fixed set: pixels picked by their measured level would bias the slope where the read noise
+    is comparable), the gain is ``sum(var_light - var_dark) / sum(m)``.  A pixel's variance and
+    mean from the same frames covary (Poisson light: by the third cumulant), which biases the
+    ratio low where few pixels hold the light; so the frames are split in two halves and each
+    half's variance is divided by the other half's levels.  The σ is the first-order one, the
+    pixels independent.  A bright spot holds few pixels: more frames, not brighter ones, shrink it.
+    """
+    f = np.asarray(frames, float).reshape(len(frames), -1)
+    d = np.asarray(darks, float).reshape(len(darks), -1)
+    if len(f) < 4 or len(d) < 2 or f.shape[1] != d.shape[1]:
+        raise ValueError("photon transfer: four or more frames and two or more dark frames of one camera")
+    if f.max() >= saturation:
+        raise ValueError("photon transfer: a frame is saturated (a shorter exposure or less light)")
+    dark_mean, dark_var = d.mean(axis=0), d.var(axis=0, ddof=1)
+    halves = f[: len(f) // 2], f[len(f) // 2:]
+    excess = [h.var(axis=0, ddof=1) - dark_var for h in halves]
+    level = [h.mean(axis=0) - dark_mean for h in halves]
+    sums = [lv.sum() for lv in level]
+    if min(sums) <= 0:
+        raise ValueError("photon transfer: no light above the dark frames")
+    ratios = [excess[0].sum() / sums[1], excess[1].sum() / sums[0]]
+    gain = float(np.mean(ratios))
+    influence = 0.5 * ((excess[0] - ratios[0] * level[1]) / sums[1] + (excess[1] - ratios[1] * level[0]) / sums[0])
+    gain_sigma = float(np.sqrt(np.sum(influence ** 2)))
+    read2 = float(dark_var.mean())
+    lit = int((0.5 * (level[0] + level[1]) > 3.0 * np.sqrt(read2)).sum())
+    return PhotonTransfer(gain, gain_sigma, float(np.sqrt(read2)), lit)

@@ -1,0 +1,137 @@
+"""The focus chamber as a camera: pixel geometry, the camera model, the gain from frames, and the
+simulated IOC's areaDetector camera read by ophyd-async's own classes through a bluesky ``count``."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from bluesky_offsets.physics.camera import CameraGeometry, Roi, photon_transfer, profiles, screen_image
+from bluesky_offsets.physics.twin import CAMERA, HistogramSpec
+from sim_iocs.camera import CameraNoise, c_format
+
+
+def _spot(rng, n=20000, poisson=False):
+    n = rng.poisson(n) if poisson else n
+    return np.column_stack([rng.normal(0.4, 0.3, n), rng.normal(-0.1, 0.02, n)])
+
+
+@pytest.mark.parametrize("mount", [{}, {"flip_x": True}, {"flip_y": True, "transpose": True},
+                                   {"flip_x": True, "flip_y": True, "transpose": True}])
+def test_a_mounted_camera_gives_the_screen_back(mount):
+    rng = np.random.default_rng(1)
+    xy = _spot(rng)
+    geo = CameraGeometry(**mount)
+    frame = geo.photons(xy)
+    assert frame.shape == geo.shape
+    hx, hy = CAMERA.histograms(xy[:, 0], xy[:, 1], 1)
+    p = profiles(frame, geo, dark=0.0, gain=1.0, read_noise=0.0)
+    np.testing.assert_array_equal(p.x, hx)
+    np.testing.assert_array_equal(p.y, hy)
+    np.testing.assert_array_equal(screen_image(geo, frame).sum(axis=0), hx)
+    paper = HistogramSpec()
+    b = p.binned(geo, paper)
+    px, py = paper.histograms(xy[:, 0], xy[:, 1], 1)
+    np.testing.assert_allclose(b.x, px)
+    np.testing.assert_allclose(b.y, py)
+    with pytest.raises(ValueError, match="pixel edges"):
+        p.binned(geo, HistogramSpec(bins_x=47))
+
+
+def test_geometry_refuses_unknown_keys_and_bad_sizes():
+    with pytest.raises(ValueError, match="unknown keys"):
+        CameraGeometry.from_dict({"pixel_size": 0.02})
+    with pytest.raises(ValueError, match="positive"):
+        CameraGeometry(pixel_x_mm=0.0)
+
+
+def test_photon_transfer_measures_the_gain_and_profiles_carry_the_noise():
+    """Four frames of one spot and two dark frames give the gain within its σ, and the profiles'
+    variances (photons plus read noise) match the scatter of repeated frames."""
+    noise = CameraNoise(gain=7.0, read_noise=3.0, fixed_pattern=4.0, background=0.0)
+    geo = CameraGeometry(width=200, height=300)
+    pattern = noise.pattern(geo, seed=3)
+    rng = np.random.default_rng(5)
+    spot = lambda: _spot(rng, 30000, poisson=True)  # noqa: E731
+    light = [noise.render(spot(), geo, pattern, 1.0, rng) for _ in range(4)]
+    darks = np.array([noise.render(np.empty((0, 2)), geo, pattern, 1.0, rng) for _ in range(2)])
+    pt = photon_transfer(light, darks)
+    assert abs(pt.gain - 7.0) < 3 * pt.gain_sigma and pt.gain_sigma < 0.08 * 7.0
+    assert abs(pt.read_noise - 3.0) < 0.1
+    dark = darks.mean(axis=0)
+    roi = Roi(y0=100, y1=200)
+    ps = [profiles(noise.render(spot(), geo, pattern, 1.0, rng), geo, dark=dark, gain=pt.gain,
+                   read_noise=pt.read_noise, roi=roi) for _ in range(40)]
+    x = np.array([p.x for p in ps])
+    lit = x.mean(axis=0) > 20
+    ratio = x.var(axis=0, ddof=1)[lit] / np.mean([p.var_x for p in ps], axis=0)[lit]
+    assert 0.85 < np.median(ratio) < 1.15
+    assert abs(np.mean([p.photons for p in ps]) * pt.gain / 7.0 / 30000 - 1) < 0.015  # all in the ROI
+
+
+def test_file_names_follow_the_c_template():
+    assert c_format("%s%s.h5", "/d/", "f", 3) == "/d/f.h5"
+    assert c_format("%s%s_%3.3d.h5", "/d/", "f", 3) == "/d/f_003.h5"
+    for bad in ("%s%s%s%s", "%d%s"):
+        with pytest.raises(ValueError, match="FileTemplate"):
+            c_format(bad, "/d/", "f", 3)
+
+
+def test_ophyd_async_area_detector_counts_frames_into_the_store(tmp_path, run_store, ca):
+    """ophyd-async's SimDetector, unmodified, on the simulated camera: a plain ``count`` writes
+    frames through the HDF5 plugin, the run store reads them back from the file, the gain measured
+    from them (photon transfer, the shutter closed for the dark frames) is the camera's, and their
+    profiles have the shape the chamber's profile PVs give at the same state."""
+    from bluesky import RunEngine
+    from bluesky import plan_stubs as bps
+    from bluesky.plans import count
+    from ophyd_async.core import init_devices
+    from ophyd_async.epics.core import epics_signal_rw
+
+    from bluesky_offsets.epics.devices import focus_camera
+    from tests.conftest import start_metrixs_ioc
+
+    ioc = start_metrixs_ioc(tmp_path)
+    try:
+        RE = RunEngine({}, call_returns_result=True)
+        run_store.subscribe(RE)
+        frames = run_store.frames_directory
+        with init_devices():
+            camera = focus_camera(ioc.prefix + "cam:", frames)
+            shutter = epics_signal_rw(str, ioc.prefix + "cam:cam1:ShutterControl")
+
+        def take(n):
+            uid = RE(count([camera], num=n)).run_start_uids[0]
+            # (events, frames per event, rows, columns)
+            return np.asarray(run_store[uid]["primary"]["camera"].read())
+
+        RE(bps.mv(camera.driver.acquire_time, 4.0))
+        light = take(8)[:, 0]
+        assert light.shape == (8, *CameraGeometry().shape) and light.dtype == np.uint16
+        RE(bps.mv(shutter, "Close"))
+        dark = take(2)[:, 0]
+        assert len(list(frames.glob("*.h5"))) >= 2
+        noise = CameraNoise()
+        pt = photon_transfer(light, dark)
+        assert abs(pt.gain - noise.gain) < 3 * pt.gain_sigma and pt.gain_sigma < 0.12 * noise.gain, pt
+        assert abs(pt.read_noise - noise.read_noise) < 0.1, pt
+        geo = CameraGeometry()
+        # the same footprint as the chamber's profile PVs (20 x 5 µm bins, the camera's pixels) at the
+        # same state: the shapes agree within noise
+        ca.put(ioc.prefix + "chamber:NumRays", 20000)
+        ca.put(ioc.prefix + "chamber:Acquire", "Acquire")
+        hist = {a: np.asarray(ca.get(ioc.prefix + f"chamber:Profile{a.upper()}")) * 20000 for a in "xy"}
+        bx, by = (np.flatnonzero(hist[a])[[0, -1]] for a in "xy")
+        roi = Roi(x0=max(bx[0] - 20, 0), x1=bx[1] + 21, y0=max(by[0] - 20, 0), y1=by[1] + 21)  # around the beam
+        k = len(light)
+        p = profiles(light.sum(axis=0, dtype=float), geo, dark=k * dark.mean(axis=0), gain=pt.gain,
+                     read_noise=np.sqrt(k) * pt.read_noise, roi=roi, dark_frames=len(dark) / k)
+        assert 0 < p.photons < 5.0 * k * noise.rays_per_second  # ~ every photon of 4 s at most
+        for axis in "xy":
+            cam, var = getattr(p, axis), getattr(p, "var_" + axis)
+            lit = (hist[axis] > 0) | (np.abs(cam) > 3 * np.sqrt(var))
+            a, b = cam.sum(), hist[axis].sum()
+            chi2 = np.sum((cam[lit] / a - hist[axis][lit] / b) ** 2 / (var[lit] / a**2 + hist[axis][lit] / b**2))
+            assert chi2 / max(lit.sum() - 1, 1) < 2.5, (axis, chi2, lit.sum())
+    finally:
+        ioc.stop()
