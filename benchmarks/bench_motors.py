@@ -27,22 +27,23 @@ from _machine import machine  # noqa: E402
 PROFILES = ("perfect", "realistic")
 
 
-def run(seed: int, motors: str, out: Path, extra: list[str]) -> dict:
+def run(seed: int, label: str, options: list[str], out: Path, extra: list[str]) -> dict:
+    """``bluesky-offsets demo --seed S OPTIONS`` into ``out`` (read back when it finished before), scored."""
     out.mkdir(parents=True, exist_ok=True)
     summary = out / "out" / "summary.json"
     if not summary.exists():  # resumable: a finished draw is read back
         exe = Path(sys.executable).parent / "bluesky-offsets"
-        cmd = [str(exe), "demo", "--seed", str(seed), "--motors", motors, "--out", str(out / "out"),
+        cmd = [str(exe), "demo", "--seed", str(seed), *options, "--out", str(out / "out"),
                "--store", str(out / "store"), *extra]
         t = time.perf_counter()
         proc = subprocess.run(cmd, capture_output=True, text=True)
         (out / "log").write_text(proc.stdout + proc.stderr + f"\nwall {time.perf_counter() - t:.0f} s\n")
         if proc.returncode:
-            raise SystemExit(f"seed {seed}, {motors}: the demo failed ({proc.returncode}); log: {out / 'log'}")
-    return score(json.loads(summary.read_text()), seed, motors)
+            raise SystemExit(f"seed {seed}, {label}: the demo failed ({proc.returncode}); log: {out / 'log'}")
+    return score(json.loads(summary.read_text()), seed, label)
 
 
-def score(s: dict, seed: int, motors: str) -> dict:
+def score(s: dict, seed: int, label: str) -> dict:
     post = s["offsets"]["offsets"]
     names = list(post)
     truth = np.array([s["hidden_offsets"].get(n, 0.0) for n in names])
@@ -50,7 +51,7 @@ def score(s: dict, seed: int, motors: str) -> dict:
     sigma = np.array([post[n]["normalized_sigma"] for n in names])
     err = fitted - truth
     beam = s.get("beam") or {}
-    return {"seed": seed, "motors": motors, "seconds": s["seconds"],
+    return {"seed": seed, "run": label, "seconds": s["seconds"],
             "rmse_over_rms": float(np.sqrt(np.mean(err ** 2)) / np.sqrt(np.mean(truth ** 2))),
             "within_2sigma": float(np.mean(np.abs(err) <= 2 * sigma)),
             "hidden_effects": s["hidden_effects"], "fitted_effects": s["fitted_effects"],
@@ -68,19 +69,25 @@ def main() -> None:
     p.add_argument("--out", type=Path, default=None, help="keep (and resume) each run's output here")
     p.add_argument("extra", nargs="*", help="more demo options (after --)")
     a = p.parse_args()
-    root = a.out or Path(tempfile.mkdtemp(prefix="bench-motors-"))
+    compare(a, "motors", {m: ["--motors", m] for m in PROFILES})
+
+
+def compare(a, name: str, runs: dict[str, list[str]]) -> None:
+    """Each seed of ``a.seeds`` with each of ``runs`` (label: demo options); a line each, then the
+    results file ``benchmarks/results/<name>_seeds<S...>.json``."""
+    root = a.out or Path(tempfile.mkdtemp(prefix=f"bench-{name}-"))
     rows = []
     for seed in a.seeds:
-        for motors in PROFILES:
-            r = run(seed, motors, root / f"seed{seed}-{motors}", a.extra)
+        for label, options in runs.items():
+            r = run(seed, label, options, root / f"seed{seed}-{label}", a.extra)
             rows.append(r)
             eff = "; ".join(f"{e} {', '.join(f'{k} {v[0]:.3g} ± {v[1]:.2g}' for k, v in d.items())}"
                             for e, d in r["fitted_effects"].items()) or "none"
             focus = "-" if r["focus_um"] is None else (f"{r['focus_um'][0]:.1f} x {r['focus_um'][1]:.1f} µm (best x "
                                                       f"{r['focus_over_best'][0]:.2f}, {r['focus_over_best'][1]:.2f})")
-            print(f"seed {seed:3d} {motors:9s} RMSE/RMS {r['rmse_over_rms']:.2f}  within 2σ "
+            print(f"seed {seed:3d} {label:10s} RMSE/RMS {r['rmse_over_rms']:.2f}  within 2σ "
                   f"{r['within_2sigma']:.2f}  effects: {eff}  focus {focus}  {r['seconds']:.0f} s", flush=True)
-    res = Path(__file__).resolve().parent / "results" / f"motors_seeds{'-'.join(map(str, a.seeds))}.json"
+    res = Path(__file__).resolve().parent / "results" / f"{name}_seeds{'-'.join(map(str, a.seeds))}.json"
     res.write_text(json.dumps({"machine": machine(), "command": " ".join(sys.argv), "rows": rows}, indent=1))
     print(f"written: {res}")
 

@@ -103,8 +103,9 @@ def measurement_from_run(run, *, stream: str = "primary") -> Measurement:
     px, py = _profiles(ds, keys, hk, start, hist_x, hist_y)
     screens = (np.stack([np.asarray(ds[f"screen_{a}"], dtype=float) for a in "xyz"], 1)
                if "screen_x" in keys else None)
+    floors = camera_floors(lambda key: ds[_key(keys, key)], px is not None)
     return Measurement(configs[idx], hist_x, hist_y, names=names, uid=uid, total_counts=counts, images=images,
-                       metadata=md, profile_x=px, profile_y=py, screen=screens)
+                       metadata=md, profile_x=px, profile_y=py, screen=screens, **floors)
 
 
 def _profiles(ds, keys, hk, start, hist_x, hist_y):
@@ -117,6 +118,19 @@ def _profiles(ds, keys, hk, start, hist_x, hist_y):
     except KeyError:
         return None, None
     return consistent_profiles(px, py, start["profile"], hist_x, hist_y)
+
+
+def camera_floors(get, with_profiles: bool) -> dict:
+    """A camera's noise floors of a run's frames as :class:`Measurement` fields (``get(key)`` the
+    values of the reading ``floor_hx`` ...); ``{}`` for a detector without them."""
+    try:
+        out = {"floor_x": np.asarray(get("floor_hx"), float), "floor_y": np.asarray(get("floor_hy"), float)}
+        if with_profiles:
+            out.update(profile_floor_x=np.asarray(get("floor_px"), float),
+                       profile_floor_y=np.asarray(get("floor_py"), float))
+    except KeyError:
+        return {}
+    return out
 
 
 def consistent_profiles(profile_x, profile_y, fingerprint, hist_x, hist_y):

@@ -357,7 +357,8 @@ def _compare(meas: Measurement, state: ModelState, twin, label: str, model_rays:
              effect_sigma: Mapping | None, table: ParameterTable) -> Comparison:
     hx, hy = simulate(twin, meas.configurations, state, model_rays, [seed + i for i in range(meas.n)], table,
                       meas.screen)
-    mf = misfit(meas.hist_x, meas.hist_y, hx, hy, meas.n_rays, model_rays=model_rays)
+    mf = misfit(meas.hist_x, meas.hist_y, hx, hy, meas.n_rays, model_rays=model_rays, floor_x=meas.floor_x,
+                floor_y=meas.floor_y)
     sig = residual_signature(meas.hist_x, meas.hist_y, hx, hy, twin.hist)
     corr = correlate_with_parameters(sig, meas.configurations, table.names)
     return Comparison(label, state, mf, hx, hy, sig.delta, corr, failing_regions(mf, twin.hist), model_rays,

@@ -23,7 +23,7 @@ from bluesky_offsets.model.measurement import Measurement
 from bluesky_offsets.physics.parameters import METRIXS, ParameterTable
 from bluesky_offsets.physics.screen import as_screen, check_travel, moved
 from bluesky_offsets.physics.twin import HistogramSpec
-from bluesky_offsets.store import consistent_profiles
+from bluesky_offsets.store import camera_floors, consistent_profiles
 
 from .motion import (
     as_configurations,
@@ -278,8 +278,9 @@ def _measurement(readings, table, uid, md) -> Measurement:
                                          md["profile"], hx, hy)
         except KeyError:
             pass
+    floors = camera_floors(lambda key: [_value(r, key, None) for r in readings], px is not None)
     return Measurement(cfgs, hx, hy, names=table.names, uid=uid, total_counts=counts, metadata=dict(md),
-                       profile_x=px, profile_y=py, screen=scr)
+                       profile_x=px, profile_y=py, screen=scr, **floors)
 
 
 def measure_configurations(configurations, beamline, chamber, *, reference=None,

@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 
 import numpy as np
 from bluesky.utils import MsgGenerator
@@ -279,7 +279,7 @@ def calibration_session(beamline, chamber, twin, forward_model, *, design: Measu
                         evaluations: int = 3000, candidates: list[str] | None = None, rounds: int = D.ROUNDS,
                         fit=None, scan=None, fit_top: int | None = D.FIT_TOP, resolution: str = "camera",
                         measurement_md: dict | None = None, analysis_md: dict | None = None,
-                        step=log.info, executor=None) -> MsgGenerator[Session]:
+                        step=log.info, executor=None, measured=None) -> MsgGenerator[Session]:
     """The session on a beamline.  With :class:`~bluesky_offsets.design.DesignOptions` (the default
     of the demo and ``calibrate``): :func:`plans.design.measure_designed`, then
     :func:`plans.diagnose.analyse_measurement` of every designed frame from the bare twin and the
@@ -288,7 +288,9 @@ def calibration_session(beamline, chamber, twin, forward_model, *, design: Measu
     design): :func:`measure_bright`, :func:`surrogate_offsets` on it, then the analysis of the
     analysed configurations from the bare twin and the surrogate's offsets.  ``step(text)``
     announces each part (the demo numbers them); ``executor`` runs the analysis's independent fits
-    side by side (the same result); seeds from ``design.seed``."""
+    side by side (the same result); seeds from ``design.seed``.  ``measured(m)``, a plan, gets the
+    designed measurement before the analysis and returns the one to analyse (a camera calibrated
+    where its frames were brightest: :func:`plans.camera.calibrate_where_bright`)."""
     from bluesky_offsets.model.state import ModelState
 
     from .diagnose import analyse_measurement
@@ -297,7 +299,8 @@ def calibration_session(beamline, chamber, twin, forward_model, *, design: Measu
         return (yield from _designed_session(beamline, chamber, twin, design=design, candidates=candidates,
                                              rounds=rounds, fit=fit, scan=scan, fit_top=fit_top,
                                              resolution=resolution, measurement_md=measurement_md,
-                                             analysis_md=analysis_md, step=step, executor=executor))
+                                             analysis_md=analysis_md, step=step, executor=executor,
+                                             measured=measured))
     t = {"start": time.perf_counter()}
     step("finding the beam, bright configurations around it, measuring them")
     measured = yield from measure_bright(beamline, chamber, **asdict(design), md=measurement_md)
@@ -321,7 +324,7 @@ def calibration_session(beamline, chamber, twin, forward_model, *, design: Measu
 
 
 def _designed_session(beamline, chamber, twin, *, design: DesignOptions, candidates, rounds, fit, scan, fit_top,
-                      resolution, measurement_md, analysis_md, step, executor) -> MsgGenerator[Session]:
+                      resolution, measurement_md, analysis_md, step, executor, measured) -> MsgGenerator[Session]:
     from bluesky_offsets.model.state import ModelState
 
     from .design import measure_designed, measure_validation, record_posterior
@@ -332,9 +335,15 @@ def _designed_session(beamline, chamber, twin, *, design: DesignOptions, candida
          f"{design.criterion}-optimal batches of {design.batch} on the twin's exact Jacobians)")
     d = yield from measure_designed(beamline, chamber, options=design, md=measurement_md)
     m = d.measurement
+    if measured is not None:
+        d = replace(d, measurement=(yield from measured(m)))
+        m = d.measurement
     measured = Measured(d.beam, m, 0, np.arange(m.n), d)
     t["measure"] = t["finder"] = time.perf_counter()
-    starts = [ModelState(label="twin"), ModelState(np.asarray(d.offsets, float), {}, "design estimate")]
+    # a camera's counts carry its gain and the flux reading, each known to a few %: one scale, fitted
+    scale = {"intensity_scale": {"delta": 0.0}} if m.floor_x is not None else {}
+    starts = [ModelState(effects=dict(scale), label="twin"),
+              ModelState(np.asarray(d.offsets, float), dict(scale), "design estimate")]
     step(f"compare → fit offsets (differentiable twin, exact Jacobians) → diagnose → add the winning effect "
          f"→ refit → diagnose again ({m.n} designed frames)")
     analysis = yield from analyse_measurement(m.for_analysis(resolution=resolution), twin, starts=starts,

@@ -69,6 +69,11 @@ def test_photon_transfer_measures_the_gain_and_profiles_carry_the_noise():
     assert abs(np.mean([p.photons for p in ps]) * pt.gain / 7.0 / 30000 - 1) < 0.015  # all in the ROI
 
 
+def _dark_noise(noise: CameraNoise, exposure: float) -> float:
+    """A dark frame's noise per pixel (ADU): read noise, the counts' rounding, the stray photons."""
+    return float(np.sqrt(noise.read_noise**2 + 1 / 12 + noise.gain**2 * noise.background * exposure))
+
+
 def test_file_names_follow_the_c_template():
     assert c_format("%s%s.h5", "/d/", "f", 3) == "/d/f.h5"
     assert c_format("%s%s_%3.3d.h5", "/d/", "f", 3) == "/d/f_003.h5"
@@ -114,7 +119,7 @@ def test_ophyd_async_area_detector_counts_frames_into_the_store(tmp_path, run_st
         noise = CameraNoise()
         pt = photon_transfer(light, dark)
         assert abs(pt.gain - noise.gain) < 3 * pt.gain_sigma and pt.gain_sigma < 0.12 * noise.gain, pt
-        assert abs(pt.read_noise - noise.read_noise) < 0.1, pt
+        assert abs(pt.read_noise / _dark_noise(noise, 4.0) - 1) < 0.1, pt
         geo = CameraGeometry()
         # the same footprint as the chamber's profile PVs (20 x 5 µm bins, the camera's pixels) at the
         # same state: the shapes agree within noise
@@ -133,5 +138,54 @@ def test_ophyd_async_area_detector_counts_frames_into_the_store(tmp_path, run_st
             a, b = cam.sum(), hist[axis].sum()
             chi2 = np.sum((cam[lit] / a - hist[axis][lit] / b) ** 2 / (var[lit] / a**2 + hist[axis][lit] / b**2))
             assert chi2 / max(lit.sum() - 1, 1) < 2.5, (axis, chi2, lit.sum())
+    finally:
+        ioc.stop()
+
+
+def test_the_camera_chamber_measures_what_the_histogram_chamber_measures(tmp_path, run_store):
+    """The plans' chamber on the camera: its calibration (dark frames with the shutter closed, the
+    gain by photon transfer), then ``measure_configurations`` on the camera and on the histogram PVs
+    at the same configurations; the histograms agree within the photon noise and the camera's floor."""
+    from bluesky import RunEngine
+    from bluesky import plan_stubs as bps
+    from ophyd_async.core import init_devices
+
+    from bluesky_offsets.epics.camera import CameraChamber
+    from bluesky_offsets.epics.devices import FocusChamber, MetrixsBeamline
+    from bluesky_offsets.physics.camera import CameraCalibration
+    from bluesky_offsets.physics.parameters import METRIXS
+    from plans.camera import calibrate_camera
+    from plans.measure import measure_configurations
+    from sim_iocs.truth import default_start
+    from tests.conftest import start_metrixs_ioc
+
+    ioc = start_metrixs_ioc(tmp_path, extra=("--rays", 20000))
+    try:
+        RE = RunEngine({}, call_returns_result=True)
+        noise = CameraNoise()
+        nominal = CameraCalibration(gain=noise.gain, read_noise=noise.read_noise, dark=noise.dark,
+                                    photons_per_second=noise.rays_per_second)
+        with init_devices():
+            beamline = MetrixsBeamline(ioc.prefix, name="metrixs")
+            chamber = FocusChamber(ioc.prefix + "chamber:", name="chamber")
+            camera = CameraChamber(ioc.prefix + "cam:", tmp_path / "frames", nominal, name="camera")
+
+        RE(bps.mv(camera.driver.acquire_time, 4.0))
+        check = RE(calibrate_camera(camera, darks=3, frames=8, max_gain_error=0.2)).plan_result
+        assert abs(check.read_noise / _dark_noise(noise, 4.0) - 1) < 0.15 and check.dark_frames == 3
+        assert check.gain_measured and abs(check.measured_gain - noise.gain) < 3 * check.gain_sigma, check.line()
+        assert camera.calibration.gain == check.measured_gain and check.line().startswith("camera: dark from 3")
+        configs = np.tile(default_start(), (2, 1))  # where the IOC starts: the beam on the screen
+        configs[1, METRIXS.index("E1.rotationXerror")] += 0.002
+        cam = RE(measure_configurations(configs, beamline, camera)).plan_result
+        ref = RE(measure_configurations(configs, beamline, chamber)).plan_result
+        assert cam.n_rays == 20000 and ref.n_rays == 20000
+        assert cam.hist_x.shape == ref.hist_x.shape == (2, 50)
+        assert cam.profile_x is not None and cam.profile_floor_x.shape == cam.profile_x.shape
+        for a, b, floor in ((cam.hist_x, ref.hist_x, cam.floor_x), (cam.hist_y, ref.hist_y, cam.floor_y)):
+            occupied = (a > 0) | (b > 0)
+            var = (np.clip(a, 0, None) + b) / 20000 + floor
+            chi2 = float((((a - b) ** 2) / var)[occupied].sum())
+            assert chi2 / occupied.sum() < 2.5, chi2
     finally:
         ioc.stop()

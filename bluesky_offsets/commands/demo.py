@@ -72,6 +72,9 @@ class DemoSettings:
     move_time: float = 0.1
     # "perfect" axes, or "realistic" ones: encoder noise, backlash, retries (sim_iocs.metrixs.motor_profile)
     motors: str = "perfect"
+    # the focus chamber read as "histograms" (the simulator's ray-count PVs) or as a "camera" (its
+    # areaDetector: frames reduced with a dark, a gain by photon transfer, the flux at the screen)
+    detector: str = "histograms"
     # what is measured: frames designed for the offsets ("optimal": ``optimal``'s budget, batches,
     # criterion) or the bright design ("bright": ``measurement``'s 16 bright configurations, 4 of
     # them again with the slits open, 14 fitted); their seeds are the demo's ``seed``
@@ -273,11 +276,22 @@ def demo_plan(s: DemoSettings, beamline, chamber, twin, forward_model, log, exec
     from plans.workflow import calibration_session
 
     number = itertools.count(2)
+    measured = None
+    if s.detector == "camera":
+        from plans.camera import calibrate_where_bright, take_darks
+
+        cal = yield from take_darks(chamber, md={"purpose": "bluesky-offsets demo"})
+        log(f"      camera: dark from {cal.dark_frames:g} frames with the shutter closed, read noise "
+            f"{cal.read_noise:.2f} ADU; the data sheet's gain {cal.gain:g} ADU/photon until measured")
+
+        def measured(m):
+            return (yield from calibrate_where_bright(chamber, beamline, m, md={"purpose": "bluesky-offsets demo"},
+                                                      report=lambda check: log("      " + check.line())))
     session = yield from calibration_session(
         beamline, chamber, twin, forward_model, design=s.design, evaluations=s.finder_evaluations,
         candidates=s.candidates_effects, rounds=s.rounds, fit=s.fit, scan=s.scan, fit_top=s.fit_top,
         resolution=s.resolution, measurement_md={"purpose": "demo measurement"},
-        analysis_md={"purpose": "bluesky-offsets demo"}, executor=executor,
+        analysis_md={"purpose": "bluesky-offsets demo"}, executor=executor, measured=measured,
         step=lambda text: log(f"[{next(number)}/{s.steps}] {text}"))
     beam = None
     if s.optimize:
@@ -337,7 +351,18 @@ def run_demo(out: Path, settings: DemoSettings | None = None, store_location: st
         twin.client  # start the Dask workers while the IOC comes up
         RE = RunEngine({}, call_returns_result=True)  # before the devices: they connect in its event loop
         ioc.wait_ready()
-        beamline, chamber = connect_devices(PVMap.simulated(ioc.prefix), timeout=10.0)
+        frames = None
+        if s.detector == "camera":
+            from bluesky_offsets.store import StoreError
+            try:
+                frames = store.frames_directory  # the embedded store serves the camera's files
+            except StoreError:
+                frames = work / "frames"
+        pv_map = PVMap.simulated(ioc.prefix, camera_directory=frames)
+        beamline, chamber = connect_devices(pv_map, timeout=10.0)
+        if pv_map.camera:  # an exposure that gives the frames the demo's photons
+            import bluesky.plan_stubs as bps
+            RE(bps.mv(chamber.driver.acquire_time, s.n_rays / pv_map.camera["photons_per_second"]))
         store.subscribe(RE)
         RE.subscribe(ScanProgress())
         from bluesky_offsets.live import LiveFitProgress, LiveFootprints, in_background
@@ -595,6 +620,9 @@ def add_cli(sub) -> None:
     p.add_argument("--motors", choices=("perfect", "realistic"), default="perfect",
                    help="the simulated motors: perfect (default), or every axis with encoder noise, backlash "
                         "and retries at typical values (sim_iocs.metrixs.motor_profile)")
+    p.add_argument("--detector", choices=("histograms", "camera"), default="histograms",
+                   help="read the focus chamber's ray-count histograms (default) or its camera (an areaDetector: "
+                        "dark frames, the gain by photon transfer, frames reduced to the same histograms)")
     p.add_argument("--no-optimize", action="store_true",
                    help="end after the diagnosis, without the last step (the smallest focus with the calibrated "
                         "twin: computed, moved there, measured)")
@@ -669,7 +697,7 @@ def _cmd_demo(args) -> int:
                      offsets_fraction=args.offsets_fraction, rounds=args.rounds, seed=args.seed,
                      fit_top=args.fit_top or None, fit=fit, scan=scan,
                      resolution=args.resolution, optimize=not args.no_optimize, closed_loop=not args.open_loop,
-                     threads=args.threads, motors=args.motors,
+                     threads=args.threads, motors=args.motors, detector=args.detector,
                      candidates_effects=[c.strip() for c in args.candidates.split(",")] if args.candidates else None)
     for n in s.candidates_effects or ():
         try:

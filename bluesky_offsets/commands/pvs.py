@@ -9,7 +9,7 @@ import sys
 
 def _cmd_pv_map(args) -> int:
     from bluesky_offsets.epics.pvmap import PVMap
-    text = PVMap.simulated(args.prefix).to_toml()
+    text = PVMap.simulated(args.prefix, camera_directory=args.camera).to_toml()
     if args.out:
         with open(args.out, "w") as f:
             f.write(text)
@@ -29,10 +29,13 @@ def _cmd_check_pvs(args) -> int:
         pv_map = PVMap.from_file(args.file)
     except PVMapError as exc:
         raise CliError(str(exc)) from None
-    n = len(pv_map.motors) + len(pv_map.chamber) + len(pv_map.stage)
+    from bluesky_offsets.epics.pvmap import CAMERA_PVS
+    detector = len(CAMERA_PVS) if pv_map.camera else len(pv_map.chamber)
+    n = len(pv_map.motors) + detector + len(pv_map.stage)
     if not args.json:
         stage = f", {len(pv_map.stage)} stage motor records" if pv_map.stage else ""
-        print(f"checking {len(pv_map.motors)} motor records{stage} and {len(pv_map.chamber)} camera PVs of "
+        what = "areaDetector camera PVs" if pv_map.camera else "chamber PVs"
+        print(f"checking {len(pv_map.motors)} motor records{stage} and {detector} {what} of "
               f"{pv_map.name or args.file} (timeout {args.timeout:g} s)", flush=True)
     res = check_pvs(pv_map, timeout=args.timeout)
     if args.json:
@@ -52,10 +55,13 @@ def add_cli(sub) -> None:
     p = sub.add_parser("pv-map", help="write the PV map of the simulated IOC (a template for the real beamline)")
     p.add_argument("--prefix", default=SIM_PREFIX, help="the simulated IOC's PV prefix (default %(default)s)")
     p.add_argument("--out", default=None, help="file to write (default: standard output)")
+    p.add_argument("--camera", metavar="DIR", default=None,
+                   help="name the focus chamber's camera (an areaDetector writing its frames to DIR) instead of "
+                        "the simulator's histogram PVs")
     p.set_defaults(func=_cmd_pv_map)
 
     p = sub.add_parser("check-pvs", help="connect to every PV of a PV map; report missing and mismatched records")
-    p.add_argument("file", help="PV map (TOML: [motors] parameter = record, [chamber] signal = PV)")
+    p.add_argument("file", help="PV map (TOML: [motors] parameter = record, [chamber] signal = PV or [camera])")
     p.add_argument("--timeout", type=float, default=3.0, help="seconds to wait for the PVs to connect (default 3)")
     p.add_argument("--json", action="store_true", help="machine-readable output")
     p.set_defaults(func=_cmd_check_pvs)

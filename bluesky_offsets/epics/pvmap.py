@@ -52,6 +52,7 @@ class PVMap:
     name: str = ""
     table: ParameterTable = field(default=METRIXS, repr=False)
     stage: Mapping[str, str] = field(default_factory=dict)  # the chamber's x/y/z motors; empty: none
+    camera: Mapping | None = None  # the chamber as an areaDetector camera (CAMERA_KEYS); None: [chamber]
 
     def __post_init__(self):
         missing = [n for n in self.table.motorized_names if n not in self.motors]
@@ -64,7 +65,12 @@ class PVMap:
         bad = sorted(set(self.chamber) - set(CHAMBER_PVS))
         if bad:
             raise PVMapError(f"[chamber]: unknown signals {', '.join(bad)} (known: {', '.join(CHAMBER_PVS)})")
-        if missing := [k for k in CHAMBER_PVS if k not in self.chamber]:
+        if self.camera is not None:
+            _check_camera(self.camera)
+            if self.chamber:
+                raise PVMapError("[chamber] and [camera]: name the focus chamber's histogram PVs or its camera, "
+                                 "not both")
+        elif missing := [k for k in CHAMBER_PVS if k not in self.chamber]:
             raise PVMapError(f"[chamber]: no PV for {', '.join(missing)}")
         if bad := sorted(set(self.stage) - set(STAGE_AXES)):
             raise PVMapError(f"[stage]: unknown axes {', '.join(bad)} (the stage has {', '.join(STAGE_AXES)})")
@@ -77,10 +83,19 @@ class PVMap:
 
     # ------------------------------------------------------------------ #
     @classmethod
-    def simulated(cls, prefix: str = SIM_PREFIX, table: ParameterTable = METRIXS) -> PVMap:
-        """The simulated IOC's names (``sim_iocs.metrixs``) under ``prefix``."""
-        return cls(motor_pvs(table, prefix, None), chamber_pvs(prefix + "chamber:", None),
-                   f"simulated METRIXS IOC, prefix {prefix}", table, stage_pvs(prefix + "chamber:", None))
+    def simulated(cls, prefix: str = SIM_PREFIX, table: ParameterTable = METRIXS, *,
+                  camera_directory: str | os.PathLike | None = None) -> PVMap:
+        """The simulated IOC's names (``sim_iocs.metrixs``) under ``prefix``; with ``camera_directory``
+        its camera instead of its histogram PVs (the simulated camera's data sheet and flux)."""
+        camera = None
+        if camera_directory is not None:
+            from dataclasses import asdict
+
+            from bluesky_offsets.physics.camera import CameraGeometry
+            camera = {"prefix": prefix + "cam:", "directory": str(camera_directory), **SIM_CAMERA,
+                      "geometry": asdict(CameraGeometry())}
+        return cls(motor_pvs(table, prefix, None), {} if camera else chamber_pvs(prefix + "chamber:", None),
+                   f"simulated METRIXS IOC, prefix {prefix}", table, stage_pvs(prefix + "chamber:", None), camera)
 
     @classmethod
     def from_file(cls, path: str | os.PathLike, table: ParameterTable = METRIXS) -> PVMap:
@@ -91,12 +106,13 @@ class PVMap:
             raise PVMapError(f"PV map {path}: {exc.strerror or exc}") from None
         except tomllib.TOMLDecodeError as exc:
             raise PVMapError(f"PV map {path}: not TOML: {exc}") from None
-        unknown = sorted(set(data) - {"name", "motors", "chamber", "stage"})
+        unknown = sorted(set(data) - {"name", "motors", "chamber", "stage", "camera"})
         if unknown:
-            raise PVMapError(f"PV map {path}: unknown keys {', '.join(unknown)} (name, [motors], [chamber], [stage])")
+            raise PVMapError(f"PV map {path}: unknown keys {', '.join(unknown)} "
+                             f"(name, [motors], [chamber] or [camera], [stage])")
         try:
             return cls(dict(data.get("motors", {})), dict(data.get("chamber", {})), str(data.get("name", path.stem)),
-                       table, dict(data.get("stage", {})))
+                       table, dict(data.get("stage", {})), data.get("camera"))
         except PVMapError as exc:
             raise PVMapError(f"PV map {path}: {exc}") from None
 
@@ -114,8 +130,16 @@ class PVMap:
         for p in self.table:
             if p.motorized:
                 lines.append(f"{_q(p.name):36s} = {_q(self.motors[p.name])}  # {p.unit}, {p.description}")
-        lines += ["", "[chamber]"]
-        lines += [f"{k:16s} = {_q(self.chamber[k])}" for k in CHAMBER_PVS]
+        if self.camera is None:
+            lines += ["", "[chamber]"]
+            lines += [f"{k:16s} = {_q(self.chamber[k])}" for k in CHAMBER_PVS]
+        else:
+            lines += ["", "# the focus chamber's camera (areaDetector: cam1: and HDF1: below its prefix)", "[camera]"]
+            lines += [f"{k:18s} = {_toml(self.camera[k])}  # {CAMERA_KEYS[k]}" for k in CAMERA_KEYS
+                      if k in self.camera and k != "geometry"]
+            geometry = dict(self.camera.get("geometry") or {})
+            lines += ["", "# where the pixels lie on the screen (omitted: 1000 x 1200 pixels of 20 x 5 µm, centred)",
+                      "[camera.geometry]"] + [f"{k} = {_toml(v)}" for k, v in geometry.items()]
         lines += ["", "# the focus chamber's x/y/z translation stage (mm); leave the section out if it has none",
                   "[stage]" if self.stage else "# [stage]"]
         lines += [f"{'' if self.stage else '# '}{a} = {_q(self.stage.get(a, f'CHAMBER:{a.upper()}'))}"
@@ -129,8 +153,22 @@ class PVMap:
         return MetrixsBeamline("", name, table=self.table, pv_names=self.motors, stage=self.stage or None)
 
     def focus_chamber(self, name: str = "chamber"):
+        """The chamber detector the plans read: the histogram PVs' device, or the camera's
+        (:class:`~bluesky_offsets.epics.camera.CameraChamber`) with its data sheet's calibration."""
+        if self.camera is not None:
+            from bluesky_offsets.epics.camera import CameraChamber
+            return CameraChamber(self.camera["prefix"], self.camera["directory"], self.camera_calibration(),
+                                 name=name)
         from bluesky_offsets.epics.devices import FocusChamber
         return FocusChamber("", name, pv_names=self.chamber)
+
+    def camera_calibration(self):
+        """The camera's calibration as its PV map states it (its data sheet; the flux at the screen)."""
+        from bluesky_offsets.physics.camera import CameraCalibration, CameraGeometry
+        c = self.camera or {}
+        return CameraCalibration(geometry=CameraGeometry.from_dict(dict(c.get("geometry") or {})),
+                                 gain=float(c["gain"]), read_noise=float(c["read_noise"]), dark=float(c["dark"]),
+                                 photons_per_second=float(c["photons_per_second"]))
 
     def beamline_v1(self, name: str = "metrixs"):
         """Classic ophyd devices (connect lazily: what a queueserver startup wants)."""
@@ -144,6 +182,56 @@ class PVMap:
 
 def _q(text: str) -> str:
     return '"' + str(text).replace("\\", "\\\\").replace('"', '\\"') + '"'
+
+
+def _toml(v) -> str:
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    return _q(v) if isinstance(v, str) else repr(v)
+
+
+CAMERA_KEYS = {
+    "prefix": "the areaDetector's PV prefix",
+    "directory": "where it writes its HDF5 files, as this machine sees them",
+    "photons_per_second": "the flux at the screen (a photodiode's reading): the histograms are fractions of it",
+    "gain": "ADU per photon, the data sheet's (photon transfer measures it)",
+    "read_noise": "ADU, the data sheet's (dark frames measure it)",
+    "dark": "ADU, the mean dark level (dark frames measure it pixel by pixel)",
+    "geometry": "pixel size, centre and mounting (bluesky_offsets.physics.camera.CameraGeometry)",
+}
+"""The ``[camera]`` table of a PV map."""
+
+SIM_CAMERA = {"photons_per_second": 5000.0, "gain": 60.0, "read_noise": 1.0, "dark": 100.0}
+"""The simulated camera's data sheet (``sim_iocs.camera.CameraNoise``, whose true gain is 64 ADU a
+photon and read noise 0.75 ADU) and the flux at its screen."""
+
+CAMERA_PVS = ("cam1:Acquire", "cam1:AcquireTime", "cam1:ImageMode", "cam1:DetectorState_RBV", "cam1:ArrayCounter_RBV",
+              "cam1:ShutterControl", "HDF1:FilePath", "HDF1:FileName", "HDF1:Capture", "HDF1:NumCaptured_RBV",
+              "HDF1:FullFileName_RBV", "HDF1:FilePathExists_RBV")
+"""What :func:`check_pvs` asks of a camera (all of ADCore's names; ophyd-async connects more)."""
+
+
+def _check_camera(camera: Mapping) -> None:
+    from bluesky_offsets.physics.camera import CameraGeometry
+    if not isinstance(camera, Mapping):
+        raise PVMapError("[camera]: expected a table")
+    if unknown := sorted(set(camera) - set(CAMERA_KEYS)):
+        raise PVMapError(f"[camera]: unknown keys {', '.join(unknown)} (known: {', '.join(CAMERA_KEYS)})")
+    if missing := [k for k in CAMERA_KEYS if k != "geometry" and k not in camera]:
+        raise PVMapError(f"[camera]: no {', '.join(missing)}")
+    for k in ("prefix", "directory"):
+        if not isinstance(camera[k], str) or not camera[k].strip():
+            raise PVMapError(f"[camera] {k}: expected text, got {camera[k]!r}")
+    for k in ("photons_per_second", "gain", "read_noise", "dark"):
+        v = camera[k]
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not v == v or v < 0 or v == float("inf"):
+            raise PVMapError(f"[camera] {k}: expected a finite number >= 0, got {v!r}")
+    if not camera["gain"] > 0 or not camera["photons_per_second"] > 0:
+        raise PVMapError("[camera]: gain and photons_per_second must be positive")
+    try:
+        CameraGeometry.from_dict(dict(camera.get("geometry") or {}))
+    except (TypeError, ValueError) as exc:
+        raise PVMapError(f"[camera.geometry]: {exc}") from None
 
 
 # --------------------------------------------------------------------------- #
@@ -186,6 +274,9 @@ def check_pvs(pv_map: PVMap, *, timeout: float = 3.0, progress=None) -> PVCheck:
             names[f"{rec}.{f}"] = n
     for k, pv in pv_map.chamber.items():
         names[pv] = f"chamber.{k}"
+    camera_pvs = [pv_map.camera["prefix"] + s for s in CAMERA_PVS] if pv_map.camera else []
+    for pv in camera_pvs:
+        names[pv] = f"camera {pv[len(pv_map.camera['prefix']):]}"
     for a, rec in pv_map.stage.items():
         for f in MOTOR_FIELDS:
             names[f"{rec}.{f}"] = f"stage.{a}"
@@ -223,11 +314,14 @@ def check_pvs(pv_map: PVMap, *, timeout: float = 3.0, progress=None) -> PVCheck:
                 out.ok += 1
             if progress:
                 progress(n)
-        for k, pv in pv_map.chamber.items():
+        for k, pv in [*pv_map.chamber.items(), *((names[pv], pv) for pv in camera_pvs)]:
             if not pvs[pv].connected:
-                out.missing.append((f"chamber.{k}", pv))
+                out.missing.append((k if k.startswith("camera") else f"chamber.{k}", pv))
             else:
                 out.ok += 1
+        if pv_map.camera and not os.access(pv_map.camera["directory"], os.R_OK):
+            out.mismatched.append(("camera directory", pv_map.camera["directory"], "not readable here (the camera "
+                                   "writes its frames there; mount it, or name where it is mounted)"))
     finally:
         ctx.disconnect()
     return out

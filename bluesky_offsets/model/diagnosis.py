@@ -435,7 +435,8 @@ def _fresh_misfit(verifier: Twin, meas: Measurement, st: ModelState, rays: int, 
     ``meas``: its misfit and the model's histograms (C, bins x + bins y)."""
     seeds = [seed + 104729 * (1 + draw) + i for i in range(meas.n)]
     hx, hy = simulate(verifier, meas.configurations, st, rays, seeds, table, meas.screen)
-    return misfit(meas.hist_x, meas.hist_y, hx, hy, meas.n_rays, model_rays=rays), np.c_[hx, hy]
+    return misfit(meas.hist_x, meas.hist_y, hx, hy, meas.n_rays, model_rays=rays, floor_x=meas.floor_x,
+                  floor_y=meas.floor_y), np.c_[hx, hy]
 
 
 def _heldout(fit: FitResult, folds: Sequence[np.ndarray]) -> np.ndarray:
@@ -725,7 +726,8 @@ def evaluate(meas: Measurement, state: ModelState, twin, *, model_rays: int | No
     model_rays = model_rays or 4 * int(meas.n_rays)  # a sharper model than the measurement
     hx, hy = simulate(twin, meas.configurations, state, model_rays, [seed + i for i in range(meas.n)], table,
                       meas.screen)
-    return misfit(meas.hist_x, meas.hist_y, hx, hy, meas.n_rays, model_rays=model_rays)
+    return misfit(meas.hist_x, meas.hist_y, hx, hy, meas.n_rays, model_rays=model_rays, floor_x=meas.floor_x,
+                  floor_y=meas.floor_y)
 
 
 def add_effect(meas: Measurement, state: ModelState, name: str, twin=None, forward_model=None, *,

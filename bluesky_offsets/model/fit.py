@@ -54,7 +54,7 @@ from scipy.stats import chi2 as chi2_dist
 
 from bluesky_offsets.options import refuse_unknown
 from bluesky_offsets.physics import effects as E
-from bluesky_offsets.model.misfit import beam_features, expected_pull2, feature_values
+from bluesky_offsets.model.misfit import beam_features, compared, expected_pull2, feature_values
 from bluesky_offsets.physics.noise import bin_variance
 from bluesky_offsets.physics.parameters import MAX_OFFSET, METRIXS, ParameterTable
 from bluesky_offsets.physics.screen import add_overrides, tensor_overrides
@@ -257,7 +257,9 @@ class _Model:
         self.det_effects = [e for e in state.effects if E.get(e).level == "detector"]
         self.span = torch.as_tensor(table.span, dtype=torch.float64)
         self.m = np.concatenate([meas.hist_x, meas.hist_y], 1)
-        self.fm, self.vm = beam_features(meas.hist_x, meas.hist_y, meas.spec, meas.n_rays)  # measured: fixed
+        self.floor = meas.floor  # a camera's own noise per bin, None for ray counts
+        self.fm, self.vm = beam_features(meas.hist_x, meas.hist_y, meas.spec, meas.n_rays,
+                                         meas.floor_x, meas.floor_y)  # measured: fixed
         self.n_traces = 0
         self.soft = bool(options.soft_values)
         self._measured: dict[str, np.ndarray] = {}
@@ -396,6 +398,16 @@ class _Model:
         ty = ty.reshape(ty.shape[0], spec.bins_y // fy_, fy_, *ty.shape[2:]).sum(2)
         return torch.cat([tx, ty], 1)
 
+    def measured(self, stage: str) -> tuple[np.ndarray, np.ndarray | None]:
+        """The measured bins ``stage`` compares and their camera floor (None without one)."""
+        if stage not in self._measured:
+            hm = torch.as_tensor(self.m)
+            floor = None if self.floor is None else torch.as_tensor(self.floor)
+            if stage == "profiles":  # independent pixels: floors add up as the bins do
+                hm, floor = self._rebin(hm), None if floor is None else self._rebin(floor)
+            self._measured[stage] = (hm.numpy(), None if floor is None else floor.numpy())
+        return self._measured[stage]
+
     def residuals(self, stage: str, pr: _Products):
         """Normalized residuals (measured − model)/σ of ``stage`` (flat), their Jacobian in z
         (rows, P + p; d model / dz / σ) when ``pr`` has one, the degrees of freedom and each
@@ -406,14 +418,12 @@ class _Model:
             r = ((self.fm - pr.values) / sd).reshape(-1)
             G = None if pr.jacobian is None else (pr.jacobian / sd[..., None]).reshape(r.size, -1)
             return r, G, float(r.size), np.repeat(np.arange(n_conf), 5)
-        if stage not in self._measured:
-            hm = torch.as_tensor(self.m)
-            self._measured[stage] = (self._rebin(hm) if stage == "profiles" else hm).numpy()
-        m, f = self._measured[stage], pr.values
-        var = bin_variance(m, f, float(self.meas.n_rays), pr.rays)
-        signal = (m > 0) | (f > 0)
+        m, floor = self.measured(stage)
+        f = pr.values
+        var = bin_variance(m, f, float(self.meas.n_rays), pr.rays, floor=floor)
+        signal = compared(m, f, floor)
         r = np.where(signal, (m - f) / np.sqrt(var), 0.0)
-        dof = float(expected_pull2(m, f, float(self.meas.n_rays)).sum())
+        dof = float(expected_pull2(m, f, float(self.meas.n_rays), floor).sum())
         keep = signal.reshape(-1)
         G = None
         if pr.jacobian is not None:
@@ -433,11 +443,9 @@ def _fisher(mdl: _Model, other: _Model, stage: str, z: np.ndarray, pa: _Products
     if stage == "features":
         w = 1.0 / (mdl.vm + 0.5 * (pa.variance + pb.variance))
     else:
-        if stage not in mdl._measured:
-            mdl.residuals(stage, pa)  # caches the measured values at this stage's bins
-        m, f = mdl._measured[stage], 0.5 * (pa.values + pb.values)
-        var = bin_variance(m, f, float(mdl.meas.n_rays), pa.rays)
-        w = np.where((m > 0) | (f > 0), 1.0 / var, 0.0)
+        (m, floor), f = mdl.measured(stage), 0.5 * (pa.values + pb.values)
+        var = bin_variance(m, f, float(mdl.meas.n_rays), pa.rays, floor=floor)
+        w = np.where(compared(m, f, floor), 1.0 / var, 0.0)
     x = np.einsum("cbp,cb,cbq->pq", pa.jacobian, w, pb.jacobian)
     vals, vecs = np.linalg.eigh(0.5 * (x + x.T))
     return (vecs * np.clip(vals, 0.0, None)) @ vecs.T

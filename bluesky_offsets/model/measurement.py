@@ -50,6 +50,11 @@ class Measurement:
     screen : ndarray, shape (n, 3), optional
         The focus chamber's stage (x, y, z, mm) per frame (:mod:`bluesky_offsets.physics.screen`);
         None: the stage stood at 0 for every frame.
+    floor_x, floor_y : ndarray, shape (n, bins), optional
+        A camera's own noise in each bin (read noise, its dark's noise; fraction² of the source),
+        beside the photons' counting noise; a dark-subtracted bin may then read below zero.
+    profile_floor_x, profile_floor_y : ndarray, optional
+        The same for the profiles.
     """
 
     configurations: np.ndarray
@@ -65,6 +70,10 @@ class Measurement:
     profile_x: np.ndarray | None = None
     profile_y: np.ndarray | None = None
     screen: np.ndarray | None = None
+    floor_x: np.ndarray | None = None
+    floor_y: np.ndarray | None = None
+    profile_floor_x: np.ndarray | None = None
+    profile_floor_y: np.ndarray | None = None
 
     def __post_init__(self):
         self.names = tuple(self.names)
@@ -73,7 +82,9 @@ class Measurement:
         if cfg.ndim != 2 or cfg.shape[1] != len(self.names):
             raise MeasurementError(f"measured configurations: expected {len(self.names)} parameters in table "
                                    f"order, got shape {cfg.shape}")
-        hx, hy = check_histograms(self.hist_x, self.hist_y, self.spec.bins_x, self.spec.bins_y)
+        floors = _floors(self.floor_x, self.floor_y, len(cfg), self.spec)
+        hx, hy = check_histograms(self.hist_x, self.hist_y, self.spec.bins_x, self.spec.bins_y, floors=floors)
+        self.floor_x, self.floor_y = floors
         if len(hx) != len(cfg):
             raise MeasurementError(f"measurement: {len(cfg)} configurations but {len(hx)} x and {len(hy)} y histograms")
         self.configurations, self.hist_x, self.hist_y = cfg, hx, hy
@@ -124,7 +135,9 @@ class Measurement:
             return None if a is None else np.asarray(a)[idx]
         return replace(self, configurations=self.configurations[idx], hist_x=self.hist_x[idx],
                        hist_y=self.hist_y[idx], total_counts=pick(self.total_counts), images=pick(self.images),
-                       profile_x=pick(self.profile_x), profile_y=pick(self.profile_y), screen=pick(self.screen))
+                       profile_x=pick(self.profile_x), profile_y=pick(self.profile_y), screen=pick(self.screen),
+                       floor_x=pick(self.floor_x), floor_y=pick(self.floor_y),
+                       profile_floor_x=pick(self.profile_floor_x), profile_floor_y=pick(self.profile_floor_y))
 
     def joined(self, other: Measurement) -> Measurement:
         """This measurement's frames, then ``other``'s, as one (binned alike; this one's uid and
@@ -135,15 +148,22 @@ class Measurement:
         screen = None
         if self.screen is not None or other.screen is not None:
             screen = np.vstack([as_screen(self.screen, self.n), as_screen(other.screen, other.n)])
+        floors = [None, None]
+        if self.floor_x is not None or other.floor_x is not None:
+            floors = [np.vstack([_or_zeros(a.floor_x if k == 0 else a.floor_y, a.hist_x if k == 0 else a.hist_y)
+                                 for a in (self, other)]) for k in (0, 1)]
         return Measurement(np.vstack([self.configurations, other.configurations]),
                            np.vstack([self.hist_x, other.hist_x]), np.vstack([self.hist_y, other.hist_y]),
                            n_rays=self.n_rays, spec=self.spec, names=self.names, uid=self.uid,
-                           metadata=dict(self.metadata), screen=screen)
+                           metadata=dict(self.metadata), screen=screen, floor_x=floors[0], floor_y=floors[1])
 
     def rebinned(self, coarse: HistogramSpec) -> Measurement:
         """The same measurement in coarser bins (e.g. the paper's, for the surrogate)."""
         hx, hy = self.spec.rebin(self.hist_x, self.hist_y, coarse)
-        return replace(self, hist_x=hx, hist_y=hy, spec=coarse)
+        fx = fy = None
+        if self.floor_x is not None:  # independent pixels: the floors add up as the bins do
+            fx, fy = self.spec.rebin(self.floor_x, self.floor_y, coarse)
+        return replace(self, hist_x=hx, hist_y=hy, spec=coarse, floor_x=fx, floor_y=fy)
 
     def check_table(self, table: ParameterTable = METRIXS) -> None:
         """Raise if the measurement was taken with a different parameter table."""
@@ -176,5 +196,40 @@ class Measurement:
             raise MeasurementError(f"measurement {self.uid or ''} does not say its ray budget; pass n_rays")
         if resolution == "camera" and self.profile_x is not None and self.profile_spec is not None:
             return replace(self, configurations=cfg, hist_x=self.profile_x, hist_y=self.profile_y,
-                           spec=self.profile_spec, n_rays=int(rays), profile_x=None, profile_y=None, images=None)
-        return replace(self, configurations=cfg, n_rays=int(rays), profile_x=None, profile_y=None, images=None)
+                           spec=self.profile_spec, n_rays=int(rays), profile_x=None, profile_y=None, images=None,
+                           floor_x=self.profile_floor_x, floor_y=self.profile_floor_y,
+                           profile_floor_x=None, profile_floor_y=None)
+        return replace(self, configurations=cfg, n_rays=int(rays), profile_x=None, profile_y=None, images=None,
+                       profile_floor_x=None, profile_floor_y=None)
+
+    def scaled(self, factor: float) -> Measurement:
+        """The measured fractions times ``factor``, the floors times its square: a camera's frames
+        reduced with another gain (``factor`` = the gain used / the gain measured)."""
+        def times(a, f):
+            return None if a is None else np.asarray(a, float) * f
+        return replace(self, hist_x=self.hist_x * factor, hist_y=self.hist_y * factor,
+                       profile_x=times(self.profile_x, factor), profile_y=times(self.profile_y, factor),
+                       floor_x=times(self.floor_x, factor**2), floor_y=times(self.floor_y, factor**2),
+                       profile_floor_x=times(self.profile_floor_x, factor**2),
+                       profile_floor_y=times(self.profile_floor_y, factor**2))
+
+    @property
+    def floor(self) -> np.ndarray | None:
+        """``(n, bins_x + bins_y)``: the camera's own noise per bin (fraction²), None without a camera."""
+        return None if self.floor_x is None else np.concatenate([self.floor_x, self.floor_y], axis=1)
+
+
+def _or_zeros(floor, like):
+    return np.zeros_like(np.asarray(like, float)) if floor is None else floor
+
+
+def _floors(fx, fy, n: int, spec: HistogramSpec):
+    """The floors as (n, bins) arrays, both or neither, finite and non-negative."""
+    if fx is None and fy is None:
+        return None, None
+    if fx is None or fy is None:
+        raise MeasurementError("measurement: a camera's noise floor needs both x and y")
+    fx, fy = (np.broadcast_to(np.asarray(f, float), (n, b)).copy() for f, b in ((fx, spec.bins_x), (fy, spec.bins_y)))
+    if not (np.isfinite(fx).all() and np.isfinite(fy).all() and (fx >= 0).all() and (fy >= 0).all()):
+        raise MeasurementError("measurement: a camera's noise floor must be finite and non-negative")
+    return fx, fy

@@ -14,6 +14,8 @@ bins next to signal still count.  A correct model has ``chi2 / dof ≈ 1``.
 
 from __future__ import annotations
 
+import math
+
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 
@@ -28,8 +30,11 @@ class MeasurementError(ValueError):
     """Measurement data that cannot be compared (shape, NaN, table mismatch)."""
 
 
-def check_histograms(hist_x, hist_y, bins_x: int | None = 50, bins_y: int | None = 50, what: str = "measurement"):
-    """Validate a stack of x/y histograms; return float arrays (n, bins).  ``None`` bins: any."""
+def check_histograms(hist_x, hist_y, bins_x: int | None = 50, bins_y: int | None = 50, what: str = "measurement",
+                     floors=(None, None)):
+    """Validate a stack of x/y histograms; return float arrays (n, bins).  ``None`` bins: any.
+    With a camera's noise ``floors`` (variances, as the histograms) a bin may read below zero by up
+    to eight of the floor's σ, as a dark-subtracted one does."""
     hx = np.asarray(hist_x, dtype=float)
     hy = np.asarray(hist_y, dtype=float)
     if hx.ndim == 1:
@@ -40,14 +45,16 @@ def check_histograms(hist_x, hist_y, bins_x: int | None = 50, bins_y: int | None
         raise MeasurementError(f"{what}: x histograms must be (configurations, {bins_x}), got {hx.shape}")
     if hy.shape != (hx.shape[0], bins_y):
         raise MeasurementError(f"{what}: y histograms must be ({hx.shape[0]}, {bins_y}), got {hy.shape}")
-    for name, h in (("x", hx), ("y", hy)):
+    for name, h, floor in (("x", hx, floors[0]), ("y", hy, floors[1])):
         bad = ~np.isfinite(h)
         if bad.any():
             i, j = np.argwhere(bad)[0]
             raise MeasurementError(f"{what}: {name} histogram of configuration {i} has a non-finite bin {j}")
-        if (h < 0).any():
-            i = int(np.argwhere(h < 0)[0][0])
-            raise MeasurementError(f"{what}: {name} histogram of configuration {i} has negative bins")
+        low = h < (0.0 if floor is None else -8.0 * np.sqrt(floor))
+        if low.any():
+            i = int(np.argwhere(low)[0][0])
+            raise MeasurementError(f"{what}: {name} histogram of configuration {i} has negative bins"
+                                   + ("" if floor is None else " beyond its camera's noise"))
     return hx, hy
 
 
@@ -107,20 +114,40 @@ class Misfit:
                 "configurations_beyond_noise": np.flatnonzero(self.beyond_noise()).tolist()}
 
 
-def expected_pull2(meas: np.ndarray, model: np.ndarray, n_rays) -> np.ndarray:
+def expected_pull2(meas: np.ndarray, model: np.ndarray, n_rays, floor=None) -> np.ndarray:
     """What each bin adds to chi-square on average for a correct model (its degrees of freedom).
 
     One where the measurement saw rays; where it saw none, ``n p`` for a model that
     expects ``p n < 1`` rays there: such a bin is almost always empty, and its pull is then
     tiny.  Counting it as a whole degree of freedom let a model with a faint background
     (non-zero in all 1600 bins) report chi2/dof ~ 1 while its MSE was 11x its noise.
+    With a camera's ``floor`` a bin the model lights is one; a bin it leaves dark is counted only
+    where its noise reads beyond :data:`DARK_CUT` σ (:func:`compared`), which a Gaussian does in
+    :data:`DARK_PULL2` of its square on average.
     """
     n = np.asarray(n_rays, dtype=float)
+    if floor is not None:
+        return np.where(np.asarray(model) > 0, 1.0, DARK_PULL2)
     return np.where(meas > 0, 1.0, np.clip(model * n, 0.0, 1.0))
 
 
+DARK_CUT = 3.0
+"""σ of a camera's own noise beyond which a bin the model leaves dark counts as light measured."""
+DARK_PULL2 = float(DARK_CUT * np.exp(-DARK_CUT**2 / 2) / np.sqrt(2 * np.pi) + 0.5 * math.erfc(DARK_CUT / np.sqrt(2)))
+"""E[z² ; z > DARK_CUT] of a standard normal z: what a dark bin adds to chi-square on average."""
+
+
+def compared(meas: np.ndarray, model: np.ndarray, floor=None) -> np.ndarray:
+    """The bins a chi-square counts: where light was measured or modelled; with a camera's floor,
+    where the model has light or the measurement reads beyond :data:`DARK_CUT` σ of its noise (the
+    camera's dark bins, thousands a frame, would else drown the light's bins in their noise)."""
+    if floor is not None:
+        return (np.asarray(model) > 0) | (np.asarray(meas) > DARK_CUT * np.sqrt(floor))
+    return (meas > 0) | (model > 0)
+
+
 def misfit(meas_x, meas_y, model_x, model_y, n_rays: int | Sequence[int], *,
-           model_rays: int | None = None, model_var: float = 0.0) -> Misfit:
+           model_rays: int | None = None, model_var: float = 0.0, floor_x=None, floor_y=None) -> Misfit:
     """Chi-square and MSE of model histograms against measured ones.
 
     Parameters
@@ -133,8 +160,10 @@ def misfit(meas_x, meas_y, model_x, model_y, n_rays: int | Sequence[int], *,
         Rays of a twin-traced model (its own noise); ``None`` for a mean model (surrogate).
     model_var : float
         Extra per-bin variance of the model (e.g. a surrogate's test MSE).
+    floor_x, floor_y : array_like (n, bins), optional
+        A camera's own noise per measured bin (:attr:`Measurement.floor_x`).
     """
-    mx, my = check_histograms(meas_x, meas_y, None, None)
+    mx, my = check_histograms(meas_x, meas_y, None, None, floors=(floor_x, floor_y))
     fx, fy = check_histograms(model_x, model_y, None, None, what="model")
     for axis, a, b in (("x", fx, mx), ("y", fy, my)):
         if a.shape[1] != b.shape[1]:
@@ -146,19 +175,21 @@ def misfit(meas_x, meas_y, model_x, model_y, n_rays: int | Sequence[int], *,
     if (n <= 0).any():
         raise MeasurementError("ray budgets must be positive")
 
-    def _pulls(m, f):
-        var = bin_variance(m, f, n, model_rays, model_var)
-        return np.where((m > 0) | (f > 0), (m - f) / np.sqrt(var), 0.0)
+    def _pulls(m, f, floor):
+        var = bin_variance(m, f, n, model_rays, model_var, floor)
+        return np.where(compared(m, f, floor), (m - f) / np.sqrt(var), 0.0)
 
-    px, py = _pulls(mx, fx), _pulls(my, fy)
+    px, py = _pulls(mx, fx, floor_x), _pulls(my, fy, floor_y)
     chi2 = (px ** 2).sum(1) + (py ** 2).sum(1)
-    wx, wy = expected_pull2(mx, fx, n), expected_pull2(my, fy, n)
+    wx, wy = expected_pull2(mx, fx, n, floor_x), expected_pull2(my, fy, n, floor_y)
     dof = wx.sum(1) + wy.sum(1)
     mse = np.concatenate([(mx - fx) ** 2, (my - fy) ** 2], axis=1).mean(1)
     # a correct model: E[(m - f)^2] = var per bin (its counting part scaled like the dof in
     # nearly empty bins)
-    counting = np.concatenate([(bin_variance(mx, fx, n, model_rays) * wx), (bin_variance(my, fy, n, model_rays) * wy)],
-                              axis=1)
+    if floor_x is not None:  # every bin's residual enters the MSE: its whole variance, the camera's too
+        wx, wy = np.ones_like(wx), np.ones_like(wy)
+    counting = np.concatenate([(bin_variance(mx, fx, n, model_rays, floor=floor_x) * wx),
+                               (bin_variance(my, fy, n, model_rays, floor=floor_y) * wy)], axis=1)
     exp_mse = (counting + model_var).mean(1)
     return Misfit(chi2, dof, mse, exp_mse, px, py)
 
@@ -219,7 +250,7 @@ def moments(hist: np.ndarray, centers: np.ndarray) -> dict[str, np.ndarray]:
 FEATURE_NAMES = ("intensity", "x.centroid", "x.width", "y.centroid", "y.width")
 
 
-def beam_features(hist_x, hist_y, spec, n_rays) -> tuple[np.ndarray, np.ndarray]:
+def beam_features(hist_x, hist_y, spec, n_rays, floor_x=None, floor_y=None) -> tuple[np.ndarray, np.ndarray]:
     """The beam on the screen in five numbers per configuration, with their noise variances.
 
     Intensity (fraction of the source rays in the window), centroid and rms width per axis;
@@ -227,21 +258,33 @@ def beam_features(hist_x, hist_y, spec, n_rays) -> tuple[np.ndarray, np.ndarray]
     ``sd^2/2N`` width).  Unlike bin contents these move smoothly and almost linearly with
     the offsets over many spot widths, which is why fits start on them: a focus narrower
     than a few bins makes every bin a steep step function of the spot position.
+    A camera's frames carry their own noise (``floor_x``/``floor_y``, per bin): their bins are
+    taken as measured (clipping the noise at zero would bias every moment) and the floor's share
+    is added to each variance, the moments' sums linearized.
     Returns ``(features, variances)``, each ``(..., 5)`` in :data:`FEATURE_NAMES` order.
     """
     n = float(n_rays)
-    # a linearized model may dip below zero in empty bins
-    hx, hy = np.clip(np.asarray(hist_x, float), 0, None), np.clip(np.asarray(hist_y, float), 0, None)
+    hx, hy = np.asarray(hist_x, float), np.asarray(hist_y, float)
+    if floor_x is None:  # a linearized model may dip below zero in empty bins
+        hx, hy = np.clip(hx, 0, None), np.clip(hy, 0, None)
     inten = hx.sum(-1)
     hits = np.maximum(inten * n, 1.0)
     out, var = [inten], [np.maximum(inten * (1 - inten), 1.0 / n) / n]
-    for h, c in ((hx, spec.centers_x), (hy, spec.centers_y)):
+    if floor_x is not None:
+        var[0] = var[0] + np.asarray(floor_x, float).sum(-1)
+    for h, c, floor in ((hx, spec.centers_x, floor_x), (hy, spec.centers_y, floor_y)):
         mu, v = _spot(h, c)
         dark = h.sum(-1) <= 0
         # no rays, no position: the whole window as the uncertainty
         big = (c[-1] - c[0]) ** 2
+        vc, vw = v / hits, v / (2 * hits)
+        if floor is not None:
+            tot = np.maximum(np.abs(h.sum(-1)), 1.0 / n)[..., None]
+            d2 = (c - mu[..., None]) ** 2
+            vc = vc + (floor * d2).sum(-1) / tot[..., 0] ** 2
+            vw = vw + (floor * (d2 - v[..., None]) ** 2).sum(-1) / (4 * v * tot[..., 0] ** 2)
         out += [mu, np.sqrt(v)]
-        var += [np.where(dark, big, v / hits), np.where(dark, big, v / (2 * hits))]
+        var += [np.where(dark, big, np.minimum(vc, big)), np.where(dark, big, np.minimum(vw, big))]
     return np.stack(out, -1), np.stack(var, -1)
 
 

@@ -122,6 +122,15 @@ def _fwhm(h: np.ndarray, centers: np.ndarray) -> float:
     return float(right - left)
 
 
+def _around_peak(h: np.ndarray, c: np.ndarray, widths: float = 5.0) -> np.ndarray:
+    """``h`` zero beyond ``widths`` FWHM (at least ten bins) of its peak: a camera profile's moments
+    over the beam, not over the read noise of the whole window."""
+    i = int(np.argmax(h))
+    step = c[1] - c[0]
+    half = max(widths * _fwhm(np.clip(h, 0, None), c), 10 * step)
+    return np.where(np.abs(c - c[i]) <= half, h, 0.0)
+
+
 def focus_from_profiles(profile_x, profile_y, spec, n_rays: int | None = None) -> Focus:
     """The :class:`Focus` of x/y profiles (fraction of source rays per bin) binned as ``spec``
     (a :class:`~bluesky_offsets.physics.twin.HistogramSpec`): moments over the bin centres.
@@ -130,12 +139,14 @@ def focus_from_profiles(profile_x, profile_y, spec, n_rays: int | None = None) -
     rays scatters by rms·√((κ−1)/4N), κ the profile's kurtosis)."""
     out = []
     for h, c in ((np.asarray(profile_x, float), spec.centers_x), (np.asarray(profile_y, float), spec.centers_y)):
+        if (h < 0).any():  # a camera's dark-subtracted noise: far bins would dominate the moments
+            h = _around_peak(h, c)
         s = h.sum()
         if s <= 0:
             out.append((0.0, float("nan"), float("nan"), float("nan"), float("nan")))
             continue
         m = float((h * c).sum() / s)
-        var = float((h * (c - m) ** 2).sum() / s)
+        var = max(float((h * (c - m) ** 2).sum() / s), 0.0)
         sig = float("nan")
         if n_rays and var > 0:
             kurt = float((h * (c - m) ** 4).sum() / s) / var ** 2

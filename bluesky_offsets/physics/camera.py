@@ -13,8 +13,8 @@ Examples
 --------
 >>> import numpy as np
 >>> geo = CameraGeometry(width=4, height=3, pixel_x_mm=1.0, pixel_y_mm=1.0)
->>> geo.photons(np.array([[0.2, 0.1], [1.5, -1.2]])).tolist()
-[[0, 0, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]
+>>> geo.photons(np.array([[0.2, 0.1], [1.5, -1.2]])).tolist()  # rows run along y, from its low end
+[[0, 0, 0, 1], [0, 0, 1, 0], [0, 0, 0, 0]]
 """
 
 from __future__ import annotations
@@ -123,12 +123,15 @@ class Roi:
 
 @dataclass(frozen=True)
 class Profiles:
-    """x and y profiles of a frame in photons per screen pixel column/row, with their variances."""
+    """x and y profiles of a frame in photons per screen pixel column/row, with their variances and
+    the part of those that is the camera's own (read noise, the dark's noise: ``floor_x``/``floor_y``)."""
 
     x: np.ndarray
     y: np.ndarray
     var_x: np.ndarray
     var_y: np.ndarray
+    floor_x: np.ndarray | None = None
+    floor_y: np.ndarray | None = None
 
     @property
     def photons(self) -> float:
@@ -140,8 +143,9 @@ class Profiles:
         own = geometry.spec
         ix = _groups(own.edges_x, spec.edges_x, "x")
         iy = _groups(own.edges_y, spec.edges_y, "y")
+        fx, fy = ((None if f is None else np.add.reduceat(f, i)) for f, i in ((self.floor_x, ix), (self.floor_y, iy)))
         return Profiles(np.add.reduceat(self.x, ix), np.add.reduceat(self.y, iy),
-                        np.add.reduceat(self.var_x, ix), np.add.reduceat(self.var_y, iy))
+                        np.add.reduceat(self.var_x, ix), np.add.reduceat(self.var_y, iy), fx, fy)
 
 
 def _groups(pixel_edges: np.ndarray, bin_edges: np.ndarray, axis: str) -> np.ndarray:
@@ -172,9 +176,8 @@ def profiles(frame: np.ndarray, geometry: CameraGeometry, *, dark: np.ndarray | 
     inside = np.where(mask, signal, 0.0)
     px, py = inside.sum(axis=0), inside.sum(axis=1)
     per_pixel = (read_noise / gain) ** 2 * (1.0 + (1.0 / dark_frames if dark_frames else 0.0))
-    vx = np.clip(px, 0.0, None) + per_pixel * mask.sum(axis=0)
-    vy = np.clip(py, 0.0, None) + per_pixel * mask.sum(axis=1)
-    return Profiles(px, py, vx, vy)
+    fx, fy = per_pixel * mask.sum(axis=0), per_pixel * mask.sum(axis=1)
+    return Profiles(px, py, np.clip(px, 0.0, None) + fx, np.clip(py, 0.0, None) + fy, fx, fy)
 
 
 @dataclass(frozen=True)
@@ -219,3 +222,48 @@ def photon_transfer(frames: np.ndarray, darks: np.ndarray, *, saturation: float 
     read2 = float(dark_var.mean())
     lit = int((0.5 * (level[0] + level[1]) > 3.0 * np.sqrt(read2)).sum())
     return PhotonTransfer(gain, gain_sigma, float(np.sqrt(read2)), lit)
+
+
+@dataclass(frozen=True, kw_only=True)
+class CameraCalibration:
+    """What turns a camera's frames into the twin's histograms: where its pixels lie, its dark frame,
+    gain and read noise (:func:`photon_transfer`), the region of interest, and the photons the source
+    sends per second of exposure (the flux at the screen, measured once: the histograms are fractions
+    of it, as the twin's are fractions of its source rays).
+
+    Examples
+    --------
+    >>> cal = CameraCalibration(gain=12.0, read_noise=2.0, dark=100.0, photons_per_second=5000.0)
+    >>> cal.source_photons(0.5)
+    2500
+    """
+
+    geometry: CameraGeometry = dataclasses.field(default_factory=CameraGeometry)
+    gain: float
+    read_noise: float
+    dark: np.ndarray | float
+    dark_frames: float | None = None
+    photons_per_second: float
+    roi: Roi | None = None
+    gain_sigma: float | None = None
+
+    def __post_init__(self):
+        if not (self.gain > 0 and self.read_noise >= 0 and self.photons_per_second > 0):
+            raise ValueError("a camera calibration needs gain > 0, read noise >= 0 and photons per second > 0")
+
+    def source_photons(self, exposure: float) -> int:
+        """Photons the source sends in ``exposure`` seconds: the histograms' denominator."""
+        return max(int(round(self.photons_per_second * exposure)), 1)
+
+    def reduce(self, frame: np.ndarray, exposure: float, hist: HistogramSpec) -> dict:
+        """One frame as the twin's quantities: ``hist_x``/``hist_y`` (binned as ``hist``) and
+        ``profile_x``/``profile_y`` (the camera's pixels) as fractions of the source photons, their
+        camera-noise floors in fraction² (``floor_hx``, ``floor_hy``, ``floor_px``, ``floor_py``), ``photons`` on the screen and ``n_source``."""
+        p = profiles(frame, self.geometry, dark=self.dark, gain=self.gain, read_noise=self.read_noise,
+                     roi=self.roi, dark_frames=self.dark_frames)
+        b = p.binned(self.geometry, hist)
+        n = self.source_photons(exposure)
+        return {"hist_x": b.x / n, "hist_y": b.y / n, "profile_x": p.x / n, "profile_y": p.y / n,
+                "floor_hx": b.floor_x / n**2, "floor_hy": b.floor_y / n**2,
+                "floor_px": p.floor_x / n**2, "floor_py": p.floor_y / n**2,
+                "photons": p.photons, "n_source": n}

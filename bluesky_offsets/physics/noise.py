@@ -29,14 +29,19 @@ def multinomial_variance(p, n_rays):
     return p * (1 - p) / n_rays
 
 
-def bin_variance(meas, model, n_rays, model_rays: int | None = None, model_var: float = 0.0) -> np.ndarray:
+def bin_variance(meas, model, n_rays, model_rays: int | None = None, model_var: float = 0.0,
+                 floor=None) -> np.ndarray:
     """The variance of a bin's measured − model fraction: ``p (1 - p) / N`` for the measurement
     and ``p (1 - p) / N_model`` for a traced model (a mean model, e.g. a surrogate: its error
-    variance ``model_var`` instead), ``p`` the mean of both floored at one ray in ``N``.  The
-    one noise model of every misfit and fit."""
+    variance ``model_var`` instead), ``p`` the mean of both floored at one ray in ``N``; with a
+    camera's own noise ``floor`` (read noise; fraction²) that floor instead, added.  The one noise
+    model of every misfit and fit."""
     n = np.asarray(n_rays, dtype=float)
-    p = np.maximum(0.5 * (np.asarray(meas, float) + np.asarray(model, float)), 1.0 / n)
+    # counts: at least one ray's worth in a bin; a camera's floor is the variance an empty bin has
+    p = np.maximum(0.5 * (np.asarray(meas, float) + np.asarray(model, float)), 0.0 if floor is not None else 1.0 / n)
     var = multinomial_variance(p, n) + model_var
+    if floor is not None:
+        var = var + floor
     if model_rays:
         var = var + multinomial_variance(p, model_rays)
     return var

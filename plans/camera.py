@@ -1,0 +1,150 @@
+"""The camera's own calibration: its dark frame, read noise and gain, measured from its frames.
+
+:func:`calibrate_camera` closes the shutter for dark frames, opens it, takes repeated frames where
+the beam stands and measures the gain by photon transfer
+(:func:`bluesky_offsets.physics.camera.photon_transfer`); the camera reduces every later frame
+with the result.  Where the beam gives too little light for a gain within ``max_gain_error``,
+the camera keeps the gain it had (its data sheet's), and the result says so.
+:func:`calibrate_where_bright` does it after a measurement, where its brightest frame was taken,
+and returns the measurement rescaled to the gain measured.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Mapping
+
+import bluesky.plan_stubs as bps
+import bluesky.preprocessors as bpp
+import numpy as np
+from bluesky.utils import MsgGenerator
+
+from bluesky_offsets.model.measurement import Measurement
+from bluesky_offsets.physics.camera import CameraCalibration, photon_transfer
+
+
+@dataclasses.dataclass(frozen=True)
+class CameraCheck:
+    """What :func:`calibrate_camera` measured and whether the gain was taken from it."""
+
+    calibration: CameraCalibration
+    measured_gain: float | None
+    gain_sigma: float | None
+    read_noise: float
+    dark_frames: int
+    light_frames: int
+    gain_measured: bool
+
+    def line(self) -> str:
+        g = self.calibration
+        if self.gain_measured:
+            gain = f"gain {g.gain:.2f} ± {self.gain_sigma:.2f} ADU/photon (photon transfer, {self.light_frames} frames)"
+        elif self.measured_gain is not None:
+            gain = (f"gain {g.gain:.2f} ADU/photon kept: the beam's {self.light_frames} frames gave "
+                    f"{self.measured_gain:.2f} ± {self.gain_sigma:.2f}, too uncertain")
+        else:
+            gain = f"gain {g.gain:.2f} ADU/photon kept: too little light for photon transfer"
+        return f"camera: dark from {self.dark_frames} frames, read noise {self.read_noise:.2f} ADU; {gain}"
+
+
+def calibrate_camera(camera, *, darks: int = 4, frames: int = 8, max_gain_error: float = 0.1,
+                     md: Mapping | None = None) -> MsgGenerator[CameraCheck]:
+    """Dark frames with the shutter closed, then ``frames`` where the beam stands: the camera's dark,
+    read noise and (photon transfer) gain; one run, the dark frames in the ``dark`` stream.
+
+    Parameters
+    ----------
+    camera : CameraChamber
+        The chamber's camera (:class:`bluesky_offsets.epics.camera.CameraChamber`).
+    darks, frames : int
+        Dark frames (two or more) and frames with light (four or more, for the gain).
+    max_gain_error : float
+        The largest relative σ of a measured gain that replaces the camera's.
+    """
+    if darks < 2 or frames < 4:
+        raise ValueError("calibrate_camera: two or more dark frames and four or more frames with light")
+    _md = {"plan_name": "calibrate_camera", "plan_args": {"darks": darks, "frames": frames,
+                                                         "max_gain_error": max_gain_error},
+           "detectors": [camera.name], **(md or {})}
+
+    taken = {}
+
+    @bpp.stage_decorator([camera])
+    @bpp.run_decorator(md=_md)
+    def inner():
+        yield from bps.mv(camera.shutter, "Close")
+        try:
+            taken["dark"] = yield from _stream(camera, darks, "dark")
+        finally:
+            yield from bps.mv(camera.shutter, "Open")
+        taken["light"] = yield from _stream(camera, frames, "primary")
+
+    yield from inner()
+    dark, light = taken["dark"], taken["light"]
+    read = float(np.sqrt(dark.var(axis=0, ddof=1).mean()))
+    base = dataclasses.replace(camera.calibration, dark=dark.mean(axis=0), dark_frames=float(len(dark)),
+                               read_noise=read)
+    measured = sigma = None
+    try:
+        pt = photon_transfer(light, dark)
+        measured, sigma = pt.gain, pt.gain_sigma
+    except ValueError:
+        pass
+    ok = measured is not None and measured > 0 and sigma < max_gain_error * measured
+    cal = dataclasses.replace(base, gain=measured, gain_sigma=sigma) if ok else base
+    camera.calibrate(cal)
+    return CameraCheck(cal, measured, sigma, read, len(dark), len(light), ok)
+
+
+def _stream(camera, n: int, name: str) -> MsgGenerator[np.ndarray]:
+    """``n`` frames as events of stream ``name``; their raw frames."""
+    out = []
+    for _ in range(n):
+        yield from bps.trigger_and_read([camera], name=name)
+        out.append(np.asarray(camera.last_frame, float))
+    return np.array(out)
+
+
+def take_darks(camera, n: int = 4, *, md: Mapping | None = None) -> MsgGenerator[CameraCalibration]:
+    """``n`` dark frames with the shutter closed (one run, stream ``dark``): the camera's dark frame
+    and read noise from now on; no light needed, so a session takes them first."""
+    if n < 2:
+        raise ValueError("take_darks: two or more dark frames")
+    taken = {}
+
+    @bpp.stage_decorator([camera])
+    @bpp.run_decorator(md={"plan_name": "take_darks", "plan_args": {"n": n}, "detectors": [camera.name],
+                           **dict(md or {})})
+    def inner():
+        yield from bps.mv(camera.shutter, "Close")
+        try:
+            taken["dark"] = yield from _stream(camera, n, "dark")
+        finally:
+            yield from bps.mv(camera.shutter, "Open")
+
+    yield from inner()
+    dark = taken["dark"]
+    cal = dataclasses.replace(camera.calibration, dark=dark.mean(axis=0), dark_frames=float(n),
+                              read_noise=float(np.sqrt(dark.var(axis=0, ddof=1).mean())))
+    camera.calibrate(cal)
+    return cal
+
+
+def calibrate_where_bright(camera, beamline, m: Measurement, *, darks: int = 4, frames: int = 8,
+                           max_gain_error: float = 0.1, md: Mapping | None = None,
+                           report=None) -> MsgGenerator[Measurement]:
+    """After measurement ``m`` (taken with ``camera``): back to its brightest frame's configuration
+    (and screen), :func:`calibrate_camera` there, and ``m`` rescaled from the gain it was reduced
+    with to the one measured (unchanged where the gain was kept).  ``report(check)`` sees the result."""
+    from .measure import scan_configurations
+
+    k = int(np.argmax(m.hist_x.sum(axis=1)))
+    used = camera.calibration.gain
+    screen = None if m.screen is None else m.screen[k][None]
+    yield from scan_configurations(m.configurations[k][None], beamline, camera, screen=screen,
+                                   return_to_start=False, md={"purpose": "to the brightest frame, for the camera's "
+                                                              "calibration", **dict(md or {})})
+    check = yield from calibrate_camera(camera, darks=darks, frames=frames, max_gain_error=max_gain_error, md=md)
+    if report is not None:
+        report(check)
+    return m.scaled(used / check.calibration.gain) if check.gain_measured else m
