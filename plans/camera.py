@@ -148,3 +148,21 @@ def calibrate_where_bright(camera, beamline, m: Measurement, *, darks: int = 4, 
     if report is not None:
         report(check)
     return m.scaled(used / check.calibration.gain) if check.gain_measured else m
+
+
+def camera_steps(chamber, beamline, *, md: Mapping | None = None, say=print):
+    """What a session adds for a camera chamber: ``(darks, measured)``, the plan that takes its dark
+    frames first and the hook that calibrates its gain where the measurement was brightest
+    (:func:`plans.workflow.calibration_session`'s ``measured``); ``(None, None)`` for another chamber."""
+    if not callable(getattr(chamber, "calibrate", None)):
+        return None, None
+
+    def darks():
+        cal = yield from take_darks(chamber, md=md)
+        say(f"      camera: dark from {cal.dark_frames:g} frames with the shutter closed, read noise "
+            f"{cal.read_noise:.2f} ADU; the data sheet's gain {cal.gain:g} ADU/photon until measured")
+
+    def measured(m):
+        return (yield from calibrate_where_bright(chamber, beamline, m, md=md,
+                                                  report=lambda check: say("      " + check.line())))
+    return darks, measured

@@ -118,13 +118,18 @@ def _calibrate(args, design, effects, pv_map, forward_model, store) -> int:
         from bluesky_offsets.model import diagnosis as D
         designed = isinstance(design, DesignOptions)
         fit, scan = D.fits_for(designed, args.fit_rays)
+        from plans.camera import camera_steps
+        darks, measured_hook = camera_steps(chamber, beamline, md={"purpose": "calibrate"}, say=say)
         try:
+            if darks is not None:
+                RE(darks())
             with analysis_executor(args.threads, twin) as executor:
                 session = RE(calibration_session(
                     beamline, chamber, twin, forward_model, design=design, evaluations=args.evaluations,
                     candidates=effects, rounds=args.rounds, fit=fit, scan=scan,
                     fit_top=args.fit_top or None, resolution=args.resolution, measurement_md={"purpose": "calibrate"},
-                    analysis_md={"purpose": "calibration analysis"}, step=say, executor=executor)).plan_result
+                    analysis_md={"purpose": "calibration analysis"}, step=say, executor=executor,
+                    measured=measured_hook)).plan_result
         except DarkBeamline as exc:
             raise CliError(str(exc)) from None
         except RunEngineInterrupted:

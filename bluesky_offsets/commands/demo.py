@@ -276,17 +276,11 @@ def demo_plan(s: DemoSettings, beamline, chamber, twin, forward_model, log, exec
     from plans.workflow import calibration_session
 
     number = itertools.count(2)
-    measured = None
-    if s.detector == "camera":
-        from plans.camera import calibrate_where_bright, take_darks
+    from plans.camera import camera_steps
 
-        cal = yield from take_darks(chamber, md={"purpose": "bluesky-offsets demo"})
-        log(f"      camera: dark from {cal.dark_frames:g} frames with the shutter closed, read noise "
-            f"{cal.read_noise:.2f} ADU; the data sheet's gain {cal.gain:g} ADU/photon until measured")
-
-        def measured(m):
-            return (yield from calibrate_where_bright(chamber, beamline, m, md={"purpose": "bluesky-offsets demo"},
-                                                      report=lambda check: log("      " + check.line())))
+    darks, measured = camera_steps(chamber, beamline, md={"purpose": "bluesky-offsets demo"}, say=log)
+    if darks is not None:
+        yield from darks()
     session = yield from calibration_session(
         beamline, chamber, twin, forward_model, design=s.design, evaluations=s.finder_evaluations,
         candidates=s.candidates_effects, rounds=s.rounds, fit=s.fit, scan=s.scan, fit_top=s.fit_top,
