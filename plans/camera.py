@@ -72,18 +72,12 @@ def calibrate_camera(camera, *, darks: int = 4, frames: int = 8, max_gain_error:
     @bpp.stage_decorator([camera])
     @bpp.run_decorator(md=_md)
     def inner():
-        yield from bps.mv(camera.shutter, "Close")
-        try:
-            taken["dark"] = yield from _stream(camera, darks, "dark")
-        finally:
-            yield from bps.mv(camera.shutter, "Open")
+        taken["dark"] = yield from _closed(camera, darks)
         taken["light"] = yield from _stream(camera, frames, "primary")
 
     yield from inner()
     dark, light = taken["dark"], taken["light"]
-    read = float(np.sqrt(dark.var(axis=0, ddof=1).mean()))
-    base = dataclasses.replace(camera.calibration, dark=dark.mean(axis=0), dark_frames=float(len(dark)),
-                               read_noise=read)
+    base = _with_dark(camera.calibration, dark)
     measured = sigma = None
     try:
         pt = photon_transfer(light, dark)
@@ -93,7 +87,7 @@ def calibrate_camera(camera, *, darks: int = 4, frames: int = 8, max_gain_error:
     ok = measured is not None and measured > 0 and sigma < max_gain_error * measured
     cal = dataclasses.replace(base, gain=measured, gain_sigma=sigma) if ok else base
     camera.calibrate(cal)
-    return CameraCheck(cal, measured, sigma, read, len(dark), len(light), ok)
+    return CameraCheck(cal, measured, sigma, base.read_noise, len(dark), len(light), ok)
 
 
 def _stream(camera, n: int, name: str) -> MsgGenerator[np.ndarray]:
@@ -103,6 +97,21 @@ def _stream(camera, n: int, name: str) -> MsgGenerator[np.ndarray]:
         yield from bps.trigger_and_read([camera], name=name)
         out.append(np.asarray(camera.last_frame, float))
     return np.array(out)
+
+
+def _closed(camera, n: int) -> MsgGenerator[np.ndarray]:
+    """``n`` frames with the shutter closed (stream ``dark``); the shutter open again after."""
+    yield from bps.mv(camera.shutter, "Close")
+    try:
+        return (yield from _stream(camera, n, "dark"))
+    finally:
+        yield from bps.mv(camera.shutter, "Open")
+
+
+def _with_dark(cal: CameraCalibration, dark: np.ndarray) -> CameraCalibration:
+    """``cal`` with the dark frame and read noise of the dark frames ``dark``."""
+    return dataclasses.replace(cal, dark=dark.mean(axis=0), dark_frames=float(len(dark)),
+                               read_noise=float(np.sqrt(dark.var(axis=0, ddof=1).mean())))
 
 
 def take_darks(camera, n: int = 4, *, md: Mapping | None = None) -> MsgGenerator[CameraCalibration]:
@@ -116,16 +125,10 @@ def take_darks(camera, n: int = 4, *, md: Mapping | None = None) -> MsgGenerator
     @bpp.run_decorator(md={"plan_name": "take_darks", "plan_args": {"n": n}, "detectors": [camera.name],
                            **dict(md or {})})
     def inner():
-        yield from bps.mv(camera.shutter, "Close")
-        try:
-            taken["dark"] = yield from _stream(camera, n, "dark")
-        finally:
-            yield from bps.mv(camera.shutter, "Open")
+        taken["dark"] = yield from _closed(camera, n)
 
     yield from inner()
-    dark = taken["dark"]
-    cal = dataclasses.replace(camera.calibration, dark=dark.mean(axis=0), dark_frames=float(n),
-                              read_noise=float(np.sqrt(dark.var(axis=0, ddof=1).mean())))
+    cal = _with_dark(camera.calibration, taken["dark"])
     camera.calibrate(cal)
     return cal
 
