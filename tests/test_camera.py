@@ -82,7 +82,7 @@ def test_file_names_follow_the_c_template():
             c_format(bad, "/d/", "f", 3)
 
 
-def test_ophyd_async_area_detector_counts_frames_into_the_store(tmp_path, run_store, ca):
+def test_ophyd_async_area_detector_counts_frames_into_the_store(metrixs_ioc, run_store, ca):
     """ophyd-async's SimDetector, unmodified, on the simulated camera: a plain ``count`` writes
     frames through the HDF5 plugin, the run store reads them back from the file, the gain measured
     from them (photon transfer, the shutter closed for the dark frames) is the camera's, and their
@@ -94,16 +94,16 @@ def test_ophyd_async_area_detector_counts_frames_into_the_store(tmp_path, run_st
     from ophyd_async.epics.core import epics_signal_rw
 
     from bluesky_offsets.epics.devices import focus_camera
-    from tests.conftest import start_metrixs_ioc
 
-    ioc = start_metrixs_ioc(tmp_path)
+    ioc = metrixs_ioc  # the session's IOC: a client that saw a stopped IOC's port would find a stale circuit
+    rays = ca.get(ioc.prefix + "chamber:NumRays")
+    RE = RunEngine({}, call_returns_result=True)
+    run_store.subscribe(RE)
+    frames = run_store.frames_directory
+    with init_devices():
+        camera = focus_camera(ioc.prefix + "cam:", frames)
+        shutter = epics_signal_rw(str, ioc.prefix + "cam:cam1:ShutterControl")
     try:
-        RE = RunEngine({}, call_returns_result=True)
-        run_store.subscribe(RE)
-        frames = run_store.frames_directory
-        with init_devices():
-            camera = focus_camera(ioc.prefix + "cam:", frames)
-            shutter = epics_signal_rw(str, ioc.prefix + "cam:cam1:ShutterControl")
 
         def take(n):
             uid = RE(count([camera], num=n)).run_start_uids[0]
@@ -139,10 +139,11 @@ def test_ophyd_async_area_detector_counts_frames_into_the_store(tmp_path, run_st
             chi2 = np.sum((cam[lit] / a - hist[axis][lit] / b) ** 2 / (var[lit] / a**2 + hist[axis][lit] / b**2))
             assert chi2 / max(lit.sum() - 1, 1) < 2.5, (axis, chi2, lit.sum())
     finally:
-        ioc.stop()
+        RE(bps.mv(camera.driver.acquire_time, 1.0, shutter, "Open"))
+        ca.put(ioc.prefix + "chamber:NumRays", rays)
 
 
-def test_the_camera_chamber_measures_what_the_histogram_chamber_measures(tmp_path, run_store):
+def test_the_camera_chamber_measures_what_the_histogram_chamber_measures(tmp_path, metrixs_ioc, ca):
     """The plans' chamber on the camera: its calibration (dark frames with the shutter closed, the
     gain by photon transfer), then ``measure_configurations`` on the camera and on the histogram PVs
     at the same configurations; the histograms agree within the photon noise and the camera's floor."""
@@ -157,19 +158,19 @@ def test_the_camera_chamber_measures_what_the_histogram_chamber_measures(tmp_pat
     from plans.camera import calibrate_camera
     from plans.measure import measure_configurations
     from sim_iocs.truth import default_start
-    from tests.conftest import start_metrixs_ioc
 
-    ioc = start_metrixs_ioc(tmp_path, extra=("--rays", 20000))
+    ioc = metrixs_ioc
+    rays = ca.get(ioc.prefix + "chamber:NumRays")
+    RE = RunEngine({}, call_returns_result=True)
+    noise = CameraNoise()
+    nominal = CameraCalibration(gain=noise.gain, read_noise=noise.read_noise, dark=noise.dark,
+                                photons_per_second=noise.rays_per_second)
+    with init_devices():
+        beamline = MetrixsBeamline(ioc.prefix, name="metrixs")
+        chamber = FocusChamber(ioc.prefix + "chamber:", name="chamber")
+        camera = CameraChamber(ioc.prefix + "cam:", tmp_path / "frames", nominal, name="camera")
+    ca.put(ioc.prefix + "chamber:NumRays", 20000)
     try:
-        RE = RunEngine({}, call_returns_result=True)
-        noise = CameraNoise()
-        nominal = CameraCalibration(gain=noise.gain, read_noise=noise.read_noise, dark=noise.dark,
-                                    photons_per_second=noise.rays_per_second)
-        with init_devices():
-            beamline = MetrixsBeamline(ioc.prefix, name="metrixs")
-            chamber = FocusChamber(ioc.prefix + "chamber:", name="chamber")
-            camera = CameraChamber(ioc.prefix + "cam:", tmp_path / "frames", nominal, name="camera")
-
         RE(bps.mv(camera.driver.acquire_time, 4.0))
         check = RE(calibrate_camera(camera, darks=3, frames=8, max_gain_error=0.2)).plan_result
         assert abs(check.read_noise / _dark_noise(noise, 4.0) - 1) < 0.15 and check.dark_frames == 3
@@ -187,5 +188,7 @@ def test_the_camera_chamber_measures_what_the_histogram_chamber_measures(tmp_pat
             var = (np.clip(a, 0, None) + b) / 20000 + floor
             chi2 = float((((a - b) ** 2) / var)[occupied].sum())
             assert chi2 / occupied.sum() < 2.5, chi2
-    finally:
-        ioc.stop()
+    finally:  # the session's IOC as it was: exposure, ray budget, no capture running
+        RE(bps.mv(camera.driver.acquire_time, 1.0))
+        RE(bps.unstage(camera))
+        ca.put(ioc.prefix + "chamber:NumRays", rays)

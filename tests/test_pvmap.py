@@ -48,7 +48,7 @@ def test_check_pvs_reports_a_missing_motor_record_and_a_mismatched_one(tmp_path,
         ioc.stop()
 
 
-def test_a_camera_map_names_no_simulator_pv_and_checks_against_the_ioc(tmp_path, capfd):
+def test_a_camera_map_names_no_simulator_pv_and_checks_against_the_ioc(tmp_path, capfd, metrixs_ioc):
     """``pv-map --camera DIR`` names the focus chamber's areaDetector (prefix, directory, data sheet,
     pixels) and nothing only the simulator has; ``check-pvs`` finds its PVs on the IOC; bad camera
     tables are refused in one line."""
@@ -56,24 +56,21 @@ def test_a_camera_map_names_no_simulator_pv_and_checks_against_the_ioc(tmp_path,
 
     from bluesky_offsets.epics.pvmap import CAMERA_PVS, PVMapError
 
-    ioc = start_metrixs_ioc(tmp_path)
-    try:
-        path, frames = tmp_path / "camera.toml", tmp_path / "frames"
-        frames.mkdir()
-        assert cli.main(["pv-map", "--prefix", ioc.prefix, "--camera", str(frames), "--out", str(path)]) == 0
-        m = PVMap.from_file(path)
-        assert m.chamber == {} and m.camera["prefix"] == f"{ioc.prefix}cam:"
-        text = path.read_text()
-        for simulator_only in ("HistX", "NumRays", "TruthId", "TableVersion", "Backend"):
-            assert simulator_only not in text
-        assert m.camera_calibration().geometry.pixel_y_mm == 0.005
-        capfd.readouterr()
-        assert cli.main(["check-pvs", str(path)]) == 0
-        out = capfd.readouterr().out
-        assert f"{len(CAMERA_PVS)} areaDetector camera PVs" in out
-        assert f"{28 + 3 + len(CAMERA_PVS)} of {28 + 3 + len(CAMERA_PVS)} PVs as expected" in out
-    finally:
-        ioc.stop()
+    ioc = metrixs_ioc
+    path, frames = tmp_path / "camera.toml", tmp_path / "frames"
+    frames.mkdir()
+    assert cli.main(["pv-map", "--prefix", ioc.prefix, "--camera", str(frames), "--out", str(path)]) == 0
+    m = PVMap.from_file(path)
+    assert m.chamber == {} and m.camera["prefix"] == f"{ioc.prefix}cam:"
+    text = path.read_text()
+    for simulator_only in ("HistX", "NumRays", "TruthId", "TableVersion", "Backend"):
+        assert simulator_only not in text
+    assert m.camera_calibration().geometry.pixel_y_mm == 0.005
+    capfd.readouterr()
+    assert cli.main(["check-pvs", str(path)]) == 0
+    out = capfd.readouterr().out
+    assert f"{len(CAMERA_PVS)} areaDetector camera PVs" in out
+    assert f"{28 + 3 + len(CAMERA_PVS)} of {28 + 3 + len(CAMERA_PVS)} PVs as expected" in out
     good = dict(m.camera)
     for bad, why in (({**good, "exposure": 1.0}, "unknown keys exposure"), ({**good, "gain": -1.0}, "gain"),
                      ({k: v for k, v in good.items() if k != "directory"}, "no directory"),
