@@ -341,9 +341,10 @@ def _designed_session(beamline, chamber, twin, *, design: DesignOptions, candida
     measured = Measured(d.beam, m, 0, np.arange(m.n), d)
     t["measure"] = t["finder"] = time.perf_counter()
     # a camera's counts carry its gain and the flux reading, each known to a few %: one scale, fitted
-    scale = {"intensity_scale": {"delta": 0.0}} if m.floor_x is not None else {}
-    starts = [ModelState(effects=dict(scale), label="twin"),
-              ModelState(np.asarray(d.offsets, float), dict(scale), "design estimate")]
+    def scale():
+        return {"intensity_scale": {"delta": 0.0}} if m.floor_x is not None else {}
+    starts = [ModelState(effects=scale(), label="twin"),
+              ModelState(np.asarray(d.offsets, float), scale(), "design estimate")]
     step(f"compare → fit offsets (differentiable twin, exact Jacobians) → diagnose → add the winning effect "
          f"→ refit → diagnose again ({m.n} designed frames)")
     analysis = yield from analyse_measurement(m.for_analysis(resolution=resolution), twin, starts=starts,
