@@ -25,6 +25,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from bluesky_offsets.options import refuse_unknown
 from bluesky_offsets.physics.twin import CAMERA, HistogramSpec
 
 
@@ -64,10 +65,7 @@ class CameraGeometry:
     @classmethod
     def from_dict(cls, fields: Mapping) -> CameraGeometry:
         """From a mapping such as a PV map's ``camera`` table; unknown keys are refused."""
-        known = {f.name for f in dataclasses.fields(cls)}
-        unknown = sorted(set(fields) - known)
-        if unknown:
-            raise ValueError(f"camera: unknown keys {unknown}; known: {sorted(known)}")
+        refuse_unknown(cls, fields, "camera: unknown keys")
         return cls(**fields)
 
     @property
@@ -84,10 +82,8 @@ class CameraGeometry:
 
     def photons(self, xy: np.ndarray) -> np.ndarray:
         """Photons per pixel of the points ``xy`` (n, 2; mm on the screen), as the camera delivers them."""
-        s = self.spec
         xy = np.asarray(xy, float).reshape(-1, 2)
-        img, _, _ = np.histogram2d(xy[:, 1], xy[:, 0], bins=(s.bins_y, s.bins_x), range=(s.range_y, s.range_x))
-        return self.mount(img.astype(np.int64))
+        return self.mount(self.spec.image(xy[:, 0], xy[:, 1], 1).astype(np.int64))
 
     def mount(self, screen: np.ndarray) -> np.ndarray:
         """A screen-oriented array (rows y, columns x) as this camera delivers it."""
