@@ -146,7 +146,8 @@ def test_ophyd_async_area_detector_counts_frames_into_the_store(metrixs_ioc, run
 def test_the_camera_chamber_measures_what_the_histogram_chamber_measures(tmp_path, metrixs_ioc, ca):
     """The plans' chamber on the camera: its calibration (dark frames with the shutter closed, the
     gain by photon transfer), then ``measure_configurations`` on the camera and on the histogram PVs
-    at the same configurations; the histograms agree within the photon noise and the camera's floor."""
+    at the same configurations; their intensities agree within the measured gain's σ, their
+    histograms within the photon noise and the camera's floor."""
     from bluesky import RunEngine
     from bluesky import plan_stubs as bps
     from ophyd_async.core import init_devices
@@ -183,7 +184,13 @@ def test_the_camera_chamber_measures_what_the_histogram_chamber_measures(tmp_pat
         assert cam.n_rays == 20000 and ref.n_rays == 20000
         assert cam.hist_x.shape == ref.hist_x.shape == (2, 50)
         assert cam.profile_x is not None and cam.profile_floor_x.shape == cam.profile_x.shape
+        # the intensity carries the measured gain's error, the same in every bin: judged on its own
+        scale = cam.hist_x.sum() / ref.hist_x.sum()
+        rel = np.sqrt((check.gain_sigma / check.measured_gain) ** 2 + 1 / (20000 * cam.hist_x.sum())
+                      + 1 / (20000 * ref.hist_x.sum()))
+        assert abs(scale - 1) < 3 * rel, (scale, rel)
         for a, b, floor in ((cam.hist_x, ref.hist_x, cam.floor_x), (cam.hist_y, ref.hist_y, cam.floor_y)):
+            a, floor = a / scale, floor / scale**2
             occupied = (a > 0) | (b > 0)
             var = (np.clip(a, 0, None) + b) / 20000 + floor
             chi2 = float((((a - b) ** 2) / var)[occupied].sum())
