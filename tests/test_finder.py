@@ -225,3 +225,27 @@ def test_smart_walker_selection(model, problem):
     assert comma.loss < F.final_mse(problem, model, np.zeros(34))
     with pytest.raises(F.FinderError, match="selection must be 'plus' or 'comma'"):
         F.find_offsets(problem, model, "smart-walker", F.Budget(evaluations=10), selection="best")
+
+
+BASELINES = {"powell": ({}, 3000), "annealing": ({}, 3000),
+             "genetic": (dict(candidates=100, mutation_scale=LIMIT / 4), 3000),
+             "blop": (dict(sobol=8, batch=4), 16)}
+
+
+@pytest.mark.parametrize("name", list(BASELINES))
+def test_the_authors_baselines_run_through_their_libraries_under_the_finders_budget(model, problem, name):
+    """evotorch's GA, SciPy's Powell and dual annealing, blop's Ax optimizer: each scored, counted
+    and stopped by the finder's budget, its loss curve the best so far, its result inside the box."""
+    from bluesky_offsets.offsets import baselines as B
+    if name == "genetic":
+        pytest.importorskip("evotorch", reason="the [harness] extra")
+    settings, evaluations = BASELINES[name]
+    r = F.find_offsets(problem, model, B.algorithm(name, **settings), F.Budget(evaluations=evaluations), seed=1,
+                       progress=False, threads=1)
+    assert r.method == name and evaluations - 200 <= r.evaluations <= evaluations
+    loss = np.asarray(r.history["loss"])
+    assert np.all(np.diff(loss) <= 0) and math.isclose(r.loss, F.final_mse(problem, model, r.offsets), rel_tol=1e-4)
+    assert np.all(np.abs(r.offsets) <= LIMIT + 1e-7)
+    assert r.loss < F.final_mse(problem, model, np.zeros(34))
+    with pytest.raises(F.FinderError, match="unknown method"):
+        B.algorithm("simplex")

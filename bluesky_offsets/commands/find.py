@@ -39,14 +39,16 @@ def _cmd_find(args) -> int:
 def _find(args) -> int:
     import torch
 
+    from bluesky_offsets.offsets import baselines as B
     from bluesky_offsets.offsets import finder as F
     from bluesky_offsets.offsets import evaluate as E
     from bluesky_offsets.offsets import identifiability as I
 
     methods = [m.strip() for m in args.methods.split(",") if m.strip()]
-    unknown = [m for m in methods if m not in F.METHODS]
+    known = {**F.METHODS, **B.BASELINES}
+    unknown = [m for m in methods if m not in known]
     if unknown:
-        raise CliError(f"unknown method(s) {unknown}; choose from {', '.join(F.METHODS)}")
+        raise CliError(f"unknown method(s) {unknown}; choose from {', '.join(known)}")
     if args.runs < 1:
         raise CliError("--runs must be positive")
     if args.candidates < 1 or args.iterations < 1:
@@ -193,7 +195,9 @@ def add_cli(sub) -> None:
                                    "(Sinkhorn, footprints, Fig. 6).")
     p.add_argument("--model", default=None,
                    help="surrogate checkpoint: a path or a shipped name, default or fast (default: default)")
-    p.add_argument("--methods", default=DEFAULT_METHODS, help=f"comma-separated (default {DEFAULT_METHODS})")
+    p.add_argument("--methods", default=DEFAULT_METHODS,
+                   help=f"comma-separated (default {DEFAULT_METHODS}); the authors' baselines: genetic (evotorch, "
+                        f"the [harness] extra), powell, annealing, blop (the [blop] extra)")
     p.add_argument("--runs", type=int, default=HEADLINE["runs"],
                    help=f"seeded runs per method (default {HEADLINE['runs']}; the benchmark page's table: 10)")
     p.add_argument("--seed", type=int, default=0, help="first seed (default 0)")

@@ -25,6 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
+from bluesky_offsets.offsets import baselines as B
 from bluesky_offsets.offsets import finder as F
 
 SINKHORN_REG = 1e-2  # mm^2: entropic blur ~0.1 mm, about one y bin (0.12 mm)
@@ -40,8 +41,8 @@ def run_methods(model, methods: Mapping[str, Mapping], budgets: Mapping[str, F.B
     results: dict[str, list[F.FinderResult]] = {m: [] for m in methods}
     for name, settings in methods.items():
         for s, p in zip(seeds, problems):
-            r = F.find_offsets(p, model, name, budgets[name], seed=int(s), progress=progress, threads=threads,
-                               **dict(settings))
+            r = F.find_offsets(p, model, B.algorithm(name, **dict(settings)), budgets[name], seed=int(s),
+                               progress=progress, threads=threads)
             results[name].append(r)
             if log:
                 rmse = f", parameter RMSE {r.parameter_rmse(p.true_offsets):.3f}" if p.true_offsets is not None else ""

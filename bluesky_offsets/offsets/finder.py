@@ -519,13 +519,16 @@ class _Tracker:
         """How many of ``m`` candidates the evaluation budget still allows."""
         return int(max(0, min(m, self.remaining_evaluations())))
 
-    def update(self, candidates: torch.Tensor, losses: torch.Tensor) -> None:
+    def update(self, candidates: torch.Tensor, losses: torch.Tensor, record: bool = True) -> None:
+        """Keep the best of ``candidates``; ``record``: add a point to the loss curve (a method that
+        scores one candidate at a time records at improvements and at intervals)."""
         losses = torch.nan_to_num(losses.detach(), nan=math.inf)
         i = int(torch.argmin(losses))
         if float(losses[i]) < self.best_loss:
             self.best_loss = float(losses[i])
             self.best = candidates[i].detach().clone()
-        self.record()
+        if record:
+            self.record()
 
     def record(self) -> None:
         now = self.elapsed
@@ -806,7 +809,7 @@ def paper_budget(candidates: int = SmartWalker.candidates, iterations: int = 200
     return Budget(evaluations=candidates * (iterations + 1))
 
 
-def find_offsets(problem: OffsetProblem, model, method: str = "smart-walker", budget: Budget | None = None, *,
+def find_offsets(problem: OffsetProblem, model, method: str | Any = "smart-walker", budget: Budget | None = None, *,
                  seed: int | None = 0, device: str | torch.device | None = None, progress: bool = True,
                  callback: ProgressCallback | None = None, max_rows: int = 1 << 16,
                  threads: int | None = None, **settings: Any) -> FinderResult:
@@ -817,8 +820,9 @@ def find_offsets(problem: OffsetProblem, model, method: str = "smart-walker", bu
     problem : OffsetProblem
     model : ForwardModel
         Differentiable ``(..., P) -> (..., 100)`` torch callable.
-    method : str
-        One of :data:`METHODS`.
+    method : str or algorithm
+        One of :data:`METHODS`, or an algorithm object with ``name`` and ``run(objective, tracker,
+        generator)`` (the authors' baselines, :mod:`offsets.baselines`), then without ``settings``.
     budget : Budget
         Evaluations and/or seconds (default: the paper's 201 iterations of the
         smart walker's candidates).
@@ -839,12 +843,18 @@ def find_offsets(problem: OffsetProblem, model, method: str = "smart-walker", bu
     settings
         Method settings (``candidates``, ``step``, ``starts``, ``popsize`` ...).
     """
-    if method not in METHODS:
-        raise FinderError(f"unknown method {method!r}; choose from {', '.join(METHODS)}")
-    try:
-        algo = METHODS[method](**settings)
-    except (TypeError, ValueError) as exc:
-        raise FinderError(f"{method}: {exc}") from None
+    if isinstance(method, str):
+        if method not in METHODS:
+            raise FinderError(f"unknown method {method!r}; choose from {', '.join(METHODS)}")
+        try:
+            algo = METHODS[method](**settings)
+        except (TypeError, ValueError) as exc:
+            raise FinderError(f"{method}: {exc}") from None
+    elif settings:
+        raise FinderError(f"{method.name}: settings go to the algorithm object, not to find_offsets")
+    else:
+        algo = method
+    method = algo.name
     budget = budget or paper_budget(getattr(algo, "candidates", SmartWalker.candidates))
     if device is not None and isinstance(model, torch.nn.Module):
         model = model.to(device)
