@@ -36,7 +36,7 @@ SETTINGS = {"genetic-100": ("genetic", {"candidates": 100}), "smart-walker": ("s
 
 def _job(args) -> dict:
     """One method on one repetition's problem, in its own process (one torch thread)."""
-    label, rep, evaluations, out = args
+    label, rep, evaluations, out, observe = args
     path = Path(out) / "runs" / f"{label}_{rep:02d}.json"
     if path.exists():
         return json.loads(path.read_text())
@@ -45,7 +45,11 @@ def _job(args) -> dict:
     from bluesky_offsets.offsets import baselines as B
     from bluesky_offsets.offsets import finder as F
     model = F.load_forward_model()
-    problem = F.make_problem(model, seed=rep)
+    twin = None
+    if observe == "twin":  # the observations traced by RAYX at 1e5 rays, its sampling noise included
+        from bluesky_offsets.physics.twin import Twin
+        twin = Twin(scheduler="inline")
+    problem = F.make_problem(model, seed=rep, observe=observe, twin=twin)
     name, settings = SETTINGS.get(label, (label, {}))
     r = F.find_offsets(problem, model, B.algorithm(name, **settings), F.Budget(evaluations=evaluations), seed=rep,
                        progress=False)
@@ -121,7 +125,8 @@ def markdown(res: dict) -> str:
     s, p = res["summary"], res["mann_whitney"]
     lines = [f"Command: `{res['command']}`  ", f"Machine: {res['machine']}; {res['processes']} processes, one torch "
              f"thread each; wall {res['wall_seconds'] / 60:.0f} min.  ",
-             f"Problems: the paper's (±20 %, 16 bright configurations, observations from the shipped surrogate), "
+             f"Problems: the paper's (±20 %, 16 bright configurations, observations from the "
+             f"{'shipped surrogate' if res.get('observe', 'surrogate') == 'surrogate' else 'RAYX twin at 1e5 rays'}), "
              f"repetition r draws problem r and the method's random numbers from r.  Budget "
              f"{res['evaluations']:,} evaluations (blop {res['blop_evaluations']})."
              , "", f"| method | settings | reps | evaluations | final MSE mean ± σ | median | MSE at "
@@ -157,10 +162,12 @@ def main(argv=None) -> int:
     ap.add_argument("--blop-reps", type=int, default=None, help="repetitions of blop (default: --reps)")
     ap.add_argument("--methods", default=",".join(OURS + THEIRS))
     ap.add_argument("--processes", type=int, default=2)
+    ap.add_argument("--observe", choices=("surrogate", "twin"), default="surrogate",
+                    help="the observations: the surrogate's (the paper's) or RAYX's frames at 1e5 rays")
     a = ap.parse_args(argv)
     from _machine import machine
     labels = a.methods.split(",")
-    jobs = [(m, r, a.blop_evaluations if m == "blop" else a.evaluations, str(a.out))
+    jobs = [(m, r, a.blop_evaluations if m == "blop" else a.evaluations, str(a.out), a.observe)
             for r in range(a.reps) for m in labels if not (m == "blop" and a.blop_reps is not None and r >= a.blop_reps)]
     t0 = time.perf_counter()
     with ProcessPoolExecutor(a.processes) as pool:
@@ -169,7 +176,7 @@ def main(argv=None) -> int:
     at = a.blop_evaluations if "blop" in labels else a.evaluations
     res = {"command": "python benchmarks/bench_harness.py " + " ".join(argv or sys.argv[1:]), "machine": machine(),
            "processes": a.processes, "wall_seconds": time.perf_counter() - t0, "evaluations": a.evaluations,
-           "blop_evaluations": a.blop_evaluations, "at": at, "summary": summarize(runs, at),
+           "blop_evaluations": a.blop_evaluations, "at": at, "observe": a.observe, "summary": summarize(runs, at),
            "mann_whitney": mann_whitney(runs),
            "below_genetic": below(runs, "genetic") if "genetic" in labels else {}}
     a.out.mkdir(parents=True, exist_ok=True)

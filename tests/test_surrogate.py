@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from bluesky_offsets.surrogate import network as surrogate
-from bluesky_offsets.physics.parameters import METRIXS, METRIXS_PARAMETERS, ParameterTable
+from bluesky_offsets.physics.parameters import METRIXS, ParameterTable
 from bluesky_offsets.surrogate.network import Architecture, Normalization, Surrogate, SurrogateError
 from bluesky_offsets.physics.twin import HistogramSpec
 
@@ -64,7 +64,7 @@ def test_save_load_roundtrip(tmp_path):
 
 
 def _table_with_changed_range(name: str, high: float) -> ParameterTable:
-    params = [p if p.name != name else type(p)(**{**p.__dict__, "high": high}) for p in METRIXS_PARAMETERS]
+    params = [p if p.name != name else type(p)(**{**p.__dict__, "high": high}) for p in METRIXS.parameters]
     return ParameterTable(params)
 
 

@@ -11,6 +11,7 @@ import argparse
 import contextlib
 import importlib
 import json
+from pathlib import Path
 import logging
 import os
 import sys
@@ -139,11 +140,18 @@ def analysis_executor(threads: int, twin=None):
 
 # --------------------------------------------------------------------------- #
 def _cmd_params(args) -> int:
-    records = METRIXS.as_records()
+    from bluesky_offsets.physics.beamline import BeamlineError, load_beamline, shipped
+    try:
+        bl = load_beamline(args.beamline if Path(args.beamline).suffix == ".toml" else shipped(args.beamline))
+    except BeamlineError as exc:
+        raise CliError(str(exc)) from None
+    table = bl.table
+    records = table.as_records()
     if args.json:
-        print(json.dumps({"table": METRIXS.name, "version": METRIXS.version, "parameters": records}, indent=2))
+        print(json.dumps({"table": table.name, "version": table.version, "parameters": records}, indent=2))
         return 0
-    print(f"METRIXS parameter table (version {METRIXS.version}): {len(records)} parameters, "
+    where = f"the RML {bl.rml.name}" if bl.rml else f"the built-in {bl.builtin} geometry"
+    print(f"{table.name} parameter table (version {table.version}, {where}): {len(records)} parameters, "
           f"{sum(not r['motorized'] for r in records)} fixed-but-unknown (*)")
     print(f"{'#':>2}  {'name':32s} {'unit':5s} {'low':>11s} {'high':>11s} {'reference':>13s}  description")
     for i, r in enumerate(records):
@@ -267,8 +275,10 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("-v", "--verbose", action="store_true", help="log more")
     sub = parser.add_subparsers(dest="command", required=True)
 
-    p = sub.add_parser("params", help="print the 34-parameter table")
+    p = sub.add_parser("params", help="print a beamline's parameter table (METRIXS's 34 by default)")
     p.add_argument("--json", action="store_true", help="machine-readable output")
+    p.add_argument("--beamline", default="metrixs", metavar="FILE|NAME",
+                   help="a beamline description (TOML) or a shipped one: metrixs (default), energize")
     p.set_defaults(func=_cmd_params)
 
     p = sub.add_parser("simulate", help="trace one configuration with the twin (RAYX, or the torch engine)")
@@ -323,6 +333,9 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         return 130
+    except BrokenPipeError:  # the reader left (``| head``): nothing more to say, and nowhere to say it
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 0
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -1,6 +1,8 @@
-"""The 34 METRIXS beamline parameters: the one source of truth.
+"""A beamline's parameters, and the 34 METRIXS ones.
 
-The table follows Table 1 of Meier et al. (2025).  Each parameter knows the
+A table is read from a beamline description (``data/beamlines/<name>.toml``: one
+``[[parameter]]`` entry per parameter, the one source of truth); METRIXS's follows Table 1 of
+Meier et al. (2025).  Each parameter knows the
 RML element and field it drives, its unit, its sampling box ``[low, high]``,
 whether a motor moves it, and the value the reference RML holds.
 
@@ -87,78 +89,6 @@ class Parameter:
     @property
     def span(self) -> float:
         return self.high - self.low
-
-
-def _p(name, element, field, unit, low, high, reference, device, description, motorized=True, travel=None):
-    return Parameter(name, element, field, unit, float(low), float(high), motorized, float(reference),
-                     device, description, None if travel is None else (float(travel[0]), float(travel[1])))
-
-
-_SRC, _ASBL, _M1, _SG, _XS, _E1, _E2 = (
-    "U41_318eV", "ASBL", "M1-Cylinder", "Spherical Grating", "Exit Slit", "E1", "E2")
-
-METRIXS_PARAMETERS: tuple[Parameter, ...] = (
-    _p("U41_318eV.translationXerror", _SRC, "translationXerror", "mm", -0.25, 0.25, 0, "source.tx",
-       "source horizontal position"),
-    _p("U41_318eV.translationYerror", _SRC, "translationYerror", "mm", -0.25, 0.25, 0, "source.ty",
-       "source vertical position"),
-    _p("U41_318eV.rotationXerror", _SRC, "rotationXerror", "mrad", -0.05, 0.05, 0, "source.rx",
-       "source vertical pointing"),
-    _p("U41_318eV.rotationYerror", _SRC, "rotationYerror", "mrad", -0.05, 0.05, 0, "source.ry",
-       "source horizontal pointing"),
-    _p("ASBL.totalWidth", _ASBL, "openingWidth", "mm", 1.9, 2.1, 2.0, "asbl.width",
-       "aperture (ASBL) horizontal opening", travel=(0.1, 5.0)),
-    _p("ASBL.totalHeight", _ASBL, "openingHeight", "mm", 0.9, 1.1, 2.0, "asbl.height",
-       "aperture (ASBL) vertical opening", travel=(0.1, 5.0)),
-    _p("ASBL.translationXerror", _ASBL, "translationXerror", "mm", -0.2, 0.2, 0, "asbl.tx",
-       "aperture horizontal position"),
-    _p("ASBL.translationYerror", _ASBL, "translationYerror", "mm", -0.2, 0.2, 0, "asbl.ty",
-       "aperture vertical position"),
-    _p("M1_Cylinder.radius", _M1, "radius", "mm", 174.06, 174.36, 174.21, "m1.radius",
-       "M1 sagittal radius", motorized=False),
-    _p("M1_Cylinder.rotationXerror", _M1, "rotationXerror", "mrad", -0.25, 0.25, 0, "m1.rx",
-       "M1 pitch"),
-    _p("M1_Cylinder.rotationYerror", _M1, "rotationYerror", "mrad", -1, 1, 0, "m1.ry", "M1 yaw"),
-    _p("M1_Cylinder.rotationZerror", _M1, "rotationZerror", "mrad", -1, 1, 0, "m1.rz", "M1 roll"),
-    _p("M1_Cylinder.translationXerror", _M1, "translationXerror", "mm", -1, 1, 0, "m1.tx",
-       "M1 lateral translation (across the surface)"),
-    _p("M1_Cylinder.translationYerror", _M1, "translationYerror", "mm", -1, 1, 0, "m1.ty",
-       "M1 translation along the surface normal"),
-    _p("SphericalGrating.radius", _SG, "radius", "mm", 109741, 109841, 109791, "grating.radius",
-       "grating meridional radius", motorized=False),
-    _p("SphericalGrating.rotationYerror", _SG, "rotationYerror", "mrad", -1, 1, 0, "grating.ry",
-       "grating yaw"),
-    _p("SphericalGrating.rotationZerror", _SG, "rotationZerror", "mrad", -2.5, 2.5, 0, "grating.rz",
-       "grating roll"),
-    _p("ExitSlit.totalHeight", _XS, "openingHeight", "mm", 0.009, 0.011, 0.1, "exit_slit.height",
-       "exit slit opening (dispersive direction)", travel=(0.005, 0.2)),
-    _p("ExitSlit.translationZerror", _XS, "translationZerror", "mm", -150, 150, 0, "exit_slit.tz",
-       "exit slit position along the beam"),
-    _p("ExitSlit.rotationZerror", _XS, "rotationZerror", "mrad", -0.3, 0.3, 0, "exit_slit.rz",
-       "exit slit rotation about the beam"),
-    _p("E1.longHalfAxisA", _E1, "longHalfAxisA", "mm", 20600, 20900, 20750, "e1.a",
-       "E1 ellipse long half-axis", motorized=False),
-    _p("E1.shortHalfAxisB", _E1, "shortHalfAxisB", "mm", 300.7217, 304.7217, 302.721702601, "e1.b",
-       "E1 ellipse short half-axis", motorized=False),
-    _p("E1.rotationXerror", _E1, "rotationXerror", "mrad", -1.5, 1.5, 0, "e1.rx", "E1 pitch"),
-    _p("E1.rotationYerror", _E1, "rotationYerror", "mrad", -7.5, 7.5, 0, "e1.ry", "E1 yaw"),
-    _p("E1.rotationZerror", _E1, "rotationZerror", "mrad", 7, 14, 0, "e1.rz", "E1 roll"),
-    _p("E1.translationYerror", _E1, "translationYerror", "mm", -1, 1, 0, "e1.ty",
-       "E1 translation along the surface normal"),
-    _p("E1.translationZerror", _E1, "translationZerror", "mm", -1, 1, 0, "e1.tz",
-       "E1 translation along the mirror"),
-    _p("E2.longHalfAxisA", _E2, "longHalfAxisA", "mm", 4325, 4425, 4375, "e2.a",
-       "E2 ellipse long half-axis", motorized=False),
-    _p("E2.shortHalfAxisB", _E2, "shortHalfAxisB", "mm", 96.1561, 98.1561, 97.1560870104, "e2.b",
-       "E2 ellipse short half-axis", motorized=False),
-    _p("E2.rotationXerror", _E2, "rotationXerror", "mrad", -0.5, 0.5, 0, "e2.rx", "E2 pitch"),
-    _p("E2.rotationYerror", _E2, "rotationYerror", "mrad", -7.5, 7.5, 0, "e2.ry", "E2 yaw"),
-    _p("E2.rotationZerror", _E2, "rotationZerror", "mrad", 22, 32, 0, "e2.rz", "E2 roll"),
-    _p("E2.translationYerror", _E2, "translationYerror", "mm", -1, 1, 0, "e2.ty",
-       "E2 translation along the surface normal"),
-    _p("E2.translationZerror", _E2, "translationZerror", "mm", -1, 1, 0, "e2.tz",
-       "E2 translation along the mirror"),
-)
 
 
 def _finite_array(values, n: int, names: Sequence[str], what: str) -> np.ndarray:
@@ -336,5 +266,71 @@ class ParameterTable:
         return problems
 
 
-METRIXS = ParameterTable(METRIXS_PARAMETERS)
-"""The METRIXS table of the paper (34 parameters, 28 motorized)."""
+PARAMETER_KEYS = ("name", "element", "field", "unit", "range", "reference", "motor", "fixed", "travel", "description")
+"""The keys of a ``[[parameter]]`` entry of a beamline description."""
+UNITS = ("mm", "mrad")
+
+
+def parameter_from_record(rec: Mapping, where: str = "parameter") -> Parameter:
+    """One :class:`Parameter` from a beamline description's ``[[parameter]]`` entry; a
+    :class:`ParameterError` naming the entry and the key for anything it cannot use.
+
+    ``motor`` (the motor's device path, e.g. ``"e1.rx"``) makes it motorized; ``fixed`` (the
+    same for a fixed-but-unknown value) makes it not; exactly one of the two."""
+    name = rec.get("name", "?") if isinstance(rec, Mapping) else "?"
+    where = f"{where} {name!r}"
+    if not isinstance(rec, Mapping):
+        raise ParameterError(f"{where}: expected a table of keys, got {type(rec).__name__}")
+    unknown = sorted(set(rec) - set(PARAMETER_KEYS))
+    if unknown:
+        raise ParameterError(f"{where}: unknown keys {unknown}; known: {list(PARAMETER_KEYS)}")
+    missing = [k for k in ("name", "element", "field", "unit", "range", "reference") if k not in rec]
+    if missing:
+        raise ParameterError(f"{where}: missing {missing}")
+    if ("motor" in rec) == ("fixed" in rec):
+        raise ParameterError(f"{where}: give exactly one of 'motor' (a motorized parameter) or 'fixed' "
+                             f"(fixed but unknown)")
+    for key in ("name", "element", "field", "unit", "description", "motor", "fixed"):
+        if key in rec and not (isinstance(rec[key], str) and rec[key].strip()):
+            raise ParameterError(f"{where}: {key} must be a non-empty string")
+    if rec["unit"] not in UNITS:
+        raise ParameterError(f"{where}: unit {rec['unit']!r}; known: {list(UNITS)}")
+
+    def pair(key):
+        v = rec[key]
+        if not (isinstance(v, (list, tuple)) and len(v) == 2 and all(_real(x) for x in v)) or not v[0] < v[1]:
+            raise ParameterError(f"{where}: {key} must be [low, high] with finite low < high, got {v!r}")
+        return float(v[0]), float(v[1])
+
+    low, high = pair("range")
+    if not _real(rec["reference"]):
+        raise ParameterError(f"{where}: reference must be a finite number, got {rec['reference']!r}")
+    return Parameter(rec["name"], rec["element"], rec["field"], rec["unit"], low, high, "motor" in rec,
+                     float(rec["reference"]), rec.get("motor", rec.get("fixed")), rec.get("description", ""),
+                     pair("travel") if "travel" in rec else None)
+
+
+def _real(x) -> bool:
+    return isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x)
+
+
+def table_from_description(path, *, name: str | None = None) -> ParameterTable:
+    """The :class:`ParameterTable` of a beamline description file (TOML, its ``[[parameter]]``
+    entries in order); the whole description is read by :func:`physics.beamline.load_beamline`."""
+    import tomllib
+    from pathlib import Path
+    with Path(path).open("rb") as f:
+        doc = tomllib.load(f)
+    records = doc.get("parameter")
+    if not isinstance(records, list) or not records:
+        raise ParameterError(f"{path}: no [[parameter]] entries")
+    return ParameterTable([parameter_from_record(r) for r in records],
+                          name=name or str(doc.get("beamline", {}).get("name", Path(path).stem)))
+
+
+BEAMLINES = __import__("pathlib").Path(__file__).resolve().parent.parent / "data" / "beamlines"
+"""The beamline descriptions shipped with the package."""
+
+METRIXS = table_from_description(BEAMLINES / "metrixs.toml")
+"""The METRIXS table of the paper (34 parameters, 28 motorized), from the shipped description."""
+

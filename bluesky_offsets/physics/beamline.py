@@ -1,0 +1,190 @@
+"""A beamline description: the RML, what moves, what is fixed but unknown, the detector, the effects.
+
+One TOML file describes a beamline to bluesky-offsets (``data/beamlines/metrixs.toml`` is
+METRIXS's)::
+
+    [beamline]
+    name = "energize"
+    rml = "Energize_EN_500.rml"        # relative to this file; or builtin = "metrixs"
+    effects = ["chamber_z", "detector_blur"]
+
+    [detector]
+    image_plane = "ImagePlane"         # the RML object the focus chamber's screen is
+    histogram_bins = [50, 50]
+    histogram_x = [-10.0, 10.0]        # mm
+    histogram_y = [-3.0, 3.0]
+    camera_pixels = [1000, 1200]       # the camera's pixels over the same window
+
+    [[parameter]]                      # one per parameter, in table order
+    name = "M1.rotationXerror"
+    element = "Toroid"                 # the RML object
+    field = "rotationXerror"           # a misalignment, or a property the object has (radius, openingWidth …)
+    unit = "mrad"
+    range = [-0.5, 0.5]                # the surrogate's sampling box
+    reference = 0.0
+    motor = "m1.rx"                    # its motor's device path (or fixed = "m1.radius": fixed but unknown)
+    travel = [-1.0, 1.0]               # optional: the motor's travel where wider than the box
+    description = "M1 pitch"
+
+:func:`load_beamline` reads and checks it — unknown keys, elements the RML lacks, fields an
+element has not, effects the library does not know, each refused in one line naming the entry.
+"""
+
+from __future__ import annotations
+
+import tomllib
+from dataclasses import dataclass, fields
+from pathlib import Path
+
+from bluesky_offsets.physics.geometry import MISALIGNMENT_KEYS
+from bluesky_offsets.physics.parameters import BEAMLINES, ParameterError, ParameterTable, parameter_from_record
+from bluesky_offsets.physics.twin import HistogramSpec
+
+BUILTIN = ("metrixs",)
+"""Beamlines whose geometry is the package's own code (``physics.metrixs``) rather than an RML file."""
+
+
+class BeamlineError(ValueError):
+    """A beamline description that cannot be used; the message names the file and the entry."""
+
+
+@dataclass(frozen=True, kw_only=True)
+class Detector:
+    """The focus chamber: the image plane it is, the histograms the fits use, the camera's pixels."""
+
+    image_plane: str = "ImagePlane"
+    histogram_bins: tuple[int, int] = (50, 50)
+    histogram_x: tuple[float, float] = (-10.0, 10.0)
+    histogram_y: tuple[float, float] = (-3.0, 3.0)
+    camera_pixels: tuple[int, int] = (1000, 1200)
+
+    @property
+    def histograms(self) -> HistogramSpec:
+        return HistogramSpec(self.histogram_bins[0], self.histogram_x, self.histogram_bins[1], self.histogram_y)
+
+    @property
+    def camera(self) -> HistogramSpec:
+        return HistogramSpec(self.camera_pixels[0], self.histogram_x, self.camera_pixels[1], self.histogram_y)
+
+
+@dataclass(frozen=True, kw_only=True)
+class Beamline:
+    """A described beamline: its name, its RML (or the built-in geometry it names), the parameter
+    table, the detector, the effects that apply, and the file it came from."""
+
+    name: str
+    table: ParameterTable
+    detector: Detector
+    effects: tuple[str, ...]
+    rml: Path | None = None
+    builtin: str | None = None
+    path: Path | None = None
+
+    def rml_objects(self) -> dict[str, str]:
+        """Object name -> RML type, from the RML file or the built-in geometry."""
+        if self.builtin == "metrixs":
+            from bluesky_offsets.physics.metrixs import nominal_beamline
+            return {o.name: o.type for o in nominal_beamline().objects}
+        from bluesky_offsets.physics.rml import read_rml
+        return {o.name: o.type for o in read_rml(self.rml).objects}
+
+
+def _keys(section: dict, allowed, where: str) -> None:
+    if not isinstance(section, dict):
+        raise BeamlineError(f"{where}: expected a table, got {type(section).__name__}")
+    unknown = sorted(set(section) - set(allowed))
+    if unknown:
+        raise BeamlineError(f"{where}: unknown keys {unknown}; known: {sorted(allowed)}")
+
+
+def _detector(section: dict, where: str) -> Detector:
+    _keys(section, [f.name for f in fields(Detector)], where)
+    out = {}
+    for f in fields(Detector):
+        if f.name not in section:
+            continue
+        v = section[f.name]
+        if f.name == "image_plane":
+            if not isinstance(v, str):
+                raise BeamlineError(f"{where}: image_plane must be an object name")
+            out[f.name] = v
+            continue
+        ints = f.name.endswith(("bins", "pixels"))
+        ok = isinstance(v, list) and len(v) == 2 and all(
+            isinstance(x, int) and x > 0 if ints else isinstance(x, (int, float)) for x in v)
+        if not ok or (not ints and not v[0] < v[1]):
+            raise BeamlineError(f"{where}: {f.name} must be {'two positive integers' if ints else '[low, high]'}, "
+                                f"got {v!r}")
+        out[f.name] = tuple(int(x) if ints else float(x) for x in v)
+    return Detector(**out)
+
+
+def load_beamline(path) -> Beamline:
+    """The :class:`Beamline` of a description file (TOML), checked against its RML and the effects
+    library; a :class:`BeamlineError` in one line for anything it cannot use."""
+    from bluesky_offsets.physics import effects as E
+    path = Path(path)
+    try:
+        with path.open("rb") as f:
+            doc = tomllib.load(f)
+    except OSError as exc:
+        raise BeamlineError(f"beamline {path}: {exc.strerror or exc}") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise BeamlineError(f"beamline {path}: not TOML ({exc})") from None
+    _keys(doc, ("beamline", "detector", "parameter"), f"beamline {path}")
+    head = doc.get("beamline", {})
+    _keys(head, ("name", "rml", "builtin", "effects"), f"beamline {path} [beamline]")
+    if ("rml" in head) == ("builtin" in head):
+        raise BeamlineError(f"beamline {path} [beamline]: give exactly one of rml (a file) or builtin "
+                            f"({', '.join(BUILTIN)})")
+    if "builtin" in head and head["builtin"] not in BUILTIN:
+        raise BeamlineError(f"beamline {path}: builtin {head['builtin']!r}; known: {list(BUILTIN)}")
+    rml = (path.parent / head["rml"]).resolve() if "rml" in head else None
+    if rml is not None and not rml.is_file():
+        raise BeamlineError(f"beamline {path}: RML {rml} not found")
+    effects = tuple(head.get("effects", ()))
+    unknown = [e for e in effects if e not in E.EFFECTS]
+    if unknown:
+        raise BeamlineError(f"beamline {path}: unknown effects {unknown}; known: {sorted(E.EFFECTS)}")
+    records = doc.get("parameter")
+    if not isinstance(records, list) or not records:
+        raise BeamlineError(f"beamline {path}: no [[parameter]] entries")
+    try:
+        table = ParameterTable([parameter_from_record(r, f"{path.name} parameter") for r in records],
+                               name=str(head.get("name", path.stem)))
+    except ParameterError as exc:
+        raise BeamlineError(f"beamline {path}: {exc}") from None
+    bl = Beamline(name=table.name, table=table, detector=_detector(doc.get("detector", {}),
+                                                                   f"beamline {path} [detector]"),
+                  effects=effects, rml=rml, builtin=head.get("builtin"), path=path)
+    _check_against_rml(bl, path)
+    return bl
+
+
+def _check_against_rml(bl: Beamline, path: Path) -> None:
+    """Every parameter's element is an object of the RML and its field a misalignment or one of the
+    object's own parameters; the detector's image plane is an ImagePlane."""
+    from bluesky_offsets.physics.metrixs import nominal_beamline
+    from bluesky_offsets.physics.rml import read_rml
+    rml = nominal_beamline() if bl.builtin == "metrixs" else read_rml(bl.rml)
+    objects = {o.name: o for o in rml.objects}
+    for p in bl.table:
+        if p.element not in objects:
+            raise BeamlineError(f"beamline {path}: parameter {p.name!r}: the RML has no object {p.element!r}; "
+                                f"objects: {list(objects)}")
+        if p.field not in MISALIGNMENT_KEYS and not objects[p.element].has(p.field):
+            raise BeamlineError(f"beamline {path}: parameter {p.name!r}: {p.element!r} "
+                                f"({objects[p.element].type}) has no field {p.field!r}")
+    ip = objects.get(bl.detector.image_plane)
+    if ip is None or ip.type != "ImagePlane":
+        raise BeamlineError(f"beamline {path}: detector image_plane {bl.detector.image_plane!r} is not an "
+                            f"ImagePlane of the RML")
+
+
+def shipped(name: str) -> Path:
+    """The description shipped with the package for ``name`` (``"metrixs"``, ``"energize"``)."""
+    p = BEAMLINES / f"{name}.toml"
+    if not p.is_file():
+        raise BeamlineError(f"no shipped beamline {name!r}; shipped: "
+                            f"{sorted(q.stem for q in BEAMLINES.glob('*.toml'))}")
+    return p
