@@ -82,7 +82,6 @@ class FootprintBackend(Protocol):
 # --------------------------------------------------------------------------- #
 # the RAYX twin in a worker process
 # --------------------------------------------------------------------------- #
-_worker_twin = None
 
 
 class FrameAborted(Exception):
@@ -106,26 +105,45 @@ def physical_state(values: np.ndarray, table=None) -> tuple[np.ndarray, str | No
             v[i] = 0.0
     try:
         check_physical(v, table)
+        from bluesky_offsets.physics.beamline import POSITIVE_FIELDS
+        for p, x in zip(table, v):
+            if p.field in POSITIVE_FIELDS and x <= 0:
+                raise ValueError(f"{p.name} = {x} {p.unit}: must be positive")
     except ValueError as exc:
         return v, f"impossible state ({exc}): dark frame"
     return v, note
 
 
+_worker_twins: dict = {}
+
+
+def _worker_twin_for(hist: HistogramSpec, beamline: str | None):
+    """The worker's twin (one per beamline description; None: METRIXS), its table, its camera window."""
+    key = (beamline, hist)
+    if key not in _worker_twins:
+        from bluesky_offsets.physics.twin import RayxEngine, Twin
+        if beamline is None:
+            from bluesky_offsets.physics.parameters import METRIXS
+            _worker_twins[key] = (Twin(RayxEngine(hist=hist), scheduler="inline"), METRIXS, CAMERA)
+        else:
+            from bluesky_offsets.physics.beamline import RmlEngine, load_beamline
+            bl = load_beamline(beamline)
+            _worker_twins[key] = (Twin(RmlEngine(bl, hist), scheduler="inline"), bl.table, bl.detector.camera)
+    return _worker_twins[key]
+
+
 def _twin_frame(values: np.ndarray, overrides: Mapping, n_rays: int, seed: int | None,
-                hist: HistogramSpec) -> tuple[Frame, str | None]:
-    global _worker_twin
+                hist: HistogramSpec, beamline: str | None = None) -> tuple[Frame, str | None]:
     t0 = time.perf_counter()
-    values, note = physical_state(values)
+    twin, table, camera = _worker_twin_for(hist, beamline)
+    values, note = physical_state(values, table)
     if note is not None and note.startswith("impossible"):
         # no beamline can be in this state: no light, as in any dark frame
         return Frame.dark(hist, n_rays), note
-    if _worker_twin is None:
-        from bluesky_offsets.physics.twin import RayxEngine, Twin
-        _worker_twin = Twin(RayxEngine(hist=hist), scheduler="inline")
-    r = _worker_twin.trace(values, overrides=overrides, n_rays=n_rays, keep_rays=True, seed=seed)
+    r = twin.trace(values, overrides=overrides, n_rays=n_rays, keep_rays=True, seed=seed)
     x, y = (r.rays[:, 0], r.rays[:, 1]) if r.rays is not None and len(r.rays) else (np.empty(0), np.empty(0))
     image = hist.image(x, y, n_rays)
-    px, py = CAMERA.histograms(x, y, n_rays)
+    px, py = camera.histograms(x, y, n_rays)
     return Frame(np.nan_to_num(r.hist_x), np.nan_to_num(r.hist_y), np.nan_to_num(image), int(r.n_hits),
                  int(n_rays), time.perf_counter() - t0, px, py, np.column_stack([x, y]).astype(np.float32)), note
 
@@ -202,8 +220,9 @@ class TwinBackend:
     """
 
     def __init__(self, overrides: Mapping | None = None, hist: HistogramSpec | None = None,
-                 noise_seed: int | None = None):
+                 noise_seed: int | None = None, beamline: str | None = None):
         from importlib.metadata import PackageNotFoundError, version
+        self.beamline = None if beamline is None else str(beamline)
         self.overrides = {k: dict(v) for k, v in (overrides or {}).items()}
         self.hist = hist or HistogramSpec()
         self._noise = None if noise_seed is None else np.random.default_rng(noise_seed)
@@ -222,14 +241,16 @@ class TwinBackend:
     def _new_worker(self, warm: bool) -> _Worker:
         w = _Worker(self._ctx)
         if warm:  # imports and a first trace, in the background, so that it takes over at once
-            job = (self._warm_state(), self.overrides, 100, 0, self.hist)
+            job = (self._warm_state(), self.overrides, 100, 0, self.hist, self.beamline)
             threading.Thread(target=self._try, args=(w, job), daemon=True).start()
         return w
 
-    @staticmethod
-    def _warm_state() -> np.ndarray:
+    def _warm_state(self) -> np.ndarray:
         from bluesky_offsets.physics.parameters import METRIXS
-        return METRIXS.reference.copy()
+        if self.beamline is None:
+            return METRIXS.reference.copy()
+        from bluesky_offsets.physics.beamline import load_beamline
+        return load_beamline(self.beamline).table.reference.copy()
 
     @staticmethod
     def _try(worker: _Worker, job) -> None:
@@ -255,7 +276,8 @@ class TwinBackend:
         if screen is not None and np.any(screen):  # the stage's position plus the chamber's hidden displacement
             from bluesky_offsets.physics.screen import per_frame_overrides
             overrides = per_frame_overrides(overrides, np.asarray(screen, float)[None], 1)[0]
-        status, payload = worker.run((np.asarray(values, float), overrides, int(n_rays), seed, self.hist))
+        status, payload = worker.run((np.asarray(values, float), overrides, int(n_rays), seed, self.hist,
+                                      self.beamline))
         if status != "ok":
             raise RuntimeError(payload)
         frame, note = payload
@@ -361,11 +383,14 @@ class SurrogateBackend:
 
 
 def make_backend(spec: str, *, overrides: Mapping | None = None, hist: HistogramSpec | None = None,
-                 noise_seed: int | None = None) -> FootprintBackend:
+                 noise_seed: int | None = None, beamline: str | None = None) -> FootprintBackend:
     """Backend from its command-line name: ``twin``, ``surrogate[:checkpoint]`` or ``module:factory``
-    (``noise_seed``: see :class:`TwinBackend`; a factory's backend draws its own noise)."""
+    (``noise_seed``: see :class:`TwinBackend`; a factory's backend draws its own noise; ``beamline``:
+    a description file the twin traces instead of METRIXS)."""
     if spec == "twin":
-        return TwinBackend(overrides=overrides, hist=hist, noise_seed=noise_seed)
+        return TwinBackend(overrides=overrides, hist=hist, noise_seed=noise_seed, beamline=beamline)
+    if beamline is not None:
+        raise ValueError(f"backend {spec!r} serves METRIXS only; a described beamline needs the twin backend")
     if spec == "surrogate" or spec.startswith("surrogate:"):
         return SurrogateBackend(spec.partition(":")[2] or None, overrides=overrides, hist=hist, noise_seed=noise_seed)
     if ":" not in spec:

@@ -196,8 +196,15 @@ class FocusChamber(PVGroup):
     def __init__(self, *args, state: Callable[[], np.ndarray], backend: FootprintBackend, truth_id: str,
                  table: ParameterTable = METRIXS, n_rays: int = 10000, max_rays: int = MAX_RAYS,
                  truth_log: Callable[[str], None] | None = None,
-                 screen: Callable[[], np.ndarray] | None = None, **kwargs):
+                 screen: Callable[[], np.ndarray] | None = None, hist: HistogramSpec = HIST,
+                 camera: HistogramSpec = CAMERA, **kwargs):
         super().__init__(*args, **kwargs)
+        if (hist.bins_x, hist.bins_y, camera.bins_x, camera.bins_y) != (HIST.bins_x, HIST.bins_y, CAMERA.bins_x,
+                                                                         CAMERA.bins_y):
+            raise ValueError(f"the simulated chamber serves {HIST.bins_x} x {HIST.bins_y} bins and "
+                             f"{CAMERA.bins_x} x {CAMERA.bins_y} profile pixels; the detector asks for "
+                             f"{hist.bins_x} x {hist.bins_y} and {camera.bins_x} x {camera.bins_y}")
+        self._hist, self._camera = hist, camera
         self._state = state
         self._screen = screen or (lambda: np.zeros(3))
         self.backend = backend
@@ -216,6 +223,9 @@ class FocusChamber(PVGroup):
     async def acquire(self, instance, async_lib):
         await self.truth_id.write(self._truth_id)
         await self.table_version.write(self._table.version)
+        for pv, axis in ((self.axis_x, self._hist.centers_x), (self.axis_y, self._hist.centers_y),
+                         (self.profile_axis_x, self._camera.centers_x), (self.profile_axis_y, self._camera.centers_y)):
+            await pv.write(axis.tolist())
         await self.backend_name.write(self.backend.name)
         await self.num_rays.write_metadata(lower_ctrl_limit=0, upper_ctrl_limit=self._max_rays)
         await self.acquire_time.write_metadata(lower_ctrl_limit=0.0, upper_ctrl_limit=MAX_ACQUIRE_TIME)
@@ -391,12 +401,16 @@ class MetrixsIOC:
                  n_rays: int = 10000, move_time: float = 4.0, accel_time: float = 0.2, tick: float = 0.05,
                  noise_seed: int | None = None, max_rays: int = MAX_RAYS,
                  truth_log: Callable[[str], None] | None = None, leave_out: Sequence[str] = (),
-                 motors: str = "perfect"):
+                 motors: str = "perfect", beamline=None):
         self.prefix = prefix
-        self.table = table
+        self.beamline = beamline
+        self.table = table = beamline.table if beamline is not None else table
+        hist, camera = (beamline.detector.histograms, beamline.detector.camera) if beamline is not None else \
+            (HIST, CAMERA)
         self.truth = truth or Truth.from_seed(None, table)
         if isinstance(backend, str):
-            backend = make_backend(backend, overrides=self.truth.overrides, hist=HIST, noise_seed=noise_seed)
+            backend = make_backend(backend, overrides=self.truth.overrides, hist=hist, noise_seed=noise_seed,
+                                   beamline=None if beamline is None or beamline.builtin else str(beamline.path))
         self.backend = backend
         unknown = [n for n in leave_out if n not in table.motorized_names]
         if unknown:
@@ -419,7 +433,8 @@ class MetrixsIOC:
                       for k, ax in enumerate(STAGE)}
         self.chamber = FocusChamber(prefix=prefix + CHAMBER, state=self.true_state, backend=backend,
                                     truth_id=self.truth.truth_id, table=table, n_rays=n_rays, max_rays=max_rays,
-                                    truth_log=truth_log, screen=self.screen, name="chamber")
+                                    truth_log=truth_log, screen=self.screen, hist=hist, camera=camera,
+                                    name="chamber")
         self.camera = FocusCamera(prefix + CAMERA_PREFIX, trace=self._trace, max_rays=max_rays,
                                   rng=np.random.default_rng(None if noise_seed is None else [noise_seed, 11]))
         self.pvdb = {}
@@ -476,6 +491,9 @@ class MetrixsIOC:
 # --------------------------------------------------------------------------- #
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--prefix", default=DEFAULT_PREFIX, help=f"PV prefix (default {DEFAULT_PREFIX})")
+    parser.add_argument("--beamline", default=None, metavar="FILE|NAME",
+                        help="serve a described beamline (a TOML file, or a shipped one: energize) instead of "
+                             "METRIXS: its motors, its RML traced by RAYX, its detector window")
     parser.add_argument("--list-pvs", action="store_true", help="print the records and detector PVs at start-up")
     src = parser.add_mutually_exclusive_group()
     src.add_argument("--truth", metavar="FILE.json", help="hidden offsets/effects/start positions (JSON)")
@@ -536,8 +554,23 @@ def _seed(args) -> int | None:
         raise ParameterError("the truth's seed must be an integer") from None
 
 
+def _beamline(args):
+    """The described beamline the IOC serves (None: METRIXS)."""
+    if not args.beamline:
+        return None
+    from bluesky_offsets.physics.beamline import BeamlineError, load_beamline, shipped
+    try:
+        bl = load_beamline(args.beamline if Path(args.beamline).suffix == ".toml" else shipped(args.beamline))
+    except BeamlineError as exc:
+        raise ParameterError(str(exc)) from None
+    return None if bl.builtin == "metrixs" else bl
+
+
 def _build(args) -> MetrixsIOC:
-    truth = Truth.from_file(args.truth) if args.truth else Truth.from_seed(_seed(args), limit=args.max_offset)
+    bl = _beamline(args)
+    table = METRIXS if bl is None else bl.table
+    truth = Truth.from_file(args.truth, table) if args.truth else Truth.from_seed(_seed(args), table,
+                                                                                 limit=args.max_offset)
     if not 0 <= args.rays <= args.max_rays or args.move_time <= 0 or args.accel_time <= 0 or args.tick <= 0:
         raise ParameterError("--rays must lie in [0, --max-rays]; --move-time, --accel-time, --tick must be positive")
     if args.dump_truth:
@@ -547,7 +580,7 @@ def _build(args) -> MetrixsIOC:
         return MetrixsIOC(args.prefix, truth, args.backend, n_rays=args.rays, move_time=args.move_time,
                           accel_time=args.accel_time, tick=args.tick, noise_seed=args.noise_seed,
                           max_rays=args.max_rays, truth_log=_truth_logger(args.truth_log),
-                          leave_out=args.leave_out, motors=args.motors)
+                          leave_out=args.leave_out, motors=args.motors, beamline=bl)
     except ValueError as exc:
         raise ParameterError(str(exc)) from None
 
@@ -596,7 +629,8 @@ def serve(args) -> int:
         circuit_log.addFilter(RefusedPutInOneLine())
     origin = "from a file" if args.truth else "drawn from a seed"
     # the truth's source (a seed) is the truth: only its salted id is shown
-    print(f"METRIXS simulation IOC, prefix {args.prefix!r}, backend {ioc.backend.name}, "
+    print(f"{'METRIXS' if ioc.beamline is None else ioc.beamline.name} simulation IOC, prefix {args.prefix!r}, "
+          f"backend {ioc.backend.name}, "
           f"truth id {ioc.truth.truth_id} ({origin})", flush=True)
     if args.list_pvs:
         print(ioc.describe(), flush=True)

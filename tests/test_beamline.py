@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 
 from bluesky_offsets.commands.cli import main
@@ -85,3 +86,66 @@ def test_a_good_description_loads_and_a_missing_one_says_so(tmp_path):
         load_beamline(tmp_path / "none.toml")
     with pytest.raises(BeamlineError, match="shipped: \\['energize', 'metrixs'\\]"):
         shipped("bessy")
+
+
+def test_rayx_traces_a_described_beamline_as_its_rml_says():
+    """The RML engine writes Energize's file anew (world frames from the element chain) and RAYX
+    traces it ray for ray as the shipped file; a mirror's pitch turns the beam by twice the angle."""
+    import rayx
+
+    from bluesky_offsets.physics.twin import TraceRequest, Twin, _rayx_fix_seed, footprint
+    bl = load_beamline(shipped("energize"))
+    eng = bl.engine()
+    r = eng.trace(TraceRequest(bl.table.reference, seed=7), 1000, keep_rays=True)
+    raw = rayx.import_beamline(str(bl.rml))
+    _rayx_fix_seed(7)
+    x, y, _ = footprint(raw.trace(), len(raw.sources) + len(raw.elements), 1000)
+    assert r.n_hits == len(x) > 50
+    assert np.max(np.abs(r.rays - np.column_stack([x, y]))) < 1e-9
+    tilted = bl.table.reference.copy()
+    tilted[bl.table.index("M4.rotationXerror")] += 0.1   # mrad: the beam turns by 0.2 mrad, 1,500 mm upstream
+    t = eng.trace(TraceRequest(tilted, seed=7), 4000, keep_rays=True)
+    n = eng.trace(TraceRequest(bl.table.reference, seed=7), 4000, keep_rays=True)
+    assert abs(t.rays[:, 0].mean() - n.rays[:, 0].mean()) == pytest.approx(0.2e-3 * 1500, rel=0.05)
+    batch = Twin(eng, scheduler="inline").trace_batch(np.stack([bl.table.reference, tilted]), n_rays=2000, seed=1)
+    assert batch.hist_x.shape == (2, 50) and np.all(batch.hist_x.sum(1) > 0.05)
+    with pytest.raises(ValueError, match="M1.longRadius"):
+        bad = bl.table.reference.copy()
+        bad[bl.table.index("M1.longRadius")] = -1.0
+        eng.trace(TraceRequest(bad), 100)
+
+
+def test_the_simulated_ioc_serves_a_described_beamline(ioc_factory, tmp_path, ca):
+    """``ioc --beamline energize``: Energize's motors (named by its file), its detector window, RAYX
+    tracing its RML with the hidden offsets; a motor's move turns the footprint as the twin says."""
+    import json
+
+    from conftest import METRIXS_IOC_ARGS
+    bl = load_beamline(shipped("energize"))
+    truth = tmp_path / "truth.json"
+    truth.write_text(json.dumps({"offsets": {"M4.rotationXerror": 0.1, "Dipole.translationYerror": -0.05}}))
+    ioc = ioc_factory(args=["--beamline", "energize", "--truth", truth, *METRIXS_IOC_ARGS],
+                      ready="chamber:Message", ready_value="ready", timeout=90)
+    p = ioc.prefix
+    assert ca.get(p + "chamber:TableVersion", as_string=True) == bl.table.version
+    assert np.allclose(ca.get(p + "chamber:AxisX"), bl.detector.histograms.centers_x)
+
+    def centroid():
+        ca.put(p + "chamber:Acquire", 1)
+        h = np.asarray(ca.get(p + "chamber:HistX"), float)
+        assert h.sum() > 0.02
+        return float(np.sum(h * bl.detector.histograms.centers_x) / h.sum())
+
+    ca.put(p + "chamber:NumRays", 20000)
+    before = centroid()
+    ca.put(p + "m4:rx", ca.get(p + "m4:rx.RBV") - 0.1)   # mrad: the beam turns by 0.2 mrad back
+    after = centroid()
+    assert after - before == pytest.approx(-0.3, abs=0.06)   # 1,500 mm downstream
+    from bluesky import RunEngine
+    from ophyd_async.core import init_devices
+
+    from bluesky_offsets.epics.devices import MetrixsBeamline
+    RunEngine({})   # ophyd-async connects on the RunEngine's loop
+    with init_devices():   # the ophyd-async devices from the same table: every motor connects
+        beamline = MetrixsBeamline(p, name="energize", table=bl.table)
+    assert len(beamline.motors) == 32 and beamline.parameter("M4.rotationXerror").name == "energize-m4-rx"

@@ -38,7 +38,7 @@ from pathlib import Path
 
 from bluesky_offsets.physics.geometry import MISALIGNMENT_KEYS
 from bluesky_offsets.physics.parameters import BEAMLINES, ParameterError, ParameterTable, parameter_from_record
-from bluesky_offsets.physics.twin import HistogramSpec
+from bluesky_offsets.physics.twin import HistogramSpec, RayxEngine, TraceRequest
 
 BUILTIN = ("metrixs",)
 """Beamlines whose geometry is the package's own code (``physics.metrixs``) rather than an RML file."""
@@ -79,6 +79,12 @@ class Beamline:
     rml: Path | None = None
     builtin: str | None = None
     path: Path | None = None
+
+    def engine(self) -> RayxEngine:
+        """RAYX tracing this beamline (the reference twin; ``Twin(beamline.engine())``)."""
+        if self.builtin == "metrixs":
+            return RayxEngine(self.table, self.detector.histograms)
+        return RmlEngine(self)
 
     def rml_objects(self) -> dict[str, str]:
         """Object name -> RML type, from the RML file or the built-in geometry."""
@@ -188,3 +194,40 @@ def shipped(name: str) -> Path:
         raise BeamlineError(f"no shipped beamline {name!r}; shipped: "
                             f"{sorted(q.stem for q in BEAMLINES.glob('*.toml'))}")
     return p
+
+
+POSITIVE_FIELDS = ("radius", "longRadius", "shortRadius", "longHalfAxisA", "shortHalfAxisB")
+OPENING_FIELDS = ("openingWidth", "openingHeight")
+
+
+class RmlEngine(RayxEngine):
+    """RAYX on a described beamline's RML: each parameter sets its element's field (a misalignment
+    switches the element's alignment errors on), ``overrides`` set any other field, the world
+    frames are recomputed from the element chain (``physics.rml``), the source emits ``n_rays``."""
+
+    def __init__(self, beamline: Beamline, hist: HistogramSpec | None = None):
+        from bluesky_offsets.physics.rml import read_rml
+        super().__init__(beamline.table, hist or beamline.detector.histograms)
+        self.beamline = beamline
+        self.rml = read_rml(beamline.rml)
+
+    def build(self, request: TraceRequest, n_rays: int):
+        values = self.table.validate(request.values)
+        bl = self.rml.copy()
+        for p, v in zip(self.table, values):
+            if p.field in POSITIVE_FIELDS and v <= 0:
+                raise ValueError(f"{p.name} = {v} {p.unit}: must be positive")
+            if p.field in OPENING_FIELDS and v < 0:
+                raise ValueError(f"{p.name} = {v} {p.unit}: a slit opening cannot be negative")
+            if p.field in MISALIGNMENT_KEYS:
+                bl[p.element].set_misalignment(**{p.field: float(v)})
+            else:
+                bl[p.element].set(p.field, float(v))
+        for element, fields_ in (request.overrides or {}).items():
+            for key, v in fields_.items():
+                if key in MISALIGNMENT_KEYS:
+                    bl[element].set_misalignment(**{key: float(v)})
+                else:
+                    bl[element].set(key, v)
+        bl.sources[0].set("numberRays", int(n_rays))
+        return bl

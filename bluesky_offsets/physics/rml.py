@@ -26,6 +26,12 @@ MIRROR_TYPES = {"Plane Mirror", "Cylinder", "Ellipsoid", "Toroid", "Sphere", "Co
                 "Experts Optics", "Cubic"}
 GRATING_TYPES = {"Plane Grating", "Spherical Grating", "Toroidal Grating"}
 FLAT_TYPES = {"Slit", "ImagePlane", "Foil"}
+SOURCE_TYPES = {"Dipole", "Dipole Source"}
+"""Source types whose name does not say "Source" (RAY-UI's dipole); any "... Source" is one too."""
+
+
+def is_source_type(type_: str) -> bool:
+    return "Source" in type_ or type_ in SOURCE_TYPES
 
 
 class RmlError(ValueError):
@@ -90,7 +96,7 @@ class RmlObject:
     # -- geometry -----------------------------------------------------------
     @property
     def is_source(self) -> bool:
-        return "Source" in self.type
+        return is_source_type(self.type)
 
     @property
     def misalignment(self) -> Misalignment:
@@ -122,7 +128,7 @@ def chain_link(type_: str, get: Callable, comment: Callable, mis: Misalignment, 
     frame then follows its half-axes with gradients).
     """
     deg = math.radians
-    if "Source" in type_:
+    if is_source_type(type_):
         return ChainLink(misalignment=mis, is_source=True)
     if type_ == "ImagePlane":
         return ChainLink(distance=get("distanceImagePlane"), misalignment=mis)
