@@ -80,11 +80,20 @@ class Beamline:
     builtin: str | None = None
     path: Path | None = None
 
-    def engine(self) -> RayxEngine:
-        """RAYX tracing this beamline (the reference twin; ``Twin(beamline.engine())``)."""
+    def engine(self, kind: str = "rayx"):
+        """RAYX tracing this beamline (the reference twin; ``Twin(beamline.engine())``), or the
+        differentiable torch engine (``kind="torch"``)."""
+        if kind not in ("rayx", "torch"):
+            raise BeamlineError(f"engine kind {kind!r}; known: rayx, torch")
         if self.builtin == "metrixs":
+            if kind == "torch":
+                from bluesky_offsets.physics.torch_engine import TorchEngine
+                return TorchEngine(self.table, self.detector.histograms)
             return RayxEngine(self.table, self.detector.histograms)
-        return RmlEngine(self)
+        if kind == "rayx":
+            return RmlEngine(self)
+        from bluesky_offsets.physics.torch_rml import RmlTorchEngine
+        return RmlTorchEngine(self)
 
     def rml_objects(self) -> dict[str, str]:
         """Object name -> RML type, from the RML file or the built-in geometry."""
@@ -231,3 +240,4 @@ class RmlEngine(RayxEngine):
                     bl[element].set(key, v)
         bl.sources[0].set("numberRays", int(n_rays))
         return bl
+

@@ -1,0 +1,93 @@
+"""The differentiable torch engine on a described beamline's own RML.
+
+Each parameter column drives its element's field (gradients flow through the compiled frames
+and surfaces, :func:`torch_engine.compile_beamline` with ``beamline=``); the source rays are
+RAYX's own draws of the description's source in its local frame (the source's misalignments act
+in the engine), cached per seed and count and shared by every configuration of a batch; slit
+kicks follow RAYX's counters.  Everything else is :class:`~torch_engine.TorchEngine`'s.
+"""
+
+from __future__ import annotations
+
+import os
+
+import numpy as np
+import torch
+
+from bluesky_offsets.physics import torch_random as rnd
+from bluesky_offsets.physics.rml import read_rml
+from bluesky_offsets.physics.torch_engine import TorchEngine, compile_beamline, rays_from_arrays, trace_rays
+from bluesky_offsets.physics.twin import HistogramSpec, _import_rml, _rayx_fix_seed
+
+
+def _field_overrides(table, values, overrides=None) -> dict:
+    """``{element: {field: column}}`` of a parameter batch ``(C, P)`` (tensor columns keep their
+    gradients), the extra ``overrides`` on top."""
+    out: dict = {}
+    for i, p in enumerate(table):
+        out.setdefault(p.element, {})[p.field] = values[:, i]
+    for element, f in (overrides or {}).items():
+        out.setdefault(element, {}).update(f)
+    return out
+
+
+class RmlTorchEngine(TorchEngine):
+    """The torch engine on ``beamline`` (a :class:`physics.beamline.Beamline` with an RML)."""
+
+    def __init__(self, beamline, hist: HistogramSpec | None = None, options=None):
+        super().__init__(beamline.table, hist or beamline.detector.histograms, options)
+        self.described, self.rml = beamline, read_rml(beamline.rml)
+        self.source_cache: dict = {}
+
+    def compile(self, values, overrides=None):
+        """The RML at a batch of parameter vectors ``(C, P)`` (physical units; a tensor keeps its graph)."""
+        o = self.options
+        vals = values if torch.is_tensor(values) else torch.as_tensor(np.asarray(values, dtype=float))
+        vals = vals.to(dtype=torch.float64, device=o.device)
+        vals = vals[None] if vals.ndim == 1 else vals
+        if vals.shape[1] != len(self.table):
+            raise ValueError(f"expected parameter vectors of {len(self.table)} values, got shape {tuple(vals.shape)}")
+        if not isinstance(overrides, (dict, type(None))):
+            raise ValueError("a described beamline takes one overrides mapping for the whole batch")
+        return compile_beamline(vals[:, :0], _field_overrides(self.table, vals, overrides), beamline=self.rml,
+                                dtype=o.torch_dtype, device=o.device)
+
+    def _chunks(self, bl, n_rays, seed, edge, keep_hits=False):
+        rays = self._source(n_rays, seed)
+        step = max(1, self.options.max_batch // max(bl.n_configs, 1))
+        for a in range(0, n_rays, step):
+            b = min(n_rays, a + step)
+            yield a, trace_rays(bl, rays.slice(a, b), None, edge=edge, keep_hits=keep_hits)
+
+
+    def _source(self, n_rays: int, seed):
+        return _rayx_source(self, n_rays, seed)
+
+
+def _rayx_source(eng, n_rays: int, seed):
+    """RAYX's source rays for ``seed`` (its local frame), with the counters its slits draw from."""
+    if isinstance(seed, (list, tuple)):
+        raise ValueError("a described beamline's batch shares one source draw: one seed")
+    seed = int(seed) if seed is not None else int.from_bytes(os.urandom(4), "little")
+    key = (int(n_rays), seed)
+    if key not in eng.source_cache:
+        bl = eng.rml.copy()
+        bl.sources[0].set("numberRays", int(n_rays))
+        rb = _import_rml(bl)
+        _rayx_fix_seed(seed)
+        rays = rb.trace()
+        obj, pid = np.asarray(rays.object_id), np.asarray(rays.path_id)
+        first = np.flatnonzero(obj == 0)
+        first = first[np.argsort(pid[first], kind="stable")]
+        col = {k: np.asarray(getattr(rays, k))[first] for k in ("position_x", "position_y", "position_z",
+                                                                "direction_x", "direction_y", "direction_z",
+                                                                "energy")}
+        if len(first) != n_rays:
+            raise RuntimeError(f"RAYX emitted {len(first)} source rays for {n_rays}")
+        eng.source_cache.clear()  # one draw kept: the batches of a fit share it
+        eng.source_cache[key] = rays_from_arrays(
+            np.column_stack([col["position_x"], col["position_y"], col["position_z"]]),
+            np.column_stack([col["direction_x"], col["direction_y"], col["direction_z"]]), col["energy"],
+            dtype=eng.options.torch_dtype, device=eng.options.device,
+            counters=rnd.rayx_counters(n_rays, rnd.rayx_trace_seed(seed)))
+    return eng.source_cache[key]
