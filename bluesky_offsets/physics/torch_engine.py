@@ -632,8 +632,13 @@ class LazyDraws:
 
 
 def source_rays(bl: CompiledBeamline, units: SourceUnits) -> Rays:
-    """The source's unit draws scaled by its sizes, divergences and energy (differentiable in them)."""
+    """The source's unit draws scaled by its sizes, divergences and energy (differentiable in them);
+    seven coordinates are rays given as they are (position, direction, energy: another source's
+    own draws, :func:`given_units`)."""
     src, coord = bl.source, units.coord
+    if len(coord) == 7:
+        dt = bl.dtype
+        return Rays(*(t.to(dt) for t in coord[:6]), coord[6].to(torch.float64), units.ctr)
     x = coord[0] * src["width"]
     y = coord[1] * src["height"]
     z = coord[2] * src["depth"]
@@ -644,6 +649,11 @@ def source_rays(bl: CompiledBeamline, units: SourceUnits) -> Rays:
     dt = bl.dtype
     energy = energy * torch.ones_like(x)
     return Rays(x.to(dt), y.to(dt), z.to(dt), dx.to(dt), dy.to(dt), dz.to(dt), energy.to(torch.float64), units.ctr)
+
+
+def given_units(rays: Rays) -> SourceUnits:
+    """Given rays as a trace's randomness (:func:`source_rays` passes them through)."""
+    return SourceUnits([rays.x, rays.y, rays.z, rays.dx, rays.dy, rays.dz, rays.energy], None, rays.ctr)
 
 
 def rays_from_arrays(position: np.ndarray, direction: np.ndarray, energy: np.ndarray, *,
@@ -1153,6 +1163,11 @@ class TorchEngine:
         return f"torch {torch.__version__} (bluesky-offsets tracer, {o.sampling} sampling, {o.dtype}, {o.device})"
 
     # -- batches ----------------------------------------------------------------
+    def _units(self, bl: CompiledBeamline, n_rays: int, seed) -> SourceUnits:
+        """A trace's randomness: the source's draws (an engine with another source gives its rays)."""
+        o = self.options
+        return source_units(bl, n_rays, seed, sampling=o.sampling, common=o.common_rays)
+
     def compile(self, values, overrides=None) -> CompiledBeamline:
         o = self.options
         return compile_beamline(values, overrides, table=self.table, dtype=o.torch_dtype, device=o.device)
@@ -1160,7 +1175,8 @@ class TorchEngine:
     def _chunks(self, bl: CompiledBeamline, n_rays: int, seed, edge: float, keep_hits: bool = False):
         """Trace ``n_rays`` per configuration in memory-bounded chunks of rays."""
         o = self.options
-        rays, draws = sample_source(bl, n_rays, seed, sampling=o.sampling, common=o.common_rays)
+        units = self._units(bl, n_rays, seed)
+        rays, draws = source_rays(bl, units), units.draws
         step = max(1, o.max_batch // max(bl.n_configs, 1))
         for a in range(0, n_rays, step):
             b = min(n_rays, a + step)
@@ -1432,7 +1448,7 @@ class TorchEngine:
         bounds = np.cumsum([0] + sizes)
         live = [i for i in range(len(fields)) if bool(dfield[:, bounds[i]:bounds[i + 1]].any())]
         dfield_live = torch.cat([dfield[:, bounds[i]:bounds[i + 1]] for i in live], 1)
-        units = source_units(bl, n_rays, seed, sampling=o.sampling, common=o.common_rays)
+        units = self._units(bl, n_rays, seed)
         step = max(1, int(chunk) // c)
         n_live = dfield_live.shape[1]
         parts = []

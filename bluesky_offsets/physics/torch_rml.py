@@ -16,8 +16,12 @@ import torch
 
 from bluesky_offsets.physics import torch_random as rnd
 from bluesky_offsets.physics.rml import read_rml
-from bluesky_offsets.physics.torch_engine import TorchEngine, compile_beamline, rays_from_arrays, trace_rays
+from bluesky_offsets.physics.torch_engine import TorchEngine, compile_beamline, given_units, rays_from_arrays
 from bluesky_offsets.physics.twin import HistogramSpec, _import_rml, _rayx_fix_seed
+
+
+SOURCE_CACHE = 64
+"""RAYX source draws an engine keeps (a fit's configurations each have their own seed)."""
 
 
 def _field_overrides(table, values, overrides=None) -> dict:
@@ -52,22 +56,22 @@ class RmlTorchEngine(TorchEngine):
         return compile_beamline(vals[:, :0], _field_overrides(self.table, vals, overrides), beamline=self.rml,
                                 dtype=o.torch_dtype, device=o.device)
 
-    def _chunks(self, bl, n_rays, seed, edge, keep_hits=False):
-        rays = self._source(n_rays, seed)
-        step = max(1, self.options.max_batch // max(bl.n_configs, 1))
-        for a in range(0, n_rays, step):
-            b = min(n_rays, a + step)
-            yield a, trace_rays(bl, rays.slice(a, b), None, edge=edge, keep_hits=keep_hits)
+    def _units(self, bl, n_rays, seed):
+        return given_units(self._source(n_rays, seed))
 
 
     def _source(self, n_rays: int, seed):
-        return _rayx_source(self, n_rays, seed)
+        """One RAYX draw for a batch, or one per configuration for a sequence of seeds."""
+        if not isinstance(seed, (list, tuple)):
+            return _rayx_source(self, n_rays, seed)
+        from bluesky_offsets.physics.torch_engine import Rays
+        parts = [_rayx_source(self, n_rays, s) for s in seed]
+        return Rays(*(torch.cat([getattr(r, f) for r in parts], 0) for f in
+                      ("x", "y", "z", "dx", "dy", "dz", "energy", "ctr")))
 
 
 def _rayx_source(eng, n_rays: int, seed):
     """RAYX's source rays for ``seed`` (its local frame), with the counters its slits draw from."""
-    if isinstance(seed, (list, tuple)):
-        raise ValueError("a described beamline's batch shares one source draw: one seed")
     seed = int(seed) if seed is not None else int.from_bytes(os.urandom(4), "little")
     key = (int(n_rays), seed)
     if key not in eng.source_cache:
@@ -84,7 +88,8 @@ def _rayx_source(eng, n_rays: int, seed):
                                                                 "energy")}
         if len(first) != n_rays:
             raise RuntimeError(f"RAYX emitted {len(first)} source rays for {n_rays}")
-        eng.source_cache.clear()  # one draw kept: the batches of a fit share it
+        if len(eng.source_cache) >= SOURCE_CACHE:
+            eng.source_cache.pop(next(iter(eng.source_cache)))
         eng.source_cache[key] = rays_from_arrays(
             np.column_stack([col["position_x"], col["position_y"], col["position_z"]]),
             np.column_stack([col["direction_x"], col["direction_y"], col["direction_z"]]), col["energy"],
