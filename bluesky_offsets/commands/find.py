@@ -21,6 +21,8 @@ from bluesky_offsets.commands.cli import CliError
 DEFAULT_METHODS = "smart-walker,monte-carlo,gradient,levenberg-marquardt,cmaes"
 HEADLINE = {"candidates": 1024, "iterations": 400, "runs": 3}
 PAPER_GPU = {"candidates": 1_000_000, "iterations": 200}
+BLOP_EVALUATIONS = 64
+"""blop's budget at most (the harness's: 48 evaluations took 20-50 s a run on 2 cores)."""
 """The paper's sizes (m = 1e6 candidates, 200 iterations), the defaults where the model runs on a GPU."""
 """The settings at which the walker ends ≥ 10x below Monte Carlo on the means (docs/benchmarks.md:
 35x over ten seeds, 40x over the default runs); at 256 candidates and 200 iterations it ended 0.5x."""
@@ -95,6 +97,8 @@ def _find(args) -> int:
     budgets = {}
     for m in methods:
         ev = evaluations if m in paper else max(1, int(evaluations * args.fast_fraction))
+        if m == "blop":  # a Gaussian process's cost grows with its data: tens of evaluations, not thousands
+            ev = min(ev, BLOP_EVALUATIONS)
         budgets[m] = F.Budget(evaluations=ev, seconds=seconds)
 
     def make(seed):
@@ -216,7 +220,8 @@ def add_cli(sub) -> None:
                    help="surrogate checkpoint: a path or a shipped name, default or fast (default: default)")
     p.add_argument("--methods", default=DEFAULT_METHODS,
                    help=f"comma-separated (default {DEFAULT_METHODS}); the authors' baselines: genetic (evotorch, "
-                        f"the [harness] extra), powell, annealing, blop (the [blop] extra)")
+                        f"the [harness] extra), powell, annealing, blop (the [blop] extra; at most {BLOP_EVALUATIONS} "
+                        f"evaluations)")
     p.add_argument("--runs", type=int, default=HEADLINE["runs"],
                    help=f"seeded runs per method (default {HEADLINE['runs']}; the benchmark page's table: 10)")
     p.add_argument("--seed", type=int, default=0, help="first seed (default 0)")

@@ -25,6 +25,13 @@ RECORD_EVERY = 256
 """A one-candidate method records its loss curve at every improvement and every this many evaluations."""
 
 
+def _need(module: str, extra: str) -> None:
+    """A finder error in one line where a baseline's library is not installed."""
+    import importlib.util
+    if importlib.util.find_spec(module) is None:
+        raise F.FinderError(f"this baseline needs {module}: pip install 'bluesky-offsets[{extra}]'")
+
+
 class _Spent(Exception):
     """The evaluation or time budget ran out inside a library's loop."""
 
@@ -101,7 +108,7 @@ class Genetic:
 
     def run(self, obj: F.Objective, tr: F._Tracker, gen: torch.Generator) -> None:
         import logging
-
+        _need("evotorch", "harness")
         from evotorch import Problem
         from evotorch.algorithms import GeneticAlgorithm
         from evotorch.operators import GaussianMutation, SimulatedBinaryCrossOver
@@ -139,6 +146,7 @@ class Blop:
 
     def optimizer(self, P: int, lim: float):
         """A blop ``AxOptimizer`` over ``P`` offsets in ``[-lim, lim]`` minimizing ``mse``."""
+        _need("blop", "blop")
         from ax import RangeParameterConfig
         from blop.ax.optimizer import AxOptimizer
         opt = AxOptimizer([RangeParameterConfig(name=f"o{i}", parameter_type="float", bounds=(-lim, lim))
