@@ -558,9 +558,9 @@ def _beamline(args):
     """The described beamline the IOC serves (None: METRIXS)."""
     if not args.beamline:
         return None
-    from bluesky_offsets.physics.beamline import BeamlineError, load_beamline, shipped
+    from bluesky_offsets.physics.beamline import BeamlineError, resolve
     try:
-        bl = load_beamline(args.beamline if Path(args.beamline).suffix == ".toml" else shipped(args.beamline))
+        bl = resolve(args.beamline)
     except BeamlineError as exc:
         raise ParameterError(str(exc)) from None
     return None if bl.builtin == "metrixs" else bl

@@ -149,6 +149,10 @@ def test_the_simulated_ioc_serves_a_described_beamline(ioc_factory, tmp_path, ca
     with init_devices():   # the ophyd-async devices from the same table: every motor connects
         beamline = MetrixsBeamline(p, name="energize", table=bl.table)
     assert len(beamline.motors) == 32 and beamline.parameter("M4.rotationXerror").name == "energize-m4-rx"
+    pv_map = tmp_path / "energize_pvs.toml"   # the PV map from the same file, checked against the IOC
+    assert main(["pv-map", "--beamline", "energize", "--prefix", p, "--out", str(pv_map)]) == 0
+    assert '"M4.rotationXerror"' in pv_map.read_text()
+    assert main(["check-pvs", str(pv_map), "--beamline", "energize", "--timeout", "10"]) == 0
 
 
 def test_the_torch_engine_traces_energize_from_rayx_source_rays(tmp_path):

@@ -11,7 +11,6 @@ import argparse
 import contextlib
 import importlib
 import json
-from pathlib import Path
 import logging
 import os
 import sys
@@ -140,9 +139,9 @@ def analysis_executor(threads: int, twin=None):
 
 # --------------------------------------------------------------------------- #
 def _cmd_params(args) -> int:
-    from bluesky_offsets.physics.beamline import BeamlineError, load_beamline, shipped
+    from bluesky_offsets.physics.beamline import BeamlineError, resolve
     try:
-        bl = load_beamline(args.beamline if Path(args.beamline).suffix == ".toml" else shipped(args.beamline))
+        bl = resolve(args.beamline)
     except BeamlineError as exc:
         raise CliError(str(exc)) from None
     table = bl.table

@@ -7,9 +7,19 @@ import json
 import sys
 
 
+def _table(args):
+    """The parameter table of ``--beamline`` (METRIXS's by default)."""
+    from bluesky_offsets.commands.cli import CliError
+    from bluesky_offsets.physics.beamline import BeamlineError, resolve
+    try:
+        return resolve(args.beamline).table
+    except BeamlineError as exc:
+        raise CliError(str(exc)) from None
+
+
 def _cmd_pv_map(args) -> int:
     from bluesky_offsets.epics.pvmap import PVMap
-    text = PVMap.simulated(args.prefix, camera_directory=args.camera).to_toml()
+    text = PVMap.simulated(args.prefix, _table(args), camera_directory=args.camera).to_toml()
     if args.out:
         with open(args.out, "w") as f:
             f.write(text)
@@ -26,7 +36,7 @@ def _cmd_check_pvs(args) -> int:
     if args.timeout <= 0:
         raise CliError("--timeout must be positive")
     try:
-        pv_map = PVMap.from_file(args.file)
+        pv_map = PVMap.from_file(args.file, _table(args))
     except PVMapError as exc:
         raise CliError(str(exc)) from None
     from bluesky_offsets.epics.pvmap import CAMERA_PVS
@@ -58,10 +68,14 @@ def add_cli(sub) -> None:
     p.add_argument("--camera", metavar="DIR", default=None,
                    help="name the focus chamber's camera (an areaDetector writing its frames to DIR) instead of "
                         "the simulator's histogram PVs")
+    p.add_argument("--beamline", default="metrixs", metavar="FILE|NAME",
+                   help="the beamline's description (a TOML file, or a shipped one: metrixs, energize)")
     p.set_defaults(func=_cmd_pv_map)
 
     p = sub.add_parser("check-pvs", help="connect to every PV of a PV map; report missing and mismatched records")
     p.add_argument("file", help="PV map (TOML: [motors] parameter = record, [chamber] signal = PV or [camera])")
     p.add_argument("--timeout", type=float, default=3.0, help="seconds to wait for the PVs to connect (default 3)")
     p.add_argument("--json", action="store_true", help="machine-readable output")
+    p.add_argument("--beamline", default="metrixs", metavar="FILE|NAME",
+                   help="the beamline's description the map's motors belong to (default metrixs)")
     p.set_defaults(func=_cmd_check_pvs)

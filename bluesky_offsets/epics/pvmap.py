@@ -33,6 +33,10 @@ from bluesky_offsets.physics.parameters import METRIXS, ParameterTable
 
 ENV_PVS = "BLUESKY_OFFSETS_PVS"
 ENV_PREFIX = "BLUESKY_OFFSETS_PREFIX"
+def _display(table: ParameterTable) -> str:
+    return "METRIXS" if table.version == METRIXS.version else table.name
+
+
 SIM_PREFIX = "SIM:METRIXS:"  # sim_iocs.metrixs.DEFAULT_PREFIX (not imported: the IOC is not needed here)
 
 # the motor-record fields check_pvs reads
@@ -95,7 +99,8 @@ class PVMap:
             camera = {"prefix": prefix + "cam:", "directory": str(camera_directory), **SIM_CAMERA,
                       "geometry": asdict(CameraGeometry())}
         return cls(motor_pvs(table, prefix, None), {} if camera else chamber_pvs(prefix + "chamber:", None),
-                   f"simulated METRIXS IOC, prefix {prefix}", table, stage_pvs(prefix + "chamber:", None), camera)
+                   f"simulated {_display(table)} IOC, prefix {prefix}", table,
+                   stage_pvs(prefix + "chamber:", None), camera)
 
     @classmethod
     def from_file(cls, path: str | os.PathLike, table: ParameterTable = METRIXS) -> PVMap:
@@ -125,7 +130,7 @@ class PVMap:
         return cls.simulated(os.environ.get(ENV_PREFIX, SIM_PREFIX), table)
 
     def to_toml(self) -> str:
-        lines = ["# PV map of the METRIXS devices (bluesky-offsets): edit the names for another IOC",
+        lines = [f"# PV map of the {_display(self.table)} devices (bluesky-offsets): edit the names for another IOC",
                  f"name = {_q(self.name)}", "", "[motors]"]
         for p in self.table:
             if p.motorized:

@@ -196,6 +196,12 @@ def _check_against_rml(bl: Beamline, path: Path) -> None:
                             f"ImagePlane of the RML")
 
 
+def resolve(spec: str | Path) -> Beamline:
+    """A beamline from what a user types: a description file (``*.toml``) or a shipped name."""
+    spec = str(spec)
+    return load_beamline(spec if spec.endswith(".toml") or Path(spec).is_file() else shipped(spec))
+
+
 def shipped(name: str) -> Path:
     """The description shipped with the package for ``name`` (``"metrixs"``, ``"energize"``)."""
     p = BEAMLINES / f"{name}.toml"
