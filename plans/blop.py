@@ -118,7 +118,7 @@ def focus_agent(calibration, motors: Mapping[str, Any], reference, *, span: Mapp
     agent = Agent(sensors=[], dofs=dofs, objectives=[Objective(name="focus_um2", minimize=True)],
                   evaluation_function=TwinFocus(calibration, reference, names, rays=rays, seed=seed, table=table),
                   acquisition_plan=OnTwin())
-    agent.ax_client.set_generation_strategy(ucb_strategy(sobol, beta))
+    agent.ax_client.set_generation_strategy(ucb_strategy(sobol, beta, seed))
     return agent
 
 

@@ -144,19 +144,19 @@ class Blop:
     batch: int = 4
     name = "blop"
 
-    def optimizer(self, P: int, lim: float):
+    def optimizer(self, P: int, lim: float, seed: int | None = None):
         """A blop ``AxOptimizer`` over ``P`` offsets in ``[-lim, lim]`` minimizing ``mse``."""
         _need("blop", "blop")
         from ax import RangeParameterConfig
         from blop.ax.optimizer import AxOptimizer
         opt = AxOptimizer([RangeParameterConfig(name=f"o{i}", parameter_type="float", bounds=(-lim, lim))
                            for i in range(P)], objective="-mse")
-        opt.ax_client.set_generation_strategy(ucb_strategy(self.sobol, self.beta))
+        opt.ax_client.set_generation_strategy(ucb_strategy(self.sobol, self.beta, seed))
         return opt
 
     def run(self, obj: F.Objective, tr: F._Tracker, gen: torch.Generator) -> None:
         P, lim = obj.problem.n_parameters, obj.limit
-        opt = self.optimizer(P, lim)
+        opt = self.optimizer(P, lim, int(torch.randint(1, 2**31 - 1, (1,), generator=gen)))
         while tr.cap(self.batch) > 0 and not tr.exhausted():
             points = opt.suggest(tr.cap(self.batch))
             x = torch.tensor([[p[f"o{i}"] for i in range(P)] for p in points], device=obj.device, dtype=obj.dtype)
@@ -165,13 +165,15 @@ class Blop:
             opt.ingest([{"_id": p["_id"], "mse": float(v)} for p, v in zip(points, loss.tolist())])
 
 
-def ucb_strategy(sobol: int, beta: float):
-    """Ax's generation strategy: ``sobol`` quasi-random points, then BoTorch with qUCB(β)."""
+def ucb_strategy(sobol: int, beta: float, seed: int | None = None):
+    """Ax's generation strategy: ``sobol`` quasi-random points (scrambled by ``seed``), then BoTorch
+    with qUCB(β)."""
     from ax.adapter.registry import Generators
     from ax.generation_strategy.generation_strategy import GenerationStep, GenerationStrategy
     from botorch.acquisition import qUpperConfidenceBound
     return GenerationStrategy(name=f"Sobol+UCB(beta={beta:g})", nodes=[
-        GenerationStep(generator=Generators.SOBOL, num_trials=sobol),
+        GenerationStep(generator=Generators.SOBOL, num_trials=sobol,
+                       generator_kwargs={} if seed is None else {"seed": int(seed)}),
         GenerationStep(generator=Generators.BOTORCH_MODULAR, num_trials=-1,
                        generator_kwargs={"botorch_acqf_class": qUpperConfidenceBound,
                                          "acquisition_options": {"beta": beta}})])
