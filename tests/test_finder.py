@@ -189,7 +189,7 @@ def test_find_command_end_to_end(tmp_path, capsys):
     assert len(res["results"]["monte-carlo"]) == 2 and res["seeds"] == [0, 1]
     for f in ("curves.png", "identifiability.png", "identifiability.txt"):
         assert (out / f).stat().st_size > 0
-    assert main(["find", "--methods", "annealing", "--out", str(out)]) == 2
+    assert main(["find", "--methods", "simplex", "--out", str(out)]) == 2
     assert "unknown method" in capsys.readouterr().err
 
 

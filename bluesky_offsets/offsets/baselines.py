@@ -1,7 +1,7 @@
 """The authors' current baselines, each through the library they use, behind the finder's interface.
 
-Meier et al.'s public harness (``hz-b`` offset-finding repository) now recommends a genetic
-algorithm (evotorch: 500 candidates, 1,000 generations, simulated binary crossover at rate 0.8,
+Meier et al.'s public offset-finding code now recommends a genetic algorithm (its README:
+evotorch, 500 candidates, 1,000 generations, simulated binary crossover at rate 0.8,
 tournaments of 3, Gaussian mutation σ = 0.2 of each parameter's range) and compares Powell,
 simulated annealing, gradient descent through the surrogate and BLOP (blop's Ax agent, UCB
 β = 10).  Here each is an algorithm object with the finder methods' ``run(objective, tracker,
