@@ -105,10 +105,6 @@ def physical_state(values: np.ndarray, table=None) -> tuple[np.ndarray, str | No
             v[i] = 0.0
     try:
         check_physical(v, table)
-        from bluesky_offsets.physics.beamline import POSITIVE_FIELDS
-        for p, x in zip(table, v):
-            if p.field in POSITIVE_FIELDS and x <= 0:
-                raise ValueError(f"{p.name} = {x} {p.unit}: must be positive")
     except ValueError as exc:
         return v, f"impossible state ({exc}): dark frame"
     return v, note

@@ -211,10 +211,6 @@ def shipped(name: str) -> Path:
     return p
 
 
-POSITIVE_FIELDS = ("radius", "longRadius", "shortRadius", "longHalfAxisA", "shortHalfAxisB")
-OPENING_FIELDS = ("openingWidth", "openingHeight")
-
-
 class RmlEngine(RayxEngine):
     """RAYX on a described beamline's RML: each parameter sets its element's field (a misalignment
     switches the element's alignment errors on), ``overrides`` set any other field, the world
@@ -227,13 +223,11 @@ class RmlEngine(RayxEngine):
         self.rml = read_rml(beamline.rml)
 
     def build(self, request: TraceRequest, n_rays: int):
+        from bluesky_offsets.physics.metrixs import check_physical
         values = self.table.validate(request.values)
+        check_physical(values, self.table)
         bl = self.rml.copy()
         for p, v in zip(self.table, values):
-            if p.field in POSITIVE_FIELDS and v <= 0:
-                raise ValueError(f"{p.name} = {v} {p.unit}: must be positive")
-            if p.field in OPENING_FIELDS and v < 0:
-                raise ValueError(f"{p.name} = {v} {p.unit}: a slit opening cannot be negative")
             if p.field in MISALIGNMENT_KEYS:
                 bl[p.element].set_misalignment(**{p.field: float(v)})
             else:

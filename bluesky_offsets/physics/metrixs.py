@@ -203,7 +203,7 @@ def reference_values(table: ParameterTable = METRIXS) -> np.ndarray:
     return table.reference.copy()
 
 
-_POSITIVE_FIELDS = {"radius", "longHalfAxisA", "shortHalfAxisB"}
+_POSITIVE_FIELDS = {"radius", "longRadius", "shortRadius", "longHalfAxisA", "shortHalfAxisB"}
 _OPENING_FIELDS = {"openingWidth", "openingHeight"}
 
 
