@@ -64,9 +64,8 @@ def _job(args) -> dict:
 
 
 def loss_at(run: dict, evaluations: float) -> float:
-    e, loss = np.asarray(run["history"]["evaluations"]), np.asarray(run["history"]["loss"])
-    i = np.searchsorted(e, evaluations, side="right") - 1
-    return float(loss[i]) if i >= 0 else float("inf")
+    from bluesky_offsets.offsets.finder import loss_at as at
+    return at(run["history"], evaluations)
 
 
 def summarize(runs: dict[str, list[dict]], at: int) -> dict:

@@ -459,9 +459,7 @@ class FinderResult:
 
     def loss_at(self, evaluations: float) -> float:
         """Best loss reached within ``evaluations``."""
-        e, l = np.asarray(self.history["evaluations"]), np.asarray(self.history["loss"])
-        i = np.searchsorted(e, evaluations, side="right") - 1
-        return float(l[i]) if i >= 0 else math.inf
+        return loss_at(self.history, evaluations)
 
     def reached(self, target: float) -> tuple[float, float]:
         """(evaluations, seconds) at which the best loss first fell to ``target`` (inf if never)."""
@@ -480,6 +478,13 @@ class FinderResult:
             d["solutions"] = self.solutions.tolist()
             d["solution_losses"] = self.solution_losses.tolist()
         return d
+
+
+def loss_at(history: Mapping, evaluations: float) -> float:
+    """Best loss of a loss ``history`` (``evaluations``, ``loss``) reached within ``evaluations``."""
+    e, l = np.asarray(history["evaluations"]), np.asarray(history["loss"])
+    i = np.searchsorted(e, evaluations, side="right") - 1
+    return float(l[i]) if i >= 0 else math.inf
 
 
 ProgressCallback = Callable[[dict], None]
