@@ -116,7 +116,16 @@ def measure_designed(beamline, chamber, *, options: DesignOptions | Mapping | No
 # validation frames
 # --------------------------------------------------------------------------- #
 VALIDATION_LIMIT = 1.3
-"""χ²/dof on the validation frames above which the calibration is said to fail its validation."""
+"""χ²/dof on the validation frames above which the calibration may fail its validation ..."""
+VALIDATION_P = 1e-3
+"""... when, too, noise alone would reach that χ² less often than this (few frames, few dof)."""
+
+
+def validation_limit(dof: float) -> float:
+    """The χ²/dof a calibration must stay within on ``dof`` validation degrees of freedom: 1.3, or
+    the χ² noise alone exceeds with probability ``VALIDATION_P`` where that is higher."""
+    from scipy.stats import chi2
+    return max(VALIDATION_LIMIT, float(chi2.isf(VALIDATION_P, max(dof, 1.0)) / max(dof, 1.0)))
 
 
 @dataclass
@@ -137,16 +146,20 @@ class Validation:
         return float(mf.mse_total / max(mf.expected_mse_total, 1e-300))
 
     @property
+    def limit(self) -> float:
+        return validation_limit(float(self.comparison.misfit.dof_total))
+
+    @property
     def passed(self) -> bool:
-        return self.chi2_reduced <= VALIDATION_LIMIT
+        return self.chi2_reduced <= self.limit
 
     def summary(self) -> dict:
         return {"chi2_reduced": self.chi2_reduced, "mse_over_noise": self.mse_over_noise,
                 "configurations": self.measurement.n, "uid": self.uid, "passed": self.passed,
-                "limit": VALIDATION_LIMIT}
+                "limit": self.limit}
 
     def line(self) -> str:
-        how = "passed" if self.passed else f"FAILED (above {VALIDATION_LIMIT:g}): the offsets reproduce the frames " \
+        how = "passed" if self.passed else f"FAILED (above {self.limit:.2f}): the offsets reproduce the frames " \
                                            "they were fitted to, not the beamline elsewhere"
         return (f"validation on {self.measurement.n} frames no fit used: chi2/dof = {self.chi2_reduced:.2f}, "
                 f"MSE/noise = {self.mse_over_noise:.2f}, {how}")
