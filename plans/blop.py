@@ -63,11 +63,11 @@ class TwinFocus:
     def __init__(self, calibration, reference, names: Mapping[str, str], *, rays: int = 20_000, seed: int = 0,
                  keep: float = 0.9, table: ParameterTable = METRIXS):
         from bluesky_offsets.model.state import CalibratedState
-        from bluesky_offsets.physics.torch_engine import TorchEngine
+        from bluesky_offsets.physics.beamline import torch_engine
         self.state = CalibratedState.of(calibration).state
         self.reference, self.names, self.table = np.asarray(reference, float), dict(names), table
         self.rays, self.seed, self.keep = int(rays), int(seed), float(keep)
-        self.engine = TorchEngine(table=table)
+        self.engine = torch_engine(table)
         self.reference_focus = self.focus(self.reference)
 
     def focus(self, configuration):

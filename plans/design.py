@@ -177,21 +177,22 @@ def validation_settings(model, fitted: Measurement, n: int, *, options: DesignOp
     from bluesky_offsets.offsets.beam_search import acceptance
     from bluesky_offsets.physics import effects as E
     from bluesky_offsets.physics.screen import add_overrides, tensor_overrides
-    from bluesky_offsets.physics.torch_engine import TorchEngine, histograms
+    from bluesky_offsets.physics.beamline import torch_engine
+    from bluesky_offsets.physics.torch_engine import histograms
     from bluesky_offsets.physics.twin import HistogramSpec, Twin
     from plans import enough_rays
 
     state = CalibratedState.of(model).state
     bright = enough_rays(fitted.hist_x, fitted.hist_y)
     anchors = fitted.configurations[bright] if bright.any() else fitted.configurations
-    acc = acceptance(Twin(TorchEngine(table=table)), anchors[0], open_slits=False, table=table)
+    acc = acceptance(Twin(torch_engine(table)), anchors[0], open_slits=False, table=table)
     rng = np.random.default_rng([options.seed, 2])  # the validation's own stream
     cfg, screen = candidate_settings(anchors, 4 * options.candidates, rng, acceptance=acc,
                                      options=options.replace(move=min(1.0, 2 * options.move)), table=table)
     twin_eff = {e: v for e, v in state.effects.items() if E.get(e).level == "twin"}
     ov = E.twin_overrides(twin_eff) if twin_eff else None
     stage = tensor_overrides(screen, len(cfg))
-    engine = TorchEngine(table=table, options={"common_rays": False})
+    engine = torch_engine(table, options={"common_rays": False})
     with torch.no_grad():
         beam = engine.beam(cfg + np.clip(state.offsets, -0.2, 0.2) * table.span,
                            add_overrides(ov, stage) if stage else ov, n_rays=1000, seed=options.seed)

@@ -889,7 +889,7 @@ def analyse_measurement(measurement, twin, forward_model=None, *, store=None,
     meas, link = resolve_measurement(measurement, store, resolution=resolution, table=table)
     twin = twin.with_hist(meas.spec)  # the twin bins as the measurement does
     if starts is None:
-        starts = [ModelState()]
+        starts = [ModelState(np.zeros(len(table)))]
     elif isinstance(starts, ModelState):
         starts = [starts]
     fopts = FitOptions.resolve(fit_options, D.FIT)

@@ -215,7 +215,7 @@ def find_beam(beamline, chamber, *, fraction: float = 0.15, twin=None, max_frame
         bright (``threshold``), the frames used, a line per step and the uids of its runs.
     """
     from bluesky_offsets.offsets.beam_search import acceptance, intensity, search
-    from bluesky_offsets.physics.torch_engine import TorchEngine
+    from bluesky_offsets.physics.beamline import torch_engine
     from bluesky_offsets.physics.twin import Twin
 
     from .measure import scan_configurations
@@ -224,7 +224,7 @@ def find_beam(beamline, chamber, *, fraction: float = 0.15, twin=None, max_frame
     if not 0 < fraction <= 0.2:
         raise ValueError(f"fraction must lie in (0, 0.2], got {fraction}")
     here = yield from current_configuration(beamline, table)
-    twin = twin or Twin(TorchEngine(table=table))
+    twin = twin or Twin(torch_engine(table))
     widths = (acceptance(twin, here, open_slits=True, table=table), acceptance(twin, here, open_slits=False,
                                                                                table=table))
     gen = search(here, *widths, fraction=fraction, threshold=threshold, max_frames=max_frames, table=table)

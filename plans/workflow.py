@@ -279,7 +279,7 @@ def calibration_session(beamline, chamber, twin, forward_model, *, design: Measu
                         evaluations: int = 3000, candidates: list[str] | None = None, rounds: int = D.ROUNDS,
                         fit=None, scan=None, fit_top: int | None = D.FIT_TOP, resolution: str = "camera",
                         measurement_md: dict | None = None, analysis_md: dict | None = None,
-                        step=log.info, executor=None, measured=None) -> MsgGenerator[Session]:
+                        step=log.info, executor=None, measured=None, table=METRIXS) -> MsgGenerator[Session]:
     """The session on a beamline.  With :class:`~bluesky_offsets.design.DesignOptions` (the default
     of the demo and ``calibrate``): :func:`plans.design.measure_designed`, then
     :func:`plans.diagnose.analyse_measurement` of every designed frame from the bare twin and the
@@ -290,7 +290,8 @@ def calibration_session(beamline, chamber, twin, forward_model, *, design: Measu
     announces each part (the demo numbers them); ``executor`` runs the analysis's independent fits
     side by side (the same result); seeds from ``design.seed``.  ``measured(m)``, a plan, gets the
     designed measurement before the analysis and returns the one to analyse (a camera calibrated
-    where its frames were brightest: :func:`plans.camera.calibrate_where_bright`)."""
+    where its frames were brightest: :func:`plans.camera.calibrate_where_bright`).  ``table`` names
+    the beamline; a described one (not METRIXS) is measured by design only: the surrogate is METRIXS's."""
     from bluesky_offsets.model.state import ModelState
 
     from .diagnose import analyse_measurement
@@ -300,7 +301,10 @@ def calibration_session(beamline, chamber, twin, forward_model, *, design: Measu
                                              rounds=rounds, fit=fit, scan=scan, fit_top=fit_top,
                                              resolution=resolution, measurement_md=measurement_md,
                                              analysis_md=analysis_md, step=step, executor=executor,
-                                             measured=measured))
+                                             measured=measured, table=table))
+    if table.version != METRIXS.version:
+        raise ValueError(f"the bright design finds the offsets with the surrogate, trained on METRIXS; on "
+                         f"{table.name} the measurement is designed (DesignOptions)")
     t = {"start": time.perf_counter()}
     step("finding the beam, bright configurations around it, measuring them")
     measured = yield from measure_bright(beamline, chamber, **asdict(design), md=measurement_md)
@@ -324,7 +328,8 @@ def calibration_session(beamline, chamber, twin, forward_model, *, design: Measu
 
 
 def _designed_session(beamline, chamber, twin, *, design: DesignOptions, candidates, rounds, fit, scan, fit_top,
-                      resolution, measurement_md, analysis_md, step, executor, measured) -> MsgGenerator[Session]:
+                      resolution, measurement_md, analysis_md, step, executor, measured,
+                      table=METRIXS) -> MsgGenerator[Session]:
     from bluesky_offsets.model.state import ModelState
 
     from .design import measure_designed, measure_validation, record_posterior
@@ -333,31 +338,38 @@ def _designed_session(beamline, chamber, twin, *, design: DesignOptions, candida
     t = {"start": time.perf_counter()}
     step(f"finding the beam, then frames designed for the offsets ({design.frames} frames in all, "
          f"{design.criterion}-optimal batches of {design.batch} on the twin's exact Jacobians)")
-    d = yield from measure_designed(beamline, chamber, options=design, md=measurement_md)
+    d = yield from measure_designed(beamline, chamber, options=design, md=measurement_md, table=table)
     m = d.measurement
     if measured is not None:
         d = replace(d, measurement=(yield from measured(m)))
         m = d.measurement
     measured = Measured(d.beam, m, 0, np.arange(m.n), d)
     t["measure"] = t["finder"] = time.perf_counter()
-    # a camera's counts carry its gain and the flux reading, each known to a few %: one scale, fitted
+    # a camera's counts carry its gain and the flux reading, each known to a few %, and a described
+    # beamline's source says nothing of the flux the real one delivers: one scale, fitted
+    from bluesky_offsets.physics.beamline import of_table
+    described = of_table(table)
+    flux_unknown = m.floor_x is not None or (described is not None and described.builtin is None
+                                             and "intensity_scale" in described.effects)
+
     def scale():
-        return {"intensity_scale": {"delta": 0.0}} if m.floor_x is not None else {}
-    starts = [ModelState(effects=scale(), label="twin"),
+        return {"intensity_scale": {"delta": 0.0}} if flux_unknown else {}
+    starts = [ModelState(np.zeros(len(table)), scale(), "twin"),
               ModelState(np.asarray(d.offsets, float), scale(), "design estimate")]
     step(f"compare → fit offsets (differentiable twin, exact Jacobians) → diagnose → add the winning effect "
          f"→ refit → diagnose again ({m.n} designed frames)")
-    analysis = yield from analyse_measurement(m.for_analysis(resolution=resolution), twin, starts=starts,
+    analysis = yield from analyse_measurement(m.for_analysis(resolution=resolution, table=table), twin, starts=starts,
                                               candidates=candidates, rounds=rounds, fit_options=fit,
                                               scan_options=scan, fit_top=fit_top, seed=design.seed,
-                                              executor=executor, md=dict(analysis_md or {}))
+                                              executor=executor, md=dict(analysis_md or {}), table=table)
     t["analysis"] = time.perf_counter()
-    analysis.uids["posterior"] = yield from record_posterior(analysis, measurement_uid=m.uid, md=analysis_md)
+    analysis.uids["posterior"] = yield from record_posterior(analysis, measurement_uid=m.uid, md=analysis_md,
+                                                             table=table)
     validation = None
     if design.validation:
         step(f"{design.validation} validation frames far from the fitted ones, the calibrated model against them")
         validation = yield from measure_validation(beamline, chamber, analysis, m, twin, n=design.validation,
-                                                   options=design, md={"purpose": "validation frames"})
+                                                   options=design, md={"purpose": "validation frames"}, table=table)
         log.info("  %s", validation.line())
     t["validation"] = time.perf_counter()
     return Session(measured, None, analysis, t, validation)

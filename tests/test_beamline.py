@@ -228,3 +228,47 @@ def test_the_torch_engine_of_a_description_is_differentiable_in_every_kind_of_pa
         down[i] -= h
         fd = float((stats(up)[out] - stats(down)[out]) / (2 * h))
         assert abs(fd) > 1e-9 and float(g[i]) == pytest.approx(fd, rel=0.01), (name, float(g[i]), fd)
+
+
+@pytest.mark.parametrize("args, why", [
+    (["--beamline", "bessy"], "no shipped beamline 'bessy'"),
+    (["--beamline", "energize", "--design", "bright"], "--design bright needs the surrogate"),
+    (["--beamline", "energize", "--effect", "thermal_bump_m1:height=100"], "not among energize's effects"),
+    (["--beamline", "energize", "--candidates", "source_size"], "not among energize's effects"),
+])
+def test_the_demo_refuses_what_a_described_beamline_cannot_do_in_one_line(tmp_path, capsys, args, why):
+    assert main(["demo", "--out", str(tmp_path / "out"), *args]) == 2
+    err = capsys.readouterr().err.strip()
+    assert why in err and "\n" not in err
+    assert not (tmp_path / "out").exists()   # refused before anything ran
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(900)
+def test_the_demo_calibrates_a_described_beamline_end_to_end(tmp_path):
+    """``bluesky-offsets demo --beamline energize`` as a user runs it, on a small budget: the IOC
+    serves Energize with hidden offsets in all 37 parameters, the frames are designed on its torch
+    twin, the offsets fitted, the diagnosis ranks Energize's own effects, validation frames judge
+    the calibration, and the calibration file names Energize's table."""
+    import json
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    exe = Path(sys.executable).parent / "bluesky-offsets"
+    out = tmp_path / "out"
+    proc = subprocess.run([str(exe), "demo", "--beamline", "energize", "--effect", "none", "--frames", "12",
+                           "--rays", "1000", "--fit-rays", "1000", "--validation-frames", "2", "--rounds", "1",
+                           "--out", str(out), "--store", str(tmp_path / "runs")],
+                          capture_output=True, text=True, timeout=880)
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    s = json.loads((out / "summary.json").read_text())
+    bl = load_beamline(shipped("energize"))
+    assert s["beamline"] == "energize" and set(s["hidden_offsets"]) == set(bl.table.names)
+    assert s["frames"] <= 12 and s["validation"]["configurations"] == 2
+    assert s["verdict"] == "no significant missing effect", s["history"][-1]
+    assert set(s["could_hide"]) <= set(bl.effects) and "chamber_z" in s["could_hide"]   # its own effects only
+    assert s["history"][-1]["chi2_reduced"] < 1.5 and s["validation"]["passed"]
+    cal = json.loads(Path(s["calibration"]).read_text())
+    assert cal["parameter_table"] == "energize" and set(cal["offsets"]) == set(bl.table.names)
+    assert (out / "report.html").stat().st_size > 10_000

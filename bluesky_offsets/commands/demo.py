@@ -110,6 +110,25 @@ class DemoSettings:
     # measured, the second's also on frames at the new settings (issue 17: the fitted offsets
     # reproduce the frames but not the truth, so the first prediction can miss by > 10 %)
     closed_loop: bool = True
+    # a described beamline (a description file or a shipped name, ``physics.beamline``); None: METRIXS
+    beamline: str | None = None
+
+    @property
+    def described(self):
+        """The described beamline (:class:`~bluesky_offsets.physics.beamline.Beamline`), or None for METRIXS."""
+        if self.beamline is None:
+            return None
+        from bluesky_offsets.physics.beamline import resolve
+        return resolve(self.beamline)
+
+    @property
+    def table(self):
+        bl = self.described
+        return METRIXS if bl is None else bl.table
+
+    @property
+    def display(self) -> str:
+        return "METRIXS" if self.beamline is None else self.table.name
 
     @property
     def steps(self) -> int:
@@ -128,11 +147,12 @@ class DemoSettings:
 
 
 def demo_offsets(s: DemoSettings) -> dict[str, float]:
-    """The hidden normalized offsets: all 34 drawn (``offsets_fraction``) or ``s.offsets``."""
+    """The hidden normalized offsets: all the table's drawn (``offsets_fraction``) or ``s.offsets``."""
+    table = s.table
     if s.offsets_fraction > 0:
         rng = np.random.default_rng(s.seed + 1)
-        return {n: float(v) for n, v in zip(METRIXS.names, rng.uniform(-s.offsets_fraction, s.offsets_fraction,
-                                                                      len(METRIXS)))}
+        return {n: float(v) for n, v in zip(table.names, rng.uniform(-s.offsets_fraction, s.offsets_fraction,
+                                                                     len(table)))}
     return dict(s.offsets)
 
 
@@ -151,10 +171,11 @@ def demo_truth(s: DemoSettings) -> dict:
 # the simulated beamline
 # --------------------------------------------------------------------------- #
 class SimulatedBeamline:
-    """The METRIXS IOC in a subprocess on loopback, a free port; :meth:`stop` always kills it."""
+    """The simulated IOC (METRIXS, or the described ``beamline``: a description file) in a
+    subprocess on loopback, a free port; :meth:`stop` always kills it."""
 
     def __init__(self, truth: Mapping, n_rays: int, work: Path, move_time: float = 0.5, noise_seed: int = 0,
-                 motors: str = "perfect"):
+                 motors: str = "perfect", beamline: Path | None = None):
         from sim_iocs.ports import free_port, loopback_env
         self.port = free_port()
         self.prefix = f"DEMO{self.port}:"
@@ -174,7 +195,7 @@ class SimulatedBeamline:
             [sys.executable, "-m", "sim_iocs.metrixs", "--prefix", self.prefix, "--truth", str(self.truth_path),
              "--backend", "twin", "--rays", str(n_rays), "--noise-seed", str(noise_seed),
              "--move-time", str(move_time), "--accel-time", "0.02", "--tick", "0.02", "--interfaces", "127.0.0.1",
-             "--motors", motors],
+             "--motors", motors, *(("--beamline", str(beamline)) if beamline is not None else ())],
             env=env, stdout=self._log, stderr=subprocess.STDOUT, start_new_session=True)
 
     def log(self) -> str:
@@ -275,6 +296,11 @@ def demo_plan(s: DemoSettings, beamline, chamber, twin, forward_model, log, exec
     from plans.optimize import optimize_beam
     from plans.workflow import calibration_session
 
+    table = s.table
+    candidates = s.candidates_effects
+    if candidates is None and s.described is not None:
+        candidates = list(s.described.effects)  # the effects its description says apply
+
     number = itertools.count(2)
     from plans.camera import camera_steps
 
@@ -283,10 +309,10 @@ def demo_plan(s: DemoSettings, beamline, chamber, twin, forward_model, log, exec
         yield from darks()
     session = yield from calibration_session(
         beamline, chamber, twin, forward_model, design=s.design, evaluations=s.finder_evaluations,
-        candidates=s.candidates_effects, rounds=s.rounds, fit=s.fit, scan=s.scan, fit_top=s.fit_top,
+        candidates=candidates, rounds=s.rounds, fit=s.fit, scan=s.scan, fit_top=s.fit_top,
         resolution=s.resolution, measurement_md={"purpose": "demo measurement"},
         analysis_md={"purpose": "bluesky-offsets demo"}, executor=executor, measured=measured,
-        step=lambda text: log(f"[{next(number)}/{s.steps}] {text}"))
+        step=lambda text: log(f"[{next(number)}/{s.steps}] {text}"), table=table)
     beam = None
     if s.optimize:
         log(f"[{next(number)}/{s.steps}] the smallest focus with the calibrated twin: settings for E1/E2 within "
@@ -312,15 +338,17 @@ def run_demo(out: Path, settings: DemoSettings | None = None, store_location: st
         print(f"{time.perf_counter() - t0:6.0f} s  {msg}", flush=True)
 
     truth = demo_truth(s)
+    table, described = s.table, s.described
     work = Path(tempfile.mkdtemp(prefix="bluesky-offsets-demo-"))
     load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
     hidden = s.hidden
     offsets = truth["offsets"]
-    log(f"[1/{s.steps}] starting the simulated METRIXS IOC (RAYX twin backend; hidden offsets in {len(offsets)} of "
-        f"{len(METRIXS)} parameters, hidden effects: {', '.join(hidden) or 'none'}); load average {load:.1f} on "
+    log(f"[1/{s.steps}] starting the simulated {s.display} IOC (RAYX twin backend; hidden offsets in {len(offsets)} "
+        f"of {len(table)} parameters, hidden effects: {', '.join(hidden) or 'none'}); load average {load:.1f} on "
         f"{os.cpu_count()} cores; the analysis's fits {s.threads} at a time)")
     # seeded frame noise: the same settings give the same demo, --seed another draw of it
-    ioc = SimulatedBeamline(truth, s.n_rays, work, move_time=s.move_time, noise_seed=s.seed + 2, motors=s.motors)
+    ioc = SimulatedBeamline(truth, s.n_rays, work, move_time=s.move_time, noise_seed=s.seed + 2, motors=s.motors,
+                            beamline=None if described is None else described.path)
     twin = RE = steps_log = None
     pool = contextlib.ExitStack()  # the analysis's executor (one torch and BLAS thread a fit) to the end
     try:
@@ -341,7 +369,8 @@ def run_demo(out: Path, settings: DemoSettings | None = None, store_location: st
         forward_model = load_forward_model()
         # as many RAYX workers as the demo may use cores (--threads): a test runner's share of
         # one core (OMP_NUM_THREADS=1) starts one worker, not a worker per core of the machine
-        twin = Twin(n_rays=s.n_rays, n_workers=s.workers or s.threads)
+        from bluesky_offsets.physics.beamline import rayx_engine
+        twin = Twin(rayx_engine(table), n_rays=s.n_rays, n_workers=s.workers or s.threads)
         twin.client  # start the Dask workers while the IOC comes up
         RE = RunEngine({}, call_returns_result=True)  # before the devices: they connect in its event loop
         ioc.wait_ready()
@@ -352,7 +381,7 @@ def run_demo(out: Path, settings: DemoSettings | None = None, store_location: st
                 frames = store.frames_directory  # the embedded store serves the camera's files
             except StoreError:
                 frames = work / "frames"
-        pv_map = PVMap.simulated(ioc.prefix, camera_directory=frames)
+        pv_map = PVMap.simulated(ioc.prefix, table, camera_directory=frames)
         beamline, chamber = connect_devices(pv_map, timeout=10.0)
         if pv_map.camera:  # an exposure that gives the frames the demo's photons
             import bluesky.plan_stubs as bps
@@ -399,9 +428,9 @@ def run_demo(out: Path, settings: DemoSettings | None = None, store_location: st
                 f"x {beam_result.after.rms_x / best.rms_x:.2f}, y {beam_result.after.rms_y / best.rms_y:.2f}")
 
         log(f"[{s.steps}/{s.steps}] writing the report")
-        what = (f"hidden offsets in all {len(METRIXS)} parameters (uniform within ±{s.offsets_fraction:g} of each "
+        what = (f"hidden offsets in all {len(table)} parameters (uniform within ±{s.offsets_fraction:g} of each "
                 f"range)" if s.offsets_fraction > 0 else
-                f"hidden offsets in {len(offsets)} of the {len(METRIXS)} parameters ({', '.join(offsets)})")
+                f"hidden offsets in {len(offsets)} of the {len(table)} parameters ({', '.join(offsets)})")
         how = (f"{len(m)} frames designed for the offsets ({designed.steps[0]['criterion'] if designed.steps else 'D'}"
                f"-optimal batches on the twin's exact Jacobians, the chamber's stage moved along the beam) after "
                f"{beam.frames} frames of the beam search, {session.measured.frames} in all; the offsets fitted through "
@@ -410,7 +439,7 @@ def run_demo(out: Path, settings: DemoSettings | None = None, store_location: st
                f"with the slits open); offsets found with the shipped surrogate (on the configurations inside its "
                f"box) and fitted through the differentiable twin on {analysis.measurement.n}")
         intro = [("What this is", paragraph(
-            f"bluesky-offsets demo: a simulated METRIXS beamline (caproto IOC, RAYX twin at the hidden true state, "
+            f"bluesky-offsets demo: a simulated {s.display} beamline (caproto IOC, RAYX twin at the hidden true state, "
             f"{s.n_rays} rays per frame) with {what} and hidden effects: "
             f"{', '.join(f'{k} {v}' for k, v in hidden.items()) or 'none'}; {how}; the missing effects diagnosed, "
             f"added and refitted one after the other"
@@ -430,10 +459,10 @@ def run_demo(out: Path, settings: DemoSettings | None = None, store_location: st
         from bluesky_offsets.commands.report import beam_section, design_section, validation_section
         from bluesky_offsets.model.export import write_calibration
         from bluesky_offsets.model.posterior import Posterior
-        posterior = Posterior.of(analysis)
+        posterior = Posterior.of(analysis, table)
         calibration = None
         if posterior is not None:
-            calibration = write_calibration(out / "calibration.json", analysis, measurement_uid=m.uid,
+            calibration = write_calibration(out / "calibration.json", analysis, table=table, measurement_uid=m.uid,
                                             validation=None if validation is None else validation.summary())
         beam_secs = [] if beam_result is None else [
             ("The smallest focus with the calibrated twin", beam_section(beam_result, out, best=best))]
@@ -441,7 +470,7 @@ def run_demo(out: Path, settings: DemoSettings | None = None, store_location: st
         valid_secs = [] if validation is None else [("Validation frames", validation_section(validation))]
         report = write_analysis_report(out / "report.html", analysis, analysis.measurement.spec, title="bluesky-offsets demo",
                                        intro=intro + design_secs, truth=hidden, uids=steps,
-                                       store_location=store.location,
+                                       store_location=store.location, table=table,
                                        extra=[*valid_secs, *beam_secs,
                                               ("Timing", table_([{k: f"{v:.0f} s" for k, v in timing.items()}]))])
         flush_live(live)
@@ -459,7 +488,7 @@ def run_demo(out: Path, settings: DemoSettings | None = None, store_location: st
             "offsets": None if posterior is None else posterior.as_dict(),
             "validation": None if validation is None else validation.summary(),
             "calibration": None if calibration is None else str(calibration),
-            "n_rays": s.n_rays, "hidden_offsets": offsets, "offsets_fraction": s.offsets_fraction,
+            "beamline": s.display, "n_rays": s.n_rays, "hidden_offsets": offsets, "offsets_fraction": s.offsets_fraction,
             "hidden_effects": hidden,
             "verdict": analysis.verdict + ("" if validation is None or validation.passed else "; " + validation.line()),
             # a within-noise verdict: how large each candidate could be and still hide
@@ -576,6 +605,9 @@ def add_cli(sub) -> None:
     from bluesky_offsets.commands.cli import add_analysis_options
     p = sub.add_parser("demo", help="the main job: calibrate and diagnose a simulated METRIXS end to end",
                        description=__doc__.split("\n\n", 1)[1] if __doc__ else None)
+    p.add_argument("--beamline", default=None, metavar="FILE|NAME",
+                   help="a described beamline (a description file, or a shipped one: energize) instead of METRIXS; "
+                        "its measurement is designed, its effects those its file names")
     p.add_argument("--out", default="bluesky-offsets-demo", help="output folder (default ./bluesky-offsets-demo)")
     p.add_argument("--store", default=None, help="run store (default: the embedded store, $BLUESKY_OFFSETS_STORE)")
     p.add_argument("--rays", type=int, default=5000, help="source rays per measured frame (default %(default)s)")
@@ -599,7 +631,7 @@ def add_cli(sub) -> None:
                    help="hidden effect NAME:PARAM=VALUE,... (repeat for several) or 'none' (default "
                         f"{DEMO_EFFECT[0]}:" + ",".join(f"{k}={v:g}" for k, v in DEMO_EFFECT[1].items()) + ")")
     p.add_argument("--offsets-fraction", type=float, default=DemoSettings.offsets_fraction,
-                   help="hidden offsets in all 34 parameters, uniform within ± this fraction of each range "
+                   help="hidden offsets in all parameters (METRIXS: 34), uniform within ± this fraction of each range "
                         "(default %(default)s; the paper's is 0.2; 0: 7 fixed offsets of 1-2 %% instead)")
     p.add_argument("--candidates", default=None, help="effects to rank, comma separated (default: all)")
     add_analysis_options(p, fit_rays=None,
@@ -653,6 +685,34 @@ def parse_effect(text: str) -> tuple[str, dict]:
     return name, full
 
 
+def _check_beamline(args, hidden: Sequence[str]) -> bool:
+    """``--beamline``'s description read and the options checked against it (one line each);
+    whether the demo ends with the beam optimization."""
+    from bluesky_offsets.commands.cli import CliError
+    from bluesky_offsets.physics.beamline import BeamlineError, resolve
+    if args.beamline is None:
+        return not args.no_optimize
+    try:
+        bl = resolve(args.beamline)
+    except BeamlineError as exc:
+        raise CliError(str(exc)) from None
+    if bl.builtin == "metrixs":
+        args.beamline = None
+        return not args.no_optimize
+    if args.design != "optimal":
+        raise CliError(f"--design bright needs the surrogate, trained on METRIXS; on {bl.name} the measurement is "
+                       f"designed (the default)")
+    asked = [c.strip() for c in args.candidates.split(",")] if args.candidates else []
+    foreign = [n for n in [*hidden, *asked] if n not in bl.effects]
+    if foreign:
+        raise CliError(f"--effect/--candidates: {', '.join(foreign)} not among {bl.name}'s effects "
+                       f"({', '.join(bl.effects)}; its description file names them)")
+    if not args.no_optimize:
+        print(f"the beam optimization's targets are METRIXS's (E1/E2); on {bl.name} the demo ends with the "
+              f"validation frames", flush=True)
+    return False
+
+
 def _cmd_demo(args) -> int:
     from bluesky_offsets.commands.cli import CliError, check_analysis_options
     if args.configurations < 2:
@@ -683,6 +743,7 @@ def _cmd_demo(args) -> int:
     if any(E.get(n).level == "detector" for n in names):
         raise CliError("--effect: the simulated IOC hides twin-level effects only (detector-level ones: "
                        + ", ".join(n for n in names if E.get(n).level == "detector") + ")")
+    optimize = _check_beamline(args, names)
     fit, scan = D.fits_for(args.design == "optimal", args.fit_rays)
     s = DemoSettings(n_rays=args.rays, effects=effects, design_kind=args.design,
                      optimal=DesignOptions(frames=args.frames, validation=args.validation_frames),
@@ -690,9 +751,10 @@ def _cmd_demo(args) -> int:
                                          analysed=args.analysed_configurations),
                      offsets_fraction=args.offsets_fraction, rounds=args.rounds, seed=args.seed,
                      fit_top=args.fit_top or None, fit=fit, scan=scan,
-                     resolution=args.resolution, optimize=not args.no_optimize, closed_loop=not args.open_loop,
+                     resolution=args.resolution, optimize=optimize, closed_loop=not args.open_loop,
                      threads=args.threads, motors=args.motors, detector=args.detector,
-                     candidates_effects=[c.strip() for c in args.candidates.split(",")] if args.candidates else None)
+                     candidates_effects=[c.strip() for c in args.candidates.split(",")] if args.candidates else None,
+                     beamline=args.beamline)
     for n in s.candidates_effects or ():
         try:
             E.get(n)

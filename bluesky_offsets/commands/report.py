@@ -354,12 +354,12 @@ def uid_section(uids: Mapping[str, str], store_location: str | None = None) -> s
 def write_analysis_report(path: str | Path, analysis, spec, *, title: str = "model vs. measurement",
                           intro: Sequence[tuple[str, str]] = (), truth: Mapping | None = None,
                           uids: Mapping[str, str] | None = None, store_location: str | None = None,
-                          extra: Sequence[tuple[str, str]] = ()) -> Path:
-    """One self-contained HTML report of an analysis: figures inlined (base64 PNG), tables,
-    ranking, error history, run uids; opens offline."""
+                          extra: Sequence[tuple[str, str]] = (), table=None) -> Path:
+    """One self-contained HTML report of an analysis (of the beamline ``table`` names, default
+    METRIXS): figures inlined (base64 PNG), tables, ranking, error history, run uids; opens offline."""
     import tempfile
     with tempfile.TemporaryDirectory(prefix="bluesky-offsets-report-") as tmp:
-        secs = [*intro, *analysis_sections(analysis, spec, Path(tmp), truth=truth), *extra]
+        secs = [*intro, *analysis_sections(analysis, spec, Path(tmp), truth=truth, table=table), *extra]
         secs.append(("Runs in the store", uid_section(uids if uids is not None else analysis.uids, store_location)))
         return write_report(path, title=title, sections=secs)
 

@@ -158,10 +158,10 @@ def global_starts(meas, offsets: np.ndarray, *, photons: int, seed: int, keep: i
     the best :data:`GLOBAL_ELITE`, until the best explains half the light or ``rounds`` are done."""
     from bluesky_offsets.model.state import ModelState, simulate_raw_many
     from bluesky_offsets.physics.parameters import MAX_OFFSET
-    from bluesky_offsets.physics.torch_engine import TorchEngine
+    from bluesky_offsets.physics.beamline import torch_engine
     from bluesky_offsets.physics.twin import Twin
     rng = np.random.default_rng([seed, GLOBAL_SEED])
-    twin = Twin(TorchEngine(table=table, hist=meas.spec), scheduler="inline")
+    twin = Twin(torch_engine(table, meas.spec), scheduler="inline")
     h = np.concatenate([meas.hist_x, meas.hist_y], 1)
     var = h / photons + 1.0 / (photons * rays)
     dark = float(np.sum(h ** 2 / var))  # a model with no light on the screen
@@ -192,11 +192,11 @@ class DesignLoop:
     def __init__(self, options: DesignOptions, here: np.ndarray, budget: int, photons: int,
                  table: ParameterTable = METRIXS):
         from bluesky_offsets.offsets.beam_search import acceptance
-        from bluesky_offsets.physics.torch_engine import TorchEngine
+        from bluesky_offsets.physics.beamline import torch_engine
         from bluesky_offsets.physics.twin import Twin
         self.o, self.budget, self.photons, self.table = options, int(budget), int(photons), table
-        self.engine = TorchEngine(table=table, options={"common_rays": False})
-        self.acceptance = acceptance(Twin(TorchEngine(table=table)), here, open_slits=False, table=table)
+        self.engine = torch_engine(table, options={"common_rays": False})
+        self.acceptance = acceptance(Twin(torch_engine(table)), here, open_slits=False, table=table)
         self.here = np.asarray(here, float)
         self.offsets = np.zeros(len(table))
         self.precision: np.ndarray | None = None

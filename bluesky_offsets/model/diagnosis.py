@@ -675,13 +675,25 @@ def diagnostic_configurations(around, n: int = 12, *, seed: int = 0, spread: dic
 OPEN_APERTURE = {"ASBL.totalWidth": 4.0, "ASBL.totalHeight": 4.0, "ExitSlit.totalHeight": 0.1}
 
 
+OPENINGS = ("totalWidth", "totalHeight", "openingWidth", "openingHeight")
+"""RML fields that are a slit's or an aperture's opening."""
+
+
+def open_settings(table: ParameterTable = METRIXS) -> dict[str, float]:
+    """The openings of an open aperture: METRIXS's :data:`OPEN_APERTURE`; on another beamline
+    every motorized opening at the end of its travel."""
+    if all(n in table.names for n in OPEN_APERTURE):
+        return dict(OPEN_APERTURE)
+    return {p.name: p.limits[1] for p in table if p.motorized and p.field in OPENINGS}
+
+
 def open_aperture(configurations, settings: dict[str, float] | None = None,
                   table: ParameterTable = METRIXS) -> np.ndarray:
     """Copies of ``configurations`` (n, P) with the slit openings of ``settings`` (physical,
-    default :data:`OPEN_APERTURE`).  They lie outside the surrogate's box: the twin models
+    default :func:`open_settings`).  They lie outside the surrogate's box: the twin models
     them, the surrogate finder must not see them (``table.outside_box``)."""
     cfg = np.array(table.validate(np.atleast_2d(configurations), "configurations"), dtype=float)
-    for name, value in (OPEN_APERTURE if settings is None else settings).items():
+    for name, value in (open_settings(table) if settings is None else settings).items():
         p = table[name]
         lo, hi = p.limits
         if not lo <= value <= hi:

@@ -239,8 +239,8 @@ def engine_for(meas, options: FitOptions, table: ParameterTable = METRIXS):
     shared rays χ² was lowest at +0.44 on one seed (curvature σ 0.007) and beyond +0.5 on three
     others; with a stream per configuration at +0.47 to +0.53 on all four.
     """
-    from bluesky_offsets.physics.torch_engine import TorchEngine
-    return TorchEngine(table=table, hist=meas.spec, options={"common_rays": False, **dict(options.engine or {})})
+    from bluesky_offsets.physics.beamline import torch_engine
+    return torch_engine(table, meas.spec, {"common_rays": False, **dict(options.engine or {})})
 
 
 class _Model:

@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from bluesky_offsets.model.diagnosis import open_aperture
+from bluesky_offsets.model.diagnosis import open_aperture, open_settings
 from bluesky_offsets.physics.parameters import METRIXS, ParameterTable
 
 SWEEP = (0.001, 0.002, 0.005, 0.01, 0.02, 0.05, 0.1, 0.2)
@@ -132,7 +132,7 @@ def search(start, open_widths: np.ndarray, closed_widths: np.ndarray, *, thresho
     log.append(f"start: {inten:.3g} of the source rays on the screen")
     if inten > threshold:
         return SearchResult(start, float(inten), True, frames, log)
-    skip = set(OPEN_SLITS)
+    skip = set(OPEN_SLITS) | set(open_settings(table))
     cur = open_aperture(start[None], table=table)[0]
     cur_i = (yield cur[None])[0]
     frames += 1

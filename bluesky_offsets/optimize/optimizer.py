@@ -449,8 +449,9 @@ def predict(state, configuration, *, rays: int = 100_000, seed: int = 12_345, ov
 def predict_many(states, configuration, *, rays: int = 100_000, seed: int = 12_345, overrides=None, engine=None,
                  table: ParameterTable = METRIXS) -> list[tuple[Focus, np.ndarray, np.ndarray]]:
     """:func:`predict` for several states (one batch, the same rays) at one configuration."""
-    from bluesky_offsets.physics.torch_engine import TorchEngine, histograms
-    engine = engine or TorchEngine(table=table)
+    from bluesky_offsets.physics.beamline import torch_engine
+    from bluesky_offsets.physics.torch_engine import histograms
+    engine = engine or torch_engine(table)
     vals, ovs = [], []
     for st in states:
         ovs.append(_rml_overrides(st, overrides))
@@ -575,14 +576,14 @@ def optimize_settings(target, state, current, *, limits=None, constraints: Const
     TargetUnreachable : the best within the limits misses the target (naming the motors it pushes
         against their limits).
     """
-    from bluesky_offsets.physics.torch_engine import TorchEngine
+    from bluesky_offsets.physics.beamline import torch_engine
     target = target_from(target)
     cons = constraints if isinstance(constraints, Constraints) else Constraints.from_mapping(constraints)
     cons.check(table)
     o = OptimizeOptions.resolve(options)
     current = table.validate(current, "current setting").astype(float)
     lo, hi, free = bounds(current, cons, limits, table)
-    engine = engine or TorchEngine(table=table, options=dict(o.engine or {}))
+    engine = engine or torch_engine(table, options=dict(o.engine or {}))
     pb = _Problem(target, state, current, lo, hi, free, o, engine, overrides, table,
                   posterior_draws(state, covariance, o.draws, seed=o.seed, table=table))
     at_current = pb.rays(current)[0]

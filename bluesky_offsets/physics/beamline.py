@@ -32,6 +32,7 @@ element has not, effects the library does not know, each refused in one line nam
 
 from __future__ import annotations
 
+import functools
 import tomllib
 from dataclasses import dataclass, fields
 from pathlib import Path
@@ -166,7 +167,7 @@ def load_beamline(path) -> Beamline:
         raise BeamlineError(f"beamline {path}: no [[parameter]] entries")
     try:
         table = ParameterTable([parameter_from_record(r, f"{path.name} parameter") for r in records],
-                               name=str(head.get("name", path.stem)))
+                               name=str(head.get("name", path.stem)), source=path.resolve())
     except ParameterError as exc:
         raise BeamlineError(f"beamline {path}: {exc}") from None
     bl = Beamline(name=table.name, table=table, detector=_detector(doc.get("detector", {}),
@@ -194,6 +195,47 @@ def _check_against_rml(bl: Beamline, path: Path) -> None:
     if ip is None or ip.type != "ImagePlane":
         raise BeamlineError(f"beamline {path}: detector image_plane {bl.detector.image_plane!r} is not an "
                             f"ImagePlane of the RML")
+
+
+@functools.lru_cache(maxsize=8)
+def _described(path: Path) -> Beamline:
+    return load_beamline(path)
+
+
+def of_table(table: ParameterTable) -> Beamline | None:
+    """The described beamline ``table`` was read from (``None``: a table built in code)."""
+    return None if getattr(table, "source", None) is None else _described(Path(table.source))
+
+
+def torch_engine(table: ParameterTable, hist: HistogramSpec | None = None, options=None):
+    """The differentiable twin of the beamline ``table`` describes: METRIXS's built-in geometry
+    (or a table with no description) or the described RML's, binned by ``hist``."""
+    bl = of_table(table)
+    if bl is None or bl.builtin == "metrixs":
+        from bluesky_offsets.physics.torch_engine import TorchEngine
+        return TorchEngine(table=table, hist=hist, options=options)
+    from bluesky_offsets.physics.torch_rml import RmlTorchEngine
+    return RmlTorchEngine(bl, hist, options)
+
+
+def rayx_engine(table: ParameterTable, hist: HistogramSpec | None = None):
+    """RAYX on the beamline ``table`` describes (the reference twin), binned by ``hist``."""
+    bl = of_table(table)
+    if bl is None or bl.builtin == "metrixs":
+        return RayxEngine(table, hist)
+    return RmlEngine(bl, hist)
+
+
+def local_overrides(beamline: Beamline, overrides):
+    """``overrides`` (one mapping, or one per configuration) with the effects' and the stage's
+    screen (METRIXS's ``ImagePlane``) renamed to the description's image plane."""
+    from bluesky_offsets.physics.metrixs import IMAGE_PLANE
+    ip = beamline.detector.image_plane
+    if not overrides or ip == IMAGE_PLANE:
+        return overrides
+    if not isinstance(overrides, dict):
+        return [local_overrides(beamline, o) for o in overrides]
+    return {(ip if k == IMAGE_PLANE else k): v for k, v in overrides.items()}
 
 
 def resolve(spec: str | Path) -> Beamline:
@@ -232,7 +274,7 @@ class RmlEngine(RayxEngine):
                 bl[p.element].set_misalignment(**{p.field: float(v)})
             else:
                 bl[p.element].set(p.field, float(v))
-        for element, fields_ in (request.overrides or {}).items():
+        for element, fields_ in (local_overrides(self.beamline, request.overrides) or {}).items():
             for key, v in fields_.items():
                 if key in MISALIGNMENT_KEYS:
                     bl[element].set_misalignment(**{key: float(v)})

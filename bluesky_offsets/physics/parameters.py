@@ -113,9 +113,10 @@ class ParameterTable:
     ``(..., n)`` in table order and validate shape and finiteness.
     """
 
-    def __init__(self, parameters: Iterable[Parameter], *, name: str = "metrixs"):
+    def __init__(self, parameters: Iterable[Parameter], *, name: str = "metrixs", source=None):
         self.parameters: tuple[Parameter, ...] = tuple(parameters)
         self.name = name
+        self.source = source  # the description file it was read from (the twin's geometry), if any
         self.names: tuple[str, ...] = tuple(p.name for p in self.parameters)
         if len(set(self.names)) != len(self.names):
             raise ParameterError("duplicate parameter names in table")
@@ -325,7 +326,8 @@ def table_from_description(path, *, name: str | None = None) -> ParameterTable:
     if not isinstance(records, list) or not records:
         raise ParameterError(f"{path}: no [[parameter]] entries")
     return ParameterTable([parameter_from_record(r) for r in records],
-                          name=name or str(doc.get("beamline", {}).get("name", Path(path).stem)))
+                          name=name or str(doc.get("beamline", {}).get("name", Path(path).stem)),
+                          source=Path(path).resolve())
 
 
 BEAMLINES = __import__("pathlib").Path(__file__).resolve().parent.parent / "data" / "beamlines"

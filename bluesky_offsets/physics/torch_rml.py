@@ -43,6 +43,9 @@ class RmlTorchEngine(TorchEngine):
         self.described, self.rml = beamline, read_rml(beamline.rml)
         self.source_cache: dict = {}
 
+    def __getstate__(self):
+        return {**self.__dict__, "source_cache": {}}  # RAYX redraws them where the engine goes
+
     def compile(self, values, overrides=None):
         """The RML at a batch of parameter vectors ``(C, P)`` (physical units; a tensor keeps its graph)."""
         o = self.options
@@ -51,10 +54,33 @@ class RmlTorchEngine(TorchEngine):
         vals = vals[None] if vals.ndim == 1 else vals
         if vals.shape[1] != len(self.table):
             raise ValueError(f"expected parameter vectors of {len(self.table)} values, got shape {tuple(vals.shape)}")
-        if not isinstance(overrides, (dict, type(None))):
-            raise ValueError("a described beamline takes one overrides mapping for the whole batch")
+        from bluesky_offsets.physics.beamline import local_overrides
+        overrides = local_overrides(self.described, overrides)
+        if overrides is not None and not isinstance(overrides, dict):
+            overrides = self._columns(list(overrides), vals.shape[0])
         return compile_beamline(vals[:, :0], _field_overrides(self.table, vals, overrides), beamline=self.rml,
                                 dtype=o.torch_dtype, device=o.device)
+
+    def _columns(self, per_config: list, c: int) -> dict:
+        """One overrides mapping of ``(C,)`` columns from one mapping per configuration (a field a
+        configuration leaves out keeps the RML's value); element types must agree."""
+        from bluesky_offsets.physics.torch_engine import _MIS_KEYS
+        if len(per_config) != c:
+            raise ValueError(f"{len(per_config)} overrides for {c} configurations")
+        keys = {(e, k) for ov in per_config for e, f in ov.items() for k in f}
+        out: dict = {}
+        for e, k in sorted(keys):
+            vals = [ov.get(e, {}).get(k) for ov in per_config]
+            if k == "type":
+                if len({str(v) for v in vals}) > 1:
+                    raise ValueError("the configurations of one batch must not change element types differently")
+                out.setdefault(e, {})[k] = vals[0]
+                continue
+            default = getattr(self.rml[e].misalignment, _MIS_KEYS[k]) if k in _MIS_KEYS else self.rml[e].get_float(k)
+            col = [torch.as_tensor(default if v is None else v, dtype=torch.float64, device=self.options.device)
+                   .reshape(()) for v in vals]
+            out.setdefault(e, {})[k] = torch.stack(col)
+        return out
 
     def _units(self, bl, n_rays, seed):
         return given_units(self._source(n_rays, seed))
