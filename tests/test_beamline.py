@@ -36,6 +36,13 @@ def test_energize_is_described_by_its_rml(capsys):
     assert main(["params", "--beamline", "energize"]) == 0
     out = capsys.readouterr().out
     assert out.startswith("energize parameter table") and "37 parameters" in out and "PG.rotationXerror" in out
+    assert main(["simulate", "--beamline", "energize", "--engine", "both", "--rays", "2000", "--seed", "3",
+                 "--set", "M4.rotationXerror=0.1", "--json"]) == 0
+    runs = __import__("json").loads(capsys.readouterr().out)
+    rayx, torch_ = runs["runs"]
+    assert rayx["beamline"] == "energize" and rayx["parameters"]["M4.rotationXerror"] == 0.1
+    assert rayx["n_hits"] == torch_["n_hits"] > 100 and rayx["centroid_x"] == pytest.approx(0.30, abs=0.01)
+    assert runs["comparison"]["chi2_per_dof"] < 1e-6   # RAYX's rays through both: the same footprint
 
 
 def _write(tmp_path, text: str, name: str = "bl.toml"):

@@ -18,7 +18,7 @@ import sys
 import numpy as np
 
 from bluesky_offsets.epics.pvs import ChamberError, MotionError
-from bluesky_offsets.physics.parameters import METRIXS, ParameterError
+from bluesky_offsets.physics.parameters import ParameterError
 from bluesky_offsets.store import StoreError
 
 EXTENSIONS: list[str] = [
@@ -184,9 +184,20 @@ def _sparkline(h: np.ndarray) -> str:
     return "".join(blocks[int(round(v / m * 8))] for v in h)
 
 
-def _engine(name: str, sampling: str):
+def _engine(name: str, sampling: str, beamline=None):
+    """The twin ``name`` of METRIXS, or of a described ``beamline`` (RAYX's own rays: its source is RAYX's)."""
+    if beamline is not None and beamline.builtin is None:
+        return beamline.engine(name)
     from bluesky_offsets.physics.twin import make_engine
     return make_engine(name, **({"options": {"sampling": sampling}} if name == "torch" else {}))
+
+
+def _described(spec: str | None):
+    from bluesky_offsets.physics.beamline import BeamlineError, resolve
+    try:
+        return resolve(spec or "metrixs")
+    except BeamlineError as exc:
+        raise CliError(str(exc)) from None
 
 
 def _cmd_simulate(args) -> int:
@@ -194,16 +205,21 @@ def _cmd_simulate(args) -> int:
 
     if args.rays < 1:
         raise CliError(f"--rays must be positive, got {args.rays}")
-    values = METRIXS.from_mapping(_parse_sets(args.set))
+    bl = _described(args.beamline)
+    table = bl.table
+    try:
+        values = table.from_mapping(_parse_sets(args.set))
+    except ValueError as exc:
+        raise CliError(f"--set: {exc}") from None
     overrides = {}
     if args.chamber:
         tx, ty, tz = args.chamber
         overrides["ImagePlane"] = {"translationXerror": tx, "translationYerror": ty, "translationZerror": tz}
-    outside = METRIXS.outside_box(values)
+    outside = table.outside_box(values)
     names = ("rayx", "torch") if args.engine == "both" else (args.engine,)
     runs = []
     for name in names:
-        twin = Twin(_engine(name, args.sampling), scheduler="inline", n_rays=args.rays)
+        twin = Twin(_engine(name, args.sampling, bl), scheduler="inline", n_rays=args.rays)
         try:
             runs.append((twin, twin.trace(values, overrides=overrides, keep_rays=True, seed=args.seed)))
         except ValueError as exc:
@@ -213,7 +229,7 @@ def _cmd_simulate(args) -> int:
     if args.json:
         outs = []
         for twin, result in runs:
-            outs.append({"engine": twin.engine.version, "parameters": METRIXS.to_mapping(values),
+            outs.append({"engine": twin.engine.version, "beamline": table.name, "parameters": table.to_mapping(values),
                          "chamber_translation": list(args.chamber) if args.chamber else [0.0, 0.0, 0.0],
                          "outside_sampling_box": outside, "seed": args.seed, **result.summary(),
                          "hist_x": result.hist_x.tolist(), "hist_y": result.hist_y.tolist(),
@@ -242,7 +258,7 @@ def _cmd_simulate(args) -> int:
         from bluesky_offsets.commands.plotting import plot_footprint
         for twin, result in runs:
             path = args.plot if len(runs) == 1 else _suffixed(args.plot, twin.engine.version.split()[0])
-            plot_footprint(result, hist, path, title=f"METRIXS twin ({twin.engine.version.split()[0]}), "
+            plot_footprint(result, hist, path, title=f"{bl.name} twin ({twin.engine.version.split()[0]}), "
                                                      f"{args.rays} rays")
             if not args.json:
                 print(f"plot written to {path}")
@@ -296,6 +312,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="torch engine's random stream: fast, or rayx (RAYX's own rays for the same seed)")
     p.add_argument("--json", action="store_true", help="machine-readable output")
     p.add_argument("--plot", metavar="FILE.png", help="footprint scatter with both histograms")
+    p.add_argument("--beamline", default=None, metavar="FILE|NAME",
+                   help="a described beamline (TOML, or a shipped one: energize) instead of METRIXS")
     p.set_defaults(func=_cmd_simulate)
 
     for ext in EXTENSIONS:

@@ -17,6 +17,9 @@ A whole calibration and diagnosis session against the simulated beamline:
    (twin -> + offsets -> + effect), the fitted effect next to the hidden one, the focus before,
    after and predicted, and how to load the runs back.
 
+With ``--beamline FILE|NAME`` the same session runs on a described beamline (docs/beamlines.md):
+its IOC, devices, designed frames, fits and effects, up to the validation frames.
+
 The IOC is always stopped, also after an error or Ctrl-C.
 """
 

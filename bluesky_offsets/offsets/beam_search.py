@@ -132,7 +132,7 @@ def search(start, open_widths: np.ndarray, closed_widths: np.ndarray, *, thresho
     log.append(f"start: {inten:.3g} of the source rays on the screen")
     if inten > threshold:
         return SearchResult(start, float(inten), True, frames, log)
-    skip = set(OPEN_SLITS) | set(open_settings(table))
+    skip = set(open_settings(table))  # the openings the search sets, never scanned
     cur = open_aperture(start[None], table=table)[0]
     cur_i = (yield cur[None])[0]
     frames += 1
