@@ -377,15 +377,18 @@ def history_lines(analysis) -> list[str]:
     lines = [f"  {'model':26s} {'chi2/dof':>9s} {'MSE':>10s} {'noise MSE':>10s} {'MSE/noise':>9s}  effects"]
     for c in analysis.comparisons:
         r = c.total_row()
-        eff = "; ".join(f"{e}: " + ", ".join(_value(k, v, c.effect_sigma.get(e, {}).get(k, math.nan))
+        eff = "; ".join(f"{e}: " + ", ".join(_value(k, v, c.effect_sigma.get(e, {}).get(k, math.nan), e)
                                               for k, v in vals.items()) for e, vals in c.state.effects.items())
         lines.append(f"  {c.label:26s} {r['chi2_reduced']:9.3f} {r['mse']:10.3e} {r['expected_mse']:10.3e} "
                      f"{r['mse_over_noise']:9.2f}  {eff}")
     return lines
 
 
-def _value(name: str, value: float, sigma: float) -> str:
-    return f"{name} = {value:.3g}" + (f" ± {sigma:.2g}" if math.isfinite(sigma) else "")
+def _value(name: str, value: float, sigma: float, effect: str | None = None) -> str:
+    from bluesky_offsets.physics.effects import at_bound
+    bound = effect is not None and at_bound(effect, name, value)
+    return f"{name} = {value:.3g}" + (f" ± {sigma:.2g}" if math.isfinite(sigma) else "") + \
+        (" at its prior bound" if bound else "")
 
 
 def beam_section(result, work: Path, *, best=None) -> str:

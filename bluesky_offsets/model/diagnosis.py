@@ -164,7 +164,7 @@ class Diagnosis:
         # the candidate fits on the features give no uncertainty; the refit after adding does
         sig = {k: b.sigma.get(k, float("nan")) for k in b.values}
         vals = ", ".join(f"{k} = {v:.4g}" + (f" ± {sig[k]:.2g}" if math.isfinite(sig[k]) else "")
-                         for k, v in b.values.items())
+                         + (" at its prior bound" if E.at_bound(b.name, k, v) else "") for k, v in b.values.items())
         return f"missing effect: {b.name} ({vals})" + rivals_text(self.rivals)
 
     def as_dict(self) -> dict:

@@ -130,6 +130,13 @@ def get(name: str) -> Effect:
         raise ValueError(f"unknown effect {name!r}; known: {sorted(EFFECTS)}") from None
 
 
+def at_bound(effect: str, parameter: str, value: float) -> bool:
+    """Whether a fitted effect parameter sits on its prior range's edge (the fit was stopped there:
+    the value is a limit, not an estimate)."""
+    p = next((q for q in get(effect).parameters if q.name == parameter), None)
+    return p is not None and min(abs(value - p.low), abs(value - p.high)) <= 1e-6 * p.span
+
+
 def twin_overrides(effects: Mapping[str, Mapping[str, float]]) -> dict[str, dict[str, object]]:
     """Merge the RML overrides of several effects ``{effect name: values}``.
 

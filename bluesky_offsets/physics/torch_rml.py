@@ -43,6 +43,12 @@ class RmlTorchEngine(TorchEngine):
         self.described, self.rml = beamline, read_rml(beamline.rml)
         self.source_cache: dict = {}
 
+    @property
+    def version(self) -> str:
+        o = self.options
+        return (f"torch {torch.__version__} (bluesky-offsets tracer, {self.described.name} RML, RAYX's source rays, "
+                f"{o.dtype}, {o.device})")
+
     def __getstate__(self):
         return {**self.__dict__, "source_cache": {}}  # RAYX redraws them where the engine goes
 
