@@ -844,6 +844,20 @@ def _toroid_hit(q, px, py, pz, dx, dy, dz):
     return (hx, hy, hz), (gx / norm, gy / norm, gz / norm), ok
 
 
+def _toroid_rehit(opt, hx, hy, hz, dx, dy, dz) -> torch.Tensor:
+    """Rays RAYX's toroid iteration finds on the same toroid again, just ahead of where they left it
+    (RAYX-CONVENTIONS §5.6): RAYX reflects them there until its event cap, and they are lost."""
+    with torch.no_grad():
+        d = [_detach(v) for v in (dx, dy, dz)]
+        p = [_detach(h) + SEARCH_SHIFT * v for h, v in zip((hx, hy, hz), d)]
+        (qx, _, qz), _, again = _toroid_hit({k: _detach(v) for k, v in opt.quadric.items()}, *p, *d)
+        if opt.cutout is not None:
+            shape, w, length = (_detach(v) for v in opt.cutout)
+            again = again & (((qx > -w / 2) & (qx < w / 2) & (qz > -length / 2) & (qz < length / 2)) if shape == 0
+                             else (qx / (w / 2)) ** 2 + (qz / (length / 2)) ** 2 <= 1)
+        return again
+
+
 def _sigmoid_inside(half, coord, edge):
     """Logistic weight of |coord| < half over ``edge * 2 half``; 1/0 when edge = 0."""
     if edge <= 0:
@@ -932,6 +946,8 @@ def trace_rays(bl: CompiledBeamline, rays: Rays, draws: Draws | None = None, *, 
         if opt.behaviour == "mirror":
             dot = _poly((nx, dx), (ny, dy), (nz, dz))
             dx, dy, dz = (d if _zero(m) else d - 2 * dot * m for d, m in ((dx, nx), (dy, ny), (dz, nz)))
+            if opt.surface == "toroid":
+                ok = ok & ~_toroid_rehit(opt, hx, hy, hz, dx, dy, dz)
         elif opt.behaviour == "grating":
             dx, dy, dz, ok_g = _grating(opt, hz, nx, ny, nz, dx, dy, dz, wavelength)
             ok = ok & ok_g
