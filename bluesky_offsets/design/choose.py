@@ -109,7 +109,8 @@ def candidate_settings(anchors: np.ndarray, n: int, rng: np.random.Generator, *,
     coordinates, where the beam was on the screen): each moves a share ``options.move`` of the
     motors by up to a random fraction of 2.5 times their acceptance (the normalized half-width over
     which the beam keeps half its light, :func:`bluesky_offsets.offsets.beam_search.acceptance`),
-    draws a slit opening anew with probability ``options.slits`` (log-uniform over its travel) and
+    draws a slit opening anew with probability ``options.slits`` (log-uniform over its travel, above
+    twice the largest offset the model allows it: the slit stays open) and
     places the stage anywhere in its travel along the beam (and up to ±1 mm across it).  Every
     value lies within its motor's limits; fixed parameters stay at their design values."""
     anchors = np.atleast_2d(anchors)
@@ -130,6 +131,7 @@ def candidate_settings(anchors: np.ndarray, n: int, rng: np.random.Generator, *,
         cfg[:, i] = np.clip(cfg[:, i], lo, hi)
     for i in openings:
         lo, hi = table.parameters[i].limits
+        lo = max(lo, 2 * MAX_OFFSET * table.span[i])  # open under any offset the model allows
         pick = rng.random(n) < options.slits
         cfg[pick, i] = np.exp(rng.uniform(np.log(lo), np.log(hi), int(pick.sum())))
     cfg[:, ~table.motorized] = table.reference[~table.motorized]
