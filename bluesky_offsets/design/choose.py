@@ -111,7 +111,8 @@ def candidate_settings(anchors: np.ndarray, n: int, rng: np.random.Generator, *,
     which the beam keeps half its light, :func:`bluesky_offsets.offsets.beam_search.acceptance`),
     draws a slit opening anew with probability ``options.slits`` (log-uniform over its travel, above
     twice the largest offset the model allows it: the slit stays open) and
-    places the stage anywhere in its travel along the beam (and up to ±1 mm across it).  Every
+    places the stage anywhere in its travel along the beam (and up to ±1 mm across it, less where
+    the detector's window is narrow).  Every
     value lies within its motor's limits; fixed parameters stay at their design values."""
     anchors = np.atleast_2d(anchors)
     base = anchors[rng.integers(len(anchors), size=n)]
@@ -141,9 +142,21 @@ def candidate_settings(anchors: np.ndarray, n: int, rng: np.random.Generator, *,
         along = rng.random(n) < 0.7
         screen[along, 2] = rng.uniform(zax.low, zax.high, int(along.sum()))
         across = rng.random(n) < 0.3
-        screen[across, 0] = rng.uniform(max(xax.low, -1.0), min(xax.high, 1.0), int(across.sum()))
-        screen[across, 1] = rng.uniform(max(yax.low, -1.0), min(yax.high, 1.0), int(across.sum()))
+        wx, wy = _across(table)
+        screen[across, 0] = rng.uniform(max(xax.low, -wx), min(xax.high, wx), int(across.sum()))
+        screen[across, 1] = rng.uniform(max(yax.low, -wy), min(yax.high, wy), int(across.sum()))
     return cfg, screen
+
+
+def _across(table: ParameterTable) -> tuple[float, float]:
+    """How far (mm) the stage moves the screen across the beam: 1 mm, or 0.4 of the detector's
+    half window where that is narrower (the beam stays in the window the fits read)."""
+    from bluesky_offsets.physics.beamline import of_table
+    bl = of_table(table)
+    if bl is None or bl.builtin is not None:
+        return 1.0, 1.0
+    d = bl.detector
+    return tuple(min(1.0, 0.2 * (hi - lo)) for lo, hi in (d.histogram_x, d.histogram_y))
 
 
 # --------------------------------------------------------------------------- #
