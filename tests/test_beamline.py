@@ -289,15 +289,16 @@ def test_the_demo_calibrates_a_described_beamline_end_to_end(tmp_path):
 
     exe = Path(sys.executable).parent / "bluesky-offsets"
     out = tmp_path / "out"
-    proc = subprocess.run([str(exe), "demo", "--beamline", "energize", "--effect", "none", "--frames", "12",
-                           "--rays", "1000", "--fit-rays", "1000", "--validation-frames", "2", "--rounds", "1",
+    proc = subprocess.run([str(exe), "demo", "--beamline", "energize", "--effect", "none", "--frames", "8",
+                           "--rays", "1000", "--fit-rays", "600", "--validation-frames", "2", "--rounds", "1",
+                           "--candidates", "chamber_z,detector_blur",
                            "--out", str(out), "--store", str(tmp_path / "runs")],
                           capture_output=True, text=True, timeout=880)
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
     s = json.loads((out / "summary.json").read_text())
     bl = load_beamline(shipped("energize"))
     assert s["beamline"] == "energize" and set(s["hidden_offsets"]) == set(bl.table.names)
-    assert s["frames"] <= 12 and s["validation"]["configurations"] == 2
+    assert s["frames"] <= 8 and s["validation"]["configurations"] == 2
     assert s["verdict"] == "no significant missing effect", s["history"][-1]
     assert set(s["could_hide"]) <= set(bl.effects) and "chamber_z" in s["could_hide"]   # its own effects only
     assert s["history"][-1]["chi2_reduced"] < 1.5 and s["validation"]["passed"]
