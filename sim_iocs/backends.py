@@ -94,13 +94,13 @@ def physical_state(values: np.ndarray, table=None) -> tuple[np.ndarray, str | No
     Returns the state to trace and, when it had to be changed or cannot be traced at all,
     a note for the simulation's operator (never for its clients: it names true values).
     """
-    from bluesky_offsets.physics.metrixs import check_physical
+    from bluesky_offsets.physics.metrixs import OPENING_FIELDS, check_physical
     from bluesky_offsets.physics.parameters import METRIXS
     table = table or METRIXS
     v = np.array(values, float)
     note = None
     for i, p in enumerate(table):
-        if p.field in ("openingWidth", "openingHeight") and v[i] < 0:
+        if p.field in OPENING_FIELDS and v[i] < 0:
             note = f"{p.name} = {v[i]:.6g} {p.unit}: closed (traced at 0)"
             v[i] = 0.0
     try:

@@ -5,7 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from bluesky_offsets.offsets.beam_search import OPEN_SLITS, acceptance, intensity, schedule, search
+from bluesky_offsets.model.diagnosis import open_settings
+from bluesky_offsets.offsets.beam_search import acceptance, intensity, schedule, search
+
+OPEN_SLITS = tuple(open_settings())  # the slit openings the search sets (never scanned)
 from bluesky_offsets.physics.parameters import METRIXS
 from bluesky_offsets.physics.torch_engine import TorchEngine
 from bluesky_offsets.physics.twin import Twin

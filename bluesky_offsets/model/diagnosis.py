@@ -675,16 +675,13 @@ def diagnostic_configurations(around, n: int = 12, *, seed: int = 0, spread: dic
 OPEN_APERTURE = {"ASBL.totalWidth": 4.0, "ASBL.totalHeight": 4.0, "ExitSlit.totalHeight": 0.1}
 
 
-OPENINGS = ("totalWidth", "totalHeight", "openingWidth", "openingHeight")
-"""RML fields that are a slit's or an aperture's opening."""
-
-
 def open_settings(table: ParameterTable = METRIXS) -> dict[str, float]:
     """The openings of an open aperture: METRIXS's :data:`OPEN_APERTURE`; on another beamline
     every motorized opening at the end of its travel."""
     if all(n in table.names for n in OPEN_APERTURE):
         return dict(OPEN_APERTURE)
-    return {p.name: p.limits[1] for p in table if p.motorized and p.field in OPENINGS}
+    from bluesky_offsets.physics.metrixs import OPENING_FIELDS
+    return {p.name: p.limits[1] for p in table if p.motorized and p.field in OPENING_FIELDS}
 
 
 def open_aperture(configurations, settings: dict[str, float] | None = None,

@@ -173,6 +173,3 @@ def search(start, open_widths: np.ndarray, closed_widths: np.ndarray, *, thresho
     b, bi = best
     return SearchResult(b, bi, bi > threshold, frames, log)
 
-
-OPEN_SLITS = ("ASBL.totalWidth", "ASBL.totalHeight", "ExitSlit.totalHeight")
-"""The slit openings :func:`bluesky_offsets.model.diagnosis.open_aperture` sets (never scanned)."""

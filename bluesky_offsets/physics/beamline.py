@@ -239,9 +239,10 @@ def local_overrides(beamline: Beamline, overrides):
 
 
 def resolve(spec: str | Path) -> Beamline:
-    """A beamline from what a user types: a description file (``*.toml``) or a shipped name."""
+    """A beamline from what a user types: a description file (``*.toml``) or a shipped name (read
+    once per process, as :func:`of_table` reads it)."""
     spec = str(spec)
-    return load_beamline(spec if spec.endswith(".toml") or Path(spec).is_file() else shipped(spec))
+    return _described(Path(spec if spec.endswith(".toml") or Path(spec).is_file() else shipped(spec)).resolve())
 
 
 def shipped(name: str) -> Path:

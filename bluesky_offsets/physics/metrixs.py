@@ -204,7 +204,8 @@ def reference_values(table: ParameterTable = METRIXS) -> np.ndarray:
 
 
 _POSITIVE_FIELDS = {"radius", "longRadius", "shortRadius", "longHalfAxisA", "shortHalfAxisB"}
-_OPENING_FIELDS = {"openingWidth", "openingHeight"}
+OPENING_FIELDS = {"openingWidth", "openingHeight"}
+"""RML fields that are a slit's opening."""
 
 
 def check_physical(values, table: ParameterTable = METRIXS) -> None:
@@ -220,7 +221,7 @@ def check_physical(values, table: ParameterTable = METRIXS) -> None:
     for p, v in zip(table, vec):
         if p.field in _POSITIVE_FIELDS and v <= 0:
             raise ValueError(f"{p.name} = {v} {p.unit}: must be positive")
-        if p.field in _OPENING_FIELDS and v < 0:
+        if p.field in OPENING_FIELDS and v < 0:
             raise ValueError(f"{p.name} = {v} {p.unit}: a slit opening cannot be negative")
     for element in {p.element for p in table if p.field == "longHalfAxisA"}:
         a = [v for p, v in zip(table, vec) if p.element == element and p.field == "longHalfAxisA"]
