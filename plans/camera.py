@@ -20,7 +20,7 @@ import numpy as np
 from bluesky.utils import MsgGenerator
 
 from bluesky_offsets.model.measurement import Measurement
-from bluesky_offsets.physics.camera import CameraCalibration, photon_transfer
+from bluesky_offsets.physics.camera import CameraCalibration, dark_frame, photon_transfer
 
 
 @dataclasses.dataclass(frozen=True)
@@ -110,8 +110,8 @@ def _closed(camera, n: int) -> MsgGenerator[np.ndarray]:
 
 def _with_dark(cal: CameraCalibration, dark: np.ndarray) -> CameraCalibration:
     """``cal`` with the dark frame and read noise of the dark frames ``dark``."""
-    return dataclasses.replace(cal, dark=dark.mean(axis=0), dark_frames=float(len(dark)),
-                               read_noise=float(np.sqrt(dark.var(axis=0, ddof=1).mean())))
+    d = dark_frame(dark)
+    return dataclasses.replace(cal, dark=d.level, dark_frames=float(d.frames), read_noise=d.read_noise)
 
 
 def take_darks(camera, n: int = 4, *, md: Mapping | None = None) -> MsgGenerator[CameraCalibration]:

@@ -177,6 +177,43 @@ def profiles(frame: np.ndarray, geometry: CameraGeometry, *, dark: np.ndarray | 
 
 
 @dataclass(frozen=True)
+class DarkFrame:
+    """The dark level of each pixel (ADU) and the read noise (ADU) from two or more dark frames."""
+
+    level: np.ndarray
+    read_noise: float
+    frames: int
+    rejected: int
+
+
+def dark_frame(darks: np.ndarray, *, threshold: float = 8.0) -> DarkFrame:
+    """The dark level and read noise from dark frames, single-frame events rejected.
+
+    A stray photon or a cosmic ray in one dark frame adds ``gain`` ADU (tens of read-noise σ) to one
+    pixel: averaged into the dark it is subtracted from every frame after, a column of negative
+    photons.  A value more than ``threshold`` robust σ (the frame's median absolute deviation, the
+    fixed pattern included) above its frame's median is such an event when another frame's value of
+    the same pixel is not; it is left out of that pixel's mean and of the read noise.  A pixel
+    bright in every frame is the fixed pattern (a hot pixel) and is kept.
+    """
+    d = np.asarray(darks, float)
+    if d.ndim < 2 or len(d) < 2:
+        raise ValueError("dark frames: two or more frames of one camera")
+    flat = d.reshape(len(d), -1)
+    med = np.median(flat, axis=1, keepdims=True)
+    mad = np.median(np.abs(flat - med), axis=1, keepdims=True)
+    event = flat > med + threshold * np.maximum(1.4826 * mad, 0.5)
+    event &= ~event.all(axis=0)
+    keep = ~event
+    n = keep.sum(axis=0)
+    level = np.where(keep, flat, 0.0).sum(axis=0) / n
+    # the read noise from pixels with every frame kept: the unbiased variance over frames
+    whole = n == len(d)
+    var = flat[:, whole].var(axis=0, ddof=1).mean() if whole.any() else 0.0
+    return DarkFrame(level.reshape(d.shape[1:]), float(np.sqrt(var)), len(d), int(event.sum()))
+
+
+@dataclass(frozen=True)
 class PhotonTransfer:
     """The gain (ADU per photon) and read noise (ADU) measured from frames, with the gain's σ."""
 
@@ -204,9 +241,10 @@ def photon_transfer(frames: np.ndarray, darks: np.ndarray, *, saturation: float 
         raise ValueError("photon transfer: four or more frames and two or more dark frames of one camera")
     if f.max() >= saturation:
         raise ValueError("photon transfer: a frame is saturated (a shorter exposure or less light)")
-    dark_mean, dark_var = d.mean(axis=0), d.var(axis=0, ddof=1)
+    dark = dark_frame(darks)
+    dark_mean, read2 = dark.level.reshape(-1), dark.read_noise ** 2
     halves = f[: len(f) // 2], f[len(f) // 2:]
-    excess = [h.var(axis=0, ddof=1) - dark_var for h in halves]
+    excess = [h.var(axis=0, ddof=1) - read2 for h in halves]
     level = [h.mean(axis=0) - dark_mean for h in halves]
     sums = [lv.sum() for lv in level]
     if min(sums) <= 0:
@@ -215,7 +253,6 @@ def photon_transfer(frames: np.ndarray, darks: np.ndarray, *, saturation: float 
     gain = float(np.mean(ratios))
     influence = 0.5 * ((excess[0] - ratios[0] * level[1]) / sums[1] + (excess[1] - ratios[1] * level[0]) / sums[0])
     gain_sigma = float(np.sqrt(np.sum(influence ** 2)))
-    read2 = float(dark_var.mean())
     lit = int((0.5 * (level[0] + level[1]) > 3.0 * np.sqrt(read2)).sum())
     return PhotonTransfer(gain, gain_sigma, float(np.sqrt(read2)), lit)
 
