@@ -11,10 +11,9 @@ from bluesky_offsets.physics.metrixs import build_beamline, nominal_beamline
 from bluesky_offsets.physics.parameters import METRIXS
 from bluesky_offsets.physics.rml import WORLD_KEYS, RmlError, read_rml, read_world_vectors
 
-SHARED = Path(__file__).resolve().parents[2] / "shared" / "reference"
+SHARED = Path(__file__).resolve().parent / "data" / "reference"  # provenance: its README.md
 METRIXS_RML = SHARED / "METRIX_U41_G1_H1_318eV_PS_MLearn_1.15.rml"
 RAYUI_FILES = sorted((SHARED / "rayui-misalignment").glob("*.rml"))
-needs_shared = pytest.mark.skipif(not METRIXS_RML.exists(), reason=f"reference data not found at {SHARED}")
 
 
 def _compare(frames, names, ref):
@@ -25,14 +24,12 @@ def _compare(frames, names, ref):
             np.testing.assert_allclose(vec, r[key], rtol=0, atol=1e-9, err_msg=f"{name} {key}")
 
 
-@needs_shared
 def test_metrixs_nominal_frames_match_reference_rml():
     """Our METRIXS definition, all misalignments zero, reproduces the RML's world vectors."""
     bl = build_beamline(METRIXS.reference)
     _compare(bl.frames(), [o.name for o in bl.objects], read_world_vectors(METRIXS_RML))
 
 
-@needs_shared
 @pytest.mark.parametrize("path", RAYUI_FILES, ids=lambda p: p.stem)
 def test_misaligned_frames_match_rayui(path):
     """From the alignmentError values alone we recompute RAY-UI's misaligned world frames."""

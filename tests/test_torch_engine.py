@@ -24,9 +24,8 @@ from bluesky_offsets.physics.torch_engine import (FEATURES, TorchEngine, TorchOp
                                           device_agreement, rays_from_arrays, sample_source, trace_rays)
 from bluesky_offsets.physics.twin import HistogramSpec, RayxEngine, Twin, TraceRequest, _rayx_fix_seed, footprint
 
-SHARED = Path(__file__).resolve().parents[2] / "shared" / "reference"
+SHARED = Path(__file__).resolve().parent / "data" / "reference"  # provenance: its README.md
 RAYUI_FILES = sorted((SHARED / "rayui-misalignment").glob("*.rml"))
-needs_shared = pytest.mark.skipif(not RAYUI_FILES, reason=f"reference data not found at {SHARED}")
 
 MIRRORS = ("M1-Cylinder", "Plane Mirror", "Spherical Grating", "E1", "E2")
 NO_SLOPE = {m: {"slopeErrorSag": 0.0, "slopeErrorMer": 0.0} for m in MIRRORS}
@@ -179,7 +178,6 @@ def test_each_twin_effect_ray_for_ray(name, values, tmp_path):
     _ray_for_ray(METRIXS.reference, ov, 31, tmp_path)
 
 
-@needs_shared
 @pytest.mark.parametrize("path", RAYUI_FILES, ids=lambda p: p.stem)
 def test_rayui_reference_files_reproduced(path, tmp_path):
     """RAY-UI's misaligned outputs (plane mirror, plane grating with azimuth errors,

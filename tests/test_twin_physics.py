@@ -14,10 +14,9 @@ from bluesky_offsets.physics.parameters import METRIXS
 from bluesky_offsets.physics.rml import read_rml
 from bluesky_offsets.physics.twin import HistogramSpec, Twin, _rayx_fix_seed, footprint
 
-SHARED = Path(__file__).resolve().parents[2] / "shared" / "reference"
+SHARED = Path(__file__).resolve().parent / "data" / "reference"  # provenance: its README.md
 METRIXS_RML = SHARED / "METRIX_U41_G1_H1_318eV_PS_MLearn_1.15.rml"
 RAYUI_FILES = sorted((SHARED / "rayui-misalignment").glob("*.rml"))
-needs_shared = pytest.mark.skipif(not METRIXS_RML.exists(), reason=f"reference data not found at {SHARED}")
 
 
 @pytest.fixture(scope="module")
@@ -31,7 +30,6 @@ def _trace_file(path: Path, seed: int = 0):
     return bl, bl.trace()
 
 
-@needs_shared
 @pytest.mark.parametrize("path", RAYUI_FILES, ids=lambda p: p.stem)
 def test_rayui_misaligned_rays_reproduced(path, tmp_path):
     """(a) alignmentError values -> our frames -> our RML -> RAYX == RAY-UI's output rays."""
@@ -58,7 +56,6 @@ def test_rayui_misaligned_rays_reproduced(path, tmp_path):
     assert np.hypot(x0 - csv["ImagePlane_OX"].to_numpy(), y0 - csv["ImagePlane_OY"].to_numpy()).max() > 0.1
 
 
-@needs_shared
 def test_nominal_matches_direct_rayx_trace(twin, tmp_path):
     """(b) Our METRIXS geometry traces like RAYX on the reference RML: ray by ray with the same
     seed, and in transmission, centroid and widths within sampling noise with independent seeds."""
