@@ -290,6 +290,8 @@ class RunStore:
         from tiled.client import Context, from_context
         from tiled.server.app import build_app
 
+        # the in-process server's start-up line ("Tiled version ...") is a server log, not the user's output
+        logging.getLogger("tiled.server.app").setLevel(logging.WARNING)
         # absolute and normalized (symbolic links kept): tiled records the files by absolute URI,
         # and a relative place would be recorded as such for the tables (_relocate)
         path = Path(os.path.normpath(path.absolute()))
