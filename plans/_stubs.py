@@ -72,10 +72,11 @@ def run_in_thread(func: Callable[[Callable[[dict], None]], Any], *, stream: str 
     """Call ``func(progress)`` in a worker thread; return its result (or raise its error).
 
     Every ``progress(dict)`` call from the worker becomes an event in ``stream`` (its
-    numeric entries; the first call fixes the keys) and a line on a tqdm bar, so long fits
+    numeric entries; the first call fixes the keys) and a line on a progress bar, so long fits
     show what they do while the RunEngine keeps serving pause and abort.
     """
-    from tqdm.auto import tqdm
+    from bluesky_offsets.progress import bar as progress_bar
+    from bluesky_offsets.progress import interactive
 
     q: queue.Queue = queue.Queue()
     box: dict = {}
@@ -88,7 +89,7 @@ def run_in_thread(func: Callable[[Callable[[dict], None]], Any], *, stream: str 
 
     rec, keys = Record(stream or "progress"), None
     t0 = time.monotonic()
-    bar = tqdm(desc=desc, unit="step", disable=not show, bar_format="{desc}: {n_fmt} steps, {elapsed} {postfix}")
+    bar = progress_bar(desc=desc, unit="steps", disable=not show, bar_format="{desc}: {n_fmt} steps, {elapsed} {postfix}")
 
     def drain():
         nonlocal keys
@@ -114,8 +115,7 @@ def run_in_thread(func: Callable[[Callable[[dict], None]], Any], *, stream: str 
 
     thread = threading.Thread(target=work, name=f"analysis: {desc}", daemon=True)
     thread.start()
-    # the elapsed time ticks on a terminal; in a log a line every 10 s is plenty
-    every = 1.0 if getattr(getattr(bar, "fp", None), "isatty", lambda: False)() else 10.0
+    every = 1.0 if interactive() else 10.0  # the elapsed time ticks on a terminal
     last = time.monotonic()
     try:
         while thread.is_alive():

@@ -110,13 +110,13 @@ def high_ray_configurations_on_model(model, n: int = MIN_CONFIGURATIONS, *, cand
     ValueError
         When fewer than ``n`` candidates pass; the message gives the count.
     """
-    from tqdm.auto import tqdm
+    from bluesky_offsets.progress import bar as progress_bar
 
     cand = (sample_candidates(int(candidates), rng=rng, around=around, spread=spread, table=table)
             if np.isscalar(candidates) else table.validate(np.atleast_2d(candidates), "candidates"))
     shift = 0.0 if offsets is None else table.offsets_to_physical(offsets)
     found: list[np.ndarray] = []
-    with tqdm(total=n, desc="high-ray configurations", unit="cfg", disable=not progress) as bar:
+    with progress_bar(total=n, desc="high-ray configurations", unit="cfg", disable=not progress) as bar:
         for i in range(0, len(cand), chunk):
             block = cand[i:i + chunk]
             hx, hy = _evaluate(model, block + shift, n_rays)

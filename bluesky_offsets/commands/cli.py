@@ -288,6 +288,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="bluesky-offsets",
                                      description="Offset finding for the METRIXS beamline's digital twin.")
     parser.add_argument("-v", "--verbose", action="store_true", help="log more")
+    parser.add_argument("-q", "--quiet", action="store_true",
+                        help="no progress (bars on a terminal, a line per task in a file); results and errors only")
     sub = parser.add_subparsers(dest="command", required=True)
 
     p = sub.add_parser("params", help="print a beamline's parameter table (METRIXS's 34 by default)")
@@ -325,6 +327,8 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
+    from bluesky_offsets.progress import set_quiet
+    set_quiet(args.quiet)
     logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING,
                         format="%(levelname)s %(name)s: %(message)s")
     if not args.verbose:

@@ -244,7 +244,9 @@ class _StepLines(logging.Handler):
         self.logger.addHandler(self)
 
     def emit(self, record):
-        self.say("      " + record.getMessage())
+        from bluesky_offsets.progress import quiet
+        if not quiet():  # the steps' detail lines are progress too
+            self.say("      " + record.getMessage())
 
     def close(self):
         self.logger.removeHandler(self)
@@ -254,7 +256,7 @@ class _StepLines(logging.Handler):
 
 
 class ScanProgress:
-    """RunEngine callback: a tqdm bar per measuring run (one tick per configuration)."""
+    """RunEngine callback: a progress bar per measuring run (one tick per configuration)."""
 
     PLANS = {"find_high_ray_configurations": "search bright configurations",
              "measure_configurations": "measure configurations"}
@@ -265,11 +267,11 @@ class ScanProgress:
         self.bright = 0
 
     def __call__(self, name, doc):
-        from tqdm.auto import tqdm
+        from bluesky_offsets.progress import bar
 
         from plans import enough_rays
         if name == "start" and doc.get("plan_name") in self.PLANS:
-            self.bar = tqdm(total=doc.get("n_configurations"), desc=self.PLANS[doc["plan_name"]], unit="cfg")
+            self.bar = bar(total=doc.get("n_configurations"), desc=self.PLANS[doc["plan_name"]], unit="cfg")
             self.bright = 0
         elif name == "descriptor" and doc.get("name") == "primary":
             self.primary.add(doc["uid"])

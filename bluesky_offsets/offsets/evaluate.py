@@ -36,8 +36,8 @@ def run_methods(model, methods: Mapping[str, Mapping], budgets: Mapping[str, F.B
                 make_problem: Callable[[int], F.OffsetProblem], *, threads: int | None = None,
                 progress: bool = True, log: Callable[[str], None] | None = None):
     """Run every method once per seed; returns ``(problems, {method: [FinderResult, ...]})``."""
-    from tqdm.auto import tqdm
-    problems = [make_problem(int(s)) for s in tqdm(seeds, desc="problems", disable=not progress)]
+    from bluesky_offsets.progress import bar
+    problems = [make_problem(int(s)) for s in bar(seeds, desc="problems", unit="problem", disable=not progress)]
     results: dict[str, list[F.FinderResult]] = {m: [] for m in methods}
     for name, settings in methods.items():
         for s, p in zip(seeds, problems):

@@ -305,8 +305,8 @@ def make_problem(model, seed: int = 0, *, n_configurations: int = 16, min_hist_s
     hi = np.broadcast_to(np.asarray(region[1], dtype=float), (P,))
     if np.any(hi <= lo):
         raise FinderError(f"region must have low < high, got {region}")
-    from tqdm.auto import tqdm
-    for rnd in tqdm(range(max_rounds), desc="searching a problem", disable=not progress):
+    from bluesky_offsets.progress import bar
+    for rnd in bar(range(max_rounds), desc="searching a problem", unit="round", disable=not progress):
         offsets = table.sample_offsets(rng, limit, size=offset_trials)
         if inside_box:
             # draw each configuration where both it and it + offset lie in the region (no rejection:
@@ -495,7 +495,7 @@ class _Tracker:
 
     def __init__(self, objective: Objective, budget: Budget, method: str, progress: bool,
                  callback: ProgressCallback | None, callback_every: float = 0.5):
-        from tqdm.auto import tqdm
+        from bluesky_offsets.progress import bar
         self.obj, self.budget, self.method = objective, budget, method
         self.t0 = time.perf_counter()
         self.best_loss = math.inf
@@ -504,8 +504,7 @@ class _Tracker:
         self.callback, self.callback_every, self._last_cb = callback, callback_every, -math.inf
         self._last_cb_evals = -1
         total = budget.evaluations
-        self.bar = tqdm(total=total, desc=method, unit="eval", unit_scale=True, disable=not progress,
-                        leave=False)
+        self.bar = bar(total=total, desc=method, unit="eval", unit_scale=True, disable=not progress, leave=False)
 
     @property
     def elapsed(self) -> float:
@@ -837,7 +836,7 @@ def find_offsets(problem: OffsetProblem, model, method: str | Any = "smart-walke
         Where the model runs (default: where its weights are).  The model is
         moved there if it is a ``torch.nn.Module``.
     progress : bool
-        Show a tqdm bar.
+        Show a progress bar (:func:`bluesky_offsets.progress.bar`).
     callback : callable
         Called with ``{"method", "evaluations", "seconds", "loss", "offsets"}``
         at most every 0.5 s and at the end (live plots, Bluesky documents).

@@ -603,11 +603,11 @@ class Twin:
         return batch
 
     def _run_inline(self, requests, n, keep_rays, progress) -> list[TraceResult]:
-        from tqdm.auto import tqdm
+        from bluesky_offsets.progress import bar as progress_bar
         # a batched engine takes many configurations per call
         step = 64 if hasattr(self.engine, "trace_many") else 1
         out = []
-        with tqdm(total=len(requests), desc="tracing", unit="sim", disable=not progress) as bar:
+        with progress_bar(total=len(requests), desc="tracing", unit="sim", disable=not progress) as bar:
             for i in range(0, len(requests), step):
                 out.extend(_trace_chunk(self.engine, requests[i:i + step], n, keep_rays))
                 bar.update(len(requests[i:i + step]))
@@ -615,7 +615,8 @@ class Twin:
 
     def _run_dask(self, requests, n, keep_rays, progress, chunk_size) -> list[TraceResult]:
         from distributed import as_completed
-        from tqdm.auto import tqdm
+
+        from bluesky_offsets.progress import bar as progress_bar
 
         client = self.client
         n_workers = max(len(client.scheduler_info().get("workers", {})), 1)
@@ -628,7 +629,7 @@ class Twin:
         futures = {client.submit(_trace_chunk, engine_f, [requests[i] for i in idx], n, keep_rays,
                                  pure=False): idx for idx in chunks}
         results: list[TraceResult | None] = [None] * len(requests)
-        with tqdm(total=len(requests), desc="tracing", unit="sim", disable=not progress) as bar:
+        with progress_bar(total=len(requests), desc="tracing", unit="sim", disable=not progress) as bar:
             for fut in as_completed(futures):
                 idx = futures[fut]
                 try:

@@ -566,7 +566,7 @@ def generate(path: str | os.PathLike, n_samples: int, settings: GenerationSettin
     another engine than RAYX ends with :func:`check_against_rayx` on ``rayx_check`` of
     its non-empty samples (0: no check); the statistics carry its result.
     """
-    from tqdm.auto import tqdm
+    from bluesky_offsets.progress import bar as progress_bar
 
     if n_samples < 1:
         raise ValueError(f"n_samples must be positive, got {n_samples}")
@@ -581,8 +581,8 @@ def generate(path: str | os.PathLike, n_samples: int, settings: GenerationSettin
             return dict(store._group("r").attrs["stats"])
         if got < n_samples:
             done = {int(k) for k in prog["blocks"]}
-            bar = tqdm(total=n_samples, initial=min(got, n_samples), desc="dataset", unit="sample",
-                       disable=not progress, smoothing=0.05)
+            bar = progress_bar(total=n_samples, initial=min(got, n_samples), desc="dataset", unit="sample",
+                               disable=not progress, smoothing=0.05)
             committed = sum(b["n"] for b in prog["blocks"].values())
 
             def blocks():
@@ -675,11 +675,11 @@ def draw_in_memory(twin: Twin, settings: GenerationSettings, *, min_samples: int
     non-empty, were accepted; returns all rows of the blocks run, in draw order,
     plus the screen hits of every draw.
     """
-    from tqdm.auto import tqdm
+    from bluesky_offsets.progress import bar as progress_bar
 
     results: list[dict] = []
     got = nonempty = 0
-    bar = tqdm(total=min_samples, desc="drawing", unit="sample", disable=not progress)
+    bar = progress_bar(total=min_samples, desc="drawing", unit="sample", disable=not progress)
 
     def on_result(res):
         nonlocal got, nonempty

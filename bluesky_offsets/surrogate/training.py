@@ -287,7 +287,7 @@ def train(data: Dataset, run_dir: str | os.PathLike, config: TrainConfig | None 
     With ``resume`` (default) a run directory holding ``state.pt`` continues
     where it stopped, provided the dataset and the options agree.
     """
-    from tqdm.auto import tqdm
+    from bluesky_offsets.progress import bar as progress_bar
 
     config = config or TrainConfig()
     hist = hist or HistogramSpec()
@@ -405,8 +405,8 @@ def train(data: Dataset, run_dir: str | os.PathLike, config: TrainConfig | None 
         log.info("resuming %s at epoch %d", run_dir, start_epoch)
 
     t_start = time.perf_counter() - elapsed
-    epochs = tqdm(range(start_epoch, config.epochs), desc="epochs", unit="epoch", disable=not progress,
-                  initial=start_epoch, total=config.epochs)
+    epochs = progress_bar(range(start_epoch, config.epochs), desc="epochs", unit="epoch", disable=not progress,
+                          initial=start_epoch, total=config.epochs)
     for epoch in epochs:
         t_ep = time.perf_counter()
         model.net.train()
@@ -414,8 +414,8 @@ def train(data: Dataset, run_dir: str | os.PathLike, config: TrainConfig | None 
         order_t = torch.as_tensor(order, device=device)
         n_batches = int(math.ceil(len(order) / config.batch_size))
         running = 0.0
-        bar = tqdm(range(n_batches), desc=f"epoch {epoch + 1}", unit="batch", leave=False,
-                   disable=not progress, mininterval=1.0)
+        bar = progress_bar(range(n_batches), desc=f"epoch {epoch + 1}", unit="batch", leave=False,
+                           disable=not progress, mininterval=1.0)
         for b in bar:
             idx = order_t[b * config.batch_size:(b + 1) * config.batch_size]
             loss = model.net.loss(X[idx], Yn[idx])
