@@ -402,19 +402,24 @@ def beam_section(result, work: Path, *, best=None) -> str:
     from bluesky_offsets.physics.twin import CAMERA
 
     prof = result.profiles
-    fig, axes = plt.subplots(2, 2, figsize=(10, 6))
     centers = {"x": CAMERA.centers_x, "y": CAMERA.centers_y}
-    rows = (("before", ("before",), result.before), ("after", ("after", "predicted"), result.after))
+    # each move's frames beside its own prediction (profiles "after", "after 2", ...), zoomed to them
+    rows = [("before", (("before", "before"),), result.before)]
+    for k, step in enumerate(result.steps):
+        tag = "" if k == 0 else f" {k + 1}"
+        name = "after" if len(result.steps) == 1 else f"after ({k + 1})"
+        rows.append((name, ((f"after{tag}", "measured"), (f"predicted{tag}", "predicted")), step.after))
+    fig, axes = plt.subplots(len(rows), 2, figsize=(10, 3 * len(rows)), squeeze=False)
     for r, (label, keys, focus) in enumerate(rows):
         for c, axis in enumerate("xy"):
             ax = axes[r, c]
             centre, width = getattr(focus, axis), getattr(focus, f"rms_{axis}")
-            for k in keys:
+            for k, shown in keys:
                 if prof.get(k) is None:
                     continue
                 h = prof[k][c]
-                ax.step(centers[axis] * 1e3, h, where="mid", lw=1.2 if k != "predicted" else 1.0,
-                        ls="-" if k != "predicted" else "--", label=k)
+                ax.step(centers[axis] * 1e3, h, where="mid", lw=1.2 if shown != "predicted" else 1.0,
+                        ls="-" if shown != "predicted" else "--", label=shown)
             if np.isfinite(centre) and np.isfinite(width):
                 half = max(6 * width, 10 * (centers[axis][1] - centers[axis][0]))
                 ax.set_xlim((centre - half) * 1e3, (centre + half) * 1e3)
