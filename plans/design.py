@@ -77,7 +77,7 @@ def measure_designed(beamline, chamber, *, options: DesignOptions | Mapping | No
     """
     from .measure import _optional_read, scan_configurations
     from .motion import resolve_stage
-    from .workflow import bright_beam
+    from .search import bright_beam
 
     o = options if isinstance(options, DesignOptions) else DesignOptions.from_mapping(options)
     if resolve_stage(beamline) is None and o.screen:

@@ -875,7 +875,7 @@ def analyse_measurement(measurement, twin, forward_model=None, *, store=None,
         it did not complete, and all after it, run.  After Ctrl-C, ``RE.abort()`` or a crash.
     executor : concurrent.futures.Executor, optional
         Runs independent fits side by side (the starts, the candidates, the ray draws): a thread
-        pool (:func:`bluesky_offsets.commands.cli.analysis_executor`).  The result is the same
+        pool (:func:`bluesky_offsets.model.cluster.analysis_executor`).  The result is the same
         with any number of threads, or none (:func:`bluesky_offsets.model.fit.gather`); it is not
         part of the analysis's key.
 

@@ -21,6 +21,7 @@ twin or a surrogate, at the model's belief of the offsets), and the plan
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Mapping
 
 import numpy as np
@@ -29,6 +30,8 @@ from bluesky.utils import MsgGenerator
 from bluesky_offsets.physics.parameters import METRIXS, ParameterTable
 
 from .measure import scan_configurations
+
+steps_log = logging.getLogger("bluesky_offsets.workflow")  # the session's step lines (commands.session.StepLines)
 
 PAPER_THRESHOLD = 0.5
 """Histogram-sum threshold of the paper, in its units (raw counts / 22594 at 1e5 rays)."""
@@ -183,9 +186,6 @@ def find_high_ray_configurations(candidates, beamline, chamber, *, n: int = MIN_
     return good
 
 
-__all__ = ["HIGH_RAY_THRESHOLD", "MIN_CONFIGURATIONS", "PAPER_SCALE", "PAPER_THRESHOLD", "enough_rays",
-           "find_high_ray_configurations", "high_ray_configurations_on_model", "sample_candidates"]
-
 
 def find_beam(beamline, chamber, *, fraction: float = 0.15, twin=None, max_frames: int = 120,
               threshold: float = HIGH_RAY_THRESHOLD, table: ParameterTable = METRIXS,
@@ -245,3 +245,21 @@ def find_beam(beamline, chamber, *, fraction: float = 0.15, twin=None, max_frame
     yield from move_to(motors, {n: float(result.configuration[table.index(n)]) for n in motors})
     result.uids = uids
     return result
+
+
+class DarkBeamline(RuntimeError):
+    """The beam search or the bright-configuration search came back without enough light."""
+
+
+def bright_beam(beamline, chamber, *, fraction: float, max_frames: int,
+                table=METRIXS) -> MsgGenerator[object]:
+    """:func:`find_beam`, its steps logged; :class:`DarkBeamline` where it ends dim."""
+    steps_log.info("finding the beam (offsets up to ±%g of each range assumed)", fraction)
+    beam = yield from find_beam(beamline, chamber, fraction=fraction, max_frames=max_frames, table=table)
+    for line in beam.log:
+        steps_log.info("  %s", line)
+    if not beam.bright:
+        raise DarkBeamline(f"the beam search ended dim after {beam.frames} frames ({beam.intensity:.3g} of the "
+                           f"source rays on the screen, {HIGH_RAY_THRESHOLD:.3g} needed): check the shutter, the "
+                           f"source and the slits, or widen the search (fraction, the frames it may take)")
+    return beam

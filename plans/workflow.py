@@ -32,6 +32,8 @@ from bluesky_offsets.model.measurement import Measurement
 from bluesky_offsets.physics.parameters import METRIXS
 from bluesky_offsets.physics.screen import as_screen
 
+from .search import DarkBeamline, bright_beam
+
 log = logging.getLogger("bluesky_offsets.workflow")
 
 __all__ = ["DarkBeamline", "MeasurementDesign", "Measured", "Session", "analyse", "calibration_session",
@@ -115,25 +117,6 @@ class Measured:
         if self.designed is not None:
             return self.designed.frames
         return int(self.beam.frames) + int(self.measurement.metadata.get("search_frames", 0)) + self.measurement.n
-
-
-class DarkBeamline(RuntimeError):
-    """The beam search or the bright-configuration search came back without enough light."""
-
-
-def bright_beam(beamline, chamber, *, fraction: float, max_frames: int,
-                table=METRIXS) -> MsgGenerator[object]:
-    """:func:`plans.find_beam`, its steps logged; :class:`DarkBeamline` where it ends dim."""
-    from plans import HIGH_RAY_THRESHOLD, find_beam
-    log.info("finding the beam (offsets up to ±%g of each range assumed)", fraction)
-    beam = yield from find_beam(beamline, chamber, fraction=fraction, max_frames=max_frames, table=table)
-    for line in beam.log:
-        log.info("  %s", line)
-    if not beam.bright:
-        raise DarkBeamline(f"the beam search ended dim after {beam.frames} frames ({beam.intensity:.3g} of the "
-                           f"source rays on the screen, {HIGH_RAY_THRESHOLD:.3g} needed): check the shutter, the "
-                           f"source and the slits, or widen the search (fraction, the frames it may take)")
-    return beam
 
 
 def measure_bright(beamline, chamber, *, bright: int = 16, reopened: int = 4, analysed: int = 14,

@@ -274,7 +274,7 @@ def test_fits_side_by_side_give_what_one_after_the_other_gives(defocus_case, whe
     seen: list[dict] = []
     threads = torch.get_num_threads()
     # one torch and one BLAS thread here, as on the workers and as the analysis's executor sets
-    # them (commands.cli.analysis_executor): else a sum runs in another order (pytest -n 0 on two cores)
+    # them (model.cluster.analysis_executor): else a sum runs in another order (pytest -n 0 on two cores)
     try:
         with one_thread():
             one = fit(meas, start, eng, opts, also_from=[other])

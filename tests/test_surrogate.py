@@ -24,8 +24,8 @@ def _model(width=32, seed=0) -> Surrogate:
 
 def test_architecture_is_the_papers():
     m = _model()
-    linear = [l for l in m.net.modules() if isinstance(l, torch.nn.Linear)]
-    mish = [l for l in m.net.modules() if isinstance(l, torch.nn.Mish)]
+    linear = [mod for mod in m.net.modules() if isinstance(mod, torch.nn.Linear)]
+    mish = [mod for mod in m.net.modules() if isinstance(mod, torch.nn.Mish)]
     assert len(linear) == 7 and len(mish) == 6
     assert linear[0].in_features == 34 and linear[-1].out_features == 100
     assert isinstance(list(m.net.layers)[-1], torch.nn.Linear)  # no activation after the last layer
@@ -173,7 +173,7 @@ def test_factored_decoder_is_transmission_times_shape(tmp_path):
     torch.manual_seed(0)
     norm = Normalization.fit(METRIXS, np.zeros((3, 100)), "none")
     m = Surrogate.new(Architecture(width=32, decoder="factored"), norm)
-    assert sum(isinstance(l, torch.nn.Linear) for l in m.net.transmission) == 7
+    assert sum(isinstance(mod, torch.nn.Linear) for mod in m.net.transmission) == 7
     assert m.net.transmission[-1].out_features == 2 and m.net.shape[-1].out_features == 100
     _check_likelihood_model(m, METRIXS.denormalize(np.random.default_rng(3).random((6, 34))), tmp_path)
     with pytest.raises(ValueError, match="decoder"):

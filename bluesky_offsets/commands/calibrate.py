@@ -14,29 +14,10 @@ cannot be found ends in one line too, with the motors where the search left them
 
 from __future__ import annotations
 
-import re
 import time
 from pathlib import Path
 
 from bluesky_offsets.commands.cli import CliError
-
-
-def connect_devices(pv_map, timeout: float):
-    """The ophyd-async beamline and chamber of ``pv_map``, connected; CliError naming the PVs
-    that did not answer within ``timeout`` seconds."""
-    from ophyd_async.core import NotConnectedError, init_devices
-    try:
-        with init_devices(timeout=timeout):
-            beamline = pv_map.beamline("metrixs")
-            chamber = pv_map.focus_chamber("chamber")
-    except NotConnectedError as exc:
-        # motor records appear once per field (.RBV, .EGU ...): count the records
-        pvs = sorted({pv.split(".")[0] for pv in re.findall(r"ca://([^\s:]+(?::[^\s:]+)*)", str(exc))})
-        shown = ", ".join(pvs[:3]) + (f" and {len(pvs) - 3} more" if len(pvs) > 3 else "")
-        raise CliError(f"cannot reach the beamline ({pv_map.name}): {len(pvs) or 'some'} records did not connect within "
-                       f"{timeout:g} s ({shown}); is the IOC running, is EPICS_CA_ADDR_LIST set? "
-                       f"bluesky-offsets check-pvs FILE lists what is missing") from None
-    return beamline, chamber
 
 
 def _cmd_calibrate(args) -> int:
@@ -88,8 +69,8 @@ def _calibrate(args, design, effects, pv_map, forward_model, store) -> int:
     from bluesky import RunEngine
     from bluesky.utils import RunEngineInterrupted
 
-    from bluesky_offsets.commands.cli import analysis_executor
-    from bluesky_offsets.commands.demo import ScanProgress, _close_channels, _StepLines
+    from bluesky_offsets.model.cluster import analysis_executor
+    from bluesky_offsets.commands.session import ScanProgress, StepLines, close_channels, connect_devices
     from bluesky_offsets.commands.report import history_lines, paragraph, write_analysis_report
     from bluesky_offsets.physics.twin import Twin
     from plans.workflow import DarkBeamline, calibration_session
@@ -100,7 +81,7 @@ def _calibrate(args, design, effects, pv_map, forward_model, store) -> int:
         print(f"{time.perf_counter() - t0:6.0f} s  {msg}", flush=True)
 
     RE = RunEngine({}, call_returns_result=True)  # before the devices: they connect in its event loop
-    lines = _StepLines(say)
+    lines = StepLines(say)
     try:
         say(f"connecting to {pv_map.name} ({len(pv_map.motors)} motors, the camera)")
         beamline, chamber = connect_devices(pv_map, args.connect_timeout)
@@ -184,7 +165,7 @@ def _calibrate(args, design, effects, pv_map, forward_model, store) -> int:
         return 0
     finally:
         lines.close()
-        _close_channels(RE)
+        close_channels(RE)
 
 
 def add_cli(sub) -> None:

@@ -8,7 +8,6 @@ function listed in :data:`EXTENSIONS`.
 from __future__ import annotations
 
 import argparse
-import contextlib
 import importlib
 import json
 import logging
@@ -100,41 +99,6 @@ def default_threads() -> int:
         return max(1, int(os.environ.get("OMP_NUM_THREADS", "")))
     except ValueError:
         return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
-
-
-@contextlib.contextmanager
-def analysis_executor(threads: int, twin=None):
-    """The executor an analysis's independent fits run on (None for one thread), each fit on
-    one torch thread and one BLAS thread: the workers of ``twin``'s Dask cluster
-    (:class:`~bluesky_offsets.model.cluster.ClusterExecutor`; the cluster starts here if it has
-    not) unless the twin traces in this process (``scheduler="inline"``), else ``threads``
-    threads of this process.  Why not torch's or BLAS's own threads: the fits'
-    arrays (10^4-10^5 rays, Jacobians of 10^4 rows) are too small to share, while whole fits
-    run side by side with little in common.  Measured on 2 cores (2026-11-28, the README's
-    diagnosis alone): 60 s on one thread, 66 s with OpenBLAS's two (its idle thread spins),
-    39 s with two fits at a time; earlier, the whole demo took 192 s and 213 s with torch's two
-    threads and 175 s with one.  One BLAS thread also keeps the arithmetic (the order of a
-    matrix product's sums) the same on any number of cores.  Why processes where there is a
-    cluster: a fit is some ten thousand small torch operations per Jacobian with Python between
-    them, and two fits on threads share one interpreter lock with each other and with the
-    RunEngine, the store and the live views; measured (2026-11-28, 2 cores, the same results to
-    the bit): the README's demo 170 → 154 s, ``bluesky-offsets diagnose`` of its measurement
-    128 → 117 s."""
-    from bluesky_offsets.model.cluster import ClusterExecutor, one_thread
-    with one_thread():
-        if threads <= 1:
-            yield None
-            return
-        if twin is not None and twin.scheduler != "inline":
-            ex = ClusterExecutor(twin.client)
-            try:
-                yield ex
-            finally:
-                ex.shutdown()
-            return
-        from concurrent.futures import ThreadPoolExecutor
-        with ThreadPoolExecutor(threads, thread_name_prefix="fit") as ex:
-            yield ex
 
 
 # --------------------------------------------------------------------------- #
@@ -255,7 +219,7 @@ def _cmd_simulate(args) -> int:
             print(f"rayx vs torch: histogram chi2/dof {comparison['chi2_per_dof']:.2f} over {comparison['dof']} "
                   f"bins (1 ± {comparison['sigma']:.2f} when they agree within counting noise)")
     if args.plot:
-        from bluesky_offsets.commands.plotting import plot_footprint
+        from bluesky_offsets.plotting import plot_footprint
         for twin, result in runs:
             path = args.plot if len(runs) == 1 else _suffixed(args.plot, twin.engine.version.split()[0])
             plot_footprint(result, hist, path, title=f"{bl.name} twin ({twin.engine.version.split()[0]}), "

@@ -27,7 +27,6 @@ from __future__ import annotations
 
 import contextlib
 import json
-import logging
 import math
 import os
 import socket
@@ -231,63 +230,6 @@ class SimulatedBeamline:
         self._sink.close()
 
 
-class _StepLines(logging.Handler):
-    """The ``bluesky_offsets.workflow`` logger's lines through ``say``, indented under the step."""
-
-    def __init__(self, say):
-        super().__init__(logging.INFO)
-        self.say = say
-        self.logger = logging.getLogger("bluesky_offsets.workflow")
-        self._level, self._propagate = self.logger.level, self.logger.propagate
-        self.logger.setLevel(logging.INFO)
-        self.logger.propagate = False
-        self.logger.addHandler(self)
-
-    def emit(self, record):
-        from bluesky_offsets.progress import quiet
-        if not quiet():  # the steps' detail lines are progress too
-            self.say("      " + record.getMessage())
-
-    def close(self):
-        self.logger.removeHandler(self)
-        self.logger.setLevel(self._level)
-        self.logger.propagate = self._propagate
-        super().close()
-
-
-class ScanProgress:
-    """RunEngine callback: a progress bar per measuring run (one tick per configuration)."""
-
-    PLANS = {"find_high_ray_configurations": "search bright configurations",
-             "measure_configurations": "measure configurations"}
-
-    def __init__(self):
-        self.bar = None
-        self.primary = set()
-        self.bright = 0
-
-    def __call__(self, name, doc):
-        from bluesky_offsets.progress import bar
-
-        from plans import enough_rays
-        if name == "start" and doc.get("plan_name") in self.PLANS:
-            self.bar = bar(total=doc.get("n_configurations"), desc=self.PLANS[doc["plan_name"]], unit="cfg")
-            self.bright = 0
-        elif name == "descriptor" and doc.get("name") == "primary":
-            self.primary.add(doc["uid"])
-        elif name == "event" and self.bar is not None and doc["descriptor"] in self.primary:
-            d = doc["data"]
-            hx = next((v for k, v in d.items() if k.endswith("hist_x")), None)
-            hy = next((v for k, v in d.items() if k.endswith("hist_y")), None)
-            if hx is not None and hy is not None:
-                self.bright += int(enough_rays(hx, hy)[0])
-                self.bar.set_postfix(bright=self.bright)
-            self.bar.update(1)
-        elif name == "stop" and self.bar is not None:
-            self.bar.close()
-            self.bar = None
-
-
 # --------------------------------------------------------------------------- #
 # the workflow as one plan
 # --------------------------------------------------------------------------- #
@@ -360,16 +302,17 @@ def run_demo(out: Path, settings: DemoSettings | None = None, store_location: st
         from bluesky import RunEngine
         from bluesky.utils import RunEngineInterrupted
 
-        from bluesky_offsets.commands.calibrate import connect_devices
+        from bluesky_offsets.commands.session import ScanProgress, StepLines, close_channels, connect_devices
         from bluesky_offsets.epics.pvmap import PVMap
         from bluesky_offsets.offsets.finder import load_forward_model
-        from bluesky_offsets.commands.cli import analysis_executor, quiet_logs
+        from bluesky_offsets.commands.cli import quiet_logs
+        from bluesky_offsets.model.cluster import analysis_executor
         from bluesky_offsets.commands.report import paragraph, table_, write_analysis_report
         from bluesky_offsets.store import open_store
         from bluesky_offsets.physics.twin import Twin
 
         quiet_logs()
-        steps_log = _StepLines(log)  # the workflow plans' progress lines, indented under the step
+        steps_log = StepLines(log)  # the workflow plans' progress lines, indented under the step
         store = open_store(store_location)
         forward_model = load_forward_model()
         # as many RAYX workers as the demo may use cores (--threads): a test runner's share of
@@ -516,7 +459,7 @@ def run_demo(out: Path, settings: DemoSettings | None = None, store_location: st
         if twin is not None:
             twin.close()
         if RE is not None:
-            _close_channels(RE)
+            close_channels(RE)
         ioc.stop()
 
 
@@ -540,22 +483,6 @@ def _beam_summary(beam, best) -> dict:
             "steps": [{"uid": st.uid, "predicted": st.optimum.predicted.as_dict(),
                        "predicted_sigma": dict(st.optimum.sigma), "after": st.after.as_dict(),
                        "moved": list(st.optimum.moved)} for st in beam.steps]}
-
-
-def _close_channels(RE) -> None:
-    """Close the devices' Channel Access channels before the IOC goes: otherwise libca prints
-    a "Virtual circuit disconnect" exception after the summary.  In the RunEngine's loop, whose
-    thread holds the CA context."""
-    import asyncio
-
-    async def purge():
-        from aioca import purge_channel_caches
-        purge_channel_caches()
-
-    try:
-        asyncio.run_coroutine_threadsafe(purge(), RE.loop).result(timeout=10)
-    except Exception:  # noqa: BLE001 - cosmetic; the IOC is stopped either way
-        pass
 
 
 def _print_summary(summary: dict, analysis, location: str) -> None:

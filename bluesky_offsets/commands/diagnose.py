@@ -14,7 +14,8 @@ from pathlib import Path
 
 import numpy as np
 
-from bluesky_offsets.commands.cli import CliError, add_analysis_options, analysis_executor, check_analysis_options
+from bluesky_offsets.commands.cli import CliError, add_analysis_options, check_analysis_options
+from bluesky_offsets.model.cluster import analysis_executor
 
 
 def _load(store, uid: str, n_rays: int | None, resolution: str = "camera"):

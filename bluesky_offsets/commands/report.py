@@ -97,7 +97,7 @@ def _fmt_values(values: Mapping, sigma: Mapping | None = None, units: Mapping | 
 
 def _plot_progress(runs: Sequence[tuple[str, Sequence[Mapping]]], path: Path) -> Path:
     """chi2/dof of the twin at each refinement iteration (accepted steps filled)."""
-    from bluesky_offsets.commands.plotting import pyplot, save_figure
+    from bluesky_offsets.plotting import pyplot, save_figure
     plt = pyplot()
     fig, ax = plt.subplots(figsize=(6.5, 3.5), constrained_layout=True)
     offset = 0

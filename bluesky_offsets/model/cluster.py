@@ -116,3 +116,30 @@ def _unpickle_and_call(blob: bytes):
     with one_thread():
         fn, args, kwargs = cloudpickle.loads(blob)
         return fn(*args, **kwargs)
+
+
+@contextlib.contextmanager
+def analysis_executor(threads: int, twin=None):
+    """The executor an analysis's independent fits run on (None for one thread), each fit on
+    one torch thread and one BLAS thread: the workers of ``twin``'s Dask cluster
+    (:class:`~bluesky_offsets.model.cluster.ClusterExecutor`; the cluster starts here if it has
+    not) unless the twin traces in this process (``scheduler="inline"``), else ``threads``
+    threads of this process.  Why not torch's or BLAS's own threads: the fits'
+    arrays (10^4-10^5 rays, Jacobians of 10^4 rows) are too small to share, while whole fits
+    run side by side with little in common (docs/benchmarks.md).  One BLAS thread also keeps the
+    arithmetic (the order of a matrix product's sums) the same on any number of cores.  Why
+    processes where there is a cluster: see the module text."""
+    with one_thread():
+        if threads <= 1:
+            yield None
+            return
+        if twin is not None and twin.scheduler != "inline":
+            ex = ClusterExecutor(twin.client)
+            try:
+                yield ex
+            finally:
+                ex.shutdown()
+            return
+        from concurrent.futures import ThreadPoolExecutor
+        with ThreadPoolExecutor(threads, thread_name_prefix="fit") as ex:
+            yield ex

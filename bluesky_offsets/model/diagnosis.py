@@ -846,7 +846,7 @@ def weakest(tests: Sequence[EffectTest]) -> EffectTest | None:
 
 
 def plot_error_history(versions: Sequence[Version], path, title: str = "model error across versions"):
-    from bluesky_offsets.commands.plotting import pyplot, save_figure
+    from bluesky_offsets.plotting import pyplot, save_figure
     plt = pyplot()
     fig, ax = plt.subplots(figsize=(6.5, 3.8), constrained_layout=True)
     labels = [v.label for v in versions]
@@ -866,7 +866,7 @@ def plot_error_history(versions: Sequence[Version], path, title: str = "model er
 
 def plot_ranking(diag: Diagnosis, path, top: int = 5):
     """Candidate scores, and the top candidates' predicted signatures beside the observed one."""
-    from bluesky_offsets.commands.plotting import pyplot, save_figure
+    from bluesky_offsets.plotting import pyplot, save_figure
     plt = pyplot()
     cands = diag.candidates[:top]
     keys = [k for k in diag.observed_signature if not k.endswith("skewness")]

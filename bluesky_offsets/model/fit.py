@@ -55,6 +55,7 @@ from scipy.stats import chi2 as chi2_dist
 from bluesky_offsets.options import refuse_unknown
 from bluesky_offsets.physics import effects as E
 from bluesky_offsets.model.misfit import beam_features, compared, expected_pull2, feature_values
+from bluesky_offsets.model.values import ModelState
 from bluesky_offsets.physics.noise import bin_variance
 from bluesky_offsets.physics.parameters import MAX_OFFSET, METRIXS, ParameterTable
 from bluesky_offsets.physics.screen import add_overrides, tensor_overrides
@@ -185,7 +186,7 @@ class FitResult:
     """Where a fit ended: the state, its χ² per stage, the uncertainties and the covariance
     (normalized offsets, then effect parameters, in :attr:`names` order)."""
 
-    state: object                       # model.ModelState
+    state: ModelState
     history: list[dict]
     covariance: np.ndarray
     names: list[str]
@@ -272,7 +273,6 @@ class _Model:
         return np.r_[st.offsets, st.effect_vector()]
 
     def state(self, z):
-        from bluesky_offsets.model.state import ModelState
         z = np.asarray(z, float)
         return ModelState(z[:self.P].copy(), self.base.set_effect_vector(z[self.P:]), self.base.label)
 

@@ -355,7 +355,7 @@ def failing_regions(misfit_: Misfit, spec, n_sigma: float = 3.0) -> list[dict]:
 def plot_overlays(meas_x, meas_y, model_x, model_y, spec, path, misfit_: Misfit | None = None,
                   max_configurations: int = 8, title: str = "measured vs model"):
     """Per configuration: measured and modelled x/y histograms, residuals below."""
-    from bluesky_offsets.commands.plotting import pyplot, save_figure
+    from bluesky_offsets.plotting import pyplot, save_figure
     plt = pyplot()
     n = min(len(meas_x), max_configurations)
     # each configuration zoomed on its own spot: at the camera's resolution a spot fills a few
@@ -392,7 +392,7 @@ def plot_overlays(meas_x, meas_y, model_x, model_y, spec, path, misfit_: Misfit 
 
 def plot_residual_maps(misfit_: Misfit, spec, path, title: str = "normalized residuals (measured − model) / σ"):
     """Per-bin pulls across configurations, for x and y."""
-    from bluesky_offsets.commands.plotting import pyplot, save_figure
+    from bluesky_offsets.plotting import pyplot, save_figure
     plt = pyplot()
     fig, axes = plt.subplots(1, 2, figsize=(11, 0.35 * len(misfit_.chi2) + 2), constrained_layout=True)
     lim = max(3.0, float(np.percentile(np.abs(np.concatenate([misfit_.pulls_x.ravel(), misfit_.pulls_y.ravel()])), 99)))

@@ -290,7 +290,7 @@ class LossPlot:
     """
 
     def __init__(self, path=None, ax=None):
-        from bluesky_offsets.commands.plotting import pyplot
+        from bluesky_offsets.plotting import pyplot
         self.plt = pyplot()
         self.path = path
         if ax is None:

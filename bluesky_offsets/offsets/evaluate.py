@@ -101,7 +101,7 @@ def _band(rs: Sequence[F.FinderResult], key: str, grid: np.ndarray):
 def plot_curves(results: Mapping[str, Sequence[F.FinderResult]], path, *, title: str = "",
                 target: float | None = None) -> Path:
     """Best MSE vs. evaluations and vs. seconds: geometric mean over runs, shaded x/÷ one std (Fig. 5)."""
-    from bluesky_offsets.commands.plotting import pyplot, save_figure
+    from bluesky_offsets.plotting import pyplot, save_figure
     plt = pyplot()
     fig, axes = plt.subplots(1, 2, figsize=(13, 4.8), constrained_layout=True)
     for ax, key, label in ((axes[0], "evaluations", "evaluations (candidate offsets scored)"),
@@ -190,7 +190,7 @@ def plot_footprints(twin, problem: F.OffsetProblem, offsets, path, *, columns: S
                     n_rays: int = 20_000, seed: int = 0, title: str = "") -> Path:
     """Footprints re-simulated by the twin: uncompensated (the configuration as set), observed (with
     the true offsets, or the measured histograms), compensated (with the found offsets) - Fig. 6."""
-    from bluesky_offsets.commands.plotting import pyplot, save_figure
+    from bluesky_offsets.plotting import pyplot, save_figure
     plt = pyplot()
     cols = list(columns if columns is not None else range(min(4, problem.n)))
     rows = [("uncompensated", problem.physical_configurations(None), "C0")]

@@ -463,8 +463,8 @@ class FinderResult:
 
     def reached(self, target: float) -> tuple[float, float]:
         """(evaluations, seconds) at which the best loss first fell to ``target`` (inf if never)."""
-        l = np.asarray(self.history["loss"])
-        hit = np.flatnonzero(l <= target)
+        loss = np.asarray(self.history["loss"])
+        hit = np.flatnonzero(loss <= target)
         if not len(hit):
             return math.inf, math.inf
         return float(self.history["evaluations"][hit[0]]), float(self.history["seconds"][hit[0]])
@@ -482,9 +482,9 @@ class FinderResult:
 
 def loss_at(history: Mapping, evaluations: float) -> float:
     """Best loss of a loss ``history`` (``evaluations``, ``loss``) reached within ``evaluations``."""
-    e, l = np.asarray(history["evaluations"]), np.asarray(history["loss"])
+    e, loss = np.asarray(history["evaluations"]), np.asarray(history["loss"])
     i = np.searchsorted(e, evaluations, side="right") - 1
-    return float(l[i]) if i >= 0 else math.inf
+    return float(loss[i]) if i >= 0 else math.inf
 
 
 ProgressCallback = Callable[[dict], None]

@@ -255,7 +255,7 @@ def plot_identifiability(report: IdentifiabilityReport, path, curve: dict | None
                          true_offsets=None) -> Path:
     """Uncertainty per parameter (with the found and true offsets), correlation matrix,
     and - given a :func:`configuration_curve` - the gain from more configurations."""
-    from bluesky_offsets.commands.plotting import pyplot
+    from bluesky_offsets.plotting import pyplot
     plt = pyplot()
     ncols = 3 if curve is not None else 2
     fig, axes = plt.subplots(1, ncols, figsize=(7 * ncols, 7.5), constrained_layout=True,

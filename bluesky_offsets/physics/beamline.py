@@ -39,6 +39,7 @@ from pathlib import Path
 
 from bluesky_offsets.physics.geometry import MISALIGNMENT_KEYS
 from bluesky_offsets.physics.parameters import BEAMLINES, ParameterError, ParameterTable, parameter_from_record
+from bluesky_offsets.physics.screen import on_image_plane
 from bluesky_offsets.physics.twin import HistogramSpec, RayxEngine, TraceRequest
 
 BUILTIN = ("metrixs",)
@@ -227,15 +228,8 @@ def rayx_engine(table: ParameterTable, hist: HistogramSpec | None = None):
 
 
 def local_overrides(beamline: Beamline, overrides):
-    """``overrides`` (one mapping, or one per configuration) with the effects' and the stage's
-    screen (METRIXS's ``ImagePlane``) renamed to the description's image plane."""
-    from bluesky_offsets.physics.metrixs import IMAGE_PLANE
-    ip = beamline.detector.image_plane
-    if not overrides or ip == IMAGE_PLANE:
-        return overrides
-    if not isinstance(overrides, dict):
-        return [local_overrides(beamline, o) for o in overrides]
-    return {(ip if k == IMAGE_PLANE else k): v for k, v in overrides.items()}
+    """``overrides`` with the screen renamed to the description's image plane (:func:`screen.on_image_plane`)."""
+    return on_image_plane(overrides, beamline.detector.image_plane)
 
 
 def resolve(spec: str | Path) -> Beamline:

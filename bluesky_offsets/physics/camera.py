@@ -26,7 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from bluesky_offsets.options import refuse_unknown
-from bluesky_offsets.physics.twin import CAMERA, HistogramSpec
+from bluesky_offsets.physics.traces import CAMERA, HistogramSpec
 
 
 @dataclass(frozen=True, kw_only=True)

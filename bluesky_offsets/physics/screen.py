@@ -106,3 +106,13 @@ def tensor_overrides(screen, n: int, dtype=None, device=None) -> dict | None:
     import torch
     s = torch.as_tensor(as_screen(screen, n), dtype=dtype or torch.float64, device=device)
     return {IMAGE_PLANE: {f: s[:, k] for k, f in enumerate(FIELDS)}}
+
+
+def on_image_plane(overrides, image_plane: str):
+    """``overrides`` (one mapping, or one per configuration) with the effects' and the stage's
+    screen (METRIXS's ``ImagePlane``) renamed to a described beamline's ``image_plane``."""
+    if not overrides or image_plane == IMAGE_PLANE:
+        return overrides
+    if not isinstance(overrides, dict):
+        return [on_image_plane(o, image_plane) for o in overrides]
+    return {(image_plane if k == IMAGE_PLANE else k): v for k, v in overrides.items()}

@@ -51,7 +51,7 @@ from bluesky_offsets.physics.geometry import Misalignment, chain_frames
 from bluesky_offsets.physics.metrixs import beamline_state, check_physical, nominal_beamline
 from bluesky_offsets.physics.parameters import METRIXS, ParameterTable
 from bluesky_offsets.physics.rml import FLAT_TYPES, GRATING_TYPES, MIRROR_TYPES, RmlError, chain_link
-from bluesky_offsets.physics.twin import HistogramSpec, TraceRequest, TraceResult
+from bluesky_offsets.physics.traces import HistogramSpec, TraceRequest, TraceResult
 
 HC_EV_NM = 1239.841984332002622  # RAYX's h·c in eV·nm
 SEARCH_SHIFT = 1e-6  # mm: RAYX starts each search this far along the ray
@@ -413,7 +413,8 @@ class Rays:
     ctr: torch.Tensor | None = None  # RAYX's counters (sampling="rayx")
 
     def slice(self, a: int, b: int) -> Rays:
-        cut = (lambda t: None if t is None else t[..., a:b])
+        def cut(t):
+            return None if t is None else t[..., a:b]
         return Rays(*(cut(getattr(self, f.name)) for f in fields(self)))
 
 
@@ -684,7 +685,8 @@ class Beam:
 
     def slice(self, a: int, b: int) -> Beam:
         """Rays ``a`` to ``b`` of every configuration (as :meth:`Rays.slice`)."""
-        per = (lambda d: None if d is None else {k: t[:, a:b] for k, t in d.items()})
+        def per(d):
+            return None if d is None else {k: t[:, a:b] for k, t in d.items()}
         return Beam(self.x[:, a:b], self.y[:, a:b], self.alive[:, a:b], self.weight[:, a:b], b - a,
                     per(self.hits), per(self.directions))
 
@@ -1206,7 +1208,8 @@ class TorchEngine:
         parts = list(self._chunks(bl, n_rays, seed, edge, keep_hits))
         if len(parts) == 1:
             return parts[0][1]
-        cat = (lambda name: torch.cat([getattr(b, name) for _, b in parts], -1))
+        def cat(name):
+            return torch.cat([getattr(b, name) for _, b in parts], -1)
         hits = None if not keep_hits else {k: torch.cat([b.hits[k] for _, b in parts], 1) for k in parts[0][1].hits}
         dirs = None if not keep_hits else {k: torch.cat([b.directions[k] for _, b in parts], 1)
                                            for k in parts[0][1].directions}
@@ -1344,7 +1347,7 @@ class TorchEngine:
         if what == "features":
             return moments(beam, soft=self.options.edge > 0)
         if what in ("histograms", "profiles"):
-            from bluesky_offsets.physics.twin import CAMERA
+            from bluesky_offsets.physics.traces import CAMERA
             sp = spec or (self.hist if what == "histograms" else CAMERA)
             hx, hy = histograms(beam, sp, soft=True, kernel=self.options.kernel)
             return torch.cat([hx, hy], -1)

@@ -16,6 +16,7 @@ import torch
 
 from bluesky_offsets.physics import torch_random as rnd
 from bluesky_offsets.physics.rml import read_rml
+from bluesky_offsets.physics.screen import on_image_plane
 from bluesky_offsets.physics.torch_engine import TorchEngine, compile_beamline, given_units, rays_from_arrays
 from bluesky_offsets.physics.twin import HistogramSpec, _import_rml, _rayx_fix_seed
 
@@ -60,8 +61,7 @@ class RmlTorchEngine(TorchEngine):
         vals = vals[None] if vals.ndim == 1 else vals
         if vals.shape[1] != len(self.table):
             raise ValueError(f"expected parameter vectors of {len(self.table)} values, got shape {tuple(vals.shape)}")
-        from bluesky_offsets.physics.beamline import local_overrides
-        overrides = local_overrides(self.described, overrides)
+        overrides = on_image_plane(overrides, self.described.detector.image_plane)
         if overrides is not None and not isinstance(overrides, dict):
             overrides = self._columns(list(overrides), vals.shape[0])
         return compile_beamline(vals[:, :0], _field_overrides(self.table, vals, overrides), beamline=self.rml,
