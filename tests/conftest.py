@@ -32,7 +32,6 @@ from pathlib import Path
 
 import pytest
 
-import bluesky_offsets  # noqa: F401  (first: it pins the BLAS kernels before numpy and torch load)
 from sim_iocs.ports import free_port, loopback_env, stop_process_group
 
 _POOL_SIZE = 8

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-import bluesky_offsets
+from bluesky_offsets.blas import x86_with_avx2
 from bluesky_offsets.physics import effects as E
 from bluesky_offsets.model.fit import FRESH_SEED, RAY_DRAW_SEED, FitOptions, _Model, _Products, fit, screen
 from bluesky_offsets.model.measurement import Measurement
@@ -297,7 +297,8 @@ def test_fits_side_by_side_give_what_one_after_the_other_gives(defocus_case, whe
 
 _ARITHMETIC_FIT = """
 import os, sys, hashlib
-import bluesky_offsets, numpy as np  # the package first: it pins the BLAS kernels
+from bluesky_offsets.blas import pin_kernels; pin_kernels()  # first, as the command line does
+import numpy as np
 from bluesky_offsets.model.fit import FitOptions, fit
 from bluesky_offsets.model.measurement import Measurement
 from bluesky_offsets.model.state import ModelState
@@ -313,13 +314,13 @@ print(os.environ["MKL_CBWR"], os.environ["OPENBLAS_CORETYPE"],
 """
 
 
-@pytest.mark.skipif(not bluesky_offsets._x86_with_avx2(), reason="the kernels are pinned on x86-64 CPUs with AVX2 (Linux)")
+@pytest.mark.skipif(not x86_with_avx2(), reason="the kernels are pinned on x86-64 CPUs with AVX2 (Linux)")
 def test_another_cpus_arithmetic_gives_the_same_bits(defocus_case, tmp_path):
     """Issue 17's "the same result on any machine": a fit in a process as this CPU runs it and in
     one that computes as an AVX2-only CPU would (torch's AVX2 kernels, MKL's AVX2 instructions)
     gives the same bits, because the package pins MKL's (to its vendor-neutral branch: a named
     ISA branch holds on Intel CPUs only) and OpenBLAS's kernels
-    (``bluesky_offsets._pin_blas_kernels``) and torch's own kernels round alike at any vector
+    (:func:`bluesky_offsets.blas.pin_kernels`) and torch's own kernels round alike at any vector
     width.  Without the pinning the README's analysis differed in its digits (docs/diagnosis.md)."""
     import os
     import subprocess
@@ -337,7 +338,7 @@ def test_another_cpus_arithmetic_gives_the_same_bits(defocus_case, tmp_path):
                               env={**base, **extra}, timeout=300)
         assert proc.returncode == 0, proc.stderr[-2000:]
         outs.append(proc.stdout.split())
-    assert outs[0][:2] == ["COMPATIBLE", "Haswell"], outs  # pinned by the import, not by this test
+    assert outs[0][:2] == ["COMPATIBLE", "Haswell"], outs  # pinned by the call, not by this test
     assert outs[0] == outs[1], outs
 
 

@@ -1,0 +1,43 @@
+"""The BLAS kernels pinned so that another CPU's arithmetic gives the same digits
+(:func:`pin_kernels`; docs/diagnosis.md, "Another CPU's arithmetic")."""
+
+from __future__ import annotations
+
+import os
+import platform
+
+
+def pin_kernels() -> None:
+    """Pin MKL's (torch's BLAS) kernels to its one vendor-neutral code path on x86-64, and
+    OpenBLAS's (numpy's) to its AVX2 kernels where the CPU has AVX2, unless the environment
+    already says otherwise.
+
+    Why: both libraries pick their kernels by CPU, and their sums then round differently; a fit
+    on RAYX's hard counts amplifies such a last-bit difference along its path (the normal
+    equations of 34 offsets are ill-conditioned; docs/diagnosis.md, "Another CPU's arithmetic").
+    MKL honours a named branch such as ``AVX2`` on Intel CPUs only and runs its automatic
+    dispatch elsewhere, so an AMD and an Intel CPU took different paths; ``COMPATIBLE`` is the
+    one branch it runs alike on every x86-64 CPU, at no measurable cost to the per-ray Jacobian.
+    It must happen before numpy or torch is imported: the command line calls it first thing,
+    the test suite through its plugin (:mod:`bluesky_offsets.testing`), and every process they
+    start (the IOC, the Dask workers) inherits the environment.
+    ``MKL_CBWR=AUTO`` and ``OPENBLAS_CORETYPE=`` (empty) in the environment undo it."""
+    if x86_64():
+        os.environ.setdefault("MKL_CBWR", "COMPATIBLE")
+    if x86_with_avx2():
+        os.environ.setdefault("OPENBLAS_CORETYPE", "Haswell")
+
+
+def x86_64() -> bool:
+    return platform.machine().lower() in ("x86_64", "amd64")
+
+
+def x86_with_avx2() -> bool:
+    """An x86-64 CPU with AVX2, as Linux reports it (elsewhere: False, the libraries' own choice)."""
+    if not x86_64():
+        return False
+    try:
+        with open("/proc/cpuinfo") as f:
+            return any(line.startswith("flags") and " avx2" in line for line in f)
+    except OSError:
+        return False
