@@ -149,14 +149,17 @@ def test_acceptance_measured_histograms_follow_the_hidden_truth(RE, acceptance_i
     # every configuration differs from the twin at the commanded setting far beyond noise ...
     assert per_bin_cmd.min() > 20, per_bin_cmd
     # ... and agrees with the twin at commanded + hidden truth within noise: each profile below its
-    # chi^2 quantile at p = 1e-4 (z = 3.72), and pooled over all of them chi^2/dof < 1.5. x and y are
-    # tested apart: both profiles hold the same rays, so their sum is not chi^2 with the summed dof.
+    # chi^2 quantile at p = 1e-4 (z = 3.72), and pooled over all of them below the quantile at
+    # p = 1e-3 (z = 3.09; ~1.8 per dof at 16 frames). x and y are tested apart: both profiles hold the
+    # same rays, so their sum is not chi^2 with the summed dof (a fixed 1.5 on the sum failed the
+    # true model in 1 of 60 simulated runs: mean 0.92, sd 0.20).
     for axis in ("hist_x", "hist_y"):
         per_axis = np.array([chi2_two_sample(_counts(a, N_RAYS), _counts(b, N_RAYS))
                              for a, b in zip(getattr(m, axis), getattr(at_truth, axis))])
         limits = np.array([chi2_quantile(int(k), 3.72) for k in per_axis[:, 1]])
         assert np.all(per_axis[:, 0] < limits), (axis, per_axis, limits)
-    assert true[:, 0].sum() / true[:, 1].sum() < 1.5
+        pooled, dof = per_axis.sum(axis=0)
+        assert pooled < chi2_quantile(int(dof), 3.09), (axis, pooled, dof)
     # the ray counts agree within Poisson noise with the truth, not necessarily with the commanded twin
     z = (m.total_counts - at_truth.n_hits) / np.sqrt(np.maximum(m.total_counts + at_truth.n_hits, 1))
     assert np.all(np.abs(z) < 5), z
