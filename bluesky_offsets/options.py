@@ -5,6 +5,8 @@ from __future__ import annotations
 from collections.abc import Iterable
 from dataclasses import fields
 
+from bluesky_offsets.errors import InputError
+
 
 def refuse_unknown(cls, given: Iterable[str], what: str) -> None:
     """Raise ``ValueError("<what> [unknown keys]; known: [fields]")`` when ``given`` names a key
@@ -12,4 +14,4 @@ def refuse_unknown(cls, given: Iterable[str], what: str) -> None:
     known = {f.name for f in fields(cls) if f.init}
     unknown = sorted(set(given) - known)
     if unknown:
-        raise ValueError(f"{what} {unknown}; known: {sorted(known)}")
+        raise InputError(f"{what} {unknown}; known: {sorted(known)}")

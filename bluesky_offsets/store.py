@@ -28,6 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
+from bluesky_offsets.errors import InputError
 from bluesky_offsets.model.measurement import Measurement
 from bluesky_offsets.physics.parameters import METRIXS, ParameterTable
 
@@ -70,7 +71,7 @@ def measurement_from_run(run, *, stream: str = "primary") -> Measurement:
     start = dict(run.metadata["start"])
     uid = start.get("uid")
     if "configurations" not in start:
-        raise ValueError(f"run {uid} has no 'configurations' in its metadata: not a measure_configurations run")
+        raise InputError(f"run {uid} has no 'configurations' in its metadata: not a measure_configurations run")
     names = tuple(start.get("parameter_names", METRIXS.names))
     configs = np.asarray(start["configurations"], dtype=float)
     if stream not in run:

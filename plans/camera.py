@@ -19,6 +19,7 @@ import bluesky.preprocessors as bpp
 import numpy as np
 from bluesky.utils import MsgGenerator
 
+from bluesky_offsets.errors import InputError
 from bluesky_offsets.model.measurement import Measurement
 from bluesky_offsets.physics.camera import CameraCalibration, dark_frame, photon_transfer
 
@@ -62,7 +63,7 @@ def calibrate_camera(camera, *, darks: int = 4, frames: int = 8, max_gain_error:
         The largest relative σ of a measured gain that replaces the camera's.
     """
     if darks < 2 or frames < 4:
-        raise ValueError("calibrate_camera: two or more dark frames and four or more frames with light")
+        raise InputError("calibrate_camera: two or more dark frames and four or more frames with light")
     _md = {"plan_name": "calibrate_camera", "plan_args": {"darks": darks, "frames": frames,
                                                          "max_gain_error": max_gain_error},
            "detectors": [camera.name], **(md or {})}
@@ -118,7 +119,7 @@ def take_darks(camera, n: int = 4, *, md: Mapping | None = None) -> MsgGenerator
     """``n`` dark frames with the shutter closed (one run, stream ``dark``): the camera's dark frame
     and read noise from now on; no light needed, so a session takes them first."""
     if n < 2:
-        raise ValueError("take_darks: two or more dark frames")
+        raise InputError("take_darks: two or more dark frames")
     taken = {}
 
     @bpp.stage_decorator([camera])

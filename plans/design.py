@@ -22,6 +22,7 @@ from bluesky.utils import MsgGenerator
 
 from bluesky_offsets.design import DesignOptions
 from bluesky_offsets.design.sequence import DesignLoop
+from bluesky_offsets.errors import InputError
 from bluesky_offsets.model.measurement import Measurement
 from bluesky_offsets.physics.parameters import METRIXS, ParameterTable
 
@@ -224,7 +225,7 @@ def measure_validation(beamline, chamber, model, fitted: Measurement, twin, *, n
         lambda progress: validation_settings(cal, fitted, n, options=o, table=table), stream=None,
         desc="choose validation frames", show=show)
     if not len(cfg):
-        raise ValueError("no setting far from the fitted frames keeps the beam on the screen: no validation frames")
+        raise InputError("no setting far from the fitted frames keeps the beam on the screen: no validation frames")
     box = {}
 
     def compare(meas: Measurement):

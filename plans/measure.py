@@ -19,6 +19,7 @@ import bluesky.preprocessors as bpp
 import numpy as np
 from bluesky.utils import MsgGenerator
 
+from bluesky_offsets.errors import InputError
 from bluesky_offsets.model.measurement import Measurement
 from bluesky_offsets.physics.parameters import METRIXS, ParameterTable
 from bluesky_offsets.physics.screen import as_screen, check_travel, moved
@@ -105,7 +106,7 @@ def _with_stage(beamline, motors: dict, screen) -> tuple[dict, dict | None]:
     stage = resolve_stage(beamline)
     if stage is None:
         if moved(screen):
-            raise ValueError("the beamline has no chamber stage (beamline.chamber_stage, or [stage] in the PV map): "
+            raise InputError("the beamline has no chamber stage (beamline.chamber_stage, or [stage] in the PV map): "
                              "frames with the screen moved cannot be taken")
         return motors, None
     return {**motors, **stage}, stage
@@ -152,7 +153,7 @@ def scan_configurations(configurations, beamline, chamber, *, reference=None, ta
             for t, row in zip(tgts, scrs):
                 t.update(zip(stage, map(float, row)))
         elif moved(scr):
-            raise ValueError("the beamline has no chamber stage: frames with the screen moved cannot be taken")
+            raise InputError("the beamline has no chamber stage: frames with the screen moved cannot be taken")
         yield from check_limits(motors, tgts)  # all of them, before anything moves
         inside = yield from pull_inside(motors, tgts, margin)
         for k, (t, new) in enumerate(zip(tgts, inside)):

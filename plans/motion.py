@@ -22,10 +22,11 @@ import numpy as np
 from bluesky.utils import MsgGenerator
 
 from bluesky_offsets.epics.pvs import STAGE_AXES, MotionError
+from bluesky_offsets.errors import InputError
 from bluesky_offsets.physics.parameters import METRIXS, ParameterError, ParameterTable
 
 
-class MotorLimitError(ValueError):
+class MotorLimitError(InputError):
     """A requested configuration lies outside a motor's limits; nothing was moved."""
 
 
@@ -54,7 +55,7 @@ def resolve_motors(beamline, table: ParameterTable = METRIXS) -> dict:
         else:
             out[p.name] = dev
     if missing:
-        raise ValueError(f"beamline lacks motors for {len(missing)} parameters: {', '.join(missing)}")
+        raise InputError(f"beamline lacks motors for {len(missing)} parameters: {', '.join(missing)}")
     return out
 
 
@@ -68,7 +69,7 @@ def resolve_stage(beamline) -> dict | None:
         return None
     axes = {a: (stage.get(a) if isinstance(stage, Mapping) else getattr(stage, a, None)) for a in STAGE_AXES}
     if missing := [a for a, m in axes.items() if m is None]:
-        raise ValueError(f"the chamber's stage lacks the axes {', '.join(missing)}")
+        raise InputError(f"the chamber's stage lacks the axes {', '.join(missing)}")
     return {f"stage.{a}": m for a, m in axes.items()}
 
 

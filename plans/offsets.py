@@ -25,6 +25,7 @@ from typing import Protocol, runtime_checkable
 import numpy as np
 from bluesky.utils import MsgGenerator
 
+from bluesky_offsets.errors import InputError
 from bluesky_offsets.model.measurement import Measurement
 from bluesky_offsets.physics.parameters import METRIXS, ParameterTable
 from bluesky_offsets.store import RunStore, as_measurement
@@ -98,7 +99,7 @@ def _resolve_finder(finder) -> Callable:
         try:
             return getattr(importlib.import_module(module), func)
         except (ImportError, AttributeError) as exc:
-            raise ValueError(f"finder {finder!r} cannot be imported: {exc}") from None
+            raise InputError(f"finder {finder!r} cannot be imported: {exc}") from None
     raise TypeError(f"finder must be a callable or 'module:function', got {finder!r}")
 
 

@@ -18,6 +18,7 @@ from dataclasses import asdict, dataclass, field, is_dataclass
 import numpy as np
 from bluesky.utils import MsgGenerator
 
+from bluesky_offsets.errors import InputError
 from bluesky_offsets.model.measurement import Measurement
 from bluesky_offsets.model.state import CalibratedState
 from bluesky_offsets.optimize import (
@@ -210,9 +211,9 @@ def optimize_beam(target, model, beamline, chamber, *, constraints: Constraints 
         When the model has no light at the current setting.
     """
     if int(frames) < 1:
-        raise ValueError(f"frames must be at least 1, got {frames!r}")
+        raise InputError(f"frames must be at least 1, got {frames!r}")
     if closed_loop and measurement is None:
-        raise ValueError("closed_loop needs the calibration measurement (measurement=...) to refit on")
+        raise InputError("closed_loop needs the calibration measurement (measurement=...) to refit on")
     target = target_from(target)
     cons = constraints if isinstance(constraints, Constraints) else Constraints.from_mapping(constraints)
     o = OptimizeOptions.resolve(options)
@@ -274,6 +275,6 @@ def optimize_beam(target, model, beamline, chamber, *, constraints: Constraints 
 def _joined(a: Measurement, b: Measurement) -> Measurement:
     """The calibration measurement as analysed and the new frames, binned alike, as one."""
     if a.spec != b.spec:
-        raise ValueError(f"the new frames are binned as {b.spec.fingerprint()}, the calibration measurement as "
+        raise InputError(f"the new frames are binned as {b.spec.fingerprint()}, the calibration measurement as "
                          f"{a.spec.fingerprint()}")
     return a.joined(b)

@@ -27,6 +27,7 @@ from collections.abc import Mapping
 import numpy as np
 from bluesky.utils import MsgGenerator
 
+from bluesky_offsets.errors import InputError
 from bluesky_offsets.physics.parameters import METRIXS, ParameterTable
 
 from .measure import scan_configurations
@@ -130,7 +131,7 @@ def high_ray_configurations_on_model(model, n: int = MIN_CONFIGURATIONS, *, cand
             if len(found) >= n:
                 break
     if len(found) < n:
-        raise ValueError(f"only {len(found)} of {len(cand)} candidates put more than {threshold:.4g} of the "
+        raise InputError(f"only {len(found)} of {len(cand)} candidates put more than {threshold:.4g} of the "
                          f"source rays on the screen; {n} needed (draw more candidates or search nearer a "
                          f"known good configuration)")
     return np.array(found)
@@ -181,7 +182,7 @@ def find_high_ray_configurations(candidates, beamline, chamber, *, n: int = MIN_
                                        md=_md, keep_going=keep_going)
     good = m.configurations[enough_rays(m.hist_x, m.hist_y, threshold)] if len(m) else m.configurations
     if require_all and len(good) < n:
-        raise ValueError(f"only {len(good)} of {len(m)} measured candidates passed the threshold "
+        raise InputError(f"only {len(good)} of {len(m)} measured candidates passed the threshold "
                          f"{threshold:.4g}; {n} needed")
     return good
 
@@ -222,7 +223,7 @@ def find_beam(beamline, chamber, *, fraction: float = 0.15, twin=None, max_frame
     from .motion import current_configuration, move_to, resolve_motors
 
     if not 0 < fraction <= 0.2:
-        raise ValueError(f"fraction must lie in (0, 0.2], got {fraction}")
+        raise InputError(f"fraction must lie in (0, 0.2], got {fraction}")
     here = yield from current_configuration(beamline, table)
     twin = twin or Twin(torch_engine(table))
     widths = (acceptance(twin, here, open_slits=True, table=table), acceptance(twin, here, open_slits=False,

@@ -27,6 +27,7 @@ import numpy as np
 from bluesky.utils import MsgGenerator
 
 from bluesky_offsets.design import DesignOptions
+from bluesky_offsets.errors import InputError
 from bluesky_offsets.model import diagnosis as D
 from bluesky_offsets.model.measurement import Measurement
 from bluesky_offsets.physics.parameters import METRIXS
@@ -66,17 +67,17 @@ class MeasurementDesign:
 
     def __post_init__(self):
         if self.bright < 2:
-            raise ValueError(f"bright must be at least 2 (the paper measures 16), got {self.bright}")
+            raise InputError(f"bright must be at least 2 (the paper measures 16), got {self.bright}")
         if not 0 <= self.reopened <= self.bright:
-            raise ValueError(f"reopened must lie in [0, bright={self.bright}], got {self.reopened}")
+            raise InputError(f"reopened must lie in [0, bright={self.bright}], got {self.reopened}")
         if self.analysed < 2:
-            raise ValueError(f"analysed must be at least 2, got {self.analysed}")
+            raise InputError(f"analysed must be at least 2, got {self.analysed}")
         if self.candidates < self.bright - 1:
-            raise ValueError(f"candidates ({self.candidates}) cannot give {self.bright} bright configurations")
+            raise InputError(f"candidates ({self.candidates}) cannot give {self.bright} bright configurations")
         if not 0 < self.fraction <= 0.2:
-            raise ValueError(f"fraction must lie in (0, 0.2], got {self.fraction}")
+            raise InputError(f"fraction must lie in (0, 0.2], got {self.fraction}")
         if self.max_frames < 1:
-            raise ValueError(f"max_frames must be at least 1, got {self.max_frames}")
+            raise InputError(f"max_frames must be at least 1, got {self.max_frames}")
 
 
 def candidate_configurations(design: MeasurementDesign, start: np.ndarray) -> np.ndarray:
@@ -219,7 +220,7 @@ def find_offsets_in_store(measurement: str = "last", *, evaluations: int = 3000,
     from bluesky_offsets.offsets.finder import load_forward_model
 
     if evaluations < 1:
-        raise ValueError(f"evaluations must be at least 1, got {evaluations}")
+        raise InputError(f"evaluations must be at least 1, got {evaluations}")
     store = _store(store)
     m = store.load_measurement(resolve_run(store, measurement, "measurement"), table=METRIXS)
     return (yield from surrogate_offsets(m, load_forward_model(checkpoint), evaluations=evaluations, seed=seed,
@@ -236,7 +237,7 @@ def surrogate_offsets(m: Measurement, forward_model, *, evaluations: int = 3000,
     # the surrogate sees the chamber at its stage's zero: frames with the screen moved are not its
     inside = D.in_box(m.configurations, METRIXS) & ~np.any(as_screen(m.screen, m.n) != 0, axis=1)
     if not inside.any():
-        raise ValueError(f"measurement {m.uid}: no configuration inside the surrogate's box with the screen at 0")
+        raise InputError(f"measurement {m.uid}: no configuration inside the surrogate's box with the screen at 0")
     finder = OffsetFinder(model=forward_model, budget=Budget(evaluations=evaluations), seed=seed)
     log.info("finding the offsets with the surrogate on the %d configurations in its box (%d evaluations)",
              int(inside.sum()), evaluations)
@@ -286,7 +287,7 @@ def calibration_session(beamline, chamber, twin, forward_model, *, design: Measu
                                              analysis_md=analysis_md, step=step, executor=executor,
                                              measured=measured, table=table))
     if table.version != METRIXS.version:
-        raise ValueError(f"the bright design finds the offsets with the surrogate, trained on METRIXS; on "
+        raise InputError(f"the bright design finds the offsets with the surrogate, trained on METRIXS; on "
                          f"{table.name} the measurement is designed (DesignOptions)")
     t = {"start": time.perf_counter()}
     step("finding the beam, bright configurations around it, measuring them")

@@ -17,7 +17,7 @@ import sys
 import numpy as np
 
 from bluesky_offsets.epics.pvs import ChamberError, MotionError
-from bluesky_offsets.physics.parameters import ParameterError
+from bluesky_offsets.errors import InputError
 from bluesky_offsets.store import StoreError
 
 EXTENSIONS: list[str] = [
@@ -303,8 +303,9 @@ def main(argv: list[str] | None = None) -> int:
         parser.error("--rays must be positive")
     try:
         return int(args.func(args) or 0)
-    except (CliError, ParameterError, ValueError, StoreError) as exc:
-        # user input the library refused (bad parameter, impossible geometry, bad file ...)
+    except (CliError, InputError, StoreError) as exc:
+        # input the library refused (bad parameter, impossible geometry, bad file ...); any other
+        # exception is a bug, or a failure the user did not cause, and keeps its traceback
         if args.verbose:
             raise
         print(f"bluesky-offsets {args.command}: error: {exc}", file=sys.stderr)

@@ -24,6 +24,7 @@ from dataclasses import dataclass, fields
 
 import numpy as np
 
+from bluesky_offsets.errors import InputError
 from bluesky_offsets.options import refuse_unknown
 from bluesky_offsets.physics.parameters import MAX_OFFSET, METRIXS, ParameterTable
 from bluesky_offsets.physics.screen import STAGE
@@ -73,21 +74,21 @@ class DesignOptions:
 
     def __post_init__(self):
         if self.criterion not in CRITERIA:
-            raise ValueError(f"criterion must be one of {CRITERIA}, not {self.criterion!r}")
+            raise InputError(f"criterion must be one of {CRITERIA}, not {self.criterion!r}")
         for name in ("frames", "batch", "candidates", "rays", "fit_rays"):
             if int(getattr(self, name)) < 1:
-                raise ValueError(f"design option {name} must be at least 1, got {getattr(self, name)!r}")
+                raise InputError(f"design option {name} must be at least 1, got {getattr(self, name)!r}")
         if self.validation < 0:
-            raise ValueError(f"validation frames must be >= 0, got {self.validation}")
+            raise InputError(f"validation frames must be >= 0, got {self.validation}")
         if not 0 < self.floor < 1:
-            raise ValueError(f"floor must lie in (0, 1), got {self.floor}")
+            raise InputError(f"floor must lie in (0, 1), got {self.floor}")
         if not (self.confidence >= 0 and math.isfinite(self.confidence)):
-            raise ValueError(f"confidence must be a finite number >= 0, got {self.confidence}")
+            raise InputError(f"confidence must be a finite number >= 0, got {self.confidence}")
         for name in ("slits", "move"):
             if not 0 <= getattr(self, name) <= 1:
-                raise ValueError(f"design option {name} must lie in [0, 1], got {getattr(self, name)}")
+                raise InputError(f"design option {name} must lie in [0, 1], got {getattr(self, name)}")
         if self.target is not None and not 0 < self.target < 1:
-            raise ValueError(f"target must lie in (0, 1), got {self.target}")
+            raise InputError(f"target must lie in (0, 1), got {self.target}")
 
     @classmethod
     def from_mapping(cls, options: Mapping | None = None, **more) -> DesignOptions:
@@ -215,7 +216,7 @@ def select(fisher: np.ndarray, precision: np.ndarray, k: int, *, criterion: str 
     adds most to the criterion given the ones chosen before it (the precision updated in turn);
     only ``allowed`` candidates (a mask), each at most once."""
     if criterion not in CRITERIA:
-        raise ValueError(f"criterion must be one of {CRITERIA}, not {criterion!r}")
+        raise InputError(f"criterion must be one of {CRITERIA}, not {criterion!r}")
     ok = np.ones(len(fisher), bool) if allowed is None else np.asarray(allowed, bool).copy()
     P = np.array(precision, float)
     chosen, gains = [], []

@@ -29,6 +29,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from bluesky_offsets.epics.pvs import CHAMBER_PVS, STAGE_AXES, chamber_pvs, motor_pvs, stage_pvs
+from bluesky_offsets.errors import InputError
 from bluesky_offsets.physics.parameters import METRIXS, ParameterTable
 
 ENV_PVS = "BLUESKY_OFFSETS_PVS"
@@ -43,7 +44,7 @@ SIM_PREFIX = "SIM:METRIXS:"  # sim_iocs.metrixs.DEFAULT_PREFIX (not imported: th
 MOTOR_FIELDS = ("RBV", "EGU", "LLM", "HLM", "DMOV")
 
 
-class PVMapError(ValueError):
+class PVMapError(InputError):
     """A PV map file that cannot be used (its message names the file and the entry)."""
 
 

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 
+from bluesky_offsets.errors import InputError
 from bluesky_offsets.physics.parameters import Parameter, ParameterTable
 
 
@@ -41,7 +42,7 @@ def motor_pvs(table: ParameterTable, prefix: str, pv_names: Mapping[str, str] | 
     pv_names = dict(pv_names or {})
     unknown = [n for n in pv_names if n not in table.motorized_names]
     if unknown:
-        raise ValueError(f"pv_names: {unknown} are not motorized parameters of table {table.name!r}")
+        raise InputError(f"pv_names: {unknown} are not motorized parameters of table {table.name!r}")
     return {p.name: pv_names.get(p.name, default_motor_pv(p, prefix)) for p in table if p.motorized}
 
 
@@ -60,7 +61,7 @@ def chamber_pvs(prefix: str, pv_names: Mapping[str, str] | None) -> dict[str, st
     pv_names = dict(pv_names or {})
     unknown = set(pv_names) - set(CHAMBER_PVS)
     if unknown:
-        raise ValueError(f"pv_names: unknown chamber signals {sorted(unknown)}; known: {sorted(CHAMBER_PVS)}")
+        raise InputError(f"pv_names: unknown chamber signals {sorted(unknown)}; known: {sorted(CHAMBER_PVS)}")
     return {k: pv_names.get(k, prefix + v) for k, v in CHAMBER_PVS.items()}
 
 
@@ -74,5 +75,5 @@ def stage_pvs(prefix: str, pv_names: Mapping[str, str] | None) -> dict[str, str]
     pv_names = dict(pv_names or {})
     unknown = set(pv_names) - set(STAGE_AXES)
     if unknown:
-        raise ValueError(f"stage: unknown axes {sorted(unknown)}; the stage has {', '.join(STAGE_AXES)}")
+        raise InputError(f"stage: unknown axes {sorted(unknown)}; the stage has {', '.join(STAGE_AXES)}")
     return {a: pv_names.get(a, prefix + a) for a in STAGE_AXES}

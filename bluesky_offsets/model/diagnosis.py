@@ -39,6 +39,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from bluesky_offsets.errors import InputError
 from bluesky_offsets.physics import effects as E
 from bluesky_offsets.model.misfit import Misfit, misfit, moments
 from bluesky_offsets.model.fit import FitOptions, FitResult, engine_for, fit, gather, information, screen
@@ -661,7 +662,7 @@ def diagnostic_configurations(around, n: int = 12, *, seed: int = 0, spread: dic
     for name, half in spread.items():
         i = table.index(name)
         if not table.motorized[i]:
-            raise ValueError(f"{name} is not motorized: it cannot be varied between configurations")
+            raise InputError(f"{name} is not motorized: it cannot be varied between configurations")
         z[:, i] = np.clip(base[i] + rng.uniform(-half, half, n), 0.0, 1.0)
     return np.where(table.motorized, table.denormalize(z), table.reference)
 
@@ -694,7 +695,7 @@ def open_aperture(configurations, settings: dict[str, float] | None = None,
         p = table[name]
         lo, hi = p.limits
         if not lo <= value <= hi:
-            raise ValueError(f"{name} = {value:g} {p.unit} is outside the motor's travel [{lo:g}, {hi:g}]")
+            raise InputError(f"{name} = {value:g} {p.unit} is outside the motor's travel [{lo:g}, {hi:g}]")
         cfg[:, table.index(name)] = value
     return cfg
 

@@ -20,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
+from bluesky_offsets.errors import InputError
 from bluesky_offsets.physics import effects as E
 from bluesky_offsets.physics.parameters import METRIXS, ParameterTable
 
@@ -27,7 +28,7 @@ FORMAT = "bluesky-offsets calibration"
 VERSION = 1
 
 
-class CalibrationFileError(ValueError):
+class CalibrationFileError(InputError):
     """A calibration file that cannot be used; the message names the file and why."""
 
 

@@ -52,6 +52,7 @@ import numpy as np
 import torch
 from scipy.stats import chi2 as chi2_dist
 
+from bluesky_offsets.errors import InputError
 from bluesky_offsets.options import refuse_unknown
 from bluesky_offsets.physics import effects as E
 from bluesky_offsets.model.misfit import beam_features, compared, expected_pull2, feature_values
@@ -143,20 +144,20 @@ class FitOptions:
 
     def __post_init__(self):
         if int(self.rays) < 1 or (self.feature_rays is not None and int(self.feature_rays) < 1):
-            raise ValueError("rays must be positive")
+            raise InputError("rays must be positive")
         if not self.stages:
-            raise ValueError("a fit needs at least one stage")
+            raise InputError("a fit needs at least one stage")
         for st in self.stages:
             if len(st) != 2 or st[0] not in STAGES or int(st[1]) < 0:
-                raise ValueError(f"a stage is (name, iterations) with name in {STAGES}, not {st!r}")
+                raise InputError(f"a stage is (name, iterations) with name in {STAGES}, not {st!r}")
         if not (self.kernel > 0 and math.isfinite(self.kernel)):
-            raise ValueError("kernel must be a finite number > 0")
+            raise InputError("kernel must be a finite number > 0")
         if self.prior_sigma is not None and not self.prior_sigma > 0:
-            raise ValueError("prior_sigma must be positive")
+            raise InputError("prior_sigma must be positive")
         if int(self.ray_draws) != self.ray_draws or self.ray_draws < 1:
-            raise ValueError(f"ray_draws must be a whole number >= 1, not {self.ray_draws!r}")
+            raise InputError(f"ray_draws must be a whole number >= 1, not {self.ray_draws!r}")
         if not 0 < self.offset_bound <= MAX_OFFSET:
-            raise ValueError(f"offset_bound must lie in (0, {MAX_OFFSET}]")
+            raise InputError(f"offset_bound must lie in (0, {MAX_OFFSET}]")
 
     @classmethod
     def from_mapping(cls, options: Mapping | None = None, **more) -> FitOptions:
@@ -638,7 +639,7 @@ def fit(meas, state, engine, options: FitOptions | Mapping | None = None, *,
     history: list[dict] = []
     starts = [state, *also_from]
     if any(list(st.effects) != list(state.effects) for st in starts):
-        raise ValueError("the starts of one fit must hold the same effects")
+        raise InputError("the starts of one fit must hold the same effects")
     # each start on a model of its own, which counts its traces (the rays are the same)
     models = [mdl] + [_Model(meas, state, engine, o, table) for _ in starts[1:]]
     runs = _runs([(m, np.clip(mdl.vector(st), *mdl.bounds()), {"start": k} if len(starts) > 1 else {})

@@ -13,6 +13,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from bluesky_offsets.errors import InputError
 from bluesky_offsets.model.misfit import MeasurementError, check_histograms
 from bluesky_offsets.physics.parameters import METRIXS, ParameterTable
 from bluesky_offsets.physics.screen import as_screen
@@ -185,7 +186,7 @@ class Measurement:
         parameter table, a configuration outside it, or an unknown ray budget.
         """
         if resolution not in RESOLUTIONS:
-            raise ValueError(f"resolution must be 'camera' or 'paper', not {resolution!r}")
+            raise InputError(f"resolution must be 'camera' or 'paper', not {resolution!r}")
         self.check_table(table)
         try:
             cfg = table.validate(self.configurations, "measured configurations")

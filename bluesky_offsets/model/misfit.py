@@ -21,12 +21,13 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from bluesky_offsets.errors import InputError
 from bluesky_offsets.physics.noise import bin_variance
 
 SIGNATURE_NAMES = ("intensity", "centroid", "width", "skewness", "tails")
 
 
-class MeasurementError(ValueError):
+class MeasurementError(InputError):
     """Measurement data that cannot be compared (shape, NaN, table mismatch)."""
 
 

@@ -15,6 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from bluesky_offsets.errors import InputError
 from bluesky_offsets.model.fit import FitOptions, FitResult, engine_for, fit
 from bluesky_offsets.model.measurement import Measurement
 from bluesky_offsets.model.values import CalibratedState, ModelState  # noqa: F401 - the model's value types
@@ -121,7 +122,7 @@ def simulate_frames(twin, configurations: np.ndarray, state: ModelState, n_rays:
 def check_twin(meas: Measurement, twin) -> None:
     """The twin must bin its histograms as the measurement is binned."""
     if twin.hist != meas.spec:
-        raise ValueError(f"the twin bins its histograms as {twin.hist.fingerprint()}, the measurement as "
+        raise InputError(f"the twin bins its histograms as {twin.hist.fingerprint()}, the measurement as "
                          f"{meas.spec.fingerprint()}: use twin.with_hist(measurement.spec)")
 
 

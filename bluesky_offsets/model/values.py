@@ -9,6 +9,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from bluesky_offsets.errors import InputError
 from bluesky_offsets.physics import effects as E
 from bluesky_offsets.physics.parameters import METRIXS
 
@@ -25,7 +26,7 @@ class ModelState:
         """A new model version that includes effect ``name`` (values default to 0 = absent)."""
         eff = E.get(name)
         if name in self.effects:
-            raise ValueError(f"the model already includes {name!r}")
+            raise InputError(f"the model already includes {name!r}")
         return ModelState(self.offsets.copy(), {**self.effects, name: eff.values(values)},
                           f"{self.label} + {name}")
 

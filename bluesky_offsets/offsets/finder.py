@@ -55,6 +55,7 @@ from typing import Any, Protocol, runtime_checkable
 import numpy as np
 import torch
 
+from bluesky_offsets.errors import InputError
 from bluesky_offsets.physics.parameters import MAX_OFFSET, METRIXS, ParameterTable
 from bluesky_offsets.physics.torch_engine import FORWARD_AD
 
@@ -68,7 +69,7 @@ PAPER_MIN_HIST_SUM = 0.5 * 22594 / 1e5
 PAPER_STEP = 0.002
 
 
-class FinderError(ValueError):
+class FinderError(InputError):
     """Bad input to the finder (shapes, NaNs, unknown method, empty budget)."""
 
 
@@ -602,7 +603,7 @@ class SmartWalker:
 
     def __post_init__(self):
         if self.selection not in ("plus", "comma"):
-            raise ValueError(f"selection must be 'plus' or 'comma', not {self.selection!r}")
+            raise InputError(f"selection must be 'plus' or 'comma', not {self.selection!r}")
 
     def run(self, obj: Objective, tr: _Tracker, gen: torch.Generator) -> None:
         P, lim = obj.problem.n_parameters, obj.limit

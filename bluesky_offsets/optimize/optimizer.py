@@ -41,6 +41,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
+from bluesky_offsets.errors import InputError
 from bluesky_offsets.options import refuse_unknown
 from bluesky_offsets.physics import effects as E
 from bluesky_offsets.physics.parameters import MAX_OFFSET, METRIXS, ParameterTable
@@ -112,14 +113,14 @@ class OptimizeOptions:
     def __post_init__(self):
         for k in ("samples", "screen", "global_starts", "draws"):
             if int(getattr(self, k)) < 0:
-                raise ValueError(f"optimize option {k} must be >= 0, got {getattr(self, k)!r}")
+                raise InputError(f"optimize option {k} must be >= 0, got {getattr(self, k)!r}")
         for k in ("rays", "starts", "iterations", "check_rays"):
             if int(getattr(self, k)) < 1:
-                raise ValueError(f"optimize option {k} must be at least 1, got {getattr(self, k)!r}")
+                raise InputError(f"optimize option {k} must be at least 1, got {getattr(self, k)!r}")
         for k in ("spread", "tolerance", "flag_above", "trust_below"):
             v = getattr(self, k)
             if not (math.isfinite(v) and v > 0):
-                raise ValueError(f"optimize option {k} must be a positive number, got {v!r}")
+                raise InputError(f"optimize option {k} must be a positive number, got {v!r}")
 
     @classmethod
     def resolve(cls, options: OptimizeOptions | Mapping | None) -> OptimizeOptions:
@@ -597,7 +598,7 @@ def optimize_settings(target, state, current, *, limits=None, constraints: Const
     floors = [f for f in ((cons.keep_transmission or 0) * pb.start.intensity, cons.min_transmission or 0) if f]
     pb.floor = max(floors) if floors else 0.0
     if not free.any():
-        raise ValueError("no motor is free to move (all held, fixed or at zero travel)")
+        raise InputError("no motor is free to move (all held, fixed or at zero travel)")
 
     from bluesky_offsets.model.fit import gather
     inits = _starts(pb, o)

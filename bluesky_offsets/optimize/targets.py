@@ -32,6 +32,7 @@ from typing import Protocol, runtime_checkable
 import numpy as np
 import torch
 
+from bluesky_offsets.errors import InputError
 from bluesky_offsets.options import refuse_unknown
 from bluesky_offsets.physics.parameters import METRIXS, ParameterTable
 
@@ -175,7 +176,7 @@ class Target(Protocol):
 
 def _positive(name: str, v: float) -> None:
     if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
-        raise ValueError(f"{name} must be a positive number, got {v!r}")
+        raise InputError(f"{name} must be a positive number, got {v!r}")
 
 
 @dataclass(frozen=True)
@@ -191,9 +192,9 @@ class SmallestFocus:
         for k in ("weight_x", "weight_y"):
             v = getattr(self, k)
             if not (math.isfinite(v) and v >= 0):
-                raise ValueError(f"{k} must be a number >= 0, got {v!r}")
+                raise InputError(f"{k} must be a number >= 0, got {v!r}")
         if self.weight_x == self.weight_y == 0:
-            raise ValueError("smallest focus: weight_x and weight_y are both 0; nothing to minimize")
+            raise InputError("smallest focus: weight_x and weight_y are both 0; nothing to minimize")
 
     def residuals(self, rays: Rays, start: Focus) -> torch.Tensor:
         return torch.cat([math.sqrt(self.weight_x) * per_ray(rays, "x") / start.rms_x,
@@ -217,7 +218,7 @@ class FocusAt:
     def __post_init__(self):
         for k in ("x", "y"):
             if not math.isfinite(getattr(self, k)):
-                raise ValueError(f"{k} must be a finite number, got {getattr(self, k)!r}")
+                raise InputError(f"{k} must be a finite number, got {getattr(self, k)!r}")
         _positive("tolerance", self.tolerance)
 
     def residuals(self, rays: Rays, start: Focus) -> torch.Tensor:
@@ -298,16 +299,16 @@ def target_from(spec) -> Target:
     if isinstance(spec, str):
         spec = {"kind": spec}
     if not isinstance(spec, Mapping) or "kind" not in spec:
-        raise ValueError(f"a target is one of {sorted(TARGETS)} or a mapping with 'kind', got {spec!r}")
+        raise InputError(f"a target is one of {sorted(TARGETS)} or a mapping with 'kind', got {spec!r}")
     kind = str(spec["kind"])
     if kind not in TARGETS:
-        raise ValueError(f"unknown target {kind!r}; known: {sorted(TARGETS)}")
+        raise InputError(f"unknown target {kind!r}; known: {sorted(TARGETS)}")
     args = {k: v for k, v in spec.items() if k != "kind"}
     refuse_unknown(TARGETS[kind], args, f"target {kind!r}: unknown key(s)")
     try:
         return TARGETS[kind](**{k: float(v) for k, v in args.items()})
     except (TypeError, ValueError) as exc:
-        raise ValueError(f"target {kind!r}: {exc}") from None
+        raise InputError(f"target {kind!r}: {exc}") from None
 
 
 # --------------------------------------------------------------------------- #
@@ -337,22 +338,22 @@ class Constraints:
         for k in ("keep_transmission", "min_transmission"):
             v = getattr(self, k)
             if v is not None and not (math.isfinite(v) and 0 <= v <= 1):
-                raise ValueError(f"{k} must lie in [0, 1], got {v!r}")
+                raise InputError(f"{k} must lie in [0, 1], got {v!r}")
         for name, v in self.travel.items():
             _positive(f"travel of {name}", float(v))
         for name, lim in self.limits.items():
             lo, hi = map(float, lim)
             if not lo <= hi:
-                raise ValueError(f"limits of {name}: low {lo:g} above high {hi:g}")
+                raise InputError(f"limits of {name}: low {lo:g} above high {hi:g}")
 
     def check(self, table: ParameterTable = METRIXS) -> None:
         """Refuse a name the table does not know, or one whose parameter no motor moves."""
         for what, names in (("hold", self.hold), ("travel", self.travel), ("limits", self.limits)):
             for n in names:
                 if n not in table.names:
-                    raise ValueError(f"constraints {what}: unknown parameter {n!r}")
+                    raise InputError(f"constraints {what}: unknown parameter {n!r}")
                 if not table[n].motorized and what != "hold":
-                    raise ValueError(f"constraints {what}: {n} has no motor")
+                    raise InputError(f"constraints {what}: {n} has no motor")
 
     @classmethod
     def from_mapping(cls, options: Mapping | None) -> Constraints:

@@ -37,6 +37,7 @@ import tomllib
 from dataclasses import dataclass, fields
 from pathlib import Path
 
+from bluesky_offsets.errors import InputError
 from bluesky_offsets.physics.geometry import MISALIGNMENT_KEYS
 from bluesky_offsets.physics.parameters import BEAMLINES, ParameterError, ParameterTable, parameter_from_record
 from bluesky_offsets.physics.screen import on_image_plane
@@ -46,7 +47,7 @@ BUILTIN = ("metrixs",)
 """Beamlines whose geometry is the package's own code (``physics.metrixs``) rather than an RML file."""
 
 
-class BeamlineError(ValueError):
+class BeamlineError(InputError):
     """A beamline description that cannot be used; the message names the file and the entry."""
 
 

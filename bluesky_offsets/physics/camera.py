@@ -25,6 +25,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from bluesky_offsets.errors import InputError
 from bluesky_offsets.options import refuse_unknown
 from bluesky_offsets.physics.traces import CAMERA, HistogramSpec
 
@@ -58,9 +59,9 @@ class CameraGeometry:
 
     def __post_init__(self):
         if not (self.width > 0 and self.height > 0 and self.pixel_x_mm > 0 and self.pixel_y_mm > 0):
-            raise ValueError("a camera needs positive pixel counts and pixel sizes")
+            raise InputError("a camera needs positive pixel counts and pixel sizes")
         if not (np.isfinite(self.center_x_mm) and np.isfinite(self.center_y_mm)):
-            raise ValueError("the camera's centre must be finite")
+            raise InputError("the camera's centre must be finite")
 
     @classmethod
     def from_dict(cls, fields: Mapping) -> CameraGeometry:
@@ -95,7 +96,7 @@ class CameraGeometry:
         """A frame as the camera delivers it, turned to the screen's orientation (rows y, columns x)."""
         frame = np.asarray(frame)
         if frame.shape[-2:] != self.shape:
-            raise ValueError(f"a frame of shape {frame.shape[-2:]} from a camera of shape {self.shape}")
+            raise InputError(f"a frame of shape {frame.shape[-2:]} from a camera of shape {self.shape}")
         out = np.swapaxes(frame, -1, -2) if self.transpose else frame
         out = out[..., ::-1, :] if self.flip_y else out
         return out[..., :, ::-1] if self.flip_x else out
@@ -150,7 +151,7 @@ def _groups(pixel_edges: np.ndarray, bin_edges: np.ndarray, axis: str) -> np.nda
     k = np.clip(np.rint((bin_edges - pixel_edges[0]) / step).astype(int), 0, len(pixel_edges) - 1)
     if (k[0] != 0 or k[-1] != len(pixel_edges) - 1 or np.any(np.diff(k) <= 0)
             or not np.allclose(pixel_edges[k], bin_edges, atol=1e-6 * step)):
-        raise ValueError(f"the histogram's {axis} bins do not tile the camera's window on pixel edges")
+        raise InputError(f"the histogram's {axis} bins do not tile the camera's window on pixel edges")
     return k[:-1]
 
 
@@ -165,7 +166,7 @@ def profiles(frame: np.ndarray, geometry: CameraGeometry, *, dark: np.ndarray | 
     ``k * dark``, ``sqrt(k) * read_noise`` and ``dark_frames / k`` (the dark's noise is in each alike).
     """
     if not gain > 0:
-        raise ValueError(f"the gain must be positive, got {gain}")
+        raise InputError(f"the gain must be positive, got {gain}")
     signal = (screen_image(geometry, np.asarray(frame, float) - dark)) / gain
     mask = np.zeros(signal.shape, bool)
     (roi or Roi()).cut(mask)[...] = True
@@ -198,7 +199,7 @@ def dark_frame(darks: np.ndarray, *, threshold: float = 8.0) -> DarkFrame:
     """
     d = np.asarray(darks, float)
     if d.ndim < 2 or len(d) < 2:
-        raise ValueError("dark frames: two or more frames of one camera")
+        raise InputError("dark frames: two or more frames of one camera")
     flat = d.reshape(len(d), -1)
     med = np.median(flat, axis=1, keepdims=True)
     mad = np.median(np.abs(flat - med), axis=1, keepdims=True)
@@ -238,9 +239,9 @@ def photon_transfer(frames: np.ndarray, darks: np.ndarray, *, saturation: float 
     f = np.asarray(frames, float).reshape(len(frames), -1)
     d = np.asarray(darks, float).reshape(len(darks), -1)
     if len(f) < 4 or len(d) < 2 or f.shape[1] != d.shape[1]:
-        raise ValueError("photon transfer: four or more frames and two or more dark frames of one camera")
+        raise InputError("photon transfer: four or more frames and two or more dark frames of one camera")
     if f.max() >= saturation:
-        raise ValueError("photon transfer: a frame is saturated (a shorter exposure or less light)")
+        raise InputError("photon transfer: a frame is saturated (a shorter exposure or less light)")
     dark = dark_frame(darks)
     dark_mean, read2 = dark.level.reshape(-1), dark.read_noise ** 2
     halves = f[: len(f) // 2], f[len(f) // 2:]
@@ -248,7 +249,7 @@ def photon_transfer(frames: np.ndarray, darks: np.ndarray, *, saturation: float 
     level = [h.mean(axis=0) - dark_mean for h in halves]
     sums = [lv.sum() for lv in level]
     if min(sums) <= 0:
-        raise ValueError("photon transfer: no light above the dark frames")
+        raise InputError("photon transfer: no light above the dark frames")
     ratios = [excess[0].sum() / sums[1], excess[1].sum() / sums[0]]
     gain = float(np.mean(ratios))
     influence = 0.5 * ((excess[0] - ratios[0] * level[1]) / sums[1] + (excess[1] - ratios[1] * level[0]) / sums[0])
@@ -282,7 +283,7 @@ class CameraCalibration:
 
     def __post_init__(self):
         if not (self.gain > 0 and self.read_noise >= 0 and self.photons_per_second > 0):
-            raise ValueError("a camera calibration needs gain > 0, read noise >= 0 and photons per second > 0")
+            raise InputError("a camera calibration needs gain > 0, read noise >= 0 and photons per second > 0")
 
     def source_photons(self, exposure: float) -> int:
         """Photons the source sends in ``exposure`` seconds: the histograms' denominator."""

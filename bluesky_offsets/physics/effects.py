@@ -33,6 +33,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from bluesky_offsets.errors import InputError
 from bluesky_offsets.physics.geometry import is_tensor
 from bluesky_offsets.physics.metrixs import IMAGE_PLANE, SOURCE, nominal_beamline
 
@@ -73,18 +74,18 @@ class Effect:
         elif isinstance(values, Mapping):
             unknown = set(values) - set(names)
             if unknown:
-                raise ValueError(f"effect {self.name!r} has no parameter {sorted(unknown)}; it has {names}")
+                raise InputError(f"effect {self.name!r} has no parameter {sorted(unknown)}; it has {names}")
             out = dict(values)
         else:
             seq = list(values)
             if len(seq) != len(names):
-                raise ValueError(f"effect {self.name!r} takes {len(names)} values ({names}), got {len(seq)}")
+                raise InputError(f"effect {self.name!r} takes {len(names)} values ({names}), got {len(seq)}")
             out = dict(zip(names, seq))
         # tensors stay tensors (the differentiable twin takes gradients through the effects)
         full = {n: (v if is_tensor(v) else float(v)) for n, v in ((n, out.get(n, 0.0)) for n in names)}
         for n, v in full.items():
             if not (bool(v.isfinite().all()) if is_tensor(v) else math.isfinite(v)):
-                raise ValueError(f"effect {self.name!r}: {n} = {v} is not finite")
+                raise InputError(f"effect {self.name!r}: {n} = {v} is not finite")
         return full
 
     def is_absent(self, values: Mapping[str, float]) -> bool:
@@ -118,7 +119,7 @@ def _all(cond) -> bool:
 
 def register(effect: Effect) -> Effect:
     if not effect.name or effect.name in EFFECTS:
-        raise ValueError(f"effect name {effect.name!r} is empty or already registered")
+        raise InputError(f"effect name {effect.name!r} is empty or already registered")
     EFFECTS[effect.name] = effect
     return effect
 
@@ -127,7 +128,7 @@ def get(name: str) -> Effect:
     try:
         return EFFECTS[name]
     except KeyError:
-        raise ValueError(f"unknown effect {name!r}; known: {sorted(EFFECTS)}") from None
+        raise InputError(f"unknown effect {name!r}; known: {sorted(EFFECTS)}") from None
 
 
 def at_bound(effect: str, parameter: str, value: float) -> bool:
@@ -151,7 +152,7 @@ def twin_overrides(effects: Mapping[str, Mapping[str, float]]) -> dict[str, dict
                 if key.endswith("error") and key in target:
                     target[key] = target[key] + val
                 elif key in target and (is_tensor(val) or is_tensor(target[key]) or target[key] != val):
-                    raise ValueError(f"effects disagree on {obj}.{key}")
+                    raise InputError(f"effects disagree on {obj}.{key}")
                 else:
                     target[key] = val
     return merged
@@ -242,7 +243,7 @@ class SourceScale(Effect):
     def overrides(self, v):
         f = 1.0 + v[self.what]
         if _any(f <= 0):
-            raise ValueError(f"the source {self.what} must stay positive (relative change > -1)")
+            raise InputError(f"the source {self.what} must stay positive (relative change > -1)")
         src = _NOMINAL[SOURCE]
         return {SOURCE: {k: src.get_float(k) * f for k in self._keys}}
 
@@ -307,11 +308,11 @@ class ThermalBump(Effect):
     def overrides(self, v):
         h = v["height"]
         if _any(h < 0):
-            raise ValueError("thermal bump height must be >= 0 (a bulge)")
+            raise InputError("thermal bump height must be >= 0 (a bulge)")
         if _all(h < self.min_height_nm):
             return {}
         if _any(h < self.min_height_nm):
-            raise ValueError(f"thermal bump heights below and above {self.min_height_nm} nm change M1's type "
+            raise InputError(f"thermal bump heights below and above {self.min_height_nm} nm change M1's type "
                              "and cannot share one batch")
         radius = -(self.sigma_mm ** 2) / (h * 1e-6)
         m1 = _NOMINAL["M1-Cylinder"]

@@ -29,6 +29,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from bluesky_offsets.errors import InputError
+
 MISALIGNMENT_KEYS = ("translationXerror", "translationYerror", "translationZerror",
                      "rotationXerror", "rotationYerror", "rotationZerror")
 
@@ -202,7 +204,7 @@ def chain_frames(links: Sequence[ChainLink]) -> list[Frame]:
     for i, link in enumerate(links):
         if link.is_source:
             if i != 0:
-                raise ValueError("only the first element of a chain can be a source")
+                raise InputError("only the first element of a chain can be a source")
             nominal = Frame(pos.copy(), beam.copy())
         else:
             pos = pos + link.distance * beam[:, 2]

@@ -17,6 +17,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from bluesky_offsets.errors import InputError
 from bluesky_offsets.physics.geometry import MISALIGNMENT_KEYS, is_tensor
 from bluesky_offsets.physics.parameters import METRIXS, ParameterTable
 from bluesky_offsets.physics.rml import RmlBeamline, RmlError, RmlObject, make_object
@@ -182,7 +183,7 @@ def build_beamline(values, *, overrides: Mapping[str, Mapping[str, object]] | No
     """
     vec = table.validate(values)
     if vec.ndim != 1:
-        raise ValueError("build_beamline takes one parameter vector; use the twin for batches")
+        raise InputError("build_beamline takes one parameter vector; use the twin for batches")
     state = beamline_state(vec, overrides, table)
     bl = _NOMINAL.copy()
     for name, new_type in state.types.items():
@@ -220,11 +221,11 @@ def check_physical(values, table: ParameterTable = METRIXS) -> None:
     vec = table.validate(values)
     for p, v in zip(table, vec):
         if p.field in _POSITIVE_FIELDS and v <= 0:
-            raise ValueError(f"{p.name} = {v} {p.unit}: must be positive")
+            raise InputError(f"{p.name} = {v} {p.unit}: must be positive")
         if p.field in OPENING_FIELDS and v < 0:
-            raise ValueError(f"{p.name} = {v} {p.unit}: a slit opening cannot be negative")
+            raise InputError(f"{p.name} = {v} {p.unit}: a slit opening cannot be negative")
     for element in {p.element for p in table if p.field == "longHalfAxisA"}:
         a = [v for p, v in zip(table, vec) if p.element == element and p.field == "longHalfAxisA"]
         b = [v for p, v in zip(table, vec) if p.element == element and p.field == "shortHalfAxisB"]
         if a and b and a[0] <= b[0]:
-            raise ValueError(f"{element}: long half-axis {a[0]} mm must exceed short half-axis {b[0]} mm")
+            raise InputError(f"{element}: long half-axis {a[0]} mm must exceed short half-axis {b[0]} mm")

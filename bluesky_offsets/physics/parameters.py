@@ -25,11 +25,13 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
+from bluesky_offsets.errors import InputError
+
 MAX_OFFSET = 0.2
 """Largest offset magnitude, in normalized units (20 % of each range)."""
 
 
-class ParameterError(ValueError):
+class ParameterError(InputError):
     """Malformed parameter input; the message names the offending parameter."""
 
 

@@ -18,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
+from bluesky_offsets.errors import InputError
 from bluesky_offsets.physics.geometry import (MISALIGNMENT_KEYS, ChainLink, Frame, Misalignment, chain_frames,
                        ellipsoid_tangent_angle)
 
@@ -34,7 +35,7 @@ def is_source_type(type_: str) -> bool:
     return "Source" in type_ or type_ in SOURCE_TYPES
 
 
-class RmlError(ValueError):
+class RmlError(InputError):
     """An RML file or object that cannot be understood."""
 
 

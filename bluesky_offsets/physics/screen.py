@@ -18,6 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from bluesky_offsets.errors import InputError
 from bluesky_offsets.physics.metrixs import IMAGE_PLANE
 
 FIELDS = ("translationXerror", "translationYerror", "translationZerror")
@@ -55,9 +56,9 @@ def as_screen(screen, n: int) -> np.ndarray:
     if s.ndim == 1 and s.shape == (3,):
         s = np.tile(s, (n, 1))
     if s.shape != (n, 3):
-        raise ValueError(f"screen positions: expected ({n}, 3) (stage x, y, z per frame), got shape {s.shape}")
+        raise InputError(f"screen positions: expected ({n}, 3) (stage x, y, z per frame), got shape {s.shape}")
     if not np.isfinite(s).all():
-        raise ValueError("screen positions must be finite")
+        raise InputError("screen positions must be finite")
     return s
 
 
@@ -72,7 +73,7 @@ def check_travel(screen) -> None:
     for k, ax in enumerate(STAGE):
         bad = (s[:, k] < ax.low - 1e-9) | (s[:, k] > ax.high + 1e-9)
         if bad.any():
-            raise ValueError(f"chamber stage {ax.name} = {s[bad, k][0]:g} mm is outside its travel "
+            raise InputError(f"chamber stage {ax.name} = {s[bad, k][0]:g} mm is outside its travel "
                              f"[{ax.low:g}, {ax.high:g}] mm")
 
 

@@ -45,6 +45,7 @@ from typing import Literal
 import numpy as np
 import torch
 
+from bluesky_offsets.errors import InputError
 from bluesky_offsets.options import refuse_unknown
 from bluesky_offsets.physics import torch_random as rnd
 from bluesky_offsets.physics.geometry import Misalignment, chain_frames
@@ -110,15 +111,15 @@ class TorchOptions:
 
     def __post_init__(self):
         if self.dtype not in ("float64", "float32"):
-            raise ValueError(f"dtype must be 'float64' or 'float32', not {self.dtype!r}")
+            raise InputError(f"dtype must be 'float64' or 'float32', not {self.dtype!r}")
         if self.sampling not in ("fast", "rayx"):
-            raise ValueError(f"sampling must be 'fast' or 'rayx', not {self.sampling!r}")
+            raise InputError(f"sampling must be 'fast' or 'rayx', not {self.sampling!r}")
         if int(self.max_batch) < 1:
-            raise ValueError("max_batch must be positive")
+            raise InputError("max_batch must be positive")
         if not (self.edge >= 0 and math.isfinite(self.edge)):
-            raise ValueError("edge must be a finite number >= 0")
+            raise InputError("edge must be a finite number >= 0")
         if not (self.kernel > 0 and math.isfinite(self.kernel)):
-            raise ValueError("kernel must be a finite number > 0")
+            raise InputError("kernel must be a finite number > 0")
         torch.device(self.device)  # refuses a malformed device string
 
     @classmethod
@@ -179,7 +180,7 @@ def _col(v, c: int, dtype, device):
     if not torch.is_tensor(v):
         return float(v)
     if v.numel() not in (1, c):
-        raise ValueError(f"a batched field has {v.numel()} values for {c} configurations")
+        raise InputError(f"a batched field has {v.numel()} values for {c} configurations")
     return v.to(dtype=dtype, device=device).reshape(-1, 1).expand(c, 1)
 
 
@@ -212,13 +213,13 @@ def compile_beamline(values, overrides: Mapping | Sequence[Mapping] | None = Non
     per_config = overrides is not None and not isinstance(overrides, Mapping)
     if beamline is None:
         if vals.shape[1] != len(table):
-            raise ValueError(f"expected parameter vectors of {len(table)} values, got shape {tuple(vals.shape)}")
+            raise InputError(f"expected parameter vectors of {len(table)} values, got shape {tuple(vals.shape)}")
         for row in (vals.detach().cpu().numpy() if check else ()):
             check_physical(row, table)
         if per_config:
             ovs = list(overrides)
             if len(ovs) != c:
-                raise ValueError(f"{len(ovs)} overrides for {c} configurations")
+                raise InputError(f"{len(ovs)} overrides for {c} configurations")
             state = _stack_states([beamline_state(vals[i], ov, table) for i, ov in enumerate(ovs)], device)
         else:
             state = beamline_state(vals, overrides, table)
@@ -296,7 +297,7 @@ def _stack_states(states, device):
     out = BeamlineState()
     types = [s.types for s in states]
     if any(t != types[0] for t in types):
-        raise ValueError("the configurations of one batch must not change element types differently")
+        raise InputError("the configurations of one batch must not change element types differently")
     out.types = dict(types[0])
     for attr in ("fields", "misalignment"):
         keys = {(o, k) for s in states for o, fl in getattr(s, attr).items() for k in fl}
@@ -444,7 +445,7 @@ def _streams(seed, n_configs: int, common: bool) -> list[int | None]:
     if isinstance(seed, Sequence):
         seeds = [None if s is None else int(s) for s in seed]
         if len(seeds) != n_configs:
-            raise ValueError(f"{len(seeds)} seeds for {n_configs} configurations")
+            raise InputError(f"{len(seeds)} seeds for {n_configs} configurations")
         return seeds
     if common:
         return [seed]
@@ -547,7 +548,7 @@ def _draw_units(bl: CompiledBeamline, n_rays: int, seed, *, sampling: str, commo
     dev, c = bl.device, bl.n_configs
     if batch_stream:
         if sampling != "fast" or isinstance(seed, Sequence):
-            raise ValueError("batch_stream draws the fast stream from one seed")
+            raise InputError("batch_stream draws the fast stream from one seed")
         return _batch_units(bl, n_rays, seed)
     seeds = _streams(seed, c, common)
     dists = src["dists"]
@@ -888,7 +889,7 @@ def trace_rays(bl: CompiledBeamline, rays: Rays, draws: Draws | None = None, *, 
     trace's; the stopped rays' positions are 0.
     """
     if compact and (edge > 0 or keep_hits):
-        raise ValueError("compact traces the hard beam only (edge = 0, no hit points)")
+        raise InputError("compact traces the hard beam only (edge = 0, no hit points)")
     n = rays.x.shape[-1]
     c = bl.n_configs
     dt = bl.dtype
@@ -1221,7 +1222,7 @@ class TorchEngine:
         Requests that share one seed share their rays (common random numbers, when the
         options say so); different seeds give each request its own stream."""
         if n_rays < 1:
-            raise ValueError(f"n_rays must be positive, got {n_rays}")
+            raise InputError(f"n_rays must be positive, got {n_rays}")
         out: list[TraceResult | None] = [None] * len(requests)
         groups: dict[tuple, list[int]] = {}
         for i, r in enumerate(requests):
@@ -1272,9 +1273,9 @@ class TorchEngine:
         """
         o = self.options
         if o.sampling != "fast":
-            raise ValueError("trace_batch draws the fast stream (sampling='fast')")
+            raise InputError("trace_batch draws the fast stream (sampling='fast')")
         if n_rays < 1:
-            raise ValueError(f"n_rays must be positive, got {n_rays}")
+            raise InputError(f"n_rays must be positive, got {n_rays}")
         bl = self.compile(values, overrides)
         c = bl.n_configs
         g = _generator(seed, bl.device)
@@ -1309,7 +1310,7 @@ class TorchEngine:
         for name, vals_e in (effects or {}).items():
             eff = fx.get(name)
             if eff.level != "twin":
-                raise ValueError(f"effect {name!r} acts on histograms, not in the twin: it has no twin Jacobian")
+                raise InputError(f"effect {name!r} acts on histograms, not in the twin: it has no twin Jacobian")
             full = eff.values(vals_e)
             eff_leaves[name] = {p: torch.full((c,), float(v), dtype=torch.float64, device=vals.device)
                                 for p, v in full.items()}
@@ -1351,7 +1352,7 @@ class TorchEngine:
             sp = spec or (self.hist if what == "histograms" else CAMERA)
             hx, hy = histograms(beam, sp, soft=True, kernel=self.options.kernel)
             return torch.cat([hx, hy], -1)
-        raise ValueError(f"unknown product {what!r}: features, histograms or profiles")
+        raise InputError(f"unknown product {what!r}: features, histograms or profiles")
 
     def jacobian(self, what: str, values, effects=None, *, n_rays: int, seed=0, overrides=None,
                  spec: HistogramSpec | None = None, mode: Literal["auto", "forward", "reverse"] = "auto"):
@@ -1449,7 +1450,7 @@ class TorchEngine:
         o = self.options
         vals, leaves, names = self.inputs(values, effects)
         if full is not None and tuple(full.x.shape) != (vals.shape[0], n_rays):
-            raise ValueError(f"full: rays of shape {tuple(full.x.shape)}, not ({vals.shape[0]}, {n_rays})")
+            raise InputError(f"full: rays of shape {tuple(full.x.shape)}, not ({vals.shape[0]}, {n_rays})")
         c = vals.shape[0]
         vals_req = vals.clone().requires_grad_(True)
         leaves_req = {e: {p: t.clone().requires_grad_(True) for p, t in d.items()} for e, d in leaves.items()}

@@ -14,6 +14,7 @@ import os
 import numpy as np
 import torch
 
+from bluesky_offsets.errors import InputError
 from bluesky_offsets.physics import torch_random as rnd
 from bluesky_offsets.physics.rml import read_rml
 from bluesky_offsets.physics.screen import on_image_plane
@@ -60,7 +61,7 @@ class RmlTorchEngine(TorchEngine):
         vals = vals.to(dtype=torch.float64, device=o.device)
         vals = vals[None] if vals.ndim == 1 else vals
         if vals.shape[1] != len(self.table):
-            raise ValueError(f"expected parameter vectors of {len(self.table)} values, got shape {tuple(vals.shape)}")
+            raise InputError(f"expected parameter vectors of {len(self.table)} values, got shape {tuple(vals.shape)}")
         overrides = on_image_plane(overrides, self.described.detector.image_plane)
         if overrides is not None and not isinstance(overrides, dict):
             overrides = self._columns(list(overrides), vals.shape[0])
@@ -72,14 +73,14 @@ class RmlTorchEngine(TorchEngine):
         configuration leaves out keeps the RML's value); element types must agree."""
         from bluesky_offsets.physics.torch_engine import _MIS_KEYS
         if len(per_config) != c:
-            raise ValueError(f"{len(per_config)} overrides for {c} configurations")
+            raise InputError(f"{len(per_config)} overrides for {c} configurations")
         keys = {(e, k) for ov in per_config for e, f in ov.items() for k in f}
         out: dict = {}
         for e, k in sorted(keys):
             vals = [ov.get(e, {}).get(k) for ov in per_config]
             if k == "type":
                 if len({str(v) for v in vals}) > 1:
-                    raise ValueError("the configurations of one batch must not change element types differently")
+                    raise InputError("the configurations of one batch must not change element types differently")
                 out.setdefault(e, {})[k] = vals[0]
                 continue
             default = getattr(self.rml[e].misalignment, _MIS_KEYS[k]) if k in _MIS_KEYS else self.rml[e].get_float(k)

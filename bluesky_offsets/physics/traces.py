@@ -11,6 +11,7 @@ from typing import Protocol, runtime_checkable
 
 import numpy as np
 
+from bluesky_offsets.errors import InputError
 from bluesky_offsets.physics.parameters import ParameterTable
 
 
@@ -72,10 +73,10 @@ class HistogramSpec:
         def axis(c):
             c = np.asarray(c, float)
             if c.size < 2:
-                raise ValueError("a histogram axis needs at least two bin centres")
+                raise InputError("a histogram axis needs at least two bin centres")
             w = (c[-1] - c[0]) / (c.size - 1)
             if not np.allclose(np.diff(c), w, rtol=1e-6, atol=1e-9):
-                raise ValueError("histogram bins are not uniform")
+                raise InputError("histogram bins are not uniform")
             # rounded: the centres travel as float32 or text, the window edges are round numbers
             return c.size, (round(float(c[0] - w / 2), 6), round(float(c[-1] + w / 2), 6))
         (bx, rx), (by, ry) = axis(centers_x), axis(centers_y)
@@ -86,7 +87,7 @@ class HistogramSpec:
         edges of ``coarse`` are not edges of this spec."""
         if self.range_x != coarse.range_x or self.range_y != coarse.range_y \
                 or self.bins_x % coarse.bins_x or self.bins_y % coarse.bins_y:
-            raise ValueError(f"histograms binned as {self.fingerprint()} cannot be re-binned to {coarse.fingerprint()}")
+            raise InputError(f"histograms binned as {self.fingerprint()} cannot be re-binned to {coarse.fingerprint()}")
         return self.bins_x // coarse.bins_x, self.bins_y // coarse.bins_y
 
     def rebin(self, hist_x: np.ndarray, hist_y: np.ndarray, coarse: HistogramSpec) -> tuple[np.ndarray, np.ndarray]:

@@ -25,6 +25,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from bluesky_offsets.errors import InputError
 from bluesky_offsets.physics.parameters import METRIXS, ParameterTable
 from bluesky_offsets.physics.traces import (  # noqa: F401 - the twin's types, here where users look
     CAMERA,
@@ -181,7 +182,7 @@ class RayxEngine:
 
         values = self.table.validate(request.values)
         if n_rays < 1:
-            raise ValueError(f"n_rays must be positive, got {n_rays}")
+            raise InputError(f"n_rays must be positive, got {n_rays}")
         bl = _import_rml(self.build(request, n_rays))
         if request.seed is None:
             _ensure_random_stream()
@@ -269,7 +270,7 @@ def make_engine(engine: TraceEngine | str | None = None, **options) -> TraceEngi
         from bluesky_offsets.physics.torch_engine import TorchEngine
         return TorchEngine(**options)
     if isinstance(engine, str):
-        raise ValueError(f"unknown engine {engine!r}; known: {', '.join(ENGINES)}")
+        raise InputError(f"unknown engine {engine!r}; known: {', '.join(ENGINES)}")
     return engine
 
 
@@ -418,7 +419,7 @@ class Twin:
         else:
             ovs = list(overrides)
             if len(ovs) != len(vals):
-                raise ValueError(f"{len(ovs)} overrides for {len(vals)} configurations")
+                raise InputError(f"{len(ovs)} overrides for {len(vals)} configurations")
         if seed is None:
             seeds = [None] * len(vals)
         elif isinstance(seed, (int, np.integer)):
@@ -426,7 +427,7 @@ class Twin:
         else:
             seeds = [int(s) for s in seed]
             if len(seeds) != len(vals):
-                raise ValueError(f"{len(seeds)} seeds for {len(vals)} configurations")
+                raise InputError(f"{len(seeds)} seeds for {len(vals)} configurations")
         requests = [TraceRequest(v, o, s) for v, o, s in zip(vals, ovs, seeds)]
         n = n_rays or self.n_rays
         if self.scheduler == "inline" or (self.scheduler is None and self._client is None

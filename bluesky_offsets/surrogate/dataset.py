@@ -47,6 +47,7 @@ from pathlib import Path
 
 import numpy as np
 
+from bluesky_offsets.errors import InputError
 from bluesky_offsets.physics.effects import CHAMBER_HIGH, CHAMBER_INPUTS, CHAMBER_LOW
 from bluesky_offsets.physics.metrixs import IMAGE_PLANE
 from bluesky_offsets.physics.parameters import METRIXS, ParameterTable
@@ -85,11 +86,11 @@ class DrawScheme:
 
     def __post_init__(self):
         if self.screen_rays < 0:
-            raise ValueError(f"screen_rays must be >= 0, got {self.screen_rays}")
+            raise InputError(f"screen_rays must be >= 0, got {self.screen_rays}")
         if self.screen_min_hits < 1:
-            raise ValueError(f"screen_min_hits must be >= 1, got {self.screen_min_hits}")
+            raise InputError(f"screen_min_hits must be >= 1, got {self.screen_min_hits}")
         if not 0.0 < self.keep_fraction <= 1.0:
-            raise ValueError(f"keep_fraction must be in (0, 1], got {self.keep_fraction}")
+            raise InputError(f"keep_fraction must be in (0, 1], got {self.keep_fraction}")
 
     @property
     def screened(self) -> bool:
@@ -131,11 +132,11 @@ class GenerationSettings:
 
     def __post_init__(self):
         if self.n_rays < 1:
-            raise ValueError(f"n_rays must be positive, got {self.n_rays}")
+            raise InputError(f"n_rays must be positive, got {self.n_rays}")
         if self.block_size < 1:
-            raise ValueError(f"block_size must be positive, got {self.block_size}")
+            raise InputError(f"block_size must be positive, got {self.block_size}")
         if self.engine not in ENGINES:
-            raise ValueError(f"engine must be one of {', '.join(ENGINES)}, not {self.engine!r}")
+            raise InputError(f"engine must be one of {', '.join(ENGINES)}, not {self.engine!r}")
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -569,7 +570,7 @@ def generate(path: str | os.PathLike, n_samples: int, settings: GenerationSettin
     from bluesky_offsets.progress import bar as progress_bar
 
     if n_samples < 1:
-        raise ValueError(f"n_samples must be positive, got {n_samples}")
+        raise InputError(f"n_samples must be positive, got {n_samples}")
     settings = settings or GenerationSettings()
     own = twin is None
     twin = twin or Twin(settings.engine, n_rays=settings.n_rays, scheduler=scheduler, n_workers=n_workers)

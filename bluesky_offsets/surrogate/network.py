@@ -29,6 +29,7 @@ import numpy as np
 import torch
 from torch import nn
 
+from bluesky_offsets.errors import InputError
 from bluesky_offsets.physics.effects import CHAMBER_HIGH, CHAMBER_INPUTS, CHAMBER_LOW
 from bluesky_offsets.physics.parameters import METRIXS, ParameterTable
 from bluesky_offsets.physics.twin import SOURCE_FRAME, HistogramSpec
@@ -91,19 +92,19 @@ class Architecture:
 
     def __post_init__(self):
         if self.activation not in ACTIVATIONS:
-            raise ValueError(f"activation must be one of {', '.join(ACTIVATIONS)}, got {self.activation!r}")
+            raise InputError(f"activation must be one of {', '.join(ACTIVATIONS)}, got {self.activation!r}")
         if self.n_layers < 2:
-            raise ValueError("n_layers must be >= 2")
+            raise InputError("n_layers must be >= 2")
         if self.width < 1:
-            raise ValueError("width must be positive")
+            raise InputError("width must be positive")
         if self.decoder not in DECODERS:
-            raise ValueError(f"decoder must be one of {DECODERS}, got {self.decoder!r}")
+            raise InputError(f"decoder must be one of {DECODERS}, got {self.decoder!r}")
         if self.members < 1 or (self.members > 1 and self.decoder not in LIKELIHOOD_DECODERS):
-            raise ValueError("members > 1 (an ensemble) needs the factored or joint decoder")
+            raise InputError("members > 1 (an ensemble) needs the factored or joint decoder")
         if self.bins_x is None:
             object.__setattr__(self, "bins_x", self.n_outputs // 2)
         if not 0 < self.bins_x < self.n_outputs:
-            raise ValueError(f"bins_x must be in (0, {self.n_outputs}), got {self.bins_x}")
+            raise InputError(f"bins_x must be in (0, {self.n_outputs}), got {self.bins_x}")
 
 
 ACTIVATIONS = {"mish": nn.Mish, "silu": nn.SiLU}
@@ -235,7 +236,7 @@ class Normalization:
         elif mode == "none":  # the likelihood decoders predict histograms directly
             lo, hi = np.zeros(hist.shape[1]), np.ones(hist.shape[1])
         else:
-            raise ValueError(f"output normalization must be 'global', 'per-bin' or 'none', got {mode!r}")
+            raise InputError(f"output normalization must be 'global', 'per-bin' or 'none', got {mode!r}")
         span = np.where(hi - lo > 0, hi - lo, 1.0)
         in_low, in_span = table.low.copy(), table.span.copy()
         if chamber:
@@ -291,7 +292,7 @@ class Surrogate:
         hist = hist or HistogramSpec()
         if arch.n_inputs not in (len(table), len(table) + len(CHAMBER_INPUTS)) \
                 or arch.n_outputs != hist.bins_x + hist.bins_y or len(norm.in_low) != arch.n_inputs:
-            raise ValueError(f"architecture {arch} does not fit {len(table)} parameters (and the chamber's "
+            raise InputError(f"architecture {arch} does not fit {len(table)} parameters (and the chamber's "
                              f"{len(CHAMBER_INPUTS)}) and {hist.bins_x}+{hist.bins_y} bins")
         return cls(SurrogateNet(arch), arch, norm, table.fingerprint(), hist.fingerprint(), **kw)
 
@@ -361,7 +362,7 @@ class Surrogate:
         x = torch.as_tensor(np.asarray(params, dtype=np.float32) if as_numpy else params)
         n_table = len(self.table["names"])
         if x.shape[-1] not in (n_table, self.arch.n_inputs):
-            raise ValueError(f"expected parameter vectors of length {n_table}"
+            raise InputError(f"expected parameter vectors of length {n_table}"
                              + (f" or {self.arch.n_inputs} (with the chamber's x, y, z)" if self.chamber else "")
                              + f" (table order), got shape {tuple(x.shape)}")
         dtype = next(self.net.parameters()).dtype
@@ -374,7 +375,7 @@ class Surrogate:
                 ch = (ch - in_low[n_table:]) / in_span[n_table:]
             x = torch.cat([x, ch.expand(*x.shape[:-1], 3)], -1)
         elif chamber is not None and not self.chamber and bool(torch.as_tensor(chamber).ne(0).any()):
-            raise ValueError("this surrogate was trained without the focus chamber's inputs: it knows the "
+            raise InputError("this surrogate was trained without the focus chamber's inputs: it knows the "
                              "chamber at its nominal place only")
         lead = x.shape[:-1]
         x = x.reshape(-1, x.shape[-1])

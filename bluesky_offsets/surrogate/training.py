@@ -25,6 +25,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from bluesky_offsets.errors import InputError
 from bluesky_offsets.surrogate.dataset import GOOD_MIN_RAYS, Dataset
 from bluesky_offsets.physics.parameters import METRIXS, ParameterTable
 from bluesky_offsets.surrogate.network import (ACTIVATIONS, DECODERS, LIKELIHOOD_DECODERS, Architecture,
@@ -123,26 +124,26 @@ class TrainConfig:
     def __post_init__(self):
         self.split = tuple(float(s) for s in self.split)
         if len(self.split) != 3 or any(s < 0 for s in self.split) or not math.isclose(sum(self.split), 1.0):
-            raise ValueError(f"split must be three fractions summing to 1, got {self.split}")
+            raise InputError(f"split must be three fractions summing to 1, got {self.split}")
         if self.good_fraction is not None and not 0 < self.good_fraction < 1:
-            raise ValueError(f"good_fraction must be in (0, 1), got {self.good_fraction}")
+            raise InputError(f"good_fraction must be in (0, 1), got {self.good_fraction}")
         for name in ("epochs", "batch_size", "width", "n_layers"):
             if getattr(self, name) < 1:
-                raise ValueError(f"{name} must be positive")
+                raise InputError(f"{name} must be positive")
         if self.lr <= 0 or not 0 < self.gamma <= 1:
-            raise ValueError("lr must be > 0 and gamma in (0, 1]")
+            raise InputError("lr must be > 0 and gamma in (0, 1]")
         if self.decoder not in DECODERS:
-            raise ValueError(f"decoder must be one of {DECODERS}, got {self.decoder!r}")
+            raise InputError(f"decoder must be one of {DECODERS}, got {self.decoder!r}")
         if self.activation not in ACTIVATIONS:
-            raise ValueError(f"activation must be one of {', '.join(ACTIVATIONS)}, got {self.activation!r}")
+            raise InputError(f"activation must be one of {', '.join(ACTIVATIONS)}, got {self.activation!r}")
         if self.members < 1 or (self.members > 1 and self.decoder not in LIKELIHOOD_DECODERS):
-            raise ValueError("members > 1 (an ensemble) needs decoder 'factored' or 'joint'")
+            raise InputError("members > 1 (an ensemble) needs decoder 'factored' or 'joint'")
         if self.decoder in LIKELIHOOD_DECODERS:
             self.output_norm = "none"
         elif self.output_norm == "none":
-            raise ValueError("output_norm 'none' is only for the factored and joint decoders")
+            raise InputError("output_norm 'none' is only for the factored and joint decoders")
         if self.device not in ("auto", "cpu", "cuda"):
-            raise ValueError(f"device must be auto, cpu or cuda, got {self.device!r}")
+            raise InputError(f"device must be auto, cpu or cuda, got {self.device!r}")
 
     def to_dict(self) -> dict:
         d = asdict(self)
