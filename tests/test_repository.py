@@ -60,3 +60,11 @@ def test_the_layers_hold():
     import subprocess
     r = subprocess.run([_tool("lint-imports"), "--no-cache"], cwd=ROOT, capture_output=True, text=True, timeout=300)
     assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-2000:]
+
+
+def test_readme_is_read_in_five_minutes():
+    """A README a beamline scientist reads through: 12 kB at most; the details live in docs/."""
+    size = len((ROOT / "README.md").read_bytes())
+    assert size <= 12_000, f"README.md is {size} bytes"
+    for link in re.findall(r"\]\(((?:docs|benchmarks|tests)/[^)#]+)", (ROOT / "README.md").read_text()):
+        assert (ROOT / link).exists(), link
