@@ -39,6 +39,7 @@ from typing import Any
 import numpy as np
 from bluesky.utils import MsgGenerator
 
+from bluesky_offsets import streams
 from bluesky_offsets.model import diagnosis as D
 from bluesky_offsets.physics import effects as E
 from bluesky_offsets.model.diagnosis import Diagnosis, Version, diagnose
@@ -62,7 +63,7 @@ from bluesky_offsets.physics.parameters import METRIXS, ParameterTable
 
 from ._stubs import emit_rows, in_run, run_in_thread
 
-MODEL_SEED = 777
+MODEL_SEED = streams.MODEL_SEED  # the comparisons' model rays
 """Seed base of the fresh-ray model traces of :func:`compare_model` (as ``diagnosis.evaluate``)."""
 
 
@@ -958,7 +959,7 @@ def analyse_measurement(measurement, twin, forward_model=None, *, store=None,
         rf = yield from step("add_effect" + suffix, lambda m: add_effect_and_refit(
             meas, start, best.name, twin, values=best.values, history=history,
             options=fopts.replace(seed=fopts.seed + 1 + round_), md=m, show=show, candidates=candidates,
-            limits_options=sopts.replace(seed=seed + round_ + 7919),
+            limits_options=sopts.replace(seed=streams.stream(seed + round_, "diagnosis.fits")),
             also_from=[best.twin_start()] if refit_from_twin else (), executor=executor, table=table),
             lambda res, uid: restore_refit(res, history, uid))
         out.refits.append(rf)

@@ -47,6 +47,7 @@ from bluesky_offsets.model.fit import FitOptions
 from bluesky_offsets.physics.parameters import METRIXS
 
 from bluesky_offsets.design import DesignOptions
+from bluesky_offsets.streams import stream
 
 if TYPE_CHECKING:  # plans (bluesky) load when the demo runs, not with every command
     from plans.workflow import MeasurementDesign
@@ -152,7 +153,7 @@ def demo_offsets(s: DemoSettings) -> dict[str, float]:
     """The hidden normalized offsets: all the table's drawn (``offsets_fraction``) or ``s.offsets``."""
     table = s.table
     if s.offsets_fraction > 0:
-        rng = np.random.default_rng(s.seed + 1)
+        rng = np.random.default_rng(stream(s.seed, "demo.hidden_offsets"))
         return {n: float(v) for n, v in zip(table.names, rng.uniform(-s.offsets_fraction, s.offsets_fraction,
                                                                      len(table)))}
     return dict(s.offsets)
@@ -267,7 +268,7 @@ def demo_plan(s: DemoSettings, beamline, chamber, twin, forward_model, log, exec
             + (f"; the model refitted with them, moved once more, {s.frames} frames (closed loop)" if s.closed_loop
                else ""))
         beam = yield from optimize_beam("smallest_focus", session.analysis, beamline, chamber, frames=s.frames,
-                                        options={"seed": s.seed + 11}, md={"purpose": "bluesky-offsets demo"},
+                                        options={"seed": stream(s.seed, "demo.beam_optimizer")}, md={"purpose": "bluesky-offsets demo"},
                                         closed_loop=s.closed_loop, measurement=session.analysis.measurement,
                                         refit=s.fit.replace(ray_draws=1), executor=executor)
     session.times["optimize"] = time.perf_counter()
@@ -294,7 +295,7 @@ def run_demo(out: Path, settings: DemoSettings | None = None, store_location: st
         f"of {len(table)} parameters, hidden effects: {', '.join(hidden) or 'none'}); load average {load:.1f} on "
         f"{os.cpu_count()} cores; the analysis's fits {s.threads} at a time)")
     # seeded frame noise: the same settings give the same demo, --seed another draw of it
-    ioc = SimulatedBeamline(truth, s.n_rays, work, move_time=s.move_time, noise_seed=s.seed + 2, motors=s.motors,
+    ioc = SimulatedBeamline(truth, s.n_rays, work, move_time=s.move_time, noise_seed=stream(s.seed, "demo.ioc_noise"), motors=s.motors,
                             beamline=None if described is None else described.path)
     twin = RE = steps_log = None
     pool = contextlib.ExitStack()  # the analysis's executor (one torch and BLAS thread a fit) to the end

@@ -47,6 +47,7 @@ from bluesky_offsets.model.measurement import Measurement
 from bluesky_offsets.model.state import ModelState, refine, simulate, solve_normal
 from bluesky_offsets.physics.parameters import METRIXS, ParameterTable
 from bluesky_offsets.physics.twin import Twin
+from bluesky_offsets.streams import MODEL_SEED, stream
 
 
 @dataclass
@@ -434,7 +435,7 @@ def _fresh_misfit(verifier: Twin, meas: Measurement, st: ModelState, rays: int, 
                   table: ParameterTable) -> tuple[Misfit, np.ndarray]:
     """``st`` traced with fresh rays (draw ``draw`` of streams none of the fits traced) against
     ``meas``: its misfit and the model's histograms (C, bins x + bins y)."""
-    seeds = [seed + 104729 * (1 + draw) + i for i in range(meas.n)]
+    seeds = [stream(seed, "diagnosis.fresh_rays", draw=draw) + i for i in range(meas.n)]
     hx, hy = simulate(verifier, meas.configurations, st, rays, seeds, table, meas.screen)
     return misfit(meas.hist_x, meas.hist_y, hx, hy, meas.n_rays, model_rays=rays, floor_x=meas.floor_x,
                   floor_y=meas.floor_y), np.c_[hx, hy]
@@ -480,7 +481,7 @@ def diagnose(meas: Measurement, state: ModelState, twin=None, forward_model=None
     for n_ in names:
         E.get(n_)
     o = FitOptions.resolve(options, SCAN)
-    o = o.replace(seed=seed + 7919)
+    o = o.replace(seed=stream(seed, "diagnosis.fits"))
     spec, n = meas.spec, meas.n
     engine = engine_for(meas, o, table)
     verifier = Twin(engine)  # the same twin, traced with fresh rays
@@ -730,7 +731,7 @@ class Version:
                 "effect_sigma": self.effect_sigma}
 
 
-def evaluate(meas: Measurement, state: ModelState, twin, *, model_rays: int | None = None, seed: int = 777,
+def evaluate(meas: Measurement, state: ModelState, twin, *, model_rays: int | None = None, seed: int = MODEL_SEED,
              table: ParameterTable = METRIXS) -> Misfit:
     """The twin at the model's compensated configurations vs. the measurement (fresh rays)."""
     model_rays = model_rays or 4 * int(meas.n_rays)  # a sharper model than the measurement

@@ -47,6 +47,7 @@ from bluesky_offsets.physics import effects as E
 from bluesky_offsets.physics.parameters import MAX_OFFSET, METRIXS, ParameterTable
 from bluesky_offsets.physics.torch_engine import FORWARD_AD
 from bluesky_offsets.physics.twin import CAMERA
+from bluesky_offsets.streams import stream
 
 from .targets import (
     Constraints,
@@ -495,7 +496,7 @@ def sampled_sigma(state, configuration, covariance, names, *, samples: int = 24,
                 q = next(q for q in E.get(e).parameters if q.name == p)
                 effects[e][p] = float(np.clip(v, q.low, q.high))
         draws.append(ModelState(z[:P], effects, state.label))
-    foci = [f for f, _, _ in predict_many(draws, configuration, rays=rays, seed=seed + 1, overrides=overrides,
+    foci = [f for f, _, _ in predict_many(draws, configuration, rays=rays, seed=stream(seed, "optimizer.posterior_draws"), overrides=overrides,
                                           engine=engine, table=table)]
     return {a: float(np.nanstd([getattr(f, f"rms_{a}") for f in foci], ddof=1)) for a in "xy"}
 

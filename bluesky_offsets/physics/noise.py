@@ -16,6 +16,8 @@ from importlib import resources
 
 import numpy as np
 
+from bluesky_offsets.streams import stream
+
 NOISE_FLOOR_FILE = "noise_floor.json"
 
 
@@ -77,7 +79,7 @@ def good_configurations(twin, n: int, rng: np.random.Generator, *, min_hits: int
 def measure_noise_floor(twin, configurations: np.ndarray, n_rays: int, seed: int = 0) -> dict:
     """Measure the repeat-noise MSE: every configuration traced twice with independent seeds."""
     a = twin.trace_batch(configurations, n_rays=n_rays, seed=seed, progress=False)
-    b = twin.trace_batch(configurations, n_rays=n_rays, seed=seed + 10_000_019, progress=False)
+    b = twin.trace_batch(configurations, n_rays=n_rays, seed=stream(seed, "noise_floor.second_trace"), progress=False)
     ha = np.concatenate([a.hist_x, a.hist_y], axis=1)
     hb = np.concatenate([b.hist_x, b.hist_y], axis=1)
     mse = histogram_mse(ha, hb)

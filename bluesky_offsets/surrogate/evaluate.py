@@ -27,6 +27,7 @@ from dataclasses import replace
 
 import numpy as np
 
+from bluesky_offsets.streams import stream
 from bluesky_offsets.surrogate.dataset import (GOOD_MIN_RAYS, DrawScheme, GenerationSettings, chamber_overrides,
                                                draw_in_memory, openmp_threads)
 from bluesky_offsets.surrogate.network import Surrogate
@@ -123,9 +124,9 @@ def evaluate(model: Surrogate, *, n_samples: int = 500, min_nonempty: int = 100,
                                       chamber=model.chamber)
         sets["screened"] = _trace_set(twin, settings, n_samples, min_nonempty, seed, progress)
         if n_uniform:
-            u = GenerationSettings(n_rays=n_rays, seed=seed + 1, block_size=block_size,
+            u = GenerationSettings(n_rays=n_rays, seed=stream(seed, "surrogate_check.uniform"), block_size=block_size,
                                    scheme=DrawScheme(screen_rays=0), chamber=model.chamber)
-            sets["uniform"] = _trace_set(twin, u, n_uniform, 0, seed + 1, progress)
+            sets["uniform"] = _trace_set(twin, u, n_uniform, 0, u.seed, progress)
     finally:
         if own:
             twin.close()

@@ -26,6 +26,7 @@ import numpy as np
 import torch
 
 from bluesky_offsets.errors import InputError
+from bluesky_offsets.streams import stream
 from bluesky_offsets.surrogate.dataset import GOOD_MIN_RAYS, Dataset
 from bluesky_offsets.physics.parameters import METRIXS, ParameterTable
 from bluesky_offsets.surrogate.network import (ACTIVATIONS, DECODERS, LIKELIHOOD_DECODERS, Architecture,
@@ -377,7 +378,7 @@ def train(data: Dataset, run_dir: str | os.PathLike, config: TrainConfig | None 
     model.to(device)
     opt = torch.optim.Adam(model.net.parameters(), lr=config.lr)
     sched = torch.optim.lr_scheduler.ExponentialLR(opt, gamma=config.gamma)
-    rng = np.random.default_rng(config.seed + 1)
+    rng = np.random.default_rng(stream(config.seed, "training.epoch_order"))
     state_path, best_path = run_dir / "state.pt", run_dir / "best.pt"
     history: list[dict] = []
     start_epoch, best_val, stale, elapsed = 0, math.inf, 0, 0.0
