@@ -231,6 +231,12 @@ def _cmd_surrogate_evaluate(args) -> int:
 
 def add_cli(sub) -> None:
     """Register ``dataset``, ``train`` and ``surrogate`` sub-commands."""
+    _add_dataset(sub)
+    _add_train(sub)
+    _add_surrogate(sub)
+
+
+def _add_dataset(sub) -> None:
     p = sub.add_parser("dataset", help="twin datasets for the surrogate (Zarr, Dask, resumable)")
     dsub = p.add_subparsers(dest="dataset_command", required=True)
     g = dsub.add_parser("generate", help="generate, resume or extend a dataset store",
@@ -262,6 +268,8 @@ def add_cli(sub) -> None:
     i.add_argument("path")
     i.set_defaults(func=_cmd_dataset_info)
 
+
+def _add_train(sub) -> None:
     from bluesky_offsets.surrogate.network import DECODERS
     from bluesky_offsets.surrogate.training import TrainConfig
     c = TrainConfig()
@@ -312,6 +320,8 @@ def add_cli(sub) -> None:
     t.add_argument("--json", action="store_true", help="print the metrics as JSON")
     t.set_defaults(func=_cmd_train)
 
+
+def _add_surrogate(sub) -> None:
     s = sub.add_parser("surrogate", help="inspect and evaluate surrogate checkpoints")
     ssub = s.add_subparsers(dest="surrogate_command", required=True)
     e = ssub.add_parser("evaluate", help="compare a surrogate with fresh twin traces and the twin's repeat noise",

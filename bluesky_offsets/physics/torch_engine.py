@@ -210,47 +210,9 @@ def compile_beamline(values, overrides: Mapping | Sequence[Mapping] | None = Non
     if vals.ndim == 1:
         vals = vals[None, :]
     c = vals.shape[0]
-    per_config = overrides is not None and not isinstance(overrides, Mapping)
-    if beamline is None:
-        if vals.shape[1] != len(table):
-            raise InputError(f"expected parameter vectors of {len(table)} values, got shape {tuple(vals.shape)}")
-        for row in (vals.detach().cpu().numpy() if check else ()):
-            check_physical(row, table)
-        if per_config:
-            ovs = list(overrides)
-            if len(ovs) != c:
-                raise InputError(f"{len(ovs)} overrides for {c} configurations")
-            state = _stack_states([beamline_state(vals[i], ov, table) for i, ov in enumerate(ovs)], device)
-        else:
-            state = beamline_state(vals, overrides, table)
-        base = _NOMINAL.copy()
-    else:
-        base = beamline.copy()
-        state = beamline_state(vals[:, :0], None, ParameterTable([], name="none"))
-        for name, flds in (overrides or {}).items():
-            for k, v in flds.items():
-                (state.misalignment if k in _MIS_KEYS else state.fields).setdefault(name, {})[k] = v
-    for name, t in state.types.items():
-        base[name].type = t
-
-    def getter(obj):
-        mine = state.fields.get(obj.name, {})
-
-        def get(key, default=None):
-            if key in mine:
-                return mine[key]
-            return obj.get_float(key, default)
-        return get
-
-    links = []
-    for obj in base.objects:
-        mis = obj.misalignment
-        extra = state.misalignment.get(obj.name)
-        if extra:
-            mis = Misalignment(**{**asdict(mis), **{_MIS_KEYS[k]: v for k, v in extra.items()}})
-        links.append(chain_link(obj.type, getter(obj), obj.comment, mis, obj.name))
-    frames = chain_frames(links)
-
+    base, state = _compiled_state(vals, overrides, table, beamline, check, device)
+    getter = _getter(state)
+    frames = _world_frames(base, state, getter)
     f64 = dict(dtype=torch.float64, device=device)
 
     def frame_tensors(fr):
@@ -264,16 +226,7 @@ def compile_beamline(values, overrides: Mapping | Sequence[Mapping] | None = Non
         raise RmlError("the first object must be the source")
     swap = torch.tensor([[1.0, 0, 0], [0, 0, 1.0], [0, 1.0, 0]], **f64)
     prev_p, prev_o = frame_tensors(frames[0])  # physical source frame: world = p + O r
-    source = {"type": src_obj.type}
-    if src_obj.type == "Point Source":  # other sources are traced from given rays
-        get = getter(src_obj)
-        source.update(width=get("sourceWidth"), height=get("sourceHeight"), depth=get("sourceDepth"),
-                      hor_div=get("horDiv") * 1e-3, ver_div=get("verDiv") * 1e-3,
-                      energy=get("photonEnergy"), spread=get("energySpread", 0.0))
-        source = {k: (v if k == "type" else _col(v, c, torch.float64, device)) for k, v in source.items()}
-        source["dists"] = tuple(int(src_obj.get_float(k, 1.0)) for k in (
-            "sourceWidthDistribution", "sourceHeightDistribution", "horDivDistribution", "verDivDistribution"))
-
+    source = _source(src_obj, getter(src_obj), c, device)
     optics: list[Optic] = []
     src_rot = src_shift = None
     for obj, fr in zip(base.objects[1:], frames[1:]):
@@ -289,6 +242,73 @@ def compile_beamline(values, overrides: Mapping | Sequence[Mapping] | None = Non
     for opt in optics:
         opt.rot, opt.shift = opt.rot.to(dtype), opt.shift.to(dtype)
     return CompiledBeamline(c, source, src_rot.to(dtype), src_shift.to(dtype), optics, dtype, device)
+
+
+def _compiled_state(vals, overrides, table: ParameterTable, beamline, check: bool, device):
+    """The beamline to compile (METRIXS's nominal one, or ``beamline``) and its state at ``vals``:
+    every field and misalignment the parameters and ``overrides`` set, as (C,) columns."""
+    c = vals.shape[0]
+    if beamline is None:
+        if vals.shape[1] != len(table):
+            raise InputError(f"expected parameter vectors of {len(table)} values, got shape {tuple(vals.shape)}")
+        for row in (vals.detach().cpu().numpy() if check else ()):
+            check_physical(row, table)
+        if overrides is not None and not isinstance(overrides, Mapping):
+            ovs = list(overrides)
+            if len(ovs) != c:
+                raise InputError(f"{len(ovs)} overrides for {c} configurations")
+            state = _stack_states([beamline_state(vals[i], ov, table) for i, ov in enumerate(ovs)], device)
+        else:
+            state = beamline_state(vals, overrides, table)
+        base = _NOMINAL.copy()
+    else:
+        base = beamline.copy()
+        state = beamline_state(vals[:, :0], None, ParameterTable([], name="none"))
+        for name, flds in (overrides or {}).items():
+            for k, v in flds.items():
+                (state.misalignment if k in _MIS_KEYS else state.fields).setdefault(name, {})[k] = v
+    for name, t in state.types.items():
+        base[name].type = t
+    return base, state
+
+
+def _getter(state):
+    """``getter(obj)``: a field of ``obj`` as the state sets it, else as the RML has it."""
+    def getter(obj):
+        mine = state.fields.get(obj.name, {})
+
+        def get(key, default=None):
+            if key in mine:
+                return mine[key]
+            return obj.get_float(key, default)
+        return get
+    return getter
+
+
+def _world_frames(base, state, getter) -> list:
+    """Every element's misaligned world frame, down the nominal chain (RAY-UI's rule)."""
+    links = []
+    for obj in base.objects:
+        mis = obj.misalignment
+        extra = state.misalignment.get(obj.name)
+        if extra:
+            mis = Misalignment(**{**asdict(mis), **{_MIS_KEYS[k]: v for k, v in extra.items()}})
+        links.append(chain_link(obj.type, getter(obj), obj.comment, mis, obj.name))
+    return chain_frames(links)
+
+
+def _source(src_obj, get, c: int, device) -> dict:
+    """The point source's sizes, divergences and energy as (C,) columns (other sources are traced
+    from given rays: their type alone)."""
+    source = {"type": src_obj.type}
+    if src_obj.type == "Point Source":
+        source.update(width=get("sourceWidth"), height=get("sourceHeight"), depth=get("sourceDepth"),
+                      hor_div=get("horDiv") * 1e-3, ver_div=get("verDiv") * 1e-3,
+                      energy=get("photonEnergy"), spread=get("energySpread", 0.0))
+        source = {k: (v if k == "type" else _col(v, c, torch.float64, device)) for k, v in source.items()}
+        source["dists"] = tuple(int(src_obj.get_float(k, 1.0)) for k in (
+            "sourceWidthDistribution", "sourceHeightDistribution", "horDivDistribution", "verDivDistribution"))
+    return source
 
 
 def _stack_states(states, device):
@@ -876,6 +896,9 @@ def _inside_rect(x, z, w, length, edge):
     return hard, _sigmoid_inside(w / 2, x, edge) * _sigmoid_inside(length / 2, z, edge)
 
 
+# One function over 100 lines: the loop over the elements carries the beam's state in a dozen
+# tensors (positions, directions, survival, weights, hits, the compaction's indices); split, each
+# part would take and return them all.
 def trace_rays(bl: CompiledBeamline, rays: Rays, draws: Draws | None = None, *, edge: float = 0.0,
                keep_hits: bool = False, compact: bool = False) -> Beam:
     """Trace source-frame rays through the optics in order (see the module doc).
@@ -1423,6 +1446,8 @@ class TorchEngine:
 
 
     # -- per-ray derivatives ---------------------------------------------------------
+    # Over 100 lines with its docstring (a fifth of it), which the method's two passes need: the
+    # compiled fields' derivatives in the inputs, then the rays chunk by chunk in those fields.
     def ray_jacobian(self, values, effects=None, *, n_rays: int, seed=0, overrides=None,
                      chunk: int = 1 << 16, columns=None, full: Beam | None = None) -> RayJacobian:
         """Every ray's screen position and soft weight with their derivatives in the inputs.
