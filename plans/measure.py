@@ -164,44 +164,8 @@ def scan_configurations(configurations, beamline, chamber, *, reference=None, ta
         return cfgs, inside, scrs
 
     configs, targets, screens = yield from plan_targets(configs, screen)
-    truth_id = yield from _optional_read(chamber, "truth_id")
-    n_rays = yield from _optional_read(chamber, "num_rays")
-    profile_axes = []
-    for axis in "xy":
-        profile_axes.append((yield from _optional_read(chamber, f"profile_axis_{axis}")))
-    hist = HistogramSpec()
     commanded = CommandedConfiguration(len(table), screen=stage is not None)
-    _md = {
-        "plan_name": "measure_configurations",
-        "purpose": "offset finding: footprints at known configuration differences",
-        "parameter_table": table.name,
-        "parameter_table_version": table.version,
-        "parameter_names": list(table.names),
-        "configurations": configs.tolist(),
-        **({"screens": screens.tolist()} if screens is not None else {}),
-        "n_configurations": len(configs),
-        "reference": ref.tolist(),
-        # start documents allow no dots in keys: per-motor values as lists in table order
-        "motorized_names": list(motors),
-        "start_positions": [start[n] for n in motors],
-        "motor_names": [getattr(m, "name", str(m)) for m in motors.values()],
-        "detectors": [getattr(chamber, "name", str(chamber))],
-        "hist_keys": {k: v for k, v in {"x": _signal_name(chamber, "hist_x"), "y": _signal_name(chamber, "hist_y"),
-                                        "counts": _signal_name(chamber, "total_counts"),
-                                        "image": _signal_name(chamber, "image"),
-                                        "profile_x": _signal_name(chamber, "profile_x"),
-                                        "profile_y": _signal_name(chamber, "profile_y")}.items() if v},
-        "histogram": hist.fingerprint(),
-        "image_shape": [hist.bins_y, hist.bins_x],
-        "hints": {"dimensions": [(["time"], "primary")]},
-    }
-    if all(ax is not None and len(ax) > 1 for ax in profile_axes):
-        # the camera-resolution profiles' binning, as the detector publishes it
-        _md["profile"] = HistogramSpec.from_centers(*profile_axes).fingerprint()
-    if truth_id:
-        _md["truth_id"] = str(truth_id)
-    if n_rays is not None:
-        _md["n_rays"] = int(n_rays)
+    _md = yield from _scan_md(chamber, table, motors, start, ref, configs, screens)
     _md.update(md or {})
 
     readings: list[dict] = []
@@ -244,6 +208,49 @@ def scan_configurations(configurations, beamline, chamber, *, reference=None, ta
     else:  # kept where the scan ends, unless it fails: then back where they started
         uid = yield from bpp.contingency_wrapper(run, except_plan=lambda exc: back())
     return _measurement(readings, table, uid, _md)
+
+
+def _scan_md(chamber, table: ParameterTable, motors, start, ref, configs, screens) -> MsgGenerator[dict]:
+    """The scan's start document: the table, the configurations and the reference, where the
+    motors started, which signals hold what, and what the detector says of itself."""
+    truth_id = yield from _optional_read(chamber, "truth_id")
+    n_rays = yield from _optional_read(chamber, "num_rays")
+    profile_axes = []
+    for axis in "xy":
+        profile_axes.append((yield from _optional_read(chamber, f"profile_axis_{axis}")))
+    hist = HistogramSpec()
+    _md = {
+        "plan_name": "measure_configurations",
+        "purpose": "offset finding: footprints at known configuration differences",
+        "parameter_table": table.name,
+        "parameter_table_version": table.version,
+        "parameter_names": list(table.names),
+        "configurations": configs.tolist(),
+        **({"screens": screens.tolist()} if screens is not None else {}),
+        "n_configurations": len(configs),
+        "reference": ref.tolist(),
+        # start documents allow no dots in keys: per-motor values as lists in table order
+        "motorized_names": list(motors),
+        "start_positions": [start[n] for n in motors],
+        "motor_names": [getattr(m, "name", str(m)) for m in motors.values()],
+        "detectors": [getattr(chamber, "name", str(chamber))],
+        "hist_keys": {k: v for k, v in {"x": _signal_name(chamber, "hist_x"), "y": _signal_name(chamber, "hist_y"),
+                                        "counts": _signal_name(chamber, "total_counts"),
+                                        "image": _signal_name(chamber, "image"),
+                                        "profile_x": _signal_name(chamber, "profile_x"),
+                                        "profile_y": _signal_name(chamber, "profile_y")}.items() if v},
+        "histogram": hist.fingerprint(),
+        "image_shape": [hist.bins_y, hist.bins_x],
+        "hints": {"dimensions": [(["time"], "primary")]},
+    }
+    if all(ax is not None and len(ax) > 1 for ax in profile_axes):
+        # the camera-resolution profiles' binning, as the detector publishes it
+        _md["profile"] = HistogramSpec.from_centers(*profile_axes).fingerprint()
+    if truth_id:
+        _md["truth_id"] = str(truth_id)
+    if n_rays is not None:
+        _md["n_rays"] = int(n_rays)
+    return _md
 
 
 def _value(reading: dict, suffix: str, preferred: str | None):

@@ -71,7 +71,6 @@ def _calibrate(args, design, effects, pv_map, forward_model, store) -> int:
 
     from bluesky_offsets.model.cluster import analysis_executor
     from bluesky_offsets.commands.session import ScanProgress, StepLines, close_channels, connect_devices
-    from bluesky_offsets.commands.report import history_lines, paragraph, write_analysis_report
     from bluesky_offsets.physics.twin import Twin
     from plans.workflow import DarkBeamline, calibration_session
 
@@ -88,7 +87,6 @@ def _calibrate(args, design, effects, pv_map, forward_model, store) -> int:
         store.subscribe(RE)
         RE.subscribe(ScanProgress())
         from bluesky_offsets.live import LiveFitProgress, LiveFootprints, in_background
-        from bluesky_offsets.live import flush as flush_live
         live = [in_background(LiveFootprints(Path(args.out) / "live")),
                 in_background(LiveFitProgress(Path(args.out) / "live"))]
         for cb in live:
@@ -118,54 +116,62 @@ def _calibrate(args, design, effects, pv_map, forward_model, store) -> int:
             raise KeyboardInterrupt from None
         finally:
             twin.close()
-        measured, analysis, validation = session.measured, session.analysis, session.validation
-        out = Path(args.out)
-        out.mkdir(parents=True, exist_ok=True)
-        uids = {"measurement": measured.uid, **({"find_offsets": session.offsets.uid} if session.offsets else {}),
-                **analysis.uids, **({"validation": validation.uid} if validation is not None else {})}
-        how = (f"{len(measured.measurement)} frames designed for the offsets" if designed else
-               f"{len(measured.measurement)} configurations measured ({measured.n_open} with the slits open), "
-               f"offsets found with the surrogate")
-        extra = []
-        if designed:
-            from bluesky_offsets.commands.report import design_section, validation_section
-            extra = [("The designed measurement", design_section(measured.designed))]
-            if validation is not None:
-                extra.append(("Validation frames", validation_section(validation)))
-        report = write_analysis_report(
-            out / "report.html", analysis, analysis.measurement.spec, title=f"bluesky-offsets calibrate: {pv_map.name}",
-            intro=[("What this is", paragraph(
-                f"The calibration session on {pv_map.name}: the beam found in {measured.beam.frames} frames, {how}, "
-                f"fitted through the differentiable twin, the missing effects diagnosed, added and refitted."))],
-            uids=uids, store_location=store.location, extra=extra)
-        from bluesky_offsets.model.export import write_calibration
-        from bluesky_offsets.model.posterior import Posterior
-        calibration = None
-        if Posterior.of(analysis) is not None:
-            calibration = write_calibration(out / "calibration.json", analysis, measurement_uid=measured.uid,
-                                            validation=None if validation is None else validation.summary())
-        print()
-        print(f"verdict: {analysis.verdict}")
-        if validation is not None:
-            print(validation.line())
-        if analysis.could_hide:
-            print(analysis.could_hide_line)
-        print("error history (a correct model: chi2/dof ≈ 1, MSE ≈ its noise expectation):")
-        for line in history_lines(analysis):
-            print(line)
-        print("runs in the store:")
-        for k, v in uids.items():
-            print(f"  {k:16s} {v}")
-        print(f"report: {report}")
-        if calibration is not None:
-            print(f"calibration (every offset as value ± sigma, its class, the covariance): {calibration}")
-        flush_live(live)
-        print(f"live views: {sum(len(cb.written) for cb in live)} figures in {Path(args.out) / 'live'}")
-        print(f"done in {time.perf_counter() - t0:.0f} s")
+        _results(args, session, pv_map, store, designed, live, t0)
         return 0
     finally:
         lines.close()
         close_channels(RE)
+
+
+def _results(args, session, pv_map, store, designed: bool, live, t0: float) -> None:
+    """The session's report, calibration file and summary lines."""
+    from bluesky_offsets.commands.report import history_lines, paragraph, write_analysis_report
+    from bluesky_offsets.live import flush as flush_live
+
+    measured, analysis, validation = session.measured, session.analysis, session.validation
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    uids = {"measurement": measured.uid, **({"find_offsets": session.offsets.uid} if session.offsets else {}),
+            **analysis.uids, **({"validation": validation.uid} if validation is not None else {})}
+    how = (f"{len(measured.measurement)} frames designed for the offsets" if designed else
+           f"{len(measured.measurement)} configurations measured ({measured.n_open} with the slits open), "
+           f"offsets found with the surrogate")
+    extra = []
+    if designed:
+        from bluesky_offsets.commands.report import design_section, validation_section
+        extra = [("The designed measurement", design_section(measured.designed))]
+        if validation is not None:
+            extra.append(("Validation frames", validation_section(validation)))
+    report = write_analysis_report(
+        out / "report.html", analysis, analysis.measurement.spec, title=f"bluesky-offsets calibrate: {pv_map.name}",
+        intro=[("What this is", paragraph(
+            f"The calibration session on {pv_map.name}: the beam found in {measured.beam.frames} frames, {how}, "
+            f"fitted through the differentiable twin, the missing effects diagnosed, added and refitted."))],
+        uids=uids, store_location=store.location, extra=extra)
+    from bluesky_offsets.model.export import write_calibration
+    from bluesky_offsets.model.posterior import Posterior
+    calibration = None
+    if Posterior.of(analysis) is not None:
+        calibration = write_calibration(out / "calibration.json", analysis, measurement_uid=measured.uid,
+                                        validation=None if validation is None else validation.summary())
+    print()
+    print(f"verdict: {analysis.verdict}")
+    if validation is not None:
+        print(validation.line())
+    if analysis.could_hide:
+        print(analysis.could_hide_line)
+    print("error history (a correct model: chi2/dof ≈ 1, MSE ≈ its noise expectation):")
+    for line in history_lines(analysis):
+        print(line)
+    print("runs in the store:")
+    for k, v in uids.items():
+        print(f"  {k:16s} {v}")
+    print(f"report: {report}")
+    if calibration is not None:
+        print(f"calibration (every offset as value ± sigma, its class, the covariance): {calibration}")
+    flush_live(live)
+    print(f"live views: {sum(len(cb.written) for cb in live)} figures in {Path(args.out) / 'live'}")
+    print(f"done in {time.perf_counter() - t0:.0f} s")
 
 
 def add_cli(sub) -> None:
