@@ -47,7 +47,8 @@ def bar(iterable: Iterable | None = None, *, desc: str = "", total: int | None =
     if total is None and iterable is not None and hasattr(iterable, "__len__"):
         total = len(iterable)  # type: ignore[arg-type]
     if disable or _quiet or (not leave and not interactive(file)):
-        return Lines(iterable, desc=desc, total=total, unit=unit, file=None, clock=clock)
+        return Lines(iterable, desc=desc, total=total, unit=unit, file=None, clock=clock,
+                     initial=tqdm_options.get("initial", 0))
     if interactive(file):
         from tqdm.auto import tqdm
         return tqdm(iterable, desc=desc, total=total, unit=unit, leave=leave, file=file, **tqdm_options)
@@ -70,7 +71,7 @@ class Lines:
 
     def __iter__(self) -> Iterator:
         try:
-            for item in self.iterable or ():
+            for item in (self.iterable if self.iterable is not None else ()):
                 yield item
                 self.update(1)
         finally:

@@ -48,3 +48,11 @@ def test_quiet_flag_on_the_command_line():
     cmd = [sys.executable, "-m", "bluesky_offsets.commands.cli", "-q", "params", "--json"]
     r = subprocess.run(cmd, capture_output=True, text=True, timeout=120)
     assert r.returncode == 0 and r.stdout.lstrip().startswith(("{", "[")) and r.stderr == "", r.stderr[-500:]
+
+
+def test_an_array_iterates_as_with_tqdm():
+    import numpy as np
+    out = io.StringIO()
+    assert list(progress.bar(np.arange(3), desc="seeds", file=out)) == [0, 1, 2]
+    assert list(progress.bar(np.arange(2), desc="seeds", disable=True)) == [0, 1]
+    assert out.getvalue().startswith("seeds: 3/3 it, ")
