@@ -52,13 +52,13 @@ def _cmd_find(args) -> int:
         raise CliError(str(exc)) from None
 
 
-def _find(args) -> int:
+def _checked_find_args(args) -> list[str]:
+    """The methods asked for; ``args`` checked and completed (the device, the sizes of the GPU or
+    the headline comparison, the paper's histogram floor).  CliError for what a user can fix."""
     import torch
 
     from bluesky_offsets.offsets import baselines as B
     from bluesky_offsets.offsets import finder as F
-    from bluesky_offsets.offsets import evaluate as E
-    from bluesky_offsets.offsets import identifiability as I
 
     methods = [m.strip() for m in args.methods.split(",") if m.strip()]
     known = {**F.METHODS, **B.BASELINES}
@@ -78,6 +78,16 @@ def _find(args) -> int:
         args.min_hist_sum = F.PAPER_MIN_HIST_SUM
     if not 0 < args.fast_fraction <= 1:
         raise CliError("--fast-fraction must be in (0, 1]")
+    return methods
+
+
+def _find(args) -> int:
+    import torch
+
+    from bluesky_offsets.offsets import finder as F
+    from bluesky_offsets.offsets import evaluate as E
+
+    methods = _checked_find_args(args)
     try:
         model = F.load_forward_model(args.model, device=args.device)
     except F.FinderError as exc:
@@ -131,51 +141,10 @@ def _find(args) -> int:
     E.plot_curves(results, out / "curves.png", target=target,
                   title=f"offset finder, {args.runs} runs, {problems[0].n} configurations, {args.observe} observations")
 
-    # identifiability at the best solution of the best method on the first problem: what the counting
-    # noise of a 1e5-ray measurement leaves open (a perfect model), and what the surrogate's own error adds
-    best_m = min(summary, key=lambda m: summary[m]["mse_mean"])
-    r0, p0 = results[best_m][0], problems[0]
-    model_mse = getattr(model, "test_mse", 0.0)
-    rep = I.analyze(p0, model, r0.offsets, solutions=r0.solutions, solution_losses=r0.solution_losses)
-    rep_m = I.analyze(p0, model, r0.offsets, model_mse=model_mse)
-    curve = I.configuration_curve(p0, model, r0.offsets)
-    I.plot_identifiability(rep, out / "identifiability.png", curve, p0.true_offsets)
-    report["identifiability"] = {"method": best_m, "seed": seeds[0], **rep.to_dict(),
-                                 "configuration_curve": {k: (v.tolist() if isinstance(v, np.ndarray) else v)
-                                                         for k, v in curve.items()}}
-    report["identifiability_with_model_error"] = {"model_mse": model_mse, **rep_m.summary(),
-                                                  "status": rep_m.status}
-    (out / "identifiability.txt").write_text(rep.table() + "\n\nwith the surrogate's test MSE per bin added:\n"
-                                             + rep_m.table() + "\n")
+    best_m, rep = _identifiability(report, model, summary, results, problems, seeds, out)
 
     if args.twin_check:
-        checks = {}
-        for m in methods:
-            rows = []
-            for r, p in list(zip(results[m], problems))[:args.twin_check]:
-                c = E.twin_check(twin, p, r.offsets, n_rays=args.check_rays, seed=int(p.seed or 0) + 1)
-                rows.append({k: v for k, v in c.items() if not k.startswith("_")})
-            checks[m] = {"runs": len(rows),
-                         "sinkhorn_compensated": float(np.nanmean([c["sinkhorn_compensated"] for c in rows])),
-                         "sinkhorn_repeat": float(np.nanmean([c["sinkhorn_repeat"] for c in rows])),
-                         "dark_true": int(sum(c["dark_true"] for c in rows)),
-                         "dark_mismatch": int(sum(c["dark_mismatch"] for c in rows)),
-                         "mse_compensated": float(np.mean([c["mse_compensated"] for c in rows])),
-                         "mse_repeat": float(np.mean([c["mse_repeat"] for c in rows])), "per_run": rows}
-            log(f"twin check {m}: Sinkhorn {checks[m]['sinkhorn_compensated']:.3e} (repeat "
-                f"{checks[m]['sinkhorn_repeat']:.3e}), histogram MSE {checks[m]['mse_compensated']:.3e} "
-                f"(repeat {checks[m]['mse_repeat']:.3e})")
-        report["twin_check"] = checks
-        for m in ("smart-walker", best_m):
-            if m in results:
-                # show the configurations the twin finds bright first (a surrogate may call dark ones bright)
-                run = checks[m]["per_run"][0] if checks[m]["per_run"] else {}
-                bright = run.get("bright_true", [])
-                cols = (bright + [i for i in range(problems[0].n) if i not in bright])[:4]
-                E.plot_footprints(twin, problems[0], results[m][0].offsets, out / f"footprints_{m}.png",
-                                  columns=cols, n_rays=args.check_rays,
-                                  title=f"{m}, seed {seeds[0]}: twin re-simulation "
-                                        f"({len(bright)}/{problems[0].n} configurations bright in the twin)")
+        report["twin_check"] = _twin_check(args, twin, methods, results, problems, seeds, best_m, out, log)
     if twin is not None:
         twin.close()
     report["wall_seconds"] = time.perf_counter() - t0
@@ -206,6 +175,64 @@ def _find(args) -> int:
               f"-> {out / 'identifiability.txt'}")
         print(f"results and plots in {out}/")
     return 0
+
+
+def _identifiability(report: dict, model, summary, results, problems, seeds, out: Path):
+    """What the best method's first solution leaves open, into ``report`` and its files:
+    ``(best method, its identifiability report)``."""
+    from bluesky_offsets.offsets import identifiability as I
+
+    # identifiability at the best solution of the best method on the first problem: what the counting
+    # noise of a 1e5-ray measurement leaves open (a perfect model), and what the surrogate's own error adds
+    best_m = min(summary, key=lambda m: summary[m]["mse_mean"])
+    r0, p0 = results[best_m][0], problems[0]
+    model_mse = getattr(model, "test_mse", 0.0)
+    rep = I.analyze(p0, model, r0.offsets, solutions=r0.solutions, solution_losses=r0.solution_losses)
+    rep_m = I.analyze(p0, model, r0.offsets, model_mse=model_mse)
+    curve = I.configuration_curve(p0, model, r0.offsets)
+    I.plot_identifiability(rep, out / "identifiability.png", curve, p0.true_offsets)
+    report["identifiability"] = {"method": best_m, "seed": seeds[0], **rep.to_dict(),
+                                 "configuration_curve": {k: (v.tolist() if isinstance(v, np.ndarray) else v)
+                                                         for k, v in curve.items()}}
+    report["identifiability_with_model_error"] = {"model_mse": model_mse, **rep_m.summary(),
+                                                  "status": rep_m.status}
+    (out / "identifiability.txt").write_text(rep.table() + "\n\nwith the surrogate's test MSE per bin added:\n"
+                                             + rep_m.table() + "\n")
+    return best_m, rep
+
+
+def _twin_check(args, twin, methods, results, problems, seeds, best_m: str, out: Path, log) -> dict:
+    """Each method's first runs' offsets checked on the twin (RAYX re-simulation against the
+    problem's observations and their repeat noise), and the footprints of the walker's and the best."""
+    from bluesky_offsets.offsets import evaluate as E
+
+    checks = {}
+    for m in methods:
+        rows = []
+        for r, p in list(zip(results[m], problems))[:args.twin_check]:
+            c = E.twin_check(twin, p, r.offsets, n_rays=args.check_rays, seed=int(p.seed or 0) + 1)
+            rows.append({k: v for k, v in c.items() if not k.startswith("_")})
+        checks[m] = {"runs": len(rows),
+                     "sinkhorn_compensated": float(np.nanmean([c["sinkhorn_compensated"] for c in rows])),
+                     "sinkhorn_repeat": float(np.nanmean([c["sinkhorn_repeat"] for c in rows])),
+                     "dark_true": int(sum(c["dark_true"] for c in rows)),
+                     "dark_mismatch": int(sum(c["dark_mismatch"] for c in rows)),
+                     "mse_compensated": float(np.mean([c["mse_compensated"] for c in rows])),
+                     "mse_repeat": float(np.mean([c["mse_repeat"] for c in rows])), "per_run": rows}
+        log(f"twin check {m}: Sinkhorn {checks[m]['sinkhorn_compensated']:.3e} (repeat "
+            f"{checks[m]['sinkhorn_repeat']:.3e}), histogram MSE {checks[m]['mse_compensated']:.3e} "
+            f"(repeat {checks[m]['mse_repeat']:.3e})")
+    for m in ("smart-walker", best_m):
+        if m in results:
+            # show the configurations the twin finds bright first (a surrogate may call dark ones bright)
+            run = checks[m]["per_run"][0] if checks[m]["per_run"] else {}
+            bright = run.get("bright_true", [])
+            cols = (bright + [i for i in range(problems[0].n) if i not in bright])[:4]
+            E.plot_footprints(twin, problems[0], results[m][0].offsets, out / f"footprints_{m}.png",
+                              columns=cols, n_rays=args.check_rays,
+                              title=f"{m}, seed {seeds[0]}: twin re-simulation "
+                                    f"({len(bright)}/{problems[0].n} configurations bright in the twin)")
+    return checks
 
 
 def add_cli(sub) -> None:
