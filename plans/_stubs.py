@@ -89,7 +89,8 @@ def run_in_thread(func: Callable[[Callable[[dict], None]], Any], *, stream: str 
 
     rec, keys = Record(stream or "progress"), None
     t0 = time.monotonic()
-    bar = progress_bar(desc=desc, unit="steps", disable=not show, bar_format="{desc}: {n_fmt} steps, {elapsed} {postfix}")
+    bar = progress_bar(desc=desc, unit="steps", disable=not show,
+                       bar_format="{desc}: {n_fmt} steps, {elapsed} {postfix}")
 
     def drain():
         nonlocal keys

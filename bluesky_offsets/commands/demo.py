@@ -268,7 +268,8 @@ def demo_plan(s: DemoSettings, beamline, chamber, twin, forward_model, log, exec
             + (f"; the model refitted with them, moved once more, {s.frames} frames (closed loop)" if s.closed_loop
                else ""))
         beam = yield from optimize_beam("smallest_focus", session.analysis, beamline, chamber, frames=s.frames,
-                                        options={"seed": stream(s.seed, "demo.beam_optimizer")}, md={"purpose": "bluesky-offsets demo"},
+                                        options={"seed": stream(s.seed, "demo.beam_optimizer")},
+                                        md={"purpose": "bluesky-offsets demo"},
                                         closed_loop=s.closed_loop, measurement=session.analysis.measurement,
                                         refit=s.fit.replace(ray_draws=1), executor=executor)
     session.times["optimize"] = time.perf_counter()
@@ -295,8 +296,8 @@ def run_demo(out: Path, settings: DemoSettings | None = None, store_location: st
         f"of {len(table)} parameters, hidden effects: {', '.join(hidden) or 'none'}); load average {load:.1f} on "
         f"{os.cpu_count()} cores; the analysis's fits {s.threads} at a time)")
     # seeded frame noise: the same settings give the same demo, --seed another draw of it
-    ioc = SimulatedBeamline(truth, s.n_rays, work, move_time=s.move_time, noise_seed=stream(s.seed, "demo.ioc_noise"), motors=s.motors,
-                            beamline=None if described is None else described.path)
+    ioc = SimulatedBeamline(truth, s.n_rays, work, move_time=s.move_time, noise_seed=stream(s.seed, "demo.ioc_noise"),
+                            motors=s.motors, beamline=None if described is None else described.path)
     twin = RE = steps_log = None
     pool = contextlib.ExitStack()  # the analysis's executor (one torch and BLAS thread a fit) to the end
     try:

@@ -496,7 +496,8 @@ def sampled_sigma(state, configuration, covariance, names, *, samples: int = 24,
                 q = next(q for q in E.get(e).parameters if q.name == p)
                 effects[e][p] = float(np.clip(v, q.low, q.high))
         draws.append(ModelState(z[:P], effects, state.label))
-    foci = [f for f, _, _ in predict_many(draws, configuration, rays=rays, seed=stream(seed, "optimizer.posterior_draws"), overrides=overrides,
+    traces = stream(seed, "optimizer.posterior_draws")  # the draws' rays, apart from the draws themselves
+    foci = [f for f, _, _ in predict_many(draws, configuration, rays=rays, seed=traces, overrides=overrides,
                                           engine=engine, table=table)]
     return {a: float(np.nanstd([getattr(f, f"rms_{a}") for f in foci], ddof=1)) for a in "xy"}
 
