@@ -1272,9 +1272,10 @@ class TorchEngine:
         kept: list[list[np.ndarray]] = [[] for _ in range(c)]
         with torch.no_grad():
             for _, beam in self._chunks(bl, n_rays, seed, 0.0):
-                bx, by = histograms(beam, self.hist)
-                hx = bx if hx is None else hx + bx
-                hy = by if hy is None else hy + by
+                bx, by = histograms(beam, self.hist)  # fractions of the chunk's rays: weighted by its share
+                share = beam.n_rays / n_rays
+                hx = bx * share if hx is None else hx + bx * share
+                hy = by * share if hy is None else hy + by * share
                 n_hits += beam.alive.sum(-1).cpu()
                 if keep_rays:
                     for k in range(c):
@@ -1361,20 +1362,22 @@ class TorchEngine:
         bl = self.compile(vals, self._overrides(leaves, extra))
         edge, total = self.options.edge, None
         for _, beam in self._chunks(bl, n_rays, seed, edge):
-            part = self._product(what, beam, spec)
+            part = self._product(what, beam, spec, n_rays)
             total = part if total is None else total + part
         if what == "features":
             return features_from_moments(total, n_rays)
         return total
 
-    def _product(self, what, beam, spec):
+    def _product(self, what, beam, spec, n_rays: int):
+        """One chunk's share of a product of ``n_rays`` per configuration: moments are sums over its
+        rays; histograms fractions of all ``n_rays`` (the chunk's own fractions times its share)."""
         if what == "features":
             return moments(beam, soft=self.options.edge > 0)
         if what in ("histograms", "profiles"):
             from bluesky_offsets.physics.traces import CAMERA
             sp = spec or (self.hist if what == "histograms" else CAMERA)
             hx, hy = histograms(beam, sp, soft=True, kernel=self.options.kernel)
-            return torch.cat([hx, hy], -1)
+            return torch.cat([hx, hy], -1) * (beam.n_rays / n_rays)
         raise InputError(f"unknown product {what!r}: features, histograms or profiles")
 
     def jacobian(self, what: str, values, effects=None, *, n_rays: int, seed=0, overrides=None,
@@ -1432,7 +1435,7 @@ class TorchEngine:
         edge = self.options.edge
         total, jac = None, None
         for _, beam in self._chunks(bl, n_rays, seed, edge):
-            part = self._product(what, beam, spec)  # (C, m): sums over this chunk's rays
+            part = self._product(what, beam, spec, n_rays)  # (C, m): this chunk's share
             j_part = _batched_grad(part, inputs)
             total = part.detach() if total is None else total + part.detach()
             jac = j_part if jac is None else jac + j_part
