@@ -79,6 +79,29 @@ class RefusedPutInOneLine(logging.Filter):
         return True
 
 
+class BeaconRefusedOnce(logging.Filter):
+    """caproto logs every beacon that no CA repeater receives with its traceback, again at each
+    beacon period (15 s): one line the first time for each address says it; clients find the IOC by
+    their own searches all the same."""
+
+    def __init__(self):
+        super().__init__()
+        self._seen: set[str] = set()
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        if not str(record.msg).startswith("Failed to send beacon"):
+            return True
+        where = str(record.args[0]) if record.args else "?"
+        if where in self._seen:
+            return False
+        self._seen.add(where)
+        record.msg, record.args = "beacons to %s are refused: no CA repeater listens there (yet); clients " \
+                                  "searching this host still find the IOC", (where,)
+        record.levelno, record.levelname = logging.WARNING, "WARNING"
+        record.exc_info = record.exc_text = None
+        return True
+
+
 HIST = HistogramSpec()
 DEFAULT_PREFIX = "SIM:METRIXS:"
 MAX_RAYS = 1_000_000  # per frame: RAYX's worker holds ~4 kB per ray (≈4 GB at the bound)
@@ -627,6 +650,9 @@ def serve(args) -> int:
     circuit_log = logging.getLogger("caproto.circ")
     if not any(isinstance(f, RefusedPutInOneLine) for f in circuit_log.filters):
         circuit_log.addFilter(RefusedPutInOneLine())
+    context_log = logging.getLogger("caproto.ctx")
+    if not any(isinstance(f, BeaconRefusedOnce) for f in context_log.filters):
+        context_log.addFilter(BeaconRefusedOnce())
     origin = "from a file" if args.truth else "drawn from a seed"
     # the truth's source (a seed) is the truth: only its salted id is shown
     print(f"{'METRIXS' if ioc.beamline is None else ioc.beamline.name} simulation IOC, prefix {args.prefix!r}, "
@@ -644,6 +670,9 @@ def serve(args) -> int:
     signal.signal(signal.SIGINT, signal.default_int_handler)
     interfaces = _interfaces(args.interfaces)
     _beacon_environment(interfaces)
+    if all(i.startswith("127.") for i in interfaces):
+        print(f"serving {', '.join(interfaces)} only: clients in another shell need "
+              f"EPICS_CA_ADDR_LIST={interfaces[0]} EPICS_CA_AUTO_ADDR_LIST=NO", flush=True)
     try:
         asyncio.run(_serve(ioc.pvdb, interfaces))
     except KeyboardInterrupt:

@@ -315,3 +315,26 @@ def test_beacons_go_to_loopback_only_without_epics_variables(tmp_path):
         finally:
             stop_process_group(proc)
             sink.close()
+
+
+def test_a_refused_beacon_is_one_line_once():
+    """With no CA repeater listening, caproto logged each beacon's refusal with its traceback every
+    15 s; the IOC says it once per address, in one line."""
+    import logging
+
+    from sim_iocs.metrixs import BeaconRefusedOnce
+    f = BeaconRefusedOnce()
+
+    def record():
+        try:
+            raise ConnectionRefusedError(111, "Connection refused")
+        except OSError:
+            import sys
+            return logging.LogRecord("caproto.ctx", logging.ERROR, __file__, 1, "Failed to send beacon to %r. Try "
+                                     "setting ...", (("127.0.0.1", 5065),), sys.exc_info())
+    first, again = record(), record()
+    assert f.filter(first) and first.exc_info is None and first.levelno == logging.WARNING
+    assert "127.0.0.1" in first.getMessage() and "\n" not in first.getMessage()
+    assert not f.filter(again)
+    other = logging.LogRecord("caproto.ctx", logging.ERROR, __file__, 1, "something else", (), None)
+    assert f.filter(other)
