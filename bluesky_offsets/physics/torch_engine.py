@@ -1103,15 +1103,18 @@ def _grating(opt, hz, nx, ny, nz, dx, dy, dz, wavelength):
 # --------------------------------------------------------------------------- #
 # beam products: histograms, profiles, features
 # --------------------------------------------------------------------------- #
-def histograms(beam: Beam, spec: HistogramSpec, *, soft: bool = False, kernel: float = 1.0):
+def histograms(beam: Beam, spec: HistogramSpec, *, soft: bool = False, kernel: float = 1.0,
+               n_source: int | None = None):
     """x and y histograms (C, bins) as fraction of source rays (RAYX's bin convention).
 
     ``soft``: every ray spreads its weight over the bins with a Gaussian kernel of ``kernel``
-    bins rms (differentiable in the ray positions)."""
+    bins rms (differentiable in the ray positions).  ``n_source``: the source rays the fractions
+    are of (default the beam's own; a chunk of a trace passes the whole trace's, so chunks add up)."""
     w = beam.weight if soft else beam.alive.to(beam.x.dtype)
     hx = _hist(beam.x, w, spec.bins_x, spec.range_x, soft, kernel)
     hy = _hist(beam.y, w, spec.bins_y, spec.range_y, soft, kernel)
-    return hx / beam.n_rays, hy / beam.n_rays
+    n = beam.n_rays if n_source is None else n_source
+    return hx / n, hy / n
 
 
 def _hist(v, w, bins, rng, soft, kernel):
@@ -1272,10 +1275,9 @@ class TorchEngine:
         kept: list[list[np.ndarray]] = [[] for _ in range(c)]
         with torch.no_grad():
             for _, beam in self._chunks(bl, n_rays, seed, 0.0):
-                bx, by = histograms(beam, self.hist)  # fractions of the chunk's rays: weighted by its share
-                share = beam.n_rays / n_rays
-                hx = bx * share if hx is None else hx + bx * share
-                hy = by * share if hy is None else hy + by * share
+                bx, by = histograms(beam, self.hist, n_source=n_rays)
+                hx = bx if hx is None else hx + bx
+                hy = by if hy is None else hy + by
                 n_hits += beam.alive.sum(-1).cpu()
                 if keep_rays:
                     for k in range(c):
@@ -1370,14 +1372,14 @@ class TorchEngine:
 
     def _product(self, what, beam, spec, n_rays: int):
         """One chunk's share of a product of ``n_rays`` per configuration: moments are sums over its
-        rays; histograms fractions of all ``n_rays`` (the chunk's own fractions times its share)."""
+        rays; histograms fractions of all ``n_rays``."""
         if what == "features":
             return moments(beam, soft=self.options.edge > 0)
         if what in ("histograms", "profiles"):
             from bluesky_offsets.physics.traces import CAMERA
             sp = spec or (self.hist if what == "histograms" else CAMERA)
-            hx, hy = histograms(beam, sp, soft=True, kernel=self.options.kernel)
-            return torch.cat([hx, hy], -1) * (beam.n_rays / n_rays)
+            hx, hy = histograms(beam, sp, soft=True, kernel=self.options.kernel, n_source=n_rays)
+            return torch.cat([hx, hy], -1)
         raise InputError(f"unknown product {what!r}: features, histograms or profiles")
 
     def jacobian(self, what: str, values, effects=None, *, n_rays: int, seed=0, overrides=None,
