@@ -7,18 +7,20 @@ their memory is polled; on two cores that CPU is taken from the fits beside them
     python benchmarks/bench_cluster_idle.py [--workers 2] [--seconds 30]
 
 Prints the CPU of this process (scheduler, nannies, client) and of each worker process over
-``--seconds`` of idling, as a percentage of one core, for both settings.
+``--seconds`` of idling, as a percentage of one core, for both settings, and writes
+``benchmarks/results/cluster_idle.json``.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import subprocess
 import sys
 import time
 
 
-def _measure(quiet: bool, workers: int, seconds: float) -> str:
+def _measure(quiet: bool, workers: int, seconds: float) -> list[float]:
     import dask
     import psutil
     from distributed import Client, LocalCluster
@@ -38,10 +40,7 @@ def _measure(quiet: bool, workers: int, seconds: float) -> str:
         a = cpu()
         time.sleep(seconds)
         b = cpu()
-        share = [100 * (y - x) / seconds for x, y in zip(a, b)]
-        return (f"{'twin (QUIET_CLUSTER)' if quiet else 'Dask defaults':22s} total {sum(share):5.1f} % of a core "
-                f"(this process {share[0]:.1f} %, the other {len(share) - 1} processes "
-                f"{', '.join(f'{s:.1f}' for s in share[1:])} %)")
+        return [100 * (y - x) / seconds for x, y in zip(a, b)]  # this process first, then its children
     finally:
         client.close()
         cluster.close()
@@ -54,11 +53,38 @@ def main(argv=None) -> None:
     p.add_argument("--one", choices=("defaults", "quiet"), help=argparse.SUPPRESS)
     a = p.parse_args(argv)
     if a.one:
-        print(_measure(a.one == "quiet", a.workers, a.seconds), flush=True)
+        print(json.dumps(_measure(a.one == "quiet", a.workers, a.seconds)), flush=True)
         return
+    rows = []
     for which in ("defaults", "quiet"):  # each in a fresh process: no state carried over
-        subprocess.run([sys.executable, __file__, "--one", which, "--workers", str(a.workers),
-                        "--seconds", str(a.seconds)], check=True, stderr=subprocess.DEVNULL)
+        out = subprocess.run([sys.executable, __file__, "--one", which, "--workers", str(a.workers),
+                              "--seconds", str(a.seconds)], check=True, stderr=subprocess.DEVNULL,
+                             stdout=subprocess.PIPE, text=True).stdout
+        share = json.loads(out.strip().splitlines()[-1])
+        label = "the twin's (`QUIET_CLUSTER`)" if which == "quiet" else "Dask's defaults"
+        rows.append([label, f"{sum(share):.1f} %", *(f"{x:.1f} %" for x in share)])
+        print(f"{label}: total {sum(share):.1f} % of a core ({', '.join(f'{x:.1f}' for x in share)} %)", flush=True)
+    write(rows, a)
+
+
+def write(rows: list, a) -> None:
+    """The result ``cluster_idle``: each setting's CPU, in all and per process."""
+    from render import section
+    from results import Table, write_result
+    width = max(len(r) for r in rows)
+    rows = [r + ["—"] * (width - len(r)) for r in rows]  # a process the other setting did not have
+    others = [f"process {i}" for i in range(1, width - 2)]
+    table = Table(f"{a.workers} workers, {a.seconds:g} s idle, as a share of one core (the processes: this one, "
+                  "then its children):", ["settings", "total", "this process", *others], rows,
+                  align=["l"] + ["r"] * (width - 1))
+    result = write_result(
+        "cluster_idle", title="An idle Dask cluster's CPU", tables=[table],
+        summary="What an idle LocalCluster costs: the CPU of the client's process (scheduler, nannies) and of "
+                "each process it started, as a share of one core, with Dask's defaults and with the twin's "
+                "settings (`physics.twin.QUIET_CLUSTER`: a slower event-loop tick, no stack sampler in the "
+                "workers, memory and the system polled less often). A demo runs two such clusters, idle most of "
+                "the time, beside the fits on two cores.")
+    print(section(result))
 
 
 if __name__ == "__main__":

@@ -9,7 +9,7 @@ pre-screen, in this process on one thread; the torch engine also with other scre
 the chamber drawn, and through Dask (a LocalCluster of one-thread workers, the path of
 ``bluesky-offsets dataset generate --engine torch``), where the workers' CPU-seconds count.
 A "good" sample has >= 10 rays on the screen at the full ray count (the paper's threshold).
-Prints a Markdown section for ``docs/benchmarks.md``.
+Writes ``benchmarks/results/dataset_engines.json`` and prints the page's section.
 """
 
 from __future__ import annotations
@@ -22,11 +22,6 @@ import time
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 import torch  # noqa: E402
-
-
-def _machine() -> str:
-    from _machine import machine  # benchmarks/ is on sys.path when run as a script
-    return machine() + f", torch {torch.__version__}"
 
 
 def in_process(engine: str, n_rays: int, n_draws: int, block: int, scheme, chamber: bool = False) -> dict:
@@ -84,20 +79,28 @@ def main() -> None:
         rows.append(in_process("torch", args.rays, args.draws, 256, scheme, chamber))
     dask = through_dask(args.rays, args.dask_samples, args.workers, default, True)
     ref = rows[0]["good_per_cpu_s"]
-    print("## Dataset throughput, RAYX and the torch engine — `python benchmarks/bench_dataset_engines.py`\n")
-    print(f"Machine: {_machine()}; {time.strftime('%Y-%m-%d')}; {args.rays:,} rays per full trace, "
-          "in-process rows on one thread.\n")
-    print("| engine | chamber drawn | screen rays | keep fraction | draws | traced in full | non-empty | good "
-          "| CPU s | good / CPU-s | vs RAYX |")
-    print("|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
-    for r in rows:
-        print(f"| {r['engine']} | {'yes' if r['chamber'] else 'no'} | {r['screen']} | {r['keep']:g} | {r['draws']} "
-              f"| {r['traced']} | {r['nonempty']} | {r['good']} | {r['cpu_s']:.1f} | {r['good_per_cpu_s']:.1f} "
-              f"| {r['good_per_cpu_s'] / ref:.1f}× |")
-    print(f"\nThrough Dask (`generate`, {dask['workers']} one-thread workers, chamber drawn, default screen): "
-          f"{dask['samples']} samples ({dask['good']} good) from {dask['draws']} draws in {dask['wall_s']:.1f} s "
-          f"wall, {dask['worker_cpu_s']:.1f} worker CPU-s: **{dask['good_per_cpu_s']:.1f} good samples per "
-          f"CPU-second** ({dask['good_per_cpu_s'] / ref:.1f}× RAYX), {dask['good_per_wall_s']:.1f} per wall second.")
+    from render import section
+    from results import Table, write_result
+    t1 = Table("In-process rows, one thread:",
+               ["engine", "chamber drawn", "screen rays", "keep fraction", "draws", "traced in full", "non-empty",
+                "good", "CPU s", "good / CPU-s", "vs RAYX"],
+               [[r["engine"], "yes" if r["chamber"] else "no", r["screen"], f"{r['keep']:g}", r["draws"], r["traced"],
+                 r["nonempty"], r["good"], f"{r['cpu_s']:.1f}", f"{r['good_per_cpu_s']:.1f}",
+                 f"{r['good_per_cpu_s'] / ref:.1f}×"] for r in rows], align=["l", "l"] + ["r"] * 9)
+    t2 = Table("Through Dask (`generate`, chamber drawn, default screen):",
+               ["workers", "samples", "good", "draws", "wall s", "worker CPU-s", "good / CPU-s", "vs RAYX",
+                "good / wall-s"],
+               [[f"{dask['workers']} (one thread each)", dask["samples"], dask["good"], dask["draws"],
+                 f"{dask['wall_s']:.1f}", f"{dask['worker_cpu_s']:.1f}", f"**{dask['good_per_cpu_s']:.1f}**",
+                 f"{dask['good_per_cpu_s'] / ref:.1f}×", f"{dask['good_per_wall_s']:.1f}"]], align=["r"] * 9)
+    result = write_result(
+        "dataset_engines", title="Dataset throughput, RAYX and the torch engine", tables=[t1, t2],
+        summary=f"Good samples (≥ 10 rays at the full ray count) per CPU-second, RAYX against the torch engine: the "
+                f"same uniform draws with the same pre-screen, in this process on one thread, {args.rays:,} rays per "
+                "full trace; the torch engine also with other screens, with the chamber drawn, and through Dask "
+                "(`generate`, the workers' CPU-seconds counted; the first torch row includes the process's "
+                "warm-up). Issue 18's goal: ≥ 50× RAYX's good samples per CPU-second.")
+    print(section(result))
 
 
 if __name__ == "__main__":

@@ -23,7 +23,6 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _machine import machine  # noqa: E402
 
 STEP = re.compile(r"^\s*(\d+) s  \[(\d)/(\d)\]")
 
@@ -63,11 +62,9 @@ def main() -> None:
         d.mkdir(parents=True, exist_ok=True)
         rows.append(run(s, d, a.threads, a.extra))
         print(f"seed {s}: {rows[-1]['done']} s", file=sys.stderr, flush=True)
-    cmd = " ".join(["bluesky-offsets demo --seed S", *([f"--threads {a.threads}"] if a.threads else []), *a.extra])
-    print(f"Machine: {machine()}; {time.strftime('%Y-%m-%d')}; `{cmd}`\n")
-    print("| seed | wall | IOC up | beam found + measured | surrogate finder | analysis | beam optimized | report "
-          "| verdict |")
-    print("|---:|---:|---:|---:|---:|---:|---:|---:|---|")
+    from render import section
+    from results import Table, write_result
+    rows_out = []
     for r in rows:
         st, n = r["steps"], max(r["steps"]) if r["steps"] else 0
         marks = [st.get(k, float("nan")) for k in range(1, n + 1)] + [r["done"]]
@@ -75,8 +72,18 @@ def main() -> None:
         parts += [float("nan")] * (6 - len(parts))
         if n == 5:  # --no-optimize: no beam step
             parts = parts[:4] + [float("nan"), parts[4]]
-        print(f"| {r['seed']} | {r['done']} s | " + " | ".join(f"{x:.0f} s" for x in parts) + f" | {r['verdict']} |")
-    print(f"\nmedian {statistics.median(r['done'] for r in rows):.0f} s over {len(rows)} draws")
+        rows_out.append([r["seed"], f"{r['done']} s", *(f"{x:.0f} s" for x in parts), r["verdict"]])
+    cmd = " ".join(["bluesky-offsets demo --seed S", *([f"--threads {a.threads}"] if a.threads else []), *a.extra])
+    median = statistics.median(r["done"] for r in rows)
+    table = Table(f"{len(rows)} draws, one after the other (`{cmd}`):",
+                  ["seed", "wall", "IOC up", "beam found + measured", "surrogate finder", "analysis",
+                   "beam optimized", "report", "verdict"], rows_out, align=["r"] * 8 + ["l"])
+    result = write_result(
+        "demo_wall_time", title="The main job's wall time (issue 17)", tables=[table],
+        summary="Issue 17's benchmark: the README's main job (`bluesky-offsets demo --seed S`) over several draws, "
+                "one after the other, each split at the demo's own step lines; asked: a median under 90 s on 2 "
+                f"cores. **Median {median:.0f} s over {len(rows)} draws.**")
+    print(section(result))
 
 
 if __name__ == "__main__":

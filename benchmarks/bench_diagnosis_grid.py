@@ -15,7 +15,7 @@ Two phases, so that the fits can run on another machine:
 
     python benchmarks/bench_diagnosis_grid.py make --out grid/        # RAYX measurements (.npz)
     python benchmarks/bench_diagnosis_grid.py run grid/ [--device cuda] [--check torch] [--only NAME]
-    python benchmarks/bench_diagnosis_grid.py table grid/              # the markdown table
+    python benchmarks/bench_diagnosis_grid.py table grid/              # the result: diagnosis_grid.json
 
 ``run`` is resumable: a scenario with a result file is skipped.
 """
@@ -88,12 +88,13 @@ def _make(args) -> None:
 
 def _run(args) -> None:
     import torch
+    from _machine import machine
 
     from bluesky_offsets.model import diagnosis as D
     from bluesky_offsets.model.misfit import misfit
     from bluesky_offsets.model.measurement import Measurement
     from bluesky_offsets.model.state import ModelState, refine, simulate
-    from bluesky_offsets.physics.torch_engine import TorchEngine
+    from bluesky_offsets.physics.engine import TorchEngine
     from bluesky_offsets.physics.twin import CAMERA, Twin
 
     folder = Path(args.folder)
@@ -167,7 +168,8 @@ def _run(args) -> None:
                "mse_over_noise": mf.mse_total / mf.expected_mse_total,
                "truth_chi2_reduced": at_truth.chi2_reduced_total,
                "offsets_chi2_reduced": evaluate(r.state).chi2_reduced_total,
-               "seconds": time.perf_counter() - t0, "device": args.device, "n_configurations": meas.n,
+               "seconds": time.perf_counter() - t0, "device": args.device, "machine": machine(),
+               "n_configurations": meas.n,
                "end": {"offsets": cur.offsets.tolist(), "effects": cur.effects}}
         res_path.write_text(json.dumps(row, indent=1, default=float))
         added = [f["effect"] + (" (dropped)" if f.get("dropped") else "") for f in found]
@@ -175,31 +177,46 @@ def _run(args) -> None:
               f"({row['seconds']:.0f} s)", flush=True)
 
 
+def _cells(r) -> list:
+    """A run's row: its hidden effects against what it named, fitted and left."""
+    hidden = r["hidden"]
+    names = [f["effect"] + (" (dropped)" if f.get("dropped") else "") for f in r["found"]]
+    cells = []
+    for name, vals in hidden.items():
+        f = next((x for x in _named(r) if x["effect"] == name), None)
+        for k, hv in vals.items():
+            if f is None:
+                cells.append((f"{name}.{k}: —", "—", "—"))
+                continue
+            v, s = f["values"][k], f["sigma"].get(k, float("nan"))
+            cells.append((f"{name}.{k} = {v:.3g} ± {s:.2g}", f"{(v - hv) / hv * 100:+.0f} %",
+                          f"{(v - hv) / s:+.1f}" if s > 0 else "—"))
+    if not cells:
+        cells = [("—", "—", "—")]
+    return [r["scenario"], r["draw"], str(hidden or "none"), ", ".join(names) or "none",
+            "; ".join(c[0] for c in cells), "; ".join(c[1] for c in cells), "; ".join(c[2] for c in cells),
+            f"{r['chi2_reduced']:.2f}", f"{r['mse_over_noise']:.2f}", f"{r['seconds']:.0f}"]
+
+
 def _table(args) -> None:
+    from render import section
+    from results import Table, write_result
     rows = [json.loads(p.read_text()) for p in sorted(Path(args.folder).glob("*.json"))]
-    print("| scenario | draw | hidden | added (in order) | fitted ± σ | rel. error | error/σ | χ²/dof after "
-          "| MSE/noise | s |")
-    print("|---|---:|---|---|---|---:|---:|---:|---:|---:|")
-    for r in rows:
-        hidden = r["hidden"]
-        names = [f["effect"] + (" (dropped)" if f.get("dropped") else "") for f in r["found"]]
-        cells = []
-        for name, vals in hidden.items():
-            f = next((x for x in _named(r) if x["effect"] == name), None)
-            for k, hv in vals.items():
-                if f is None:
-                    cells.append((f"{name}.{k}: —", "—", "—"))
-                    continue
-                v, s = f["values"][k], f["sigma"].get(k, float("nan"))
-                cells.append((f"{name}.{k} = {v:.3g} ± {s:.2g}", f"{(v - hv) / hv * 100:+.0f} %",
-                              f"{(v - hv) / s:+.1f}" if s > 0 else "—"))
-        if not cells:
-            cells = [("—", "—", "—")]
-        print(f"| {r['scenario']} | {r['draw']} | {hidden or 'none'} | {', '.join(names) or 'none'} | "
-              f"{'; '.join(c[0] for c in cells)} | {'; '.join(c[1] for c in cells)} | "
-              f"{'; '.join(c[2] for c in cells)} | {r['chi2_reduced']:.2f} | {r['mse_over_noise']:.2f} | "
-              f"{r['seconds']:.0f} |")
-    _summary(rows)
+    grid = Table(f"{len(rows)} runs:", ["scenario", "draw", "hidden", "added (in order)", "fitted ± σ", "rel. error",
+                                        "error/σ", "χ²/dof after", "MSE/noise", "s"],
+                 [_cells(r) for r in rows], align=["l", "r", "l", "l", "l", "r", "r", "r", "r", "r"])
+    summary = _summary(rows)
+    machines = sorted({r["machine"] for r in rows if r.get("machine")})
+    notes = [summary] + ([f"The runs ran on: {'; '.join(machines)}."] if machines else [])
+    result = write_result(
+        "diagnosis_grid", title="Diagnosis on the differentiable twin (issue 17)", tables=[grid], notes=notes,
+        summary="Issue 17's scenario grid: each scenario hides offsets in all 34 parameters and zero, one or two "
+                "effects; RAYX measures it as the demo's IOC would (the demo's design, camera resolution, seeded "
+                "frame noise); the analysis is the demo's (offsets fit → diagnosis → the winner added and refitted "
+                "→ diagnose again, then the backward step); the final check re-simulates the result with fresh "
+                "rays. Asked by issue 17 (≥ 90 % each): the true effects named, fitted within 25 %, within 2σ, "
+                "χ²/dof and MSE/noise ≤ 1.5 after; no effect named without one.")
+    print(section(result))
 
 
 def _named(r) -> list[dict]:
@@ -207,7 +224,7 @@ def _named(r) -> list[dict]:
     return [f for f in r["found"] if not f.get("dropped")]
 
 
-def _summary(rows) -> None:
+def _summary(rows) -> str:
     """The issue's acceptance numbers over the rows: named first, within 25 %, within 2 σ,
     χ²/dof and MSE/noise ≤ 1.5 after; no effect named without one."""
     with_effect = [r for r in rows if r["hidden"]]
@@ -232,10 +249,10 @@ def _summary(rows) -> None:
     none = [r for r in rows if not r["hidden"]]
     quiet = sum(not r["found"] for r in none)
     n = len(with_effect)
-    print(f"\n{n} runs with hidden effects: a true one added first and all found: {first}/{n}; in the end a "
-          f"true one named first and all named: {named_ok}/{n}, exactly the hidden ones: {exact}/{n}; "
-          f"chi2/dof and MSE/noise <= 1.5 after: {fine}/{n}; of {params} hidden magnitudes: within 25 %: "
-          f"{within}, within 2 sigma: {covered}.  {len(none)} runs without: no effect named in {quiet}.")
+    return (f"{n} runs with hidden effects: a true one added first and all found: {first}/{n}; in the end a "
+            f"true one named first and all named: {named_ok}/{n}, exactly the hidden ones: {exact}/{n}; "
+            f"chi2/dof and MSE/noise <= 1.5 after: {fine}/{n}; of {params} hidden magnitudes: within 25 %: "
+            f"{within}, within 2 sigma: {covered}.  {len(none)} runs without: no effect named in {quiet}.")
 
 
 def main(argv=None):

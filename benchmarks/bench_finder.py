@@ -2,15 +2,15 @@
 
 Runs ``bluesky-offsets find`` (10 seeded runs per method on the paper's
 problem with surrogate observations: each seed draws its own problem and the
-method's own random numbers), then prints the Markdown section for
-``docs/benchmarks.md``: final MSE mean ± std per method at its budget, the
-Monte Carlo / smart walker ratio, and the evaluations and seconds each method
-needs to reach the smart walker's final MSE.
+method's own random numbers), then writes ``benchmarks/results/finder_surrogate.json``
+(``finder_fast.json`` with ``--model fast``; ``--result NAME`` otherwise): final MSE mean ± std per
+method at its budget, the Monte Carlo / smart walker ratio, and the evaluations and seconds each
+method needs to reach the smart walker's final MSE.
 
     python benchmarks/bench_finder.py --out data/bench_finder            # full run (~30 min on 2 busy cores)
     python benchmarks/bench_finder.py --runs 2 --candidates 64 --iterations 20 --out /tmp/bf   # smoke
 
-Results (JSON, plots) go to ``--out``; the Markdown goes to stdout and to
+Results (JSON, plots) go to ``--out``; the page's section goes to stdout and to
 ``--out``/section.md.
 """
 
@@ -19,82 +19,100 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import os
-import platform
 import sys
 from pathlib import Path
 
 import numpy as np
 
 
+TITLES = {"finder_surrogate": "Offset finder: ten seeds on the shipped surrogate (issue 18)",
+          "finder_fast": "Offset finder: the fast checkpoint",
+          "finder_gpu": "Offset finder: the paper's m = 1,000,000 on a GPU"}
+
+
 def _fmt(x, spec=".3g"):
     return "never" if x is None or not math.isfinite(x) else format(x, spec)
 
 
-def markdown(res: dict, command: str) -> str:
-    s, reach = res["summary"], res["reach_smart_walker_mse"]
-    sw, mc = s.get("smart-walker"), s.get("monte-carlo")
-    lines = ["## Offset finder (issue 5)", "",
-             f"Command: `{command}`  ",
-             f"Machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores (shared with other "
-             f"jobs), torch {res.get('torch', '?')}, {res['threads']} torch thread(s), device {res['device']}.  ",
-             f"Problem: the paper's (Sec. 3.2): {res['problem']['n_configurations']} bright configurations, "
-             f"hidden offsets uniform in ±20 %, observations from the {res['observe']}; seeds {res['seeds'][0]}"
-             f"..{res['seeds'][-1]} (each seed: its own problem and its own method draws).  ",
-             f"Wall time {res['wall_seconds'] / 60:.1f} min.", ""]
-    lines += ["| method | settings | evaluations | final MSE (mean ± std) | median | parameter RMSE | s / run |",
-              "|---|---|---:|---:|---:|---:|---:|"]
-    for m, v in s.items():
-        st = ", ".join(f"{k}={val}" for k, val in v["settings"].items())
-        lines.append(f"| {m} | {st} | {v['evaluations']} | {v['mse_mean']:.3e} ± {v['mse_std']:.2e} | "
-                     f"{v['mse_median']:.3e} | {v['rmse_mean']:.3f} ± {v['rmse_std']:.3f} | {v['seconds_mean']:.1f} |")
-    if sw and mc:
-        lines += ["", f"Monte Carlo / smart walker final MSE at equal evaluations ({sw['evaluations']}): "
-                      f"**{mc['mse_mean'] / sw['mse_mean']:.1f}x** (paper: 28x; acceptance: >= 10x).", ""]
-    if reach:
-        lines += [f"Evaluations and seconds to reach the smart walker's final mean MSE "
-                  f"({sw['mse_mean']:.3e}); medians over the runs, a run that never reaches it counts as "
-                  f"infinite:", "",
-                  "| method | budget | runs reaching | evaluations to reach (median / max) | "
-                  "share of the walker's evaluations | seconds to reach (median / max) |",
-                  "|---|---:|---:|---:|---:|---:|"]
+def _tables(res: dict) -> list:
+    """The final MSE per method, the runs' reach of the walker's final MSE, and the twin check."""
+    from results import Table
+    s, reach = res["summary"], res.get("reach_smart_walker_mse")
+    tables = [Table(f"Final MSE at each method's budget (wall time {res['wall_seconds'] / 60:.1f} min):",
+                    ["method", "settings", "evaluations", "final MSE (mean ± std)", "median", "parameter RMSE",
+                     "s / run"],
+                    [[m, ", ".join(f"{k}={val}" for k, val in v["settings"].items()), v["evaluations"],
+                      f"{v['mse_mean']:.3e} ± {v['mse_std']:.2e}", f"{v['mse_median']:.3e}",
+                      f"{v['rmse_mean']:.3f} ± {v['rmse_std']:.3f}", f"{v['seconds_mean']:.1f}"]
+                     for m, v in s.items()], align=["l", "l", "r", "r", "r", "r", "r"])]
+    sw = s.get("smart-walker")
+    if reach and sw:
+        rows = []
         for m, v in reach.items():
             share = v["evaluations_median"] / sw["evaluations"] if math.isfinite(v["evaluations_median"]) else math.inf
-            lines.append(f"| {m} | {res['budgets'][m]['evaluations']} | {v['reached']}/{v['runs']} | "
-                         f"{_fmt(v['evaluations_median'], '.0f')} / {_fmt(v['evaluations_max'], '.0f')} | "
-                         f"{_fmt(share, '.3f')} | {_fmt(v['seconds_median'], '.1f')} / "
-                         f"{_fmt(v['seconds_max'], '.1f')} |")
+            rows.append([m, res["budgets"][m]["evaluations"], f"{v['reached']}/{v['runs']}",
+                         f"{_fmt(v['evaluations_median'], '.0f')} / {_fmt(v['evaluations_max'], '.0f')}",
+                         _fmt(share, ".3f"), f"{_fmt(v['seconds_median'], '.1f')} / {_fmt(v['seconds_max'], '.1f')}"])
+        tables.append(Table(f"Evaluations and seconds to reach the smart walker's final mean MSE ({sw['mse_mean']:.3e}); "
+                            "medians over the runs, a run that never reaches it counts as infinite:",
+                            ["method", "budget", "runs reaching", "evaluations to reach (median / max)",
+                             "share of the walker's evaluations", "seconds to reach (median / max)"], rows,
+                            align=["l", "r", "r", "r", "r", "r"]))
     if "twin_check" in res:
-        lines += ["", "Twin re-simulation (ray coordinates, debiased Sinkhorn divergence, POT, "
-                      "squared mm, blur 0.01 mm²; histogram MSE), compensated vs. true configurations, next to "
-                      "the twin's own repeat (true vs. true, other seed):", "",
-                  "| method | runs | Sinkhorn compensated | Sinkhorn repeat | histogram MSE compensated | "
-                  "histogram MSE repeat | dark in the twin (true / mismatched) |", "|---|---:|---:|---:|---:|---:|---:|"]
-        for m, v in res["twin_check"].items():
-            lines.append(f"| {m} | {v['runs']} | {v['sinkhorn_compensated']:.3e} | {v['sinkhorn_repeat']:.3e} | "
-                         f"{v['mse_compensated']:.3e} | {v['mse_repeat']:.3e} | {v.get('dark_true', 0)} / "
-                         f"{v.get('dark_mismatch', 0)} |")
-    idf = res.get("identifiability")
-    if idf:
-        su = idf["summary"]
-        lines += ["", f"Identifiability at the {idf['method']} solution of seed {idf['seed']} "
-                      f"({su['n_configurations']} configurations, counting noise of {su['n_rays']} rays, a perfect "
-                      f"model): {su['n_determined']} determined, {su['n_weak']} weak, "
-                      f"{su['n_undetermined']} undetermined. Strongest compensating pairs: "
-                      + "; ".join(f"{a} ~ {b} ({c:+.2f})" for a, b, c in idf["pairs"][:3]) + "."]
-        wm = res.get("identifiability_with_model_error")
-        if wm:
-            lines += [f"With the surrogate's own test MSE ({wm['model_mse']:.2e} per bin) added to every bin's "
-                      f"variance: {wm['n_determined']} determined, {wm['n_weak']} weak, {wm['n_undetermined']} "
-                      f"undetermined."]
-        cc = idf.get("configuration_curve")
-        if cc:
-            lines += ["", "Adding configurations (first k of the problem's): "
-                      + ", ".join(f"k={k}: {d} determined / {u} undetermined"
-                                  for k, d, u in zip(cc["counts"], cc["n_determined"], cc["n_undetermined"])) + "."]
-    lines += ["", "Plots: `curves.png` (Fig. 5: loss vs. evaluations and vs. seconds), `identifiability.png`"
-                  + (", `footprints_*.png` (Fig. 6)" if "twin_check" in res else "") + " in the output directory."]
-    return "\n".join(lines) + "\n"
+        tables.append(Table("Twin re-simulation (ray coordinates, debiased Sinkhorn divergence, POT, squared mm, "
+                            "blur 0.01 mm²; histogram MSE), compensated vs. true configurations, next to the twin's "
+                            "own repeat (true vs. true, other seed):",
+                            ["method", "runs", "Sinkhorn compensated", "Sinkhorn repeat", "histogram MSE compensated",
+                             "histogram MSE repeat", "dark in the twin (true / mismatched)"],
+                            [[m, v["runs"], f"{v['sinkhorn_compensated']:.3e}", f"{v['sinkhorn_repeat']:.3e}",
+                              f"{v['mse_compensated']:.3e}", f"{v['mse_repeat']:.3e}",
+                              f"{v.get('dark_true', 0)} / {v.get('dark_mismatch', 0)}"]
+                             for m, v in res["twin_check"].items()], align=["l"] + ["r"] * 6))
+    return tables
+
+
+def _notes(res: dict) -> list[str]:
+    """The identifiability at the best solution, with and without the model's error, and by configurations."""
+    idf, notes = res.get("identifiability"), []
+    if not idf:
+        return notes
+    su = idf["summary"]
+    notes.append(f"Identifiability at the {idf['method']} solution of seed {idf['seed']} ({su['n_configurations']} "
+                 f"configurations, counting noise of {su['n_rays']} rays, a perfect model): {su['n_determined']} "
+                 f"determined, {su['n_weak']} weak, {su['n_undetermined']} undetermined. Strongest compensating "
+                 "pairs: " + "; ".join(f"{a} ~ {b} ({c:+.2f})" for a, b, c in idf["pairs"][:3]) + ".")
+    wm = res.get("identifiability_with_model_error")
+    if wm:
+        notes.append(f"With the surrogate's own test MSE ({wm['model_mse']:.2e} per bin) added to every bin's "
+                     f"variance: {wm['n_determined']} determined, {wm['n_weak']} weak, {wm['n_undetermined']} "
+                     "undetermined.")
+    cc = idf.get("configuration_curve")
+    if cc:
+        notes.append("Adding configurations (first k of the problem's): " + ", ".join(
+            f"k={k}: {d} determined / {u} undetermined"
+            for k, d, u in zip(cc["counts"], cc["n_determined"], cc["n_undetermined"])) + ".")
+    return notes
+
+
+def write(res: dict, command: str, name: str):
+    """The result ``benchmarks/results/<name>.json`` of a finished (or merged) run; returns it."""
+    from results import write_result
+    s = res["summary"]
+    sw, mc = s.get("smart-walker"), s.get("monte-carlo")
+    ratio = (f" Monte Carlo / smart walker final MSE at equal evaluations ({sw['evaluations']}): "
+             f"**{mc['mse_mean'] / sw['mse_mean']:.1f}×** (paper: 28×; asked: ≥ 10×).") if sw and mc else ""
+    summary = (f"The paper's problem (Sec. 3.2): {res['problem']['n_configurations']} bright configurations, hidden "
+               f"offsets uniform in ±20 %, observations from the {res['observe']}; seeds {res['seeds'][0]}"
+               f"..{res['seeds'][-1]}, each its own problem and the method's own draws; torch "
+               f"{res.get('torch', '?')}, {res['threads']} torch thread(s), device {res['device']}." + ratio)
+    return write_result(name, title=TITLES.get(name, f"Offset finder: {name}"), command=command, summary=summary,
+                        tables=_tables(res), notes=_notes(res))
+
+
+def _result_name(rest: list[str]) -> str:
+    """The result a run replaces: the fast checkpoint's or the shipped surrogate's."""
+    model = rest[rest.index("--model") + 1] if "--model" in rest[:-1] else None
+    return "finder_fast" if model == "fast" else "finder_surrogate"
 
 
 def _reach(runs: list[dict], target: float) -> dict:
@@ -133,16 +151,21 @@ def merge(dirs: list[Path]) -> dict:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--out", default="data/bench_finder")
-    ap.add_argument("--markdown-only", action="store_true", help="only format an existing results.json")
+    ap.add_argument("--markdown-only", action="store_true", help="no new runs: the result of an existing results.json")
     ap.add_argument("--merge", nargs="+", type=Path, default=None,
                     help="format the merged results of these output directories (methods run in separate "
                          "processes with the same seeds)")
+    ap.add_argument("--result", default=None, help="the result's name (default: finder_surrogate, or "
+                                                   "finder_fast with --model fast)")
     args, rest = ap.parse_known_args(argv)
+    from render import section
+    name = args.result or _result_name(rest)
     if args.merge:
         res = merge(args.merge)
         import torch
         res["torch"] = torch.__version__
-        md = markdown(res, "merged: " + ", ".join(str(d) for d in args.merge) + (" " + " ".join(rest) if rest else ""))
+        md = section(write(res, "python benchmarks/bench_finder.py --merge " + " ".join(str(d) for d in args.merge)
+                           + (" " + " ".join(rest) if rest else ""), name))
         Path(args.out).mkdir(parents=True, exist_ok=True)
         from bluesky_offsets.offsets import finder as F
         from bluesky_offsets.offsets.evaluate import plot_curves
@@ -165,7 +188,7 @@ def main(argv=None) -> int:
     res = json.loads((out / "results.json").read_text())
     import torch
     res["torch"] = torch.__version__
-    md = markdown(res, command)
+    md = section(write(res, command, name))
     (out / "section.md").write_text(md)
     print(md)
     return 0

@@ -11,7 +11,8 @@ two-sided Mann–Whitney U test between every pair on the final MSE; one loss-cu
     python benchmarks/bench_harness.py --reps 2 --evaluations 5000 --blop-evaluations 24 --out /tmp/h  # smoke
 
 Each (method, repetition) is saved as it ends (``--out``/runs/), so a stopped run resumes.
-Results: ``--out``/harness.json, loss_curves.png, section.md (the benchmarks page's table).
+Results: ``--out``/harness.json, loss_curves.png, section.md; the result
+``benchmarks/results/harness.json`` (``harness_twin.json`` with ``--observe twin``).
 """
 
 from __future__ import annotations
@@ -19,6 +20,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import shutil
 import sys
 import time
 from concurrent.futures import ProcessPoolExecutor
@@ -120,31 +122,50 @@ def plot(runs: dict[str, list[dict]], path: Path) -> None:
     fig.savefig(path, dpi=110)
 
 
-def markdown(res: dict) -> str:
+def tables(res: dict) -> list:
+    """The page's tables: every method sorted by its median, and the two-sided p-values between them."""
+    from results import Table
     s, p = res["summary"], res["mann_whitney"]
-    lines = [f"Command: `{res['command']}`  ", f"Machine: {res['machine']}; {res['processes']} processes, one torch "
-             f"thread each; wall {res['wall_seconds'] / 60:.0f} min.  ",
-             f"Problems: the paper's (±20 %, 16 bright configurations, observations from the "
-             f"{'shipped surrogate' if res.get('observe', 'surrogate') == 'surrogate' else 'RAYX twin at 1e5 rays'}), "
-             f"repetition r draws problem r and the method's random numbers from r.  Budget "
-             f"{res['evaluations']:,} evaluations (blop {res['blop_evaluations']})."
-             , "", f"| method | settings | reps | evaluations | final MSE mean ± σ | median | MSE at "
-             f"{res['at']} evaluations (mean / median) | offset RMSE | s / run |", "|---|---|---:|---:|---:|---:|---:|---:|---:|"]
-    for k, v in sorted(s.items(), key=lambda kv: kv[1]["mse_median"]):
-        st = ", ".join(f"{a}={b}" for a, b in v["settings"].items())
-        lines.append(f"| {k} | {st} | {v['reps']} | {v['evaluations']:,} | {v['mse_mean']:.2e} ± {v['mse_std']:.1e} | "
-                     f"{v['mse_median']:.2e} | {_at(v)} | "
-                     f"{v['rmse_mean']:.3f} ± {v['rmse_std']:.3f} | {v['seconds_mean']:.1f} |")
     names = sorted(s, key=lambda k: s[k]["mse_median"])
-    lines += ["", f"Mann–Whitney U, two-sided p-values on the final MSE (blop at its {res['blop_evaluations']} "
-              f"evaluations, every other method at {res['evaluations']:,}):", "",
-              "| | " + " | ".join(names) + " |", "|---|" + "---:|" * len(names)]
-    lines += [f"| {a} | " + " | ".join("—" if a == b else f"{p[a][b]:.1e}" for b in names) + " |" for a in names]
+    rows = [[k, ", ".join(f"{a}={b}" for a, b in s[k]["settings"].items()), s[k]["reps"], f"{s[k]['evaluations']:,}",
+             f"{s[k]['mse_mean']:.2e} ± {s[k]['mse_std']:.1e}", f"{s[k]['mse_median']:.2e}", _at(s[k]),
+             f"{s[k]['rmse_mean']:.3f} ± {s[k]['rmse_std']:.3f}", f"{s[k]['seconds_mean']:.1f}"] for k in names]
+    out = [Table(f"{max(v['reps'] for v in s.values())} repetitions per method, sorted by the median:",
+                 ["method", "settings", "reps", "evaluations", "final MSE mean ± σ", "median",
+                  f"MSE at {res['at']} evaluations (mean / median)", "offset RMSE", "s / run"], rows,
+                 align=["l", "l"] + ["r"] * 7)]
+    if len(names) > 1:
+        out.append(Table(f"Mann–Whitney U, two-sided p-values on the final MSE (blop at its {res['blop_evaluations']} "
+                         f"evaluations, every other method at {res['evaluations']:,}):", ["", *names],
+                         [[a, *("—" if a == b else f"{p[a][b]:.1e}" for b in names)] for a in names],
+                         align=["l"] + ["r"] * len(names)))
+    return out
+
+
+def write(res: dict, out: Path):
+    """The result ``harness`` (``harness_twin`` on RAYX's frames) of a finished run; returns it."""
+    from results import Figure, ROOT, write_result
+    twin = res.get("observe", "surrogate") == "twin"
+    summary = (f"Our finders beside the authors' baselines through their own libraries (`offsets/baselines.py`), by "
+               f"their protocol: repetition r draws problem r (the paper's: ±20 %, 16 bright configurations, "
+               f"observations from {'RAYX at 1e5 rays' if twin else 'the shipped surrogate'}) and the method's "
+               f"random numbers from r; every method {res['evaluations']:,} evaluations, blop "
+               f"{res['blop_evaluations']} (its Gaussian process's cost grows with its data); {res['processes']} "
+               f"processes of one torch thread each, wall {res['wall_seconds'] / 60:.0f} min.")
+    notes = []
     if res.get("below_genetic"):
-        lines += ["", "One-sided: final MSE below the authors' GA (500 candidates) at equal evaluations: "
-                  + ", ".join(f"{k} p = {v:.1e}" for k, v in sorted(res["below_genetic"].items(), key=lambda kv: kv[1])
-                              if k != "blop") + "."]
-    return "\n".join(lines)
+        notes.append("One-sided: final MSE below the authors' GA (500 candidates) at equal evaluations: " + ", ".join(
+            f"{k} p = {v:.1e}" for k, v in sorted(res["below_genetic"].items(), key=lambda kv: kv[1]) if k != "blop")
+            + ".")
+    figures = []
+    if not twin and (out / "loss_curves.png").exists():
+        page_img = ROOT / "docs" / "img" / "harness_loss_curves.png"  # the page shows the plot of its result
+        shutil.copyfile(out / "loss_curves.png", page_img)
+        figures.append(Figure("docs/img/harness_loss_curves.png", "best MSE so far against evaluations, every "
+                              "method, geometric mean over the repetitions"))
+    title = "Offset finder: the authors' protocol" + (" on RAYX's frames" if twin else "") + " (issue 53)"
+    return write_result("harness_twin" if twin else "harness", title=title, command=res["command"], summary=summary,
+                        tables=tables(res), notes=notes, figures=figures)
 
 
 def _at(v: dict) -> str:
@@ -181,7 +202,8 @@ def main(argv=None) -> int:
     a.out.mkdir(parents=True, exist_ok=True)
     (a.out / "harness.json").write_text(json.dumps(res, indent=1))
     plot(runs, a.out / "loss_curves.png")
-    md = markdown(res)
+    from render import section
+    md = section(write(res, a.out))
     (a.out / "section.md").write_text(md + "\n")
     print(md)
     return 0

@@ -4,7 +4,8 @@ Usage::
 
     python benchmarks/bench_surrogate.py [--quick] [--rays 1000] [--draws 1536]
 
-Prints a Markdown section for ``docs/benchmarks.md``:
+Writes ``benchmarks/results/surrogate_pipeline.json`` (``surrogate_inference.json`` with
+``--inference-only``) and prints the page's section:
 
 * generator: good samples (>= 10 rays) per CPU-second, with the low-ray
   pre-screen (the default scheme) and without it (every uniform draw traced
@@ -26,11 +27,6 @@ import time
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 import torch  # noqa: E402
-
-
-def _machine() -> str:
-    from _machine import machine  # benchmarks/ is on sys.path when run as a script
-    return machine() + f", torch {torch.__version__}"
 
 
 def bench_generator(n_rays: int, n_draws: int, screen_rays: int, keep_fraction: float) -> list[dict]:
@@ -111,19 +107,26 @@ def main() -> None:
     secs = 2.0 if args.quick else 8.0
 
     from bluesky_offsets.surrogate import network as surrogate
+    from render import section
+    from results import Table, write_result
     models = [surrogate.load(c) for c in (args.checkpoint or [None])]
     if args.inference_only:
         torch.set_num_threads(1)
-        print(f"Machine: {_machine()}; 1 torch thread. An evaluation (the finder's) is 16 rows.\n")
-        print("| checkpoint | decoder | members | width x layers | activation | inputs | batch | rows/s | "
-              "evaluations (16 rows)/s |")
-        print("|---|---|---:|---|---|---:|---:|---:|---:|")
+        rows = []
         for c, m in zip(args.checkpoint or ["shipped"], models):
             for n in (1_000, 100_000):
                 r = bench_inference(m, "cpu", n, seconds=secs / 2)
                 a = m.arch
-                print(f"| {os.path.basename(c)} | {a.decoder} | {a.members} | {a.width} x {a.n_layers} | "
-                      f"{a.activation} | {a.n_inputs} | {n} | {r['evals_per_s']:.3g} | {r['evals_per_s'] / 16:.3g} |")
+                rows.append([os.path.basename(c), a.decoder, a.members, f"{a.width} x {a.n_layers}", a.activation,
+                             a.n_inputs, n, f"{r['evals_per_s']:.3g}", f"{r['evals_per_s'] / 16:.3g}"])
+        table = Table("One torch thread:", ["checkpoint", "decoder", "members", "width x layers", "activation",
+                                            "inputs", "batch", "rows/s", "evaluations (16 rows)/s"], rows,
+                      align=["l", "l", "r", "l", "l", "r", "r", "r", "r"])
+        result = write_result("surrogate_inference", title="Surrogate inference (issue 18)", tables=[table],
+                              summary="`Surrogate.predict` (no grad) rows per second on one torch thread, in "
+                                      "`predict`'s default CPU chunks; an evaluation (the finder's) is 16 rows. "
+                                      "Issue 18's goal: ≥ 2e4 evaluations per second per core.")
+        print(section(result))
         return
     model = models[0]
     width = model.arch.width
@@ -136,30 +139,30 @@ def main() -> None:
     if torch.cuda.is_available():
         inf.append(bench_inference(model, "cuda", 1_000_000, seconds=secs / 2))
 
-    print("## Surrogate pipeline (issue 4)\n")
-    print(f"Machine: {_machine()}. Command: `python benchmarks/bench_surrogate.py"
-          f"{' --quick' if args.quick else ''} --rays {args.rays}`. Shared machine: wall times depend on "
-          "other jobs; CPU-seconds are the comparable number.\n")
-    print(f"**Generator** ({draws} uniform draws, seed 12345, full traces at {args.rays} rays, pre-screen "
-          f"{args.screen_rays} rays, keep fraction {args.keep_fraction}; in-process, 1 OpenMP thread; "
-          "the Dask generator adds ~1 worker per core on top):\n")
-    print("| scheme | draws | traced in full | non-empty | good (>= 10 rays) | CPU s | ms/draw | "
-          "good samples / CPU-s |")
-    print("|---|---|---|---|---|---|---|---|")
-    for r in gen:
-        print(f"| {r['scheme']} | {r['draws']} | {r['traced_full']} | {r['nonempty']} | {r['good']} | "
-              f"{r['cpu_s']:.1f} | {r['ms_per_draw_cpu']:.1f} | {r['good_per_cpu_s']:.2f} |")
-    print(f"\n**Training** (width {width}, 7 layers, Adam, MSE; synthetic tensors of the right shape):\n")
-    print("| batch | torch threads | samples/s (wall) | samples / CPU-s |")
-    print("|---|---|---|---|")
-    for r in tr:
-        print(f"| {r['batch']} | {r['threads']} | {r['samples_per_s']:.0f} | {r['samples_per_cpu_s']:.0f} |")
-    print("\n**Inference** (shipped checkpoint, `Surrogate.predict`, no grad):\n")
-    print("| device | batch | torch threads | evaluations/s (wall) | evaluations / CPU-s |")
-    print("|---|---|---|---|---|")
-    for r in inf:
-        print(f"| {r['device']} | {r['batch']} | {r['threads']} | {r['evals_per_s']:.3g} | "
-              f"{r['evals_per_cpu_s']:.3g} |")
+    tables = [
+        Table(f"Generator, full traces at {args.rays:,} rays ({draws:,} uniform draws, seed 12345; pre-screen "
+              f"{args.screen_rays} rays, keep fraction {args.keep_fraction}):",
+              ["scheme", "draws", "traced in full", "non-empty", "good (>= 10 rays)", "CPU s", "ms/draw",
+               "good samples / CPU-s"],
+              [[r["scheme"], r["draws"], r["traced_full"], r["nonempty"], r["good"], f"{r['cpu_s']:.1f}",
+                f"{r['ms_per_draw_cpu']:.1f}", f"{r['good_per_cpu_s']:.2f}"] for r in gen],
+              align=["l"] + ["r"] * 7),
+        Table(f"Training throughput (width {width}, 7 layers, Adam, MSE, synthetic tensors):",
+              ["batch", "torch threads", "samples/s (wall)", "samples / CPU-s"],
+              [[r["batch"], r["threads"], f"{r['samples_per_s']:.0f}", f"{r['samples_per_cpu_s']:.0f}"] for r in tr],
+              align=["r"] * 4),
+        Table("Inference (the first checkpoint, `Surrogate.predict`, no grad):",
+              ["device", "batch", "torch threads", "evaluations/s (wall)", "evaluations / CPU-s"],
+              [[r["device"], r["batch"], r["threads"], f"{r['evals_per_s']:.3g}", f"{r['evals_per_cpu_s']:.3g}"]
+               for r in inf], align=["l"] + ["r"] * 4)]
+    result = write_result(
+        "surrogate_pipeline", title="Surrogate pipeline: generator and training (issue 4)", tables=tables,
+        summary="The generator's good samples (≥ 10 rays at the full ray count) per CPU-second with RAYX, with the "
+                "low-ray pre-screen (the default scheme) and without (every uniform draw traced in full, the "
+                "paper's scheme), on the same draws, in-process, one OpenMP thread; the training throughput of the "
+                "shipped width; the inference throughput. CPU-seconds are reported beside wall time because on a "
+                "shared machine wall time depends on the other jobs, CPU time much less.")
+    print(section(result))
 
 
 if __name__ == "__main__":

@@ -17,7 +17,8 @@ Measures, on this machine:
   3000 rays, 34 parameters + the chamber's z, one thread, at the reference and at the 2021
   settings (``--only ray-jacobian``).
 
-Numbers go to docs/benchmarks.md with machine, command and date.
+Results: ``benchmarks/results/torch_engine.json`` (``torch_engine_cuda.json`` on a GPU) and
+``ray_jacobian.json``, with machine, command, date and commit; ``--json`` keeps every number.
 """
 
 from __future__ import annotations
@@ -35,7 +36,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _machine import machine  # noqa: E402
 
 from bluesky_offsets.physics.parameters import METRIXS  # noqa: E402
-from bluesky_offsets.physics.torch_engine import TorchEngine  # noqa: E402
+from bluesky_offsets.physics.engine import TorchEngine  # noqa: E402
 from bluesky_offsets.physics.twin import RayxEngine, TraceRequest, _rayx_fix_seed  # noqa: E402
 
 
@@ -255,6 +256,97 @@ def bench_ray_jacobian(n_cfg=14, n_rays=3000, repeat=5):
     return out
 
 
+def _cpu_tables(result: dict) -> list:
+    """The page's tables of a CPU run: trace times, the feature Jacobian, the rays it needs."""
+    from results import Table
+    out = []
+    if "trace" in result:
+        keys = ("rayx_engine_us_per_ray", "rayx_bare_us_per_ray", "torch_fast_float64_us_per_ray",
+                "torch_fast_float32_us_per_ray", "torch_rayx_float64_us_per_ray")
+        out.append(Table("Trace time per source ray [µs] (the configurations share their rays; best of the repeats):",
+                         ["threads", "rays", "configs", "RAYX as the twin calls it", "RAYX bare `trace()`",
+                          "torch fast float64", "torch fast float32", "torch RAYX stream float64",
+                          "torch vs RAYX engine", "vs bare"],
+                         [[r["threads"], f"{r['rays']:,}", r["configs"], *(f"{r[k]:.2f}" for k in keys),
+                           f"{r['speedup_fast_float64_vs_rayx_engine']:.1f}×",
+                           f"{r['speedup_fast_float64_vs_rayx_bare']:.1f}×"] for r in result["trace"]],
+                         align=["r"] * 10))
+    if "jacobian" in result:
+        j = result["jacobian"]
+        out.append(Table(f"Feature Jacobian: {j['configs']} configurations × {j['parameters']} inputs at "
+                         f"{j['rays']:,} rays, one thread:", ["method", "seconds", ""],
+                         [["torch, reverse mode", f"{j['torch_reverse_s']:.2f}", ""],
+                          ["one-sided finite differences through RAYX (common seed)",
+                           f"{j['rayx_finite_differences_s']:.1f}",
+                           f"measured on {j['fd_measured_on_configs']} configurations, × "
+                           f"{j['configs'] / j['fd_measured_on_configs']:g}"],
+                          ["speed-up", f"{j['speedup']:.1f}×", ""]], align=["l", "r", "l"]))
+    if "rays_for_jacobian" in result:
+        a = result["rays_for_jacobian"]
+        rows = [["torch, soft features", f"{r['rays']:,}", f"{100 * r['median_entry_relative_error']:.2f} %",
+                 f"{100 * r['frobenius_relative_error']:.1f} %"] for r in a["torch_reverse"]]
+        fd = a["rayx_finite_differences"]
+        rows.append(["RAYX, one-sided differences, common seed (2 configurations)", f"{fd['rays']:,}",
+                     f"{100 * fd['median_entry_relative_error']:.2f} %", f"{100 * fd['frobenius_relative_error']:.1f} %"])
+        out.append(Table(f"How many rays a feature Jacobian needs ({a['configs']} configurations; reference: torch at "
+                         f"{a['reference_rays']:,} rays, another seed):",
+                         ["Jacobian", "rays", "median relative error of the entries above 5 % of their row's largest",
+                          "relative error, Frobenius norm (median over configurations)"], rows,
+                         align=["l", "r", "r", "r"]))
+    return out
+
+
+def _write(result: dict) -> None:
+    """The results ``torch_engine`` (or ``torch_engine_cuda``) and ``ray_jacobian`` of this run."""
+    from render import section
+    from results import Table, write_result
+    if result["device"] != "cpu":
+        ag = result["agreement_with_cpu"]
+        rows = [[f"{r['rays']:,}", r["configs"], r["dtype"], f"{r['s']:.3f}", f"{r['us_per_ray']:.4f}"]
+                for r in result["trace"]]
+        rows += [[f"feature Jacobian, {r['rays']:,} rays", f"{r['configs']} × {r['parameters']}", "float64",
+                  f"{r['s']:.3f}", ""] for r in result["jacobian"]]
+        t = Table(f"One {result['gpu']}:", ["rays", "configs", "dtype", "seconds", "µs per ray"], rows,
+                  align=["r", "r", "l", "r", "r"])
+        print(section(write_result(
+            "torch_engine_cuda", title="Torch engine on CUDA", tables=[t],
+            summary="The torch engine on a GPU: trace time for 16 configurations at 1e4–1e6 rays in float64 and "
+                    "float32, and the feature Jacobian. Against the CPU on the same RAYX-stream rays (16 "
+                    f"configurations × 100,000, float64): {ag['survivors_differ']} surviving rays differ, screen "
+                    f"positions within {ag['max_screen_difference_mm']:.2g} mm.")))
+        return
+    tables = _cpu_tables(result)
+    if tables:
+        notes = []
+        f32 = result.get("float32_accuracy")
+        if f32:
+            notes.append(f"float32 against float64 (same rays, fast stream, {f32['configs']} configurations × "
+                         f"{f32['rays']:,} rays): largest hit-count difference {f32['max_hit_count_difference']} "
+                         f"rays; centroids within {1e3 * f32['max_centroid_difference_mm']:.2g} µm; rms widths "
+                         f"within {100 * f32['max_relative_width_difference']:.2g} %.")
+        print(section(write_result(
+            "torch_engine", title="Torch engine", tables=tables, notes=notes,
+            summary="The torch engine (issue 16) against RAYX on the CPU: trace time per source ray (RAYX as the "
+                    "twin calls it, with the RML written and read, and RAYX's bare `trace()`; the torch engine's "
+                    "fast and RAYX sampling, float64 and float32), the feature Jacobian against one-sided finite "
+                    "differences through RAYX, and how many rays a feature Jacobian needs.")))
+    if "ray_jacobian" in result:
+        rows = [[r["configurations"], f"{r['rays']:,}", r["inputs"], f"{100 * r['on_screen']:.0f} %",
+                 f"{100 * r['with_derivatives']:.0f} %", f"{r['ray_jacobian_s']:.3f} s",
+                 f"{r['histogram_jacobian_s']:.3f} s"] for r in result["ray_jacobian"]]
+        t = Table("Best of the repeats, one thread:", ["configurations", "rays", "inputs", "rays on the screen",
+                                                        "rays given derivatives", "`ray_jacobian`",
+                                                        "its camera-histogram Jacobian"], rows,
+                  align=["l", "r", "r", "r", "r", "r", "r"])
+        print(section(write_result(
+            "ray_jacobian", title="Per-ray Jacobian", tables=[t],
+            summary="The per-ray Jacobian every fit step takes (`TorchEngine.ray_jacobian`, the values traced "
+                    "inside) and its camera histograms' Jacobian, at a diagnosis's candidate-fit size, 34 "
+                    "parameters + the chamber's z, one thread: at the reference ±1 % of each range (most rays "
+                    "reach the screen) and at the 2021 settings ±1 % (the slits pass about a seventh: what the "
+                    "demo measures).")))
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="small sizes (a smoke run)")
@@ -279,6 +371,7 @@ def main(argv=None):
         result.update(bench_device(args.device))
         if args.json:
             Path(args.json).write_text(json.dumps(result, indent=2))
+        _write(result)
         return 0
     if args.only in (None, "trace"):
         result["float32_accuracy"] = float32_accuracy()
@@ -293,6 +386,7 @@ def main(argv=None):
         result["ray_jacobian"] = bench_ray_jacobian(repeat=2 if args.quick else 5)
     if args.json:
         Path(args.json).write_text(json.dumps(result, indent=2))
+    _write(result)
     return 0
 
 

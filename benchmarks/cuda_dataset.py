@@ -30,7 +30,7 @@ Two more device steps use the lent minutes without tracing (issue 18, inference 
 two carried stores (``export`` of each); ``walker`` runs the paper's comparison (smart walker
 vs Monte Carlo, the same seeds and budgets as ``bluesky-offsets find``) with the paper's
 m = 1e6 candidates on the GPU and writes ``results.json`` for
-``python benchmarks/bench_finder.py --markdown-only --out DIR``.
+``python benchmarks/bench_finder.py --markdown-only --out DIR --result finder_gpu``.
 
 Every number the device step measures (blocks, samples, GPU wall time, training epochs and
 metrics) is written to ``cuda_run.json`` beside the packed blocks.
@@ -122,7 +122,7 @@ def _worker(wid: int, n_workers: int, first: int, deadline: float, tmp: str, max
     import torch
 
     from bluesky_offsets.physics.parameters import METRIXS
-    from bluesky_offsets.physics.torch_engine import TorchEngine
+    from bluesky_offsets.physics.engine import TorchEngine
     from bluesky_offsets.surrogate.dataset import generate_block
 
     torch.set_num_threads(1)
@@ -201,7 +201,7 @@ def device(args) -> int:
             report["error"] = "no CUDA device"
             save_report()
             return 1
-        from bluesky_offsets.physics.torch_engine import device_agreement
+        from bluesky_offsets.physics.engine import device_agreement
         r = device_agreement("cuda")  # tests/test_torch_engine.py::test_cuda_traces_the_same_rays_as_the_cpu
         r["passed"] = r["same_survivors"] and r["max_dx_mm"] < 1e-9 and r["max_dy_mm"] < 1e-9
         report["ray_check"] = r
@@ -210,7 +210,7 @@ def device(args) -> int:
 
     # one block in this process first: a failing engine shows here, not as silently empty blocks
     from bluesky_offsets.physics.parameters import METRIXS
-    from bluesky_offsets.physics.torch_engine import TorchEngine
+    from bluesky_offsets.physics.engine import TorchEngine
     from bluesky_offsets.surrogate.dataset import GOOD_MIN_RAYS, generate_block
 
     s = _settings(args.block_size)
