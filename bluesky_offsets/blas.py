@@ -1,5 +1,5 @@
 """The BLAS kernels pinned so that another CPU's arithmetic gives the same digits
-(:func:`pin_kernels`; docs/diagnosis.md, "Another CPU's arithmetic")."""
+(:func:`pin_kernels`; docs/explanations/diagnosis.md, "Another CPU's arithmetic")."""
 
 from __future__ import annotations
 
@@ -14,7 +14,8 @@ def pin_kernels() -> None:
 
     Why: both libraries pick their kernels by CPU, and their sums then round differently; a fit
     on RAYX's hard counts amplifies such a last-bit difference along its path (the normal
-    equations of 34 offsets are ill-conditioned; docs/diagnosis.md, "Another CPU's arithmetic").
+    equations of 34 offsets are ill-conditioned; docs/explanations/diagnosis.md, "Another CPU's
+    arithmetic").
     MKL honours a named branch such as ``AVX2`` on Intel CPUs only and runs its automatic
     dispatch elsewhere, so an AMD and an Intel CPU took different paths; ``COMPATIBLE`` is the
     one branch it runs alike on every x86-64 CPU, at no measurable cost to the per-ray Jacobian.

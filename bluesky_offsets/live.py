@@ -18,9 +18,13 @@ from __future__ import annotations
 import math
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 from bluesky.callbacks.core import CallbackBase
+
+if TYPE_CHECKING:
+    from matplotlib.figure import Figure
 
 NON_GUI = {"agg", "pdf", "ps", "svg", "cairo", "pgf", "template"}
 
@@ -106,8 +110,8 @@ class LiveFootprints(CallbackBase):
     every : float
         Seconds at least between two writes of one figure as later runs stop; what was drawn
         since is written by the next run that stops after that, or by :meth:`flush`.  A 20-panel
-        figure takes 0.8-2 s to write, and each comparison of the README's main job drew on its
-        measurement's (written every time: 18.9 s of the main process's CPU, profiled, beside the fits).
+        figure takes a second or two to write, and every comparison draws on its measurement's:
+        written each time, it would take the main process's CPU from the fits.
     """
 
     def __init__(self, directory=None, *, plans: tuple[str, ...] = ("measure_configurations",),
@@ -117,7 +121,7 @@ class LiveFootprints(CallbackBase):
         self.directory = Path(directory) if directory is not None else None
         self.plans, self.range_x, self.range_y = tuple(plans), tuple(range_x), tuple(range_y)
         self.columns, self.show = int(columns), show
-        self.figures: dict[str, object] = {}    # measurement uid -> figure
+        self.figures: dict[str, Figure] = {}    # measurement uid -> figure
         self.written: list[Path] = []
         self._axes: dict[str, list] = {}
         self._overlays: dict[tuple[str, int], list] = {}

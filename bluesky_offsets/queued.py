@@ -3,7 +3,7 @@
 The run store's writer and the headless live views take most of the RunEngine's time between
 frames when they run in its thread: an embedded catalog answers each request in 20-100 ms of
 Python (two dozen requests when a run stops), and a 20-panel footprint figure takes 0.8 s to
-write as PNG (12.6 s over the README's main job; docs/benchmarks.md).  Behind a queue they
+write as PNG.  Behind a queue they
 work while the motors move, the camera integrates and the fits run; the documents reach the
 wrapped callback in the order they came, on one thread.
 """
@@ -63,7 +63,7 @@ class QueuedCallback:
                     return
                 if self._error is None:
                     if item is _FLUSH:
-                        self.callback.flush()
+                        getattr(self.callback, "flush")()  # queued only where it has one
                     else:
                         self.callback(*item)
             except BaseException as exc:  # noqa: BLE001 - handed to the RunEngine's thread, or logged
@@ -80,6 +80,7 @@ class QueuedCallback:
     def _raise(self) -> None:
         exc, self._error = self._error, None
         if exc is not None:
+            assert self._error_type is not None  # an error is kept only to be raised as one
             raise self._error_type(exc) from exc
 
     def __call__(self, name: str, doc: dict) -> None:

@@ -25,12 +25,16 @@ import warnings
 import weakref
 from collections.abc import Mapping
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from bluesky_offsets.errors import InputError
 from bluesky_offsets.model.measurement import Measurement
 from bluesky_offsets.physics.parameters import METRIXS, ParameterTable
+
+if TYPE_CHECKING:
+    from tiled.client import Context
 
 log = logging.getLogger("bluesky_offsets.store")
 
@@ -163,8 +167,8 @@ def _init_catalog(uri: str) -> None:
     """A new tiled catalog at ``uri``: its tables created and stamped with alembic's head, as
     ``tiled catalog init`` does.  In this process, on a thread of its own (its event loop and
     its SQLite connections stay there): tiled's ``init_if_not_exists`` starts that command as a
-    subprocess, a new interpreter importing tiled (3.5 s, measured; every new store of a test
-    and of a demo paid it)."""
+    subprocess, a new interpreter importing tiled: seconds that every new store of a test and
+    of a demo would pay."""
     import asyncio
     import threading
 
@@ -263,7 +267,7 @@ class RunStore:
     def __init__(self, location: str | os.PathLike | None = None, *, api_key: str | None = None):
         loc = str(location) if location is not None else default_store_location()
         self.location = loc
-        self._context = None
+        self._context: Context | None = None
         self._frames: Path | None = None
         if loc.startswith(("http://", "https://")):
             from tiled.client import from_uri

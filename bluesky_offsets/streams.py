@@ -1,6 +1,6 @@
 """Named random streams: every use of a user's seed draws from a stream of its own, named here, so
 that two uses never share numbers by accident and a new use takes a name, not an arithmetic offset.
-The offsets are the ones each use has always added: the same numbers as before they were named.
+The offsets never change, so a seed gives the same numbers in every version.
 
 >>> stream(0, "demo.ioc_noise")
 2

@@ -85,8 +85,10 @@ def calibrate_camera(camera, *, darks: int = 4, frames: int = 8, max_gain_error:
         measured, sigma = pt.gain, pt.gain_sigma
     except ValueError:
         pass
-    ok = measured is not None and measured > 0 and sigma < max_gain_error * measured
-    cal = dataclasses.replace(base, gain=measured, gain_sigma=sigma) if ok else base
+    ok = False
+    cal = base
+    if measured is not None and sigma is not None and measured > 0 and sigma < max_gain_error * measured:
+        ok, cal = True, dataclasses.replace(base, gain=measured, gain_sigma=sigma)
     camera.calibrate(cal)
     return CameraCheck(cal, measured, sigma, base.read_noise, len(dark), len(light), ok)
 

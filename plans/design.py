@@ -16,6 +16,7 @@ import json
 import logging
 from collections.abc import Mapping
 from dataclasses import asdict, dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 from bluesky.utils import MsgGenerator
@@ -28,6 +29,11 @@ from bluesky_offsets.physics.parameters import METRIXS, ParameterTable
 
 from ._stubs import Record, emit_rows, run_in_thread
 
+if TYPE_CHECKING:
+    from bluesky_offsets.offsets.beam_search import SearchResult
+
+    from .diagnose import Comparison
+
 log = logging.getLogger("bluesky_offsets.workflow")
 
 
@@ -36,7 +42,7 @@ class Designed:
     """What :func:`measure_designed` did: the beam search, the measurement, each batch's design
     record, the offsets' estimate and the design's precision after the last batch."""
 
-    beam: object                      # bluesky_offsets.offsets.beam_search.SearchResult
+    beam: SearchResult
     measurement: Measurement
     steps: list[dict] = field(default_factory=list)
     offsets: np.ndarray | None = None
@@ -134,7 +140,7 @@ class Validation:
     """Frames no fit used, far from the fitted ones, and the calibrated model against them."""
 
     measurement: Measurement
-    comparison: object                # plans.diagnose.Comparison
+    comparison: Comparison
     uid: str | None = None
 
     @property
@@ -179,7 +185,7 @@ def validation_settings(model, fitted: Measurement, n: int, *, options: DesignOp
     from bluesky_offsets.physics import effects as E
     from bluesky_offsets.physics.screen import add_overrides, tensor_overrides
     from bluesky_offsets.physics.beamline import torch_engine
-    from bluesky_offsets.physics.torch_engine import histograms
+    from bluesky_offsets.physics.engine import histograms
     from bluesky_offsets.physics.twin import HistogramSpec, Twin
     from plans import enough_rays
 

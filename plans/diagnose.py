@@ -182,7 +182,7 @@ class Analysis:
     refinement: Refinement | None = None
     refits: list[Refit] = field(default_factory=list)
     pruning: Pruning | None = None          # the backward step, when two or more effects were added
-    uids: dict[str, str] = field(default_factory=dict)
+    uids: dict[str, str | None] = field(default_factory=dict)  # None: a step that recorded no run
     resumed: dict[str, str] = field(default_factory=dict)   # steps taken from earlier runs: step -> uid
 
     @property
@@ -210,7 +210,7 @@ class Analysis:
         the order they were added, from the last fit (the pruning's, else the last refit's)."""
         if not self.refits:
             return {}
-        if self.dropped is not None:
+        if self.pruning is not None and self.pruning.dropped is not None:  # self.dropped
             state, sigma = self.pruning.state, self.pruning.sigma
         else:
             state, sigma = self.refits[-1].state, self.refits[-1].sigma
@@ -265,16 +265,15 @@ class Analysis:
         if not found:
             return last.verdict if last else "not diagnosed"
         tail = "" if last is None or last.best is not None else f"; then {last.verdict}"
-        if self.dropped is not None:
+        if self.pruning is not None and self.pruning.dropped is not None:  # self.dropped
             t = next(t for t in self.pruning.tests if t["effect"] == self.dropped)
             why = ("without it the model is within noise" if not t["beyond_noise_without"] else
                    f"with the others in it bought Δχ² = {t['gain']:.3g}, below its price {t['price']:.3g}")
             tail += f"; {self.dropped} was added before and dropped: {why}"
         if last is not None and last.best is not None and not self.final.within_noise:
             # the last diagnosis added an effect and the model still does not reach the noise: the
-            # search ran out of rounds, not of effects (measured: a thermal bump beside a narrower
-            # source ended at chi2/dof 1.21 with a blur that was not hidden and the divergence at 40 %
-            # of its hidden value)
+            # search ran out of rounds, not of effects, and the effects found may stand in for the
+            # missing one at values that are not theirs
             n = len(self.rankings)
             tail += (f"; the model is still beyond noise after {n} diagnos{'is' if n == 1 else 'es'} (chi2/dof = "
                      f"{self.final.misfit.chi2_reduced_total:.3g}): an effect may be missing or another set "
@@ -289,7 +288,7 @@ class Analysis:
     def calibrated(self) -> CalibratedState:
         """The model the analysis ends with and the covariance of the fit that gave it (the last
         refit's, else the offsets fit's): what :func:`plans.optimize.optimize_beam` optimizes on."""
-        if self.dropped is not None:
+        if self.pruning is not None and self.pruning.dropped is not None:  # self.dropped
             return self.pruning.calibrated
         if self.refits and self.refits[-1].covariance is not None:
             return self.refits[-1].calibrated
@@ -358,7 +357,7 @@ def _compare(meas: Measurement, state: ModelState, twin, label: str, model_rays:
              effect_sigma: Mapping | None, table: ParameterTable) -> Comparison:
     hx, hy = simulate(twin, meas.configurations, state, model_rays, [seed + i for i in range(meas.n)], table,
                       meas.screen)
-    mf = misfit(meas.hist_x, meas.hist_y, hx, hy, meas.n_rays, model_rays=model_rays, floor_x=meas.floor_x,
+    mf = misfit(meas.hist_x, meas.hist_y, hx, hy, meas.ray_budget, model_rays=model_rays, floor_x=meas.floor_x,
                 floor_y=meas.floor_y)
     sig = residual_signature(meas.hist_x, meas.hist_y, hx, hy, twin.hist)
     corr = correlate_with_parameters(sig, meas.configurations, table.names)
@@ -424,9 +423,9 @@ def compare_model(measurement, state: ModelState, twin, *, label: str | None = N
     meas, link = resolve_measurement(measurement, store, table=table)
     twin = twin.with_hist(meas.spec)  # the twin bins as the measurement does
     label = label or state.label
-    rays = int(model_rays or 4 * meas.n_rays)
+    rays = int(model_rays or 4 * meas.ray_budget)
     _md = {"plan_name": "compare_model", "purpose": "model vs. measurement", **link, **_state_md(state, table),
-           "version_label": label, "n_configurations": meas.n, "n_rays": int(meas.n_rays), "model_rays": rays,
+           "version_label": label, "n_configurations": meas.n, "n_rays": meas.ray_budget, "model_rays": rays,
            "model_seed": int(seed), **dict(md or {})}
 
     def body():
@@ -661,8 +660,7 @@ def add_effect_and_refit(measurement, state: ModelState, effect: str, twin, forw
         yield from record_error_history(versions)
         limits: dict[str, dict[str, float]] = {}
         if c.within_noise:
-            # what could still hide (measured: a hidden 10 mm defocus beside a divergence of -0.3;
-            # the divergence added, the model was within noise and nothing said the defocus could hide)
+            # what could still hide: a model within noise can still miss an effect the offsets absorb
             names = [n for n in (candidates or E.EFFECTS) if n not in st.effects]
             lo = FitOptions.resolve(limits_options, D.SCAN)
             limits = yield from run_in_thread(
@@ -824,6 +822,7 @@ def completed_steps(store, key: str) -> dict[str, str]:
 # --------------------------------------------------------------------------- #
 # the whole analysis
 # --------------------------------------------------------------------------- #
+# long: a 60-line numpy docstring over the analysis's resumable steps (97 lines), read in order
 def analyse_measurement(measurement, twin, forward_model=None, *, store=None,
                         starts: ModelState | Sequence[ModelState] | None = None, refine: bool = True,
                         candidates: Sequence[str] | None = None, add_best: bool = True, rounds: int = D.ROUNDS,
@@ -932,8 +931,8 @@ def analyse_measurement(measurement, twin, forward_model=None, *, store=None,
     if refine:
         # The offsets are fitted from every start and the fit that ends lowest is kept.  Why: where
         # the surrogate cannot represent the beamline (a hidden defocus) its finder's offsets lie
-        # far off (measured: at the box's edge, 0.18 of the ranges rms against 0.03 for no offsets
-        # at all) while their χ² is a little lower, and the fit ends near where it starts.
+        # far off (at the box's edge) while their χ² is a little lower, and the fit ends near where
+        # it starts.
         r = yield from step("refine_offsets", lambda m: refine_offsets(
             meas, current, twin, options=fopts, md={**m, "start_label": order[0].label}, show=show,
             also_from=[c.state for c in order[1:]], executor=executor, table=table), restore_refinement)
@@ -986,7 +985,7 @@ def analyse_measurement(measurement, twin, forward_model=None, *, store=None,
     return out
 
 
-def _history_run(versions, md) -> MsgGenerator[str]:
+def _history_run(versions, md) -> MsgGenerator[str | None]:
     def body():
         yield from record_error_history(versions)
     _, uid = yield from in_run(body, {"plan_name": "error_history", "versions": [v.label for v in versions], **md},

@@ -107,7 +107,7 @@ def motor_limits(motors: Mapping, table: ParameterTable = METRIXS) -> MsgGenerat
         if lim is not None:
             lo[i], hi[i] = max(lo[i], lim[0]), min(hi[i], lim[1])
         # inside: a controller rounds a target to its steps, and 14 - 1e-9 rounded to 1e-4 steps
-        # reads back as 14.000000000000002, past the limit (measured on E1 roll)
+        # reads back as 14.000000000000002, past the limit
         gap = margins.get(name, 0.0)
         if hi[i] - lo[i] > 2 * gap:
             lo[i], hi[i] = lo[i] + gap, hi[i] - gap
@@ -117,7 +117,7 @@ def motor_limits(motors: Mapping, table: ParameterTable = METRIXS) -> MsgGenerat
 def _frames_focus(m: Measurement, rows: slice) -> tuple[Focus, np.ndarray, np.ndarray]:
     """The focus of the frames ``rows`` summed, at the camera's resolution where the detector gives it."""
     spec = m.profile_spec
-    if spec is not None:
+    if spec is not None and m.profile_x is not None and m.profile_y is not None:
         px, py = m.profile_x[rows].mean(0), m.profile_y[rows].mean(0)
     else:
         spec, px, py = m.spec, m.hist_x[rows].mean(0), m.hist_y[rows].mean(0)
@@ -126,7 +126,7 @@ def _frames_focus(m: Measurement, rows: slice) -> tuple[Focus, np.ndarray, np.nd
 
 
 def _jsonable_target(target) -> dict:
-    d = asdict(target) if is_dataclass(target) else {}
+    d = asdict(target) if is_dataclass(target) and not isinstance(target, type) else {}
     return {"name": target.name, **{k: v for k, v in d.items() if k != "name"}}
 
 
@@ -161,6 +161,7 @@ def _move_and_measure(opt: BeamOptimum, beamline, chamber, frames: int, before_f
             read["before"] = _frames_focus(m, slice(0, n_before))
         read["after"] = _frames_focus(m, slice(n_before, None))
         b = read["before"][0] if before_frames else before
+        assert b is not None  # passed where the frames before are not taken
         yield from emit_rows("beam", _beam_rows(b, opt, read["after"][0]))
         moves = [{"parameter": n, "from": float(opt.current[table.index(n)]), "to": float(opt.settings[table.index(n)]),
                   "unit": table[n].unit} for n in opt.moved]
@@ -247,12 +248,12 @@ def optimize_beam(target, model, beamline, chamber, *, constraints: Constraints 
         from bluesky_offsets.model.diagnosis import FIT
         from bluesky_offsets.model.state import refine
 
+        assert measurement is not None  # refused above without one
         new = m.for_analysis(measurement.n_rays, table, resolution="camera" if measurement.spec.bins_x > 50
                              else "paper").subset(slice(frames, None))
         both = _joined(measurement, new)
         # one draw of the model's rays (FitOptions.ray_draws): this refit sets the next move, where
         # frames are measured and the prediction is checked, and each further draw costs a whole fit
-        # (measured alone: with four, the main job's last step took 60 s against 35-47 s)
         res = yield from run_in_thread(lambda progress: refine(both, cal.state, options=refit or FIT.replace(ray_draws=1),
                                                                progress=progress, executor=executor,
                                                                table=table),

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Mapping
+from typing import TYPE_CHECKING
 
 import numpy as np
 from bluesky.utils import MsgGenerator
@@ -31,6 +32,9 @@ from bluesky_offsets.errors import InputError
 from bluesky_offsets.physics.parameters import METRIXS, ParameterTable
 
 from .measure import scan_configurations
+
+if TYPE_CHECKING:
+    from bluesky_offsets.offsets.beam_search import SearchResult
 
 steps_log = logging.getLogger("bluesky_offsets.workflow")  # the session's step lines (commands.session.StepLines)
 
@@ -116,7 +120,9 @@ def high_ray_configurations_on_model(model, n: int = MIN_CONFIGURATIONS, *, cand
     """
     from bluesky_offsets.progress import bar as progress_bar
 
-    cand = (sample_candidates(int(candidates), rng=rng, around=around, spread=spread, table=table)
+    # the ignore: np.isscalar's TypeGuard replaces ``int | ndarray`` by numpy's scalar types, which int() refuses
+    cand = (sample_candidates(int(candidates), rng=rng, around=around,  # type: ignore[arg-type]
+                              spread=spread, table=table)
             if np.isscalar(candidates) else table.validate(np.atleast_2d(candidates), "candidates"))
     shift = 0.0 if offsets is None else table.offsets_to_physical(offsets)
     found: list[np.ndarray] = []
@@ -253,7 +259,7 @@ class DarkBeamline(RuntimeError):
 
 
 def bright_beam(beamline, chamber, *, fraction: float, max_frames: int,
-                table=METRIXS) -> MsgGenerator[object]:
+                table=METRIXS) -> MsgGenerator[SearchResult]:
     """:func:`find_beam`, its steps logged; :class:`DarkBeamline` where it ends dim."""
     steps_log.info("finding the beam (offsets up to ±%g of each range assumed)", fraction)
     beam = yield from find_beam(beamline, chamber, fraction=fraction, max_frames=max_frames, table=table)

@@ -21,7 +21,9 @@ from __future__ import annotations
 
 import logging
 import time
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass, replace
+from typing import TYPE_CHECKING
 
 import numpy as np
 from bluesky.utils import MsgGenerator
@@ -34,6 +36,13 @@ from bluesky_offsets.physics.parameters import METRIXS
 from bluesky_offsets.physics.screen import as_screen
 
 from .search import DarkBeamline, bright_beam
+
+if TYPE_CHECKING:
+    from bluesky_offsets.offsets.beam_search import SearchResult
+
+    from .design import Designed, Validation
+    from .diagnose import Analysis
+    from .offsets import OffsetResult
 
 log = logging.getLogger("bluesky_offsets.workflow")
 
@@ -102,11 +111,11 @@ class Measured:
     """What :func:`measure_bright` (or :func:`plans.design.measure_designed`) did: the beam search
     and the measurement; ``designed`` the design's record where the frames were designed."""
 
-    beam: object                 # bluesky_offsets.offsets.beam_search.SearchResult
+    beam: SearchResult
     measurement: Measurement
     n_open: int
     analysed: np.ndarray         # indices of the configurations the analysis fits
-    designed: object | None = None  # plans.design.Designed
+    designed: Designed | None = None
 
     @property
     def uid(self) -> str | None:
@@ -253,14 +262,14 @@ class Session:
     """What :func:`calibration_session` did, and when each part ended (``times``, perf_counter)."""
 
     measured: Measured
-    offsets: object              # plans.offsets.OffsetResult (``uid``: its run); None for a designed one
-    analysis: object             # plans.diagnose.Analysis
+    offsets: OffsetResult | None  # ``uid``: its run; None for a designed one
+    analysis: Analysis
     times: dict
-    validation: object | None = None   # plans.design.Validation
+    validation: Validation | None = None
 
 
 def calibration_session(beamline, chamber, twin, forward_model, *, design: MeasurementDesign | DesignOptions,
-                        evaluations: int = 3000, candidates: list[str] | None = None, rounds: int = D.ROUNDS,
+                        evaluations: int = 3000, candidates: Sequence[str] | None = None, rounds: int = D.ROUNDS,
                         fit=None, scan=None, fit_top: int | None = D.FIT_TOP, resolution: str = "camera",
                         measurement_md: dict | None = None, analysis_md: dict | None = None,
                         step=log.info, executor=None, measured=None, table=METRIXS) -> MsgGenerator[Session]:

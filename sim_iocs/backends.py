@@ -28,7 +28,7 @@ import multiprocessing
 import os
 import threading
 import time
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Protocol, runtime_checkable
 
@@ -268,10 +268,12 @@ class TwinBackend:
 
     def _frame(self, values: np.ndarray, n_rays: int, seed: int, screen=None) -> Frame:
         worker = self._worker()
-        overrides = self.overrides
+        overrides: Mapping = self.overrides
         if screen is not None and np.any(screen):  # the stage's position plus the chamber's hidden displacement
             from bluesky_offsets.physics.screen import per_frame_overrides
-            overrides = per_frame_overrides(overrides, np.asarray(screen, float)[None], 1)[0]
+            frames = per_frame_overrides(overrides, np.asarray(screen, float)[None], 1)
+            assert isinstance(frames, Sequence)  # the stage moved: one mapping per frame
+            overrides = frames[0]
         status, payload = worker.run((np.asarray(values, float), overrides, int(n_rays), seed, self.hist,
                                       self.beamline))
         if status != "ok":

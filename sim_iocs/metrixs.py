@@ -73,7 +73,8 @@ class RefusedPutInOneLine(logging.Filter):
     def filter(self, record: logging.LogRecord) -> bool:
         if record.exc_info and str(record.msg).startswith("Invalid write request"):
             ex = record.exc_info[1]
-            user, host = (record.args or ("?", "?"))[:2]
+            args = record.args if isinstance(record.args, tuple) else ()  # caproto passes a tuple
+            user, host = (args or ("?", "?"))[:2]
             record.msg, record.args = "refused put by %s (%s): %s: %s", (user, host, type(ex).__name__, ex)
             record.exc_info = record.exc_text = None
         return True
@@ -91,7 +92,7 @@ class BeaconRefusedOnce(logging.Filter):
     def filter(self, record: logging.LogRecord) -> bool:
         if not str(record.msg).startswith("Failed to send beacon"):
             return True
-        where = str(record.args[0]) if record.args else "?"
+        where = str(record.args[0]) if isinstance(record.args, tuple) and record.args else "?"
         if where in self._seen:
             return False
         self._seen.add(where)
@@ -386,7 +387,7 @@ def submit_frame(backend: FootprintBackend, values: np.ndarray, n_rays: int, scr
     if not np.any(screen):
         return backend.submit(values, n_rays)
     try:
-        return backend.submit(values, n_rays, screen=screen)
+        return backend.submit(values, n_rays, screen=screen)  # type: ignore[call-arg]  # optional to the protocol
     except TypeError as exc:
         if "screen" not in str(exc):
             raise
@@ -449,7 +450,7 @@ class MetrixsIOC:
 
         for i, p in enumerate(table):
             if p.motorized and p.name not in leave_out:
-                settings = axis_settings(p, self.truth.start[i], move_time=move_time, accel_time=accel_time)
+                settings = axis_settings(p, self._fixed_start[i], move_time=move_time, accel_time=accel_time)
                 self.motors[p.name] = record(p.name, motor_pv(p, prefix), settings, i)
         self.stage = {ax.name: record(f"chamber.{ax.name}", f"{prefix}{CHAMBER}{ax.name}",
                                       stage_settings(ax, move_time=move_time, accel_time=accel_time), len(table) + k)
@@ -666,7 +667,7 @@ def serve(args) -> int:
 
     signal.signal(signal.SIGTERM, _terminate)
     # SIGINT stops the IOC even when its parent ignored SIGINT (a disposition children inherit:
-    # measured, such an IOC sat out the 10 s its stopper waits before killing it)
+    # such an IOC would sit out the grace its stopper gives it before killing it)
     signal.signal(signal.SIGINT, signal.default_int_handler)
     interfaces = _interfaces(args.interfaces)
     _beacon_environment(interfaces)

@@ -37,6 +37,7 @@ import logging
 import math
 import re
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -81,7 +82,7 @@ MSTA_PROBLEM = 1 << 9
 MSTA_MOVING, MSTA_GAIN_SUPPORT, MSTA_MINUS_LS, MSTA_HOMED = 1 << 10, 1 << 11, 1 << 13, 1 << 14
 
 
-def trapezoid(distance: float, velocity: float, accel_time: float) -> tuple[float, callable]:
+def trapezoid(distance: float, velocity: float, accel_time: float) -> tuple[float, Callable[[float], float]]:
     """Duration and displacement-vs-time of a trapezoidal move.
 
     The axis accelerates uniformly for ``accel_time`` to ``velocity``, cruises,

@@ -37,6 +37,7 @@ import os
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -61,7 +62,8 @@ def _motor_faults(spec, table: ParameterTable) -> dict:
             raise ParameterError(f"motors: {axis}: unknown fields {sorted(unknown)}; expected some of "
                                  f"{sorted(_MECHANICS)}")
         try:
-            clean = {k: (bool(v) if k in ("encoder", "stalled") else float(v)) for k, v in fields.items()}
+            clean: dict[str, Any] = {k: (bool(v) if k in ("encoder", "stalled") else float(v))
+                                     for k, v in fields.items()}
             Mechanics(**{**({"encoder": True} if clean.get("readback_noise") else {}), **clean})
         except (TypeError, ValueError) as exc:
             raise ParameterError(f"motors: {axis}: {exc}") from None
@@ -163,6 +165,7 @@ class Truth:
 
     def to_dict(self) -> dict:
         """Everything, normalized offsets for all parameters (for writing a truth file)."""
+        assert self.start is not None  # __post_init__ fills it
         return {"offsets": {n: float(v) for n, v in zip(self.table.names, self.offsets)},
                 "overrides": self.overrides,
                 "start": {n: float(v) for n, v, m in zip(self.table.names, self.start, self.table.motorized) if m},

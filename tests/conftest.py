@@ -61,9 +61,8 @@ os.environ.setdefault("MPLBACKEND", "Agg")
 
 def _threads_per_worker() -> int | None:
     """pytest-xdist's workers already fill the cores: each gets its share of them as torch's
-    threads (and so do the demos and IOCs it starts, through the environment).  Measured: a
-    diagnosis took 33 s of CPU on one thread and 53 s on two (28 s instead of 33 s of wall
-    time), so two threads per worker on two cores burn CPU the other worker needs."""
+    threads (and so do the demos and IOCs it starts, through the environment).  A fit's small
+    tensors gain little wall time from a second thread and burn CPU the other worker needs."""
     workers = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "0"))
     return max(1, (os.cpu_count() or 1) // workers) if workers else None
 

@@ -8,7 +8,7 @@ import pytest
 from bluesky_offsets.model.diagnosis import open_settings
 from bluesky_offsets.offsets.beam_search import acceptance, intensity, schedule, search
 from bluesky_offsets.physics.parameters import METRIXS
-from bluesky_offsets.physics.torch_engine import TorchEngine
+from bluesky_offsets.physics.engine import TorchEngine
 from bluesky_offsets.physics.twin import Twin
 from plans import HIGH_RAY_THRESHOLD
 from sim_iocs.truth import default_start

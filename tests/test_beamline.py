@@ -171,8 +171,8 @@ def test_the_torch_engine_traces_energize_from_rayx_source_rays(tmp_path):
     points agree within 1e-4 mm."""
     import rayx
 
-    from bluesky_offsets.physics import torch_random as rnd
-    from bluesky_offsets.physics.torch_engine import compile_beamline, rays_from_arrays, trace_rays
+    from bluesky_offsets.physics.engine import compile_beamline, rays_from_arrays, trace_rays
+    from bluesky_offsets.physics.engine import random_streams as rnd
     from bluesky_offsets.physics.twin import TraceRequest, _rayx_fix_seed, footprint
     bl = load_beamline(shipped("energize"))
     vals = bl.table.reference.copy()

@@ -23,7 +23,7 @@ from bluesky_offsets.model.posterior import Posterior
 from bluesky_offsets.model.state import CalibratedState, ModelState
 from bluesky_offsets.physics.parameters import METRIXS as T
 from bluesky_offsets.physics.screen import STAGE
-from bluesky_offsets.physics.torch_engine import TorchEngine
+from bluesky_offsets.physics.engine import TorchEngine
 from sim_iocs.truth import default_start
 
 

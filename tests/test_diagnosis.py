@@ -20,9 +20,9 @@ N_RAYS = 4000
 HIDDEN = {"E1.rotationXerror": 0.012, "E2.rotationXerror": -0.01, "M1_Cylinder.rotationXerror": 0.008}
 # 8 configurations in the paper's 50 x 50 bins hold ~40 degrees of freedom for 34 offsets: the
 # offsets get the prior of a beamline aligned to a few per cent (without it the compensating
-# combinations fit the rays of the fit: chi2/dof 1.2 there, 1.7-2.3 with fresh rays)
+# combinations fit the rays of the fit, and fresh rays see a worse fit)
 # In the paper's bins the focus fills a bin or two and the features do most of the work: they get
-# all the fit's rays here (with 2000, the default for camera bins, this fit ended at chi2/dof 2.4)
+# all the fit's rays here (with 2000, the default for camera bins, this fit ends above the noise)
 # one draw of the model's rays: FitOptions.ray_draws is tested in tests/test_fit.py and, at the
 # analysis's default of four, by the IOC demos (tests/test_diagnosis_ioc.py)
 FIT = {"rays": 2 * N_RAYS, "feature_rays": None, "stages": [["features", 10], ["bins", 6]], "prior_sigma": 0.03,
@@ -204,12 +204,11 @@ def test_feature_stage_then_diagnosis_find_a_hidden_defocus(camera_case):
     at_truth = truth_mf.chi2_reduced_total
     offsets_only = evaluate(meas, fit.state, twin).chi2_reduced_total
     # ... not all of it: the rest is beyond what the noise gives, by the diagnosis's own 3σ (Δχ²
-    # in σ of a χ² of dof degrees of freedom; measured: 1.14 against the truth's 0.83 over 448.5
-    # dof, 4.6σ; the fit's rays a stream per configuration, and before that 2× the truth's)
+    # in σ of a χ² of dof degrees of freedom)
     dof = truth_mf.dof_total
     assert (offsets_only - at_truth) * dof > 3 * np.sqrt(2 * dof), dof
     # the candidates side by side (two detector-level ones: their forward-mode derivatives
-    # take turns: bluesky_offsets.physics.torch_engine.FORWARD_AD)
+    # take turns: bluesky_offsets.physics.engine.FORWARD_AD)
     from concurrent.futures import ThreadPoolExecutor
     with ThreadPoolExecutor(2) as ex:
         d = diagnose(meas, fit.state, twin, candidates=["chamber_z", "detector_blur", "intensity_scale"], options=SCAN,
@@ -220,7 +219,7 @@ def test_feature_stage_then_diagnosis_find_a_hidden_defocus(camera_case):
     res = add_effect_result(meas, start, "chamber_z", twin, values=d.best.values, options=FIT)
     z, sz = res.state.effects["chamber_z"]["z"], res.effect_sigma["chamber_z"]["z"]
     assert abs(z - 20.0) <= max(3 * sz, 5.0), (z, sz)  # downstream, as hidden
-    # adding it gives back most of what the offsets could not explain (measured: 0.88)
+    # adding it gives back most of what the offsets could not explain
     assert evaluate(meas, res.state, twin).chi2_reduced_total < at_truth + 0.3 * (offsets_only - at_truth)
 
 

@@ -14,7 +14,7 @@ and the source's divergence among them) through the IOC, and the whole grid over
 ``benchmarks/bench_diagnosis_grid.py``; in-process, ``tests/test_diagnosis.py``.  The checks
 read ``summary.json``.
 
-About 2-4 minutes per scenario on two cores (docs/diagnosis.md).
+About 2-4 minutes per scenario on two cores (docs/explanations/diagnosis.md).
 ``BLUESKY_OFFSETS_SKIP_ACCEPTANCE=1`` skips them for a quick local run.
 """
 
@@ -47,9 +47,8 @@ SCENARIOS = {
 
 def _demo(tmp_path: Path, effect: str, *extra: str) -> tuple[dict, subprocess.CompletedProcess]:
     exe = Path(sys.executable).parent / "bluesky-offsets"  # the console script, as a user runs it
-    # the demo's fits one at a time ($OMP_NUM_THREADS, tests/conftest.py): measured with two at a
-    # time, the suite took 14.9 min (its demos 279, 271, 231, 136 s) against 14.7 (291, 280, 228,
-    # 117 s) with one: the two workers' demos overlap, and nothing was gained
+    # the demo's fits one at a time ($OMP_NUM_THREADS, tests/conftest.py): the two workers' demos
+    # overlap, so a second fit thread gains nothing
     cmd = [str(exe) if exe.exists() else shutil.which("bluesky-offsets"), "demo", "--effect", effect,
            "--out", str(tmp_path / "out"), "--store", str(tmp_path / "runs"), *extra]
     proc = subprocess.run(cmd, capture_output=True, text=True, timeout=1150,
@@ -140,10 +139,8 @@ class TestChamberZ(_HiddenEffect):
         # Measured as predicted and as small as the hidden true beamline allows (10 % each: issue
         # 21's acceptance; benchmarks/bench_optimize_beam.py checks five other draws), after the
         # closed loop. The first move's prediction rests on offsets that reproduce the frames
-        # within noise but are not the truth's (pulls up to 11 sigma; issue 17): measured
-        # (2026-11-27, this draw) 9.6 x 6.8 µm against 12.0 x 7.7 predicted (0.80, 0.88); refitted
-        # with the frames taken there, the second move's 11.1 x 6.8 predicted, 10.7 x 6.8 measured
-        # (0.97, 1.00), the truth's best 10.2 x 6.6 (1.05, 1.03).
+        # within noise but are not the truth's, so it can miss by 20 %; the refit with the frames
+        # taken there brings the second move's prediction within a few %.
         over = {a: after[f"rms_{a}"] / best[f"rms_{a}"] for a in "xy"}
         ratio = {a: after[f"rms_{a}"] / pred[f"rms_{a}"] for a in "xy"}
         for a in "xy":

@@ -346,8 +346,8 @@ def test_an_interrupted_analysis_resumes_from_the_store_to_the_same_verdict(RE, 
 def test_the_verdict_says_what_its_numbers_do_not_support():
     """The verdict's text, from an analysis's parts: an added effect fitted within 2σ of its
     absence is marked so, and a model still beyond noise when the rounds ran out says that the
-    values hold only for a complete model (measured on a pair the grid does not hold:
-    docs/diagnosis.md, "When the rounds run out before the noise")."""
+    values hold only for a complete model (docs/explanations/diagnosis.md, "When the rounds run
+    out before the noise")."""
     from types import SimpleNamespace as NS
 
     from plans.diagnose import Analysis

@@ -16,12 +16,12 @@ import rayx
 import torch
 
 from bluesky_offsets.physics import effects
-from bluesky_offsets.physics import torch_random as rnd
+from bluesky_offsets.physics.engine import (FEATURES, TorchEngine, TorchOptions, compile_beamline, device_agreement,
+                                           rays_from_arrays, sample_source, trace_rays)
+from bluesky_offsets.physics.engine import random_streams as rnd
 from bluesky_offsets.physics.metrixs import build_beamline
 from bluesky_offsets.physics.parameters import METRIXS
 from bluesky_offsets.physics.rml import read_rml
-from bluesky_offsets.physics.torch_engine import (FEATURES, TorchEngine, TorchOptions, compile_beamline,
-                                          device_agreement, rays_from_arrays, sample_source, trace_rays)
 from bluesky_offsets.physics.twin import HistogramSpec, RayxEngine, Twin, TraceRequest, _rayx_fix_seed, footprint
 
 SHARED = Path(__file__).resolve().parent / "data" / "reference"  # provenance: its README.md

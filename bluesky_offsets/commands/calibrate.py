@@ -34,6 +34,7 @@ def _cmd_calibrate(args) -> int:
         raise CliError("--evaluations must be at least 1")
     if args.connect_timeout <= 0:
         raise CliError("--connect-timeout must be positive")
+    design: DesignOptions | MeasurementDesign
     try:
         if args.design == "optimal":
             design = DesignOptions(frames=args.frames, validation=args.validation_frames, seed=args.seed)
@@ -67,6 +68,7 @@ def _cmd_calibrate(args) -> int:
 
 def _calibrate(args, design, effects, pv_map, forward_model, store) -> int:
     from bluesky import RunEngine
+    from bluesky.run_engine import RunEngineResult
     from bluesky.utils import RunEngineInterrupted
 
     from bluesky_offsets.model.cluster import analysis_executor
@@ -103,12 +105,14 @@ def _calibrate(args, design, effects, pv_map, forward_model, store) -> int:
             if darks is not None:
                 RE(darks())
             with analysis_executor(args.threads, twin) as executor:
-                session = RE(calibration_session(
+                result = RE(calibration_session(
                     beamline, chamber, twin, forward_model, design=design, evaluations=args.evaluations,
                     candidates=effects, rounds=args.rounds, fit=fit, scan=scan,
                     fit_top=args.fit_top or None, resolution=args.resolution, measurement_md={"purpose": "calibrate"},
                     analysis_md={"purpose": "calibration analysis"}, step=say, executor=executor,
-                    measured=measured_hook)).plan_result
+                    measured=measured_hook))
+                assert isinstance(result, RunEngineResult)  # call_returns_result=True
+                session = result.plan_result
         except DarkBeamline as exc:
             raise CliError(str(exc)) from None
         except RunEngineInterrupted:

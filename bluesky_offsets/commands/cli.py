@@ -64,7 +64,7 @@ def add_analysis_options(p: argparse.ArgumentParser, *, fit_rays: int | None, fi
     p.add_argument("--fit-rays", type=int, default=fit_rays, help=fit_rays_help)
     p.add_argument("--fit-top", type=int, default=0,
                    help="screen every start of every candidate first and fit only this many candidates to "
-                        "convergence (faster; a screen can miss a defocus: docs/diagnosis.md); default 0: every "
+                        "convergence (faster; a screen can miss a defocus: docs/explanations/diagnosis.md); default 0: every "
                         "start fitted")
     p.add_argument("--resolution", choices=("camera", "paper"), default="camera", help=resolution_help)
     p.add_argument("--threads", type=int, default=None,

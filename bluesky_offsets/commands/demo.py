@@ -17,7 +17,7 @@ A whole calibration and diagnosis session against the simulated beamline:
    (twin -> + offsets -> + effect), the fitted effect next to the hidden one, the focus before,
    after and predicted, and how to load the runs back.
 
-With ``--beamline FILE|NAME`` the same session runs on a described beamline (docs/beamlines.md):
+With ``--beamline FILE|NAME`` the same session runs on a described beamline (docs/reference/beamlines.md):
 its IOC, devices, designed frames, fits and effects, up to the validation frames.
 
 The IOC is always stopped, also after an error or Ctrl-C.
@@ -50,6 +50,7 @@ from bluesky_offsets.design import DesignOptions
 from bluesky_offsets.streams import stream
 
 if TYPE_CHECKING:  # plans (bluesky) load when the demo runs, not with every command
+    from bluesky_offsets.model.posterior import Posterior
     from plans.workflow import MeasurementDesign
 
 # Hidden truth: offsets in all 34 parameters, uniform within ±``offsets_fraction`` of each range
@@ -70,8 +71,7 @@ def _design(**kw) -> MeasurementDesign:
 class DemoSettings:
     n_rays: int = 5000                # per measured frame
     # the simulated motors: seconds for a full-range move (velocity = range / move_time), far
-    # faster than a real motor: the ~55 frames of the beam search and the measurement took 27 s
-    # with 0.5 and 22 s with 0.1, the same frames and results
+    # faster than a real motor: the speed changes the wall time, not the frames or the results
     move_time: float = 0.1
     # "perfect" axes, or "realistic" ones: encoder noise, backlash, retries (sim_iocs.metrixs.motor_profile)
     motors: str = "perfect"
@@ -290,11 +290,9 @@ def run_demo(out: Path, settings: DemoSettings | None = None, store_location: st
     table, described = s.table, s.described
     work = Path(tempfile.mkdtemp(prefix="bluesky-offsets-demo-"))
     load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
-    hidden = s.hidden
-    offsets = truth["offsets"]
-    log(f"[1/{s.steps}] starting the simulated {s.display} IOC (RAYX twin backend; hidden offsets in {len(offsets)} "
-        f"of {len(table)} parameters, hidden effects: {', '.join(hidden) or 'none'}); load average {load:.1f} on "
-        f"{os.cpu_count()} cores; the analysis's fits {s.threads} at a time)")
+    log(f"[1/{s.steps}] starting the simulated {s.display} IOC (RAYX twin backend; hidden offsets in "
+        f"{len(truth['offsets'])} of {len(table)} parameters, hidden effects: {', '.join(s.hidden) or 'none'}); load "
+        f"average {load:.1f} on {os.cpu_count()} cores; the analysis's fits {s.threads} at a time)")
     # seeded frame noise: the same settings give the same demo, --seed another draw of it
     ioc = SimulatedBeamline(truth, s.n_rays, work, move_time=s.move_time, noise_seed=stream(s.seed, "demo.ioc_noise"),
                             motors=s.motors, beamline=None if described is None else described.path)
@@ -302,16 +300,16 @@ def run_demo(out: Path, settings: DemoSettings | None = None, store_location: st
     pool = contextlib.ExitStack()  # the analysis's executor (one torch and BLAS thread a fit) to the end
     try:
         from bluesky import RunEngine
+        from bluesky.run_engine import RunEngineResult
         from bluesky.utils import RunEngineInterrupted
 
-        from bluesky_offsets.commands.session import ScanProgress, StepLines, close_channels, connect_devices
-        from bluesky_offsets.epics.pvmap import PVMap
-        from bluesky_offsets.offsets.finder import load_forward_model
         from bluesky_offsets.commands.cli import quiet_logs
+        from bluesky_offsets.commands.session import StepLines, close_channels
         from bluesky_offsets.model.cluster import analysis_executor
-        from bluesky_offsets.commands.report import paragraph, table_, write_analysis_report
-        from bluesky_offsets.store import open_store
+        from bluesky_offsets.offsets.finder import load_forward_model
+        from bluesky_offsets.physics.beamline import rayx_engine
         from bluesky_offsets.physics.twin import Twin
+        from bluesky_offsets.store import open_store
 
         quiet_logs()
         steps_log = StepLines(log)  # the workflow plans' progress lines, indented under the step
@@ -319,31 +317,11 @@ def run_demo(out: Path, settings: DemoSettings | None = None, store_location: st
         forward_model = load_forward_model()
         # as many RAYX workers as the demo may use cores (--threads): a test runner's share of
         # one core (OMP_NUM_THREADS=1) starts one worker, not a worker per core of the machine
-        from bluesky_offsets.physics.beamline import rayx_engine
         twin = Twin(rayx_engine(table), n_rays=s.n_rays, n_workers=s.workers or s.threads)
         twin.client  # start the Dask workers while the IOC comes up
         RE = RunEngine({}, call_returns_result=True)  # before the devices: they connect in its event loop
         ioc.wait_ready()
-        frames = None
-        if s.detector == "camera":
-            from bluesky_offsets.store import StoreError
-            try:
-                frames = store.frames_directory  # the embedded store serves the camera's files
-            except StoreError:
-                frames = work / "frames"
-        pv_map = PVMap.simulated(ioc.prefix, table, camera_directory=frames)
-        beamline, chamber = connect_devices(pv_map, timeout=10.0)
-        if pv_map.camera:  # an exposure that gives the frames the demo's photons
-            import bluesky.plan_stubs as bps
-            RE(bps.mv(chamber.driver.acquire_time, s.n_rays / pv_map.camera["photons_per_second"]))
-        store.subscribe(RE)
-        RE.subscribe(ScanProgress())
-        from bluesky_offsets.live import LiveFitProgress, LiveFootprints, in_background
-        from bluesky_offsets.live import flush as flush_live
-        # windows with a GUI backend; else PNGs, written on threads of their own
-        live = [in_background(LiveFootprints(out / "live")), in_background(LiveFitProgress(out / "live"))]
-        for cb in live:
-            RE.subscribe(cb)
+        beamline, chamber, live = _devices(s, ioc, work, store, RE, out)
         log(f"      IOC {ioc.prefix} on 127.0.0.1:{ioc.port}; run store {store.location}")
         # the analysis's independent fits on the twin's workers: processes, so that two fits do
         # not share one interpreter lock (nor this process's with the RunEngine and live views)
@@ -353,105 +331,19 @@ def run_demo(out: Path, settings: DemoSettings | None = None, store_location: st
         except RunEngineInterrupted:  # Ctrl-C paused it: end the run as aborted, then clean up
             RE.abort("interrupted")
             raise KeyboardInterrupt from None
+        assert isinstance(result, RunEngineResult)  # call_returns_result=True
         session, beam_result = result.plan_result
         uids = list(result.run_start_uids)
-        analysis, m, n_open = session.analysis, session.measured.measurement, session.measured.n_open
-        beam = session.measured.beam
-        designed, validation = session.measured.designed, session.validation
-        if designed is None:  # the beam search's runs come first, then the bright search's
-            steps = {"find_beam": beam.uids[-1], "search": uids[len(beam.uids)], "measurement": m.uid,
-                     "find_offsets": session.offsets.uid}
-        else:
-            steps = {"find_beam": beam.uids[-1], "measurement": m.uid}
-        steps.update({k: v for k, v in analysis.uids.items() if v})
-        if validation is not None:
-            steps["validation"] = validation.uid
-        t = session.times
-        best = None
-        if beam_result is not None:
-            steps["optimize_beam"] = beam_result.uid
-            best = _true_best(truth, beam_result)
-            for line in beam_result.lines():
-                log("      " + line)
-            log(f"      the hidden true beamline's best (the same optimizer on the true state): "
-                f"{best.rms_x * 1e3:.1f} x {best.rms_y * 1e3:.1f} µm rms; after / best: "
-                f"x {beam_result.after.rms_x / best.rms_x:.2f}, y {beam_result.after.rms_y / best.rms_y:.2f}")
-
+        steps = _step_uids(session, beam_result, uids)
+        best = None if beam_result is None else _log_beam(truth, beam_result, log)
         log(f"[{s.steps}/{s.steps}] writing the report")
-        what = (f"hidden offsets in all {len(table)} parameters (uniform within ±{s.offsets_fraction:g} of each "
-                f"range)" if s.offsets_fraction > 0 else
-                f"hidden offsets in {len(offsets)} of the {len(table)} parameters ({', '.join(offsets)})")
-        how = (f"{len(m)} frames designed for the offsets ({designed.steps[0]['criterion'] if designed.steps else 'D'}"
-               f"-optimal batches on the twin's exact Jacobians, the chamber's stage moved along the beam) after "
-               f"{beam.frames} frames of the beam search, {session.measured.frames} in all; the offsets fitted through "
-               f"the differentiable twin to all of them" if designed is not None else
-               f"{len(m)} configurations measured through EPICS ({len(m) - n_open} bright ones, {n_open} of them again "
-               f"with the slits open); offsets found with the shipped surrogate (on the configurations inside its "
-               f"box) and fitted through the differentiable twin on {analysis.measurement.n}")
-        intro = [("What this is", paragraph(
-            f"bluesky-offsets demo: a simulated {s.display} beamline (caproto IOC, RAYX twin at the hidden true state, "
-            f"{s.n_rays} rays per frame) with {what} and hidden effects: "
-            f"{', '.join(f'{k} {v}' for k, v in hidden.items()) or 'none'}; {how}; the missing effects diagnosed, "
-            f"added and refitted one after the other"
-            + ("; then frames that no fit used, far from the fitted ones, to test the calibration" if validation
-               else "") + f". Every step is a run in the store {store.location}.")),
-            ("Measurement", table_([{"frames in all": session.measured.frames, "beam search": beam.frames,
-                                     "measured for the fits": len(m), "with open slits": n_open,
-                                     "analysed": analysis.measurement.n, "rays per frame": s.n_rays,
-                                     "measurement uid": m.uid, "truth id": m.truth_id or ""}]))]
-        timing = {"IOC up": t["start"] - t0, "beam search + measure" + (" (designed)" if designed else ""):
-                  t["measure"] - t["start"],
-                  **({} if designed else {"surrogate finder": t["finder"] - t["measure"]}),
-                  "compare/fit/diagnose/refit": t["analysis"] - t["finder"],
-                  **({"validation frames": t["validation"] - t["analysis"]} if validation is not None else {}),
-                  **({"optimize, move, measure": t["optimize"] - t.get("validation", t["analysis"])}
-                     if beam_result is not None else {})}
-        from bluesky_offsets.commands.report import beam_section, design_section, validation_section
-        from bluesky_offsets.model.export import write_calibration
-        from bluesky_offsets.model.posterior import Posterior
-        posterior = Posterior.of(analysis, table)
-        calibration = None
-        if posterior is not None:
-            calibration = write_calibration(out / "calibration.json", analysis, table=table, measurement_uid=m.uid,
-                                            validation=None if validation is None else validation.summary())
-        beam_secs = [] if beam_result is None else [
-            ("The smallest focus with the calibrated twin", beam_section(beam_result, out, best=best))]
-        design_secs = [] if designed is None else [("The designed measurement", design_section(designed))]
-        valid_secs = [] if validation is None else [("Validation frames", validation_section(validation))]
-        report = write_analysis_report(out / "report.html", analysis, analysis.measurement.spec, title="bluesky-offsets demo",
-                                       intro=intro + design_secs, truth=hidden, uids=steps,
-                                       store_location=store.location, table=table,
-                                       extra=[*valid_secs, *beam_secs,
-                                              ("Timing", table_([{k: f"{v:.0f} s" for k, v in timing.items()}]))])
+        written = _write_report(s, truth, out, session, beam_result, best, steps, store.location, t0)
+        from bluesky_offsets.live import flush as flush_live
         flush_live(live)
-        seconds = time.perf_counter() - t0
-        summary = {
-            "seconds": seconds, "load_average_start": load, "threads": s.threads, "timing_s": timing,
-            "store": store.location,
-            "uids": steps, "all_run_uids": uids, "report": str(report), "n_configurations": len(m),
-            "frames": session.measured.frames, "design": s.design_kind,
-            "design_steps": [] if designed is None else [{k: np.asarray(v).tolist() if np.ndim(v) else v
-                                                          for k, v in row.items()} for row in designed.steps],
-            "n_open_configurations": n_open, "n_analysed_configurations": analysis.measurement.n,
-            "beam_search": {"frames": beam.frames, "bright": beam.bright, "intensity": beam.intensity,
-                            "steps": beam.log, "uids": beam.uids},
-            "offsets": None if posterior is None else posterior.as_dict(),
-            "validation": None if validation is None else validation.summary(),
-            "calibration": None if calibration is None else str(calibration),
-            "beamline": s.display, "n_rays": s.n_rays, "hidden_offsets": offsets, "offsets_fraction": s.offsets_fraction,
-            "hidden_effects": hidden,
-            "verdict": analysis.verdict + ("" if validation is None or validation.passed else "; " + validation.line()),
-            # a within-noise verdict: how large each candidate could be and still hide
-            "could_hide": analysis.could_hide_json,
-            "rankings": [[c.name for c in r.diagnosis.candidates] for r in analysis.rankings],
-            "history": [c.total_row() for c in analysis.comparisons],
-            "fitted_effects": analysis.magnitudes(),
-            "retest": analysis.retests, "dropped": analysis.dropped,
-            "truth_id": m.truth_id, "ioc": {"prefix": ioc.prefix, "port": ioc.port, "pid": ioc.proc.pid},
-            "live_views": [str(p) for cb in live for p in cb.written],
-            "beam": None if beam_result is None else _beam_summary(beam_result, best)}
+        summary = _summary(s, truth, session, beam_result, best, written, steps=steps, uids=uids, store=store.location,
+                           ioc=ioc, live=live, seconds=time.perf_counter() - t0, load=load)
         (out / "summary.json").write_text(json.dumps(summary, indent=1, default=float))
-        _print_summary(summary, analysis, store.location)
+        _print_summary(summary, session.analysis, store.location)
         store.close()
         return summary
     finally:
@@ -463,6 +355,178 @@ def run_demo(out: Path, settings: DemoSettings | None = None, store_location: st
         if RE is not None:
             close_channels(RE)
         ioc.stop()
+        if not (work / "frames").exists():  # the truth file and the IOC's log; camera files stay with their runs
+            import shutil
+            shutil.rmtree(work, ignore_errors=True)
+
+
+def _devices(s: DemoSettings, ioc: SimulatedBeamline, work: Path, store, RE, out: Path) -> tuple:
+    """The beamline's and the chamber's devices on the IOC, connected in ``RE``'s loop; the store and
+    the live views subscribed.  Returns (beamline, chamber, live views)."""
+    from bluesky_offsets.commands.session import ScanProgress, connect_devices
+    from bluesky_offsets.epics.pvmap import PVMap
+    from bluesky_offsets.live import LiveFitProgress, LiveFootprints, in_background
+
+    frames = None
+    if s.detector == "camera":
+        from bluesky_offsets.store import StoreError
+        try:
+            frames = store.frames_directory  # the embedded store serves the camera's files
+        except StoreError:
+            frames = work / "frames"
+    pv_map = PVMap.simulated(ioc.prefix, s.table, camera_directory=frames)
+    beamline, chamber = connect_devices(pv_map, timeout=10.0)
+    if pv_map.camera:  # an exposure that gives the frames the demo's photons
+        import bluesky.plan_stubs as bps
+        RE(bps.mv(chamber.driver.acquire_time, s.n_rays / pv_map.camera["photons_per_second"]))
+    store.subscribe(RE)
+    RE.subscribe(ScanProgress())
+    # windows with a GUI backend; else PNGs, written on threads of their own
+    live = [in_background(LiveFootprints(out / "live")), in_background(LiveFitProgress(out / "live"))]
+    for cb in live:
+        RE.subscribe(cb)
+    return beamline, chamber, live
+
+
+def _step_uids(session, beam_result, uids: Sequence[str]) -> dict[str, str]:
+    """The uid of each step's run, by step name, in the order the session took them."""
+    beam, m = session.measured.beam, session.measured.measurement
+    if session.measured.designed is None:  # the beam search's runs come first, then the bright search's
+        steps = {"find_beam": beam.uids[-1], "search": uids[len(beam.uids)], "measurement": m.uid,
+                 "find_offsets": session.offsets.uid}
+    else:
+        steps = {"find_beam": beam.uids[-1], "measurement": m.uid}
+    steps.update({k: v for k, v in session.analysis.uids.items() if v})
+    if session.validation is not None:
+        steps["validation"] = session.validation.uid
+    if beam_result is not None:
+        steps["optimize_beam"] = beam_result.uid
+    return steps
+
+
+def _log_beam(truth: Mapping, beam_result, log):
+    """The beam optimization's lines, and beside them the hidden true beamline's best; returns the best."""
+    best = _true_best(truth, beam_result)
+    for line in beam_result.lines():
+        log("      " + line)
+    log(f"      the hidden true beamline's best (the same optimizer on the true state): "
+        f"{best.rms_x * 1e3:.1f} x {best.rms_y * 1e3:.1f} µm rms; after / best: "
+        f"x {beam_result.after.rms_x / best.rms_x:.2f}, y {beam_result.after.rms_y / best.rms_y:.2f}")
+    return best
+
+
+@dataclass(frozen=True, kw_only=True)
+class _Written:
+    """What :func:`_write_report` wrote: the report, the steps' durations, the calibration file."""
+
+    report: Path
+    timing: dict[str, float]
+    calibration: Path | None
+    posterior: Posterior | None
+
+
+def _timing(session, beam_result, t0: float) -> dict[str, float]:
+    """Seconds per step of the session, for the report and the summary."""
+    t, designed, validation = session.times, session.measured.designed, session.validation
+    return {"IOC up": t["start"] - t0, "beam search + measure" + (" (designed)" if designed else ""):
+            t["measure"] - t["start"],
+            **({} if designed else {"surrogate finder": t["finder"] - t["measure"]}),
+            "compare/fit/diagnose/refit": t["analysis"] - t["finder"],
+            **({"validation frames": t["validation"] - t["analysis"]} if validation is not None else {}),
+            **({"optimize, move, measure": t["optimize"] - t.get("validation", t["analysis"])}
+               if beam_result is not None else {})}
+
+
+def _intro(s: DemoSettings, offsets: Mapping, session, location: str) -> list[tuple[str, str]]:
+    """The report's opening sections: what this demo is, and what it measured."""
+    from bluesky_offsets.commands.report import paragraph, table_
+
+    table = s.table
+    analysis, m, n_open = session.analysis, session.measured.measurement, session.measured.n_open
+    beam, designed, validation = session.measured.beam, session.measured.designed, session.validation
+    what = (f"hidden offsets in all {len(table)} parameters (uniform within ±{s.offsets_fraction:g} of each "
+            f"range)" if s.offsets_fraction > 0 else
+            f"hidden offsets in {len(offsets)} of the {len(table)} parameters ({', '.join(offsets)})")
+    how = (f"{len(m)} frames designed for the offsets ({designed.steps[0]['criterion'] if designed.steps else 'D'}"
+           f"-optimal batches on the twin's exact Jacobians, the chamber's stage moved along the beam) after "
+           f"{beam.frames} frames of the beam search, {session.measured.frames} in all; the offsets fitted through "
+           f"the differentiable twin to all of them" if designed is not None else
+           f"{len(m)} configurations measured through EPICS ({len(m) - n_open} bright ones, {n_open} of them again "
+           f"with the slits open); offsets found with the shipped surrogate (on the configurations inside its "
+           f"box) and fitted through the differentiable twin on {analysis.measurement.n}")
+    return [("What this is", paragraph(
+        f"bluesky-offsets demo: a simulated {s.display} beamline (caproto IOC, RAYX twin at the hidden true state, "
+        f"{s.n_rays} rays per frame) with {what} and hidden effects: "
+        f"{', '.join(f'{k} {v}' for k, v in s.hidden.items()) or 'none'}; {how}; the missing effects diagnosed, "
+        f"added and refitted one after the other"
+        + ("; then frames that no fit used, far from the fitted ones, to test the calibration" if validation
+           else "") + f". Every step is a run in the store {location}.")),
+        ("Measurement", table_([{"frames in all": session.measured.frames, "beam search": beam.frames,
+                                 "measured for the fits": len(m), "with open slits": n_open,
+                                 "analysed": analysis.measurement.n, "rays per frame": s.n_rays,
+                                 "measurement uid": m.uid, "truth id": m.truth_id or ""}]))]
+
+
+def _write_report(s: DemoSettings, truth: Mapping, out: Path, session, beam_result, best, steps: Mapping[str, str],
+                  location: str, t0: float) -> _Written:
+    """The HTML report and, where the posterior exists, the exported calibration."""
+    from bluesky_offsets.commands.report import (beam_section, design_section, table_, validation_section,
+                                                 write_analysis_report)
+    from bluesky_offsets.model.export import write_calibration
+    from bluesky_offsets.model.posterior import Posterior
+
+    table, analysis, validation = s.table, session.analysis, session.validation
+    designed, m = session.measured.designed, session.measured.measurement
+    timing = _timing(session, beam_result, t0)
+    posterior = Posterior.of(analysis, table)
+    calibration = None
+    if posterior is not None:
+        calibration = write_calibration(out / "calibration.json", analysis, table=table, measurement_uid=m.uid,
+                                        validation=None if validation is None else validation.summary())
+    beam_secs = [] if beam_result is None else [
+        ("The smallest focus with the calibrated twin", beam_section(beam_result, out, best=best))]
+    design_secs = [] if designed is None else [("The designed measurement", design_section(designed))]
+    valid_secs = [] if validation is None else [("Validation frames", validation_section(validation))]
+    report = write_analysis_report(out / "report.html", analysis, analysis.measurement.spec, title="bluesky-offsets demo",
+                                   intro=_intro(s, truth["offsets"], session, location) + design_secs, truth=s.hidden, uids=steps,
+                                   store_location=location, table=table,
+                                   extra=[*valid_secs, *beam_secs,
+                                          ("Timing", table_([{k: f"{v:.0f} s" for k, v in timing.items()}]))])
+    return _Written(report=Path(report), timing=timing, calibration=calibration, posterior=posterior)
+
+
+def _summary(s: DemoSettings, truth: Mapping, session, beam_result, best, written: _Written, *, steps: Mapping,
+             uids: Sequence[str], store: str, ioc: SimulatedBeamline, live: Sequence, seconds: float,
+             load: float) -> dict:
+    """The demo's ``summary.json``: what was hidden, measured, fitted and concluded, with every run's uid."""
+    analysis, m, n_open = session.analysis, session.measured.measurement, session.measured.n_open
+    beam, designed, validation = session.measured.beam, session.measured.designed, session.validation
+    posterior, calibration = written.posterior, written.calibration
+    return {
+        "seconds": seconds, "load_average_start": load, "threads": s.threads, "timing_s": written.timing,
+        "store": store,
+        "uids": dict(steps), "all_run_uids": list(uids), "report": str(written.report), "n_configurations": len(m),
+        "frames": session.measured.frames, "design": s.design_kind,
+        "design_steps": [] if designed is None else [{k: np.asarray(v).tolist() if np.ndim(v) else v
+                                                      for k, v in row.items()} for row in designed.steps],
+        "n_open_configurations": n_open, "n_analysed_configurations": analysis.measurement.n,
+        "beam_search": {"frames": beam.frames, "bright": beam.bright, "intensity": beam.intensity,
+                        "steps": beam.log, "uids": beam.uids},
+        "offsets": None if posterior is None else posterior.as_dict(),
+        "validation": None if validation is None else validation.summary(),
+        "calibration": None if calibration is None else str(calibration),
+        "beamline": s.display, "n_rays": s.n_rays, "hidden_offsets": truth["offsets"],
+        "offsets_fraction": s.offsets_fraction, "hidden_effects": s.hidden,
+        "verdict": analysis.verdict + ("" if validation is None or validation.passed else "; " + validation.line()),
+        # a within-noise verdict: how large each candidate could be and still hide
+        "could_hide": analysis.could_hide_json,
+        "rankings": [[c.name for c in r.diagnosis.candidates] for r in analysis.rankings],
+        "history": [c.total_row() for c in analysis.comparisons],
+        "fitted_effects": analysis.magnitudes(),
+        "retest": analysis.retests, "dropped": analysis.dropped,
+        "truth_id": m.truth_id, "ioc": {"prefix": ioc.prefix, "port": ioc.port, "pid": ioc.proc.pid},
+        "live_views": [str(p) for cb in live for p in cb.written],
+        "beam": None if beam_result is None else _beam_summary(beam_result, best)}
 
 
 def _true_best(truth: Mapping, beam):

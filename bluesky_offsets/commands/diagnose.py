@@ -98,6 +98,7 @@ def _cmd_diagnose(args) -> int:
             starts.append(ModelState(_offsets_from_run(store, args.offsets_uid), {}, "stored offsets"))
 
         from bluesky import RunEngine
+        from bluesky.run_engine import RunEngineResult
 
         from plans.diagnose import analyse_measurement
 
@@ -113,11 +114,13 @@ def _cmd_diagnose(args) -> int:
                 twin.client
                 quiet_logs()
             with analysis_executor(args.threads, twin) as executor:
-                analysis = RE(analyse_measurement(
+                result = RE(analyse_measurement(
                     stored, twin, starts=starts, refine=not args.no_refine, candidates=candidates,
                     add_best=not args.no_add, rounds=args.rounds, fit_options=fit_options, seed=args.seed,
                     fit_top=args.fit_top or None, resume=args.resume, store=store, resolution=args.resolution,
-                    executor=executor, md={"purpose": "bluesky-offsets diagnose"})).plan_result
+                    executor=executor, md={"purpose": "bluesky-offsets diagnose"}))
+                assert isinstance(result, RunEngineResult)  # call_returns_result=True
+                analysis = result.plan_result
             if analysis.resumed:
                 print(f"resumed {len(analysis.resumed)} completed steps from the store: "
                       f"{', '.join(analysis.resumed)}", file=log)

@@ -13,6 +13,7 @@ import json
 import math
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -20,12 +21,12 @@ from bluesky_offsets.commands.cli import CliError
 
 DEFAULT_METHODS = "smart-walker,monte-carlo,gradient,levenberg-marquardt,cmaes"
 HEADLINE = {"candidates": 1024, "iterations": 400, "runs": 3}
+"""The settings at which the walker ends ≥ 10x below Monte Carlo on the means (docs/benchmarks.md,
+"Offset finder: the find command's defaults"); with fewer it may stop short of that."""
 PAPER_GPU = {"candidates": 1_000_000, "iterations": 200}
-BLOP_EVALUATIONS = 64
-"""blop's budget at most (the harness's: 48 evaluations took 20-50 s a run on 2 cores)."""
 """The paper's sizes (m = 1e6 candidates, 200 iterations), the defaults where the model runs on a GPU."""
-"""The settings at which the walker ends ≥ 10x below Monte Carlo on the means (docs/benchmarks.md:
-35x over ten seeds, 40x over the default runs); at 256 candidates and 200 iterations it ended 0.5x."""
+BLOP_EVALUATIONS = 64
+"""blop's budget at most: its Bayesian optimizer's cost grows with its data (benchmarks/bench_harness.py)."""
 
 
 def _count(text: str) -> int:
@@ -169,7 +170,7 @@ def _find(args) -> int:
             if args.candidates * (args.iterations + 1) < HEADLINE["candidates"] * (HEADLINE["iterations"] + 1):
                 print(f"  (the benchmark's headline ran at --candidates {HEADLINE['candidates']} --iterations "
                       f"{HEADLINE['iterations']}, the defaults; with fewer the walker may stop short of Monte "
-                      "Carlo's tenth: at 256 x 200 it ended 0.5x; docs/benchmarks.md)")
+                      "Carlo's tenth; docs/benchmarks.md, 'Offset finder: the find command's defaults')")
         print(f"identifiability ({best_m}, seed {seeds[0]}): {rep.summary()['n_determined']} determined, "
               f"{rep.summary()['n_weak']} weak, {rep.summary()['n_undetermined']} undetermined "
               f"-> {out / 'identifiability.txt'}")
@@ -206,7 +207,7 @@ def _twin_check(args, twin, methods, results, problems, seeds, best_m: str, out:
     problem's observations and their repeat noise), and the footprints of the walker's and the best."""
     from bluesky_offsets.offsets import evaluate as E
 
-    checks = {}
+    checks: dict[str, dict[str, Any]] = {}
     for m in methods:
         rows = []
         for r, p in list(zip(results[m], problems))[:args.twin_check]:

@@ -9,6 +9,7 @@ import math
 import time
 from collections.abc import Mapping, Sequence
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -123,18 +124,27 @@ def analysis_sections(analysis, spec, work: Path, *, truth: Mapping | None = Non
 
     ``truth`` (simulations only) adds the hidden effect beside the fitted one.
     """
-    from bluesky_offsets.model.diagnosis import plot_error_history, plot_ranking
-    from bluesky_offsets.model.misfit import plot_overlays, plot_residual_maps
-    from bluesky_offsets.physics.effects import get as get_effect
     from bluesky_offsets.physics.parameters import METRIXS
     table = table or METRIXS
     work = Path(work)
     work.mkdir(parents=True, exist_ok=True)
-    meas = analysis.measurement
-    comps = analysis.comparisons
-    secs: list[tuple[str, str]] = []
-
     # verdict and the error history first: what people come for
+    secs = [("Error history across model versions", _history_section(analysis, work))]
+    if analysis.refits:
+        secs.append(("Fitted effect magnitudes", _effects_section(analysis, truth)))
+    secs += _ranking_sections(analysis, work)
+    secs.append(("Where the model fails", _failures_section(analysis, spec, work)))
+    fits = _fits_section(analysis, work)
+    if fits:
+        secs.append(("Fits through the differentiable twin", fits))
+    secs.append(("Offsets of the final model", offsets_section(analysis, table)))
+    return secs
+
+
+def _history_section(analysis, work: Path) -> str:
+    """The verdict, and χ²/dof and MSE of each model version against the noise."""
+    from bluesky_offsets.model.diagnosis import plot_error_history
+    meas, comps = analysis.measurement, analysis.comparisons
     last = analysis.rankings[-1].diagnosis if analysis.rankings else None
     head = []
     if last is not None:
@@ -153,39 +163,45 @@ def analysis_sections(analysis, spec, work: Path, *, truth: Mapping | None = Non
     fig = plot_error_history([c.version() for c in comps], work / "error_history.png")
     head.append(table_(rows))
     head.append(image(fig, "error history: χ²/dof and MSE relative to the noise expectation, per model version"))
-    secs.append(("Error history across model versions", "".join(head)))
+    return "".join(head)
 
-    # the added effects
-    if analysis.refits:
-        rows = []
-        for eff, mags in analysis.magnitudes().items():
-            units = {p.name: p.unit for p in get_effect(eff).parameters}
-            for k, (v, s_) in mags.items():
-                row = {"effect": eff, "parameter": k, "fitted": v, "± (1σ)": s_, "unit": units.get(k, "")}
-                if truth is not None and eff in truth:
-                    hv = truth[eff].get(k)
-                    if hv is not None:
-                        row["hidden (simulation)"] = float(hv)
-                        row["error"] = f"{(v - hv) / hv * 100:+.1f} %" if hv else "—"
-                        row["error / σ"] = (v - hv) / s_ if s_ > 0 else float("nan")
-                rows.append(row)
-        body = table_(rows)
-        if truth is not None:
-            body += paragraph("Hidden effects of the simulation (revealed for the demo only): "
-                              + (", ".join(f"{e}: {_fmt_values(v)}" for e, v in truth.items()) or "none"))
-        if analysis.retests:
-            body += paragraph("Each added effect tested with the others in (the rest refitted without it, both "
-                              "traced with fresh rays): kept when the model without it is beyond noise and its "
-                              "Δχ² exceeds its price p ln N × dispersion.")
-            body += table_([{"effect": t["effect"], "Δχ² it buys": t["gain"], "price": t["price"],
-                             "χ²/dof without": t["chi2_reduced_without"],
-                             "kept": "yes" if t["kept"] else ("dropped" if t["effect"] == analysis.dropped else "no")}
-                            for t in analysis.retests])
-        if analysis.refit_limits:
-            body += limits_section("With the last effect added the model is within noise.", analysis.refit_limits)
-        secs.append(("Fitted effect magnitudes", body))
 
-    # rankings, one per diagnosis
+def _effects_section(analysis, truth: Mapping | None) -> str:
+    """The added effects' fitted magnitudes (beside the hidden ones in a simulation), their retests."""
+    from bluesky_offsets.physics.effects import get as get_effect
+    rows = []
+    for eff, mags in analysis.magnitudes().items():
+        units = {p.name: p.unit for p in get_effect(eff).parameters}
+        for k, (v, s_) in mags.items():
+            row = {"effect": eff, "parameter": k, "fitted": v, "± (1σ)": s_, "unit": units.get(k, "")}
+            if truth is not None and eff in truth:
+                hv = truth[eff].get(k)
+                if hv is not None:
+                    row["hidden (simulation)"] = float(hv)
+                    row["error"] = f"{(v - hv) / hv * 100:+.1f} %" if hv else "—"
+                    row["error / σ"] = (v - hv) / s_ if s_ > 0 else float("nan")
+            rows.append(row)
+    body = table_(rows)
+    if truth is not None:
+        body += paragraph("Hidden effects of the simulation (revealed for the demo only): "
+                          + (", ".join(f"{e}: {_fmt_values(v)}" for e, v in truth.items()) or "none"))
+    if analysis.retests:
+        body += paragraph("Each added effect tested with the others in (the rest refitted without it, both "
+                          "traced with fresh rays): kept when the model without it is beyond noise and its "
+                          "Δχ² exceeds its price p ln N × dispersion.")
+        body += table_([{"effect": t["effect"], "Δχ² it buys": t["gain"], "price": t["price"],
+                         "χ²/dof without": t["chi2_reduced_without"],
+                         "kept": "yes" if t["kept"] else ("dropped" if t["effect"] == analysis.dropped else "no")}
+                        for t in analysis.retests])
+    if analysis.refit_limits:
+        body += limits_section("With the last effect added the model is within noise.", analysis.refit_limits)
+    return body
+
+
+def _ranking_sections(analysis, work: Path) -> list[tuple[str, str]]:
+    """One section per diagnosis: the candidates' scores and the residual signature they explain."""
+    from bluesky_offsets.model.diagnosis import plot_ranking
+    secs: list[tuple[str, str]] = []
     for k_rank, rk in enumerate(analysis.rankings, 1):
         diag = rk.diagnosis
         fig = plot_ranking(diag, work / f"ranking_{k_rank}.png")
@@ -229,8 +245,13 @@ def analysis_sections(analysis, spec, work: Path, *, truth: Mapping | None = Non
         title = "Which effect is missing: ranking" + (f" (diagnosis {k_rank}, model '{diag_label(analysis, k_rank)}')"
                                                       if len(analysis.rankings) > 1 else "")
         secs.append((title, body))
+    return secs
 
-    # where the model fails
+
+def _failures_section(analysis, spec, work: Path) -> str:
+    """Overlays and residual maps of the offsets-only and the final model; misfit per configuration."""
+    from bluesky_offsets.model.misfit import plot_overlays, plot_residual_maps
+    meas, comps = analysis.measurement, analysis.comparisons
     body = []
     for c in ([comps[1]] if len(comps) > 2 else []) + [comps[-1]]:
         tag = c.label.replace(" ", "_").replace("+", "plus")
@@ -253,7 +274,7 @@ def analysis_sections(analysis, spec, work: Path, *, truth: Mapping | None = Non
             body.append(table_([{"signature": s, "parameter": p, "r": r} for s, p, r in c.correlations]))
     per = []
     for i in range(meas.n):
-        row = {"config": i}
+        row: dict[str, Any] = {"config": i}
         for c in comps:
             row[f"χ²/dof {c.label}"] = float(c.misfit.chi2_reduced[i])
         row["MSE expected"] = float(comps[-1].misfit.expected_mse[i])
@@ -261,22 +282,21 @@ def analysis_sections(analysis, spec, work: Path, *, truth: Mapping | None = Non
         per.append(row)
     body.append(paragraph("Misfit per configuration and model version (a correct model: χ²/dof ≈ 1):"))
     body.append(table_(per))
-    secs.append(("Where the model fails", "".join(body)))
+    return "".join(body)
 
-    # the fits
+
+def _fits_section(analysis, work: Path) -> str:
+    """χ²/dof along each fit through the twin; empty when nothing was fitted."""
     runs = []
     if analysis.refinement is not None:
         runs.append(("offsets", analysis.refinement.result.history))
     for rf in analysis.refits:
         if rf.history:
             runs.append((f"+ {rf.effect}", rf.history))
-    if runs:
-        fig = _plot_progress(runs, work / "fit_progress.png")
-        secs.append(("Fits through the differentiable twin",
-                     image(fig, "χ²/dof at each iteration (features, profiles, bins: each on its own scale)")))
-
-    secs.append(("Offsets of the final model", offsets_section(analysis, table)))
-    return secs
+    if not runs:
+        return ""
+    fig = _plot_progress(runs, work / "fit_progress.png")
+    return image(fig, "χ²/dof at each iteration (features, profiles, bins: each on its own scale)")
 
 
 def design_section(designed) -> str:
@@ -404,7 +424,7 @@ def beam_section(result, work: Path, *, best=None) -> str:
     prof = result.profiles
     centers = {"x": CAMERA.centers_x, "y": CAMERA.centers_y}
     # each move's frames beside its own prediction (profiles "after", "after 2", ...), zoomed to them
-    rows = [("before", (("before", "before"),), result.before)]
+    rows: list[tuple[str, tuple[tuple[str, str], ...], Any]] = [("before", (("before", "before"),), result.before)]
     for k, step in enumerate(result.steps):
         tag = "" if k == 0 else f" {k + 1}"
         name = "after" if len(result.steps) == 1 else f"after ({k + 1})"
@@ -414,10 +434,10 @@ def beam_section(result, work: Path, *, best=None) -> str:
         for c, axis in enumerate("xy"):
             ax = axes[r, c]
             centre, width = getattr(focus, axis), getattr(focus, f"rms_{axis}")
-            for k, shown in keys:
-                if prof.get(k) is None:
+            for key, shown in keys:
+                if prof.get(key) is None:
                     continue
-                h = prof[k][c]
+                h = prof[key][c]
                 ax.step(centers[axis] * 1e3, h, where="mid", lw=1.2 if shown != "predicted" else 1.0,
                         ls="-" if shown != "predicted" else "--", label=shown)
             if np.isfinite(centre) and np.isfinite(width):

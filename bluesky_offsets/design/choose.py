@@ -13,7 +13,7 @@ above ``floor``.  Of those, :func:`select` takes a batch greedily by the criteri
 * ``"A"``: the largest fall of the trace of the posterior covariance (the mean variance of the
   normalized offsets): it chases the offsets that are already cheap to pin down.
 
-Both are measured side by side in ``benchmarks/bench_design.py`` (docs/benchmarks.md).
+``benchmarks/bench_design.py --criterion A|D`` runs the designed measurement's benchmark with either.
 """
 
 from __future__ import annotations
@@ -40,21 +40,37 @@ DETERMINED, UNDETERMINED = 0.1, 0.5
 class DesignOptions:
     """How the measurement is designed.
 
-    frames : frames in all, the beam search's included (the budget).
-    batch : frames chosen per step (the posterior is updated between steps).
-    candidates : candidate settings drawn per step.
-    criterion : ``"D"`` or ``"A"`` (:func:`select`).
-    rays : model rays per candidate's Jacobian.
-    fit_rays : model rays per frame of the fits that update the posterior between steps.
-    floor : the least share of the source's photons a designed frame must put on the screen.
-    confidence : posterior σ of the predicted share the floor must hold at.
-    screen : move the chamber's stage (x, y, z) too.
-    slits : share of candidates with a slit opening drawn anew.
-    move : share of the motors a candidate moves.
-    target : stop once every offset's predicted σ is below this share of the prior's (None: the
+    Parameters
+    ----------
+    frames : int
+        frames in all, the beam search's included (the budget).
+    batch : int
+        frames chosen per step (the posterior is updated between steps).
+    candidates : int
+        candidate settings drawn per step.
+    criterion : str
+        ``"D"`` or ``"A"`` (:func:`select`).
+    rays : int
+        model rays per candidate's Jacobian.
+    fit_rays : int
+        model rays per frame of the fits that update the posterior between steps.
+    floor : float
+        the least share of the source's photons a designed frame must put on the screen.
+    confidence : float
+        posterior σ of the predicted share the floor must hold at.
+    screen : bool
+        move the chamber's stage (x, y, z) too.
+    slits : float
+        share of candidates with a slit opening drawn anew.
+    move : float
+        share of the motors a candidate moves.
+    target : float or None
+        stop once every offset's predicted σ is below this share of the prior's (None: the
         budget alone).
-    validation : frames taken after the calibration, far from the fitted ones, that no fit uses.
-    seed : the candidates' random stream.
+    validation : int
+        frames taken after the calibration, far from the fitted ones, that no fit uses.
+    seed : int
+        the candidates' random stream.
     """
 
     frames: int = 60
@@ -157,7 +173,8 @@ def _across(table: ParameterTable) -> tuple[float, float]:
     if bl is None or bl.builtin is not None:
         return 1.0, 1.0
     d = bl.detector
-    return tuple(min(1.0, 0.2 * (hi - lo)) for lo, hi in (d.histogram_x, d.histogram_y))
+    x, y = (min(1.0, 0.2 * (hi - lo)) for lo, hi in (d.histogram_x, d.histogram_y))
+    return x, y
 
 
 # --------------------------------------------------------------------------- #

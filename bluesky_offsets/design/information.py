@@ -1,6 +1,6 @@
 """What a frame would teach about the offsets, before it is taken.
 
-The torch twin's Jacobian is exact (:meth:`~bluesky_offsets.physics.torch_engine.TorchEngine.ray_jacobian`),
+The torch twin's Jacobian is exact (:meth:`~bluesky_offsets.physics.engine.TorchEngine.ray_jacobian`),
 so the Fisher information of a frame at any setting of the motors, the slits and the chamber's
 stage follows from the model at the current estimate of the offsets:
 
@@ -69,7 +69,7 @@ def frame_information(engine, configurations: np.ndarray, offsets: np.ndarray, *
     positions ``screen`` ((C, 3) mm or None), for a beamline whose offsets are ``offsets``
     (normalized), each frame of ``photons`` source photons fitted with ``model_rays`` model rays.
 
-    ``engine`` is a :class:`~bluesky_offsets.physics.torch_engine.TorchEngine` with a random stream
+    ``engine`` is a :class:`~bluesky_offsets.physics.engine.TorchEngine` with a random stream
     per configuration (``common_rays=False``); ``rays`` of it per candidate, in two halves.
     ``spec``: the profiles' binning (default :func:`design_spec`).  ``psd``: each frame's matrix
     with its negative eigenvalues (the rays' noise) set to 0, as a choice needs it; False keeps the

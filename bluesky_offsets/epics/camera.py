@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import asyncio
 import uuid
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -67,7 +68,7 @@ class CameraChamber(StandardReadable):
         self.directory = Path(directory)
         self.acquire_timeout = float(acquire_timeout)
         self.last_frame: np.ndarray | None = None  # the raw frame of the last trigger (for calibrations)
-        self._setters = {}
+        self._setters: dict[str, Callable[..., None]] = {}
         with self.add_children_as_readables():
             for key in _FLOAT_ARRAYS:
                 sig, self._setters[key] = soft_signal_r_and_setter(Array1D[np.float64])

@@ -15,6 +15,7 @@ names in :mod:`bluesky_offsets.epics.pvs`.
 from __future__ import annotations
 
 from collections.abc import Mapping
+from typing import cast
 
 import numpy as np
 from ophyd_async.core import (
@@ -120,12 +121,12 @@ class MetrixsBeamline(Device):
     @property
     def motors(self) -> dict[str, Motor]:
         """Parameter name -> motor, table order (the 28 motorized parameters)."""
-        return {n: self.parameter(n) for n in self.table.motorized_names}
+        return {n: cast(Motor, self.parameter(n)) for n in self.table.motorized_names}
 
     @property
     def fixed(self) -> dict[str, FixedParameter]:
         """Parameter name -> fixed parameter device (the 6 fixed-but-unknown ones)."""
-        return {n: self.parameter(n) for n in self.table.fixed_names}
+        return {n: cast(FixedParameter, self.parameter(n)) for n in self.table.fixed_names}
 
 
 class ChamberStatus(StrictEnum):

@@ -280,9 +280,10 @@ def check_pvs(pv_map: PVMap, *, timeout: float = 3.0, progress=None) -> PVCheck:
             names[f"{rec}.{f}"] = n
     for k, pv in pv_map.chamber.items():
         names[pv] = f"chamber.{k}"
-    camera_pvs = [pv_map.camera["prefix"] + s for s in CAMERA_PVS] if pv_map.camera else []
+    prefix = pv_map.camera["prefix"] if pv_map.camera else ""
+    camera_pvs = [prefix + s for s in CAMERA_PVS] if pv_map.camera else []
     for pv in camera_pvs:
-        names[pv] = f"camera {pv[len(pv_map.camera['prefix']):]}"
+        names[pv] = f"camera {pv[len(prefix):]}"
     for a, rec in pv_map.stage.items():
         for f in MOTOR_FIELDS:
             names[f"{rec}.{f}"] = f"stage.{a}"

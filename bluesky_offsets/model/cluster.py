@@ -2,9 +2,8 @@
 
 A fit is some ten thousand small torch operations per Jacobian with Python between them, so
 two fits on two threads of one process wait on each other's interpreter lock, and on the
-RunEngine's, the store's and the live views' (measured on 2 cores: the main job's analysis
-127 s on one thread, 100 s on two); in worker processes they do not (the main job 170 → 154 s,
-the same numbers to the bit).  :class:`ClusterExecutor` is the :class:`concurrent.futures.Executor` that
+RunEngine's, the store's and the live views'; in worker processes they do not, and they
+compute the same numbers to the bit.  :class:`ClusterExecutor` is the :class:`concurrent.futures.Executor` that
 :func:`bluesky_offsets.model.fit.gather` hands the calls to: each call is pickled (cloudpickle:
 closures included) and run on a worker of the twin's cluster (a LocalCluster of one-thread
 processes by default, or any scheduler address), which computes the same numbers as a thread
@@ -89,6 +88,8 @@ class ClusterExecutor(Executor):
         return self._topics[key][0]
 
     def submit(self, fn, /, *args, **kwargs) -> Future:
+        """``fn(*args, **kwargs)`` on a worker of the cluster, pickled with cloudpickle; the future
+        of its result."""
         import cloudpickle
         token = _SENDING.set(self)
         try:
@@ -126,7 +127,7 @@ def analysis_executor(threads: int, twin=None):
     not) unless the twin traces in this process (``scheduler="inline"``), else ``threads``
     threads of this process.  Why not torch's or BLAS's own threads: the fits'
     arrays (10^4-10^5 rays, Jacobians of 10^4 rows) are too small to share, while whole fits
-    run side by side with little in common (docs/benchmarks.md).  One BLAS thread also keeps the
+    run side by side with little in common (docs/benchmarks.md, "Torch engine").  One BLAS thread also keeps the
     arithmetic (the order of a matrix product's sums) the same on any number of cores.  Why
     processes where there is a cluster: see the module text."""
     with one_thread():
@@ -141,5 +142,5 @@ def analysis_executor(threads: int, twin=None):
                 ex.shutdown()
             return
         from concurrent.futures import ThreadPoolExecutor
-        with ThreadPoolExecutor(threads, thread_name_prefix="fit") as ex:
-            yield ex
+        with ThreadPoolExecutor(threads, thread_name_prefix="fit") as pool:
+            yield pool

@@ -101,16 +101,18 @@ class Candidate:
         """Where adding this candidate starts (:func:`add_effect_result` with ``values``): its
         fit's offsets and the model's other effects as that fit left them.  Not the model's
         effects as they were: the candidate fit refitted them with its offsets, and the two
-        belong together (measured on the scenario grid, a pair's second round: the diagnosis's
-        offsets with the grating's earlier value started the refit at χ²/dof 1166 in the
-        features, and the fit drove the thermal bump to zero)."""
+        belong together (mixed, they start the refit far off, which can drive a true effect to
+        zero)."""
         st = self.refined_state
+        if st is None:
+            raise InputError(f"candidate {self.name!r} has no fit to start from")
         return ModelState(st.offsets, {k: v for k, v in st.effects.items() if k != self.name}, label or st.label)
 
     def twin_start(self) -> ModelState:
         """The refit's second start (:data:`REFIT_FROM_TWIN`): the bare twin's offsets with the
         model's other effects as :meth:`refit_start` has them."""
-        return ModelState(np.zeros(len(self.refined_state.offsets)), self.refit_start().effects, "twin")
+        start = self.refit_start()
+        return ModelState(np.zeros(len(start.offsets)), start.effects, "twin")
 
     @property
     def heldout_confirms(self) -> bool:
@@ -201,8 +203,8 @@ def misfit_from(rec: dict | None) -> Misfit | None:
     if rec is None:
         return None
     n = len(rec["chi2"])
-    return Misfit(*(np.asarray(rec[k], float) for k in ("chi2", "dof", "mse", "expected_mse")),
-                  pulls_x=np.zeros((n, 0)), pulls_y=np.zeros((n, 0)))
+    chi2, dof, mse, expected_mse = (np.asarray(rec[k], float) for k in ("chi2", "dof", "mse", "expected_mse"))
+    return Misfit(chi2, dof, mse, expected_mse, pulls_x=np.zeros((n, 0)), pulls_y=np.zeros((n, 0)))
 
 
 def diagnosis_record(d: Diagnosis) -> dict:
@@ -229,18 +231,20 @@ def diagnosis_from(rec: Mapping) -> Diagnosis:
         c = dict(c)
         c["refined_state"] = _state_from(c.get("refined_state"))
         cands.append(Candidate(**c))
-    return Diagnosis(misfit_from(rec["base_misfit"]), rec["within_noise"], cands, rec["observed_signature"],
+    base = misfit_from(rec["base_misfit"])
+    if base is None:
+        raise InputError("a diagnosis record without its base misfit")
+    return Diagnosis(base, rec["within_noise"], cands, rec["observed_signature"],
                      rec["folds"], rec["n_traces"], list(rec["notes"]), _state_from(rec.get("reference")),
                      misfit_from(rec.get("reference_misfit")), dict(rec.get("limits") or {}))
 
 
 TOLD_APART = 2.0
 """σ by which the measurement must prefer the best candidate over another verified one for the
-verdict to name it alone (:func:`lead_z`, in both fresh draws).  Why: a hidden defocus of −15 mm
-(all-34 offsets, ``demo --seed 61``) was named a detector blur, the defocus second with a score
-11.5 lower; traced with fresh rays the two models' χ² differed by 20 and −1 in the two draws
-against a spread of 46 (0.43 σ and −0.02 σ): the measurement does not tell them apart, and the
-verdict now says so."""
+verdict to name it alone (:func:`lead_z`, in both fresh draws).  Why: a ranking's score can put
+one effect (a detector blur) ahead of the hidden one (a defocus) where, traced with fresh rays,
+the two models' χ² differ by far less than their spread: the measurement does not tell them
+apart, and the verdict should say so."""
 
 
 def lead_z(best: Misfit, other: Misfit, dispersion: float = 1.0, price: float = 0.0) -> float:
@@ -270,7 +274,8 @@ def rivals_text(rivals: Sequence[Candidate]) -> str:
     if not rivals:
         return ""
     return ", not told apart from " + ", ".join(
-        f"{c.name} (preferred by {c.behind_z:.1f} sigma)" if math.isfinite(c.behind_z) else c.name
+        f"{c.name} (preferred by {c.behind_z:.1f} sigma)" if c.behind_z is not None and math.isfinite(c.behind_z)
+        else c.name
         for c in rivals)
 
 
@@ -292,18 +297,15 @@ def _folds(n: int, k: int, seed: int) -> list[np.ndarray]:
     return [np.sort(order[i::k]) for i in range(k)]
 
 
-# The fit options of ``bluesky-offsets demo`` and ``bluesky-offsets diagnose`` (measured:
-# docs/diagnosis.md).  The offsets fit starts on the beam features, whose wide basin a fit on
-# the bins of a focus a few camera pixels wide lacks, then the profiles, then the bins.  The
-# candidate fits of a diagnosis start from the offsets fit with the candidate switched on:
-# a few iterations on the features let the offsets give back what they had absorbed, then
-# the bins.  All fits of one diagnosis share their rays (one seed), so their χ² compare
-# without sampling noise.  Tried (2026-11-27, docs/benchmarks.md): 20,000 rays in the last stage,
-# which brought four grid runs that missed by 2-4 σ within 1-2.6 σ but moved the demo's own
-# source-divergence scenario from passing to 0.456 ± 0.013 for 0.5 (-3.3 σ) and took the CI to
-# 16 min: not adopted.  Those misses are the path's, not the fit's: from the hidden truth the
-# fits are unbiased and their ± holds ("Where the misses come from").  What addresses them: the
-# fits with effects on four draws of the model's rays (FitOptions.ray_draws; "Ray draws").
+# The fit options of ``bluesky-offsets demo`` and ``bluesky-offsets diagnose`` (why:
+# docs/explanations/diagnosis.md, "Fitting: one engine on the differentiable twin").  The
+# offsets fit starts on the beam features, whose wide basin a fit on the bins of a focus a few
+# camera pixels wide lacks, then the profiles, then the bins.  The candidate fits of a diagnosis
+# start from the offsets fit with the candidate switched on: a few iterations on the features
+# let the offsets give back what they had absorbed, then the bins.  All fits of one diagnosis
+# share their rays (one seed), so their χ² compare without sampling noise.  The fits with
+# effects run on four draws of the model's rays (FitOptions.ray_draws): one draw's fixed rays
+# end on a step of a staircase χ².
 FIT = FitOptions(rays=5000, stages=(("features", 15), ("profiles", 8), ("bins", 10)), ray_draws=4)
 SCAN = FitOptions(rays=3000, stages=(("features", 5), ("bins", 5)))
 DESIGNED_FIT = FIT.replace(rays=2000, feature_rays=1500)
@@ -322,25 +324,19 @@ def fits_for(designed: bool, rays: int | None = None) -> tuple[FitOptions, FitOp
 
 ROUNDS = 3
 """Diagnoses of an analysis at most (``plans.diagnose.analyse_measurement``): two hidden effects
-and one more.  Measured on the scenario grid: an effect the offsets half mimic (photon energy,
-the grating's line density) can rank above the true one and be added first; the backward step
-(:func:`retest_effects`) drops it once the true one is in, and the third round leaves room for
-a second hidden effect (with two rounds, a hidden defocus beside a thermal bump was left out in
-two of three draws)."""
+and one more.  An effect the offsets half mimic (photon energy, the grating's line density) can
+rank above the true one and be added first; the backward step (:func:`retest_effects`) drops it
+once the true one is in, and the third round leaves room for a second hidden effect."""
 REFIT_FROM_TWIN = True
 """Whether an analysis refits an added effect also from the bare twin's offsets, the effect at
 the diagnosis's values, beside where the diagnosis's candidate fit ended, keeping the fit that
-ends lowest on fresh rays (``plans.diagnose.analyse_measurement``).  Measured on the scenario
-grid (docs/benchmarks.md, "A second start for the refit"): a divergence of 0.5 that the refit
-had put at 0.441 ± 0.015 from the diagnosis's end came out at 0.478 ± 0.015, no verdict moved,
-31/33 magnitudes within 2σ (30/33 before), 3 % more CPU."""
+ends lowest on fresh rays (``plans.diagnose.analyse_measurement``): the diagnosis's end may
+hold offsets that compensate part of the effect, the bare twin's do not."""
 FIT_TOP: int | None = None
 """Candidates a diagnosis fits to convergence after every start of every candidate is screened
 (:func:`bluesky_offsets.model.fit.screen`); None (the default): every start fitted.  Not the default
-because a screen misjudges a defocus: measured on a hidden 25 mm defocus with all-34 offsets,
-the offsets had absorbed it and a screen from either start ended at twice the reference's χ²
-(5265 and 6795 against 2737: the offsets need many exact steps to give it back), so chamber_z
-was screened out (ranked 14th of 15) where the full fits name it (z = 25.3 ± 0.8 mm)."""
+because a screen misjudges a defocus: offsets that have absorbed one need many exact steps to
+give it back, so a screen ranks it low where the full fits name it."""
 
 
 def starting_values(effect: E.Effect) -> list[dict[str, float]]:
@@ -353,6 +349,7 @@ def starting_values(effect: E.Effect) -> list[dict[str, float]]:
     for q in effect.parameters:
         if not q.start:
             continue
+        vals: tuple[float, ...]
         if q.low < 0 < q.high:
             vals = (max(q.low, -0.25 * q.span), min(q.high, 0.25 * q.span))
         else:
@@ -376,6 +373,7 @@ def absorbed_share(fit: FitResult, n_offsets: int) -> float:
     prior included) that the offsets can take over at the solution: 1 − Schur complement /
     diagonal, the largest over the effect's parameters."""
     G = fit.jacobian
+    assert G is not None  # fit() keeps its last stage's Jacobian
     A = G.T @ G + np.diag(fit.ridge if fit.ridge is not None else np.zeros(G.shape[1]))
     o, e = slice(0, n_offsets), slice(n_offsets, G.shape[1])
     if e.start >= e.stop:
@@ -437,7 +435,7 @@ def _fresh_misfit(verifier: Twin, meas: Measurement, st: ModelState, rays: int, 
     ``meas``: its misfit and the model's histograms (C, bins x + bins y)."""
     seeds = [stream(seed, "diagnosis.fresh_rays", draw=draw) + i for i in range(meas.n)]
     hx, hy = simulate(verifier, meas.configurations, st, rays, seeds, table, meas.screen)
-    return misfit(meas.hist_x, meas.hist_y, hx, hy, meas.n_rays, model_rays=rays, floor_x=meas.floor_x,
+    return misfit(meas.hist_x, meas.hist_y, hx, hy, meas.ray_budget, model_rays=rays, floor_x=meas.floor_x,
                   floor_y=meas.floor_y), np.c_[hx, hy]
 
 
@@ -445,6 +443,7 @@ def _heldout(fit: FitResult, folds: Sequence[np.ndarray]) -> np.ndarray:
     """Held-out χ² per fold: the fit re-solved without the fold's configurations (one
     Gauss-Newton step from the all-data solution on its exact Jacobian), scored on the fold."""
     G, r, rows = fit.jacobian, fit.residuals, fit.rows
+    assert G is not None and r is not None and rows is not None  # fit() keeps its last stage's
     out = []
     for fold in folds:
         test = np.isin(rows, fold)
@@ -485,7 +484,7 @@ def diagnose(meas: Measurement, state: ModelState, twin=None, forward_model=None
     spec, n = meas.spec, meas.n
     engine = engine_for(meas, o, table)
     verifier = Twin(engine)  # the same twin, traced with fresh rays
-    verify_rays = int(verify_rays or 4 * meas.n_rays)
+    verify_rays = int(verify_rays or 4 * meas.ray_budget)
 
     def verify(st: ModelState, draw: int = 0) -> tuple[Misfit, np.ndarray]:
         return _fresh_misfit(verifier, meas, st, verify_rays, seed, draw, table)
@@ -496,8 +495,7 @@ def diagnose(meas: Measurement, state: ModelState, twin=None, forward_model=None
     fold_idx = _folds(n, folds, seed)
     if not base_mf.total_beyond_noise(n_sigma):
         # nothing to explain: no candidate is fitted.  What the verdict cannot exclude is said:
-        # an effect the offsets absorb leaves a model within noise (measured: a hidden 9 mm
-        # defocus behind all-34 offsets of ±7 %, chi2/dof 1.09)
+        # an effect the offsets absorb leaves a model within noise
         limits = detection_limits(meas, state, engine, o, names, base_mf.noise_margin(n_sigma), executor=executor,
                                   table=table)
         n_traces += n * n_starts  # one Jacobian at each start
@@ -513,9 +511,34 @@ def diagnose(meas: Measurement, state: ModelState, twin=None, forward_model=None
                 progress({"fit": label, **h})
         return inner
 
-    # 1. the offsets-only reference and every candidate with the offsets, on one set of rays
+    fits = _fit_candidates(meas, state, engine, o, names, fit_top=fit_top, verify_top=verify_top, report=report,
+                           executor=executor, table=table)
+    out = _candidates(names, fits, base_mf, table)
+    v = _verify(meas, state, out, fits, verify=verify, verifier=verifier, seed=seed, n_sigma=n_sigma,
+                fold_idx=fold_idx, folds=folds, verify_top=verify_top, executor=executor, table=table)
+    notes = _notes(out, fits, v, o, n_starts=n_starts, n_names=len(names))
+    return Diagnosis(base_mf, v.within, out, v.observed, folds, n_traces + fits.n_traces + v.n_traces, notes,
+                     v.ref_state, v.ref_mf)
+
+
+@dataclass(frozen=True, kw_only=True)
+class _CandidateFits:
+    """:func:`diagnose`'s fits on one set of rays: the offsets-only reference (refitted from where
+    the best candidates left the offsets), each candidate's best fit or look, which were fitted."""
+
+    ref: FitResult
+    best: dict[str, FitResult]
+    fitted: set[str]
+    screened: bool
+    n_traces: int
+
+
+def _fit_candidates(meas: Measurement, state: ModelState, engine, o: FitOptions, names: Sequence[str], *,
+                    fit_top: int | None, verify_top: int, report, executor: Executor | None,
+                    table: ParameterTable) -> _CandidateFits:
+    """The offsets-only reference and every candidate with the offsets, on one set of rays."""
     ref = fit(meas, state, engine, o, progress=report("offsets only"), table=table)
-    n_traces += ref.n_traces
+    n_traces = ref.n_traces
     jobs = [(name, ref.state.with_effect(name, v)) for name in names for v in starting_values(E.get(name))]
     best: dict[str, FitResult] = {}
     screened = fit_top is not None and fit_top < len(names)
@@ -543,12 +566,11 @@ def diagnose(meas: Measurement, state: ModelState, twin=None, forward_model=None
     # stage from where the best candidate fits left the offsets (their effect removed).  A
     # candidate's gain that was the offsets' (its fit went on where the reference's stopped)
     # goes to the reference; a true effect's does not (without it, those offsets no longer
-    # compensate).  Measured: a thermal bump fitted to 13 nm (below 25 nm: no bump at all)
-    # had outscored a hidden 12 mm defocus before.
+    # compensate), so a small spurious candidate cannot outscore a true one.
     # (the last stage alone: the features stage would first trade the bins for the features)
     froms = [n_ for n_ in sorted(fitted, key=lambda n_: best[n_].chi2)[:verify_top] if best[n_].chi2 < ref.chi2]
     # (each call holds only its start: one that reached ``best`` would carry every candidate's
-    # Jacobian to the worker, 15 MB a call)
+    # Jacobian to the worker)
     alt_fits = [lambda st=ModelState(best[name].state.offsets, state.effects, state.label), name=name:
                 fit(meas, st, engine, o.replace(stages=o.stages[-1:]), progress=report(f"offsets only, from {name}'s"),
                     table=table)
@@ -563,6 +585,12 @@ def diagnose(meas: Measurement, state: ModelState, twin=None, forward_model=None
         n_traces += alt.n_traces
         if alt.chi2 < ref.chi2:
             ref = alt
+    return _CandidateFits(ref=ref, best=best, fitted=fitted, screened=screened, n_traces=n_traces)
+
+
+def _candidates(names: Sequence[str], fits: _CandidateFits, base_mf: Misfit, table: ParameterTable) -> list[Candidate]:
+    """Each candidate scored on the fits' rays (Δχ² against the reference, less its BIC price), best first."""
+    ref, best = fits.ref, fits.best
     dispersion_fit = max(1.0, ref.chi2_reduced)
     n_signal = int(base_mf.dof_total)
     out = []
@@ -571,16 +599,36 @@ def diagnose(meas: Measurement, state: ModelState, twin=None, forward_model=None
         p = len(eff.parameters)
         values = {k: float(v) for k, v in f.state.effects[name].items()}
         # a screened start has no uncertainty: it is not a solution
-        sigma = f.effect_sigma().get(name, {}) if name in fitted else {}
+        sigma = f.effect_sigma().get(name, {}) if name in fits.fitted else {}
         out.append(Candidate(name, p, values, {k: float(sigma.get(k, float("nan"))) for k in values}, 0.0,
                              ref.chi2 - f.chi2, p * math.log(max(n_signal, 2)), False, {},
                              refined_state=f.state, feature_penalty=p * math.log(max(n_signal, 2)),
-                             feature_dispersion=dispersion_fit, fitted=name in fitted))
+                             feature_dispersion=dispersion_fit, fitted=name in fits.fitted))
     for c in out:
         c.absorbed = absorbed_share(best[c.name], len(table))
     out.sort(key=lambda c: -c.score)
+    return out
 
-    # 2. the best few verified with fresh rays beside the reference; held-out folds
+
+@dataclass(frozen=True, kw_only=True)
+class _Verified:
+    """:func:`diagnose`'s check with fresh rays: the refitted reference, its misfit, whether it is
+    within noise, the candidates it verified, the observed residual signature."""
+
+    ref_state: ModelState
+    ref_mf: Misfit
+    within: bool
+    top: list[Candidate]
+    observed: dict
+    n_traces: int
+
+
+def _verify(meas: Measurement, state: ModelState, out: list[Candidate], fits: _CandidateFits, *, verify, verifier,
+            seed: int, n_sigma: float, fold_idx, folds: int, verify_top: int, executor: Executor | None,
+            table: ParameterTable) -> _Verified:
+    """The best few verified with fresh rays beside the reference, and on held-out folds; ``out``
+    re-sorted, verified first, each with its gain, significance and predicted signature."""
+    ref, best, spec, n = fits.ref, fits.best, meas.spec, meas.n
     top = [c for c in out if c.score > 0 and c.fitted][:verify_top]
     ref_state = ModelState(ref.state.offsets, state.effects, f"{state.label} (offsets refitted)")
     # every fresh trace below at once, side by side on the executor (independent traces, read
@@ -590,10 +638,9 @@ def diagnose(meas: Measurement, state: ModelState, twin=None, forward_model=None
     rest = [c for c in out if not any(c is t for t in top)]  # by identity: Candidate's == compares fields
     traced = gather([lambda st=st, k=k: verify(st, k) for st in [ref_state] + [c.refined_state for c in top]
                      for k in (0, 1)]
-                    + [lambda c=c: _fresh_misfit(verifier, meas, c.refined_state, meas.n_rays, seed, 0, table)
+                    + [lambda c=c: _fresh_misfit(verifier, meas, c.refined_state, meas.ray_budget, seed, 0, table)
                        for c in rest], executor)
     (ref_mf, ref_view), (ref_mf2, _) = traced[0], traced[1]
-    n_traces += 2 * n * (1 + len(top)) + n * len(rest)
     within = not ref_mf.total_beyond_noise(n_sigma)
     dispersion = max(1.0, ref_mf.chi2_total / max(ref_mf.dof_total, 1.0))
     ref_ho = _heldout(ref, fold_idx)
@@ -625,25 +672,31 @@ def diagnose(meas: Measurement, state: ModelState, twin=None, forward_model=None
             if c is not lead and c.score > 0:
                 c.behind_z = min(lead_z(b, o, dispersion, lead.penalty - c.penalty)
                                  for b, o in zip(drawn[lead.name], drawn[c.name]))
-    how = (f"{n_starts} starts of {len(names)} candidates screened (one Jacobian of the twin each), the best "
-           f"{len(fitted)} fitted" if screened else f"{n_starts} fits of {len(names)} candidates")
+    return _Verified(ref_state=ref_state, ref_mf=ref_mf, within=within, top=top, observed=observed,
+                     n_traces=2 * n * (1 + len(top)) + n * len(rest))
+
+
+def _notes(out: list[Candidate], fits: _CandidateFits, v: _Verified, o: FitOptions, *, n_starts: int,
+           n_names: int) -> list[str]:
+    """What the diagnosis did, which candidates the offsets mimic, whether the offsets alone reach the noise."""
+    how = (f"{n_starts} starts of {n_names} candidates screened (one Jacobian of the twin each), the best "
+           f"{len(fits.fitted)} fitted" if fits.screened else f"{n_starts} fits of {n_names} candidates")
     notes = [(f"{how} with the offsets ({', '.join(f'{s} {k}' for s, k in o.stages)} iterations, {o.rays} rays, "
              f"exact Jacobians); "
-             f"offsets-only refit: chi2/dof {ref.chi2_reduced:.3g} on the fit's rays, {ref_mf.chi2_reduced_total:.3g} "
-             f"with fresh rays; verified: {', '.join(c.name for c in top) or 'none'}")]
-    hidden_by_offsets = [c for c in out if c.absorbed >= UNSEPARABLE]
-    for c in hidden_by_offsets:
+             f"offsets-only refit: chi2/dof {fits.ref.chi2_reduced:.3g} on the fit's rays, "
+             f"{v.ref_mf.chi2_reduced_total:.3g} with fresh rays; verified: {', '.join(c.name for c in v.top) or 'none'}")]
+    for c in (c for c in out if c.absorbed >= UNSEPARABLE):
         notes.append(f"{c.name} cannot be told from offsets with this design (the offsets mimic "
                      f"{100 * c.absorbed:.1f} % of it); what would separate it: "
                      f"{SEPARATE_BY.get(c.name, 'frames that move the motors its signature resembles')}")
-    if within:
-        notes.append(f"the offsets alone reach the noise once refitted (chi2/dof = {ref_mf.chi2_reduced_total:.2f})")
-    return Diagnosis(base_mf, within, out, observed, folds, n_traces, notes, ref_state, ref_mf)
+    if v.within:
+        notes.append(f"the offsets alone reach the noise once refitted (chi2/dof = {v.ref_mf.chi2_reduced_total:.2f})")
+    return notes
 
 
 # Lever arms that separate a screen translation from focal-length (half-axis) offsets: tilting
 # E1/E2 changes where the beam meets the screen and how the focus is aberrated, which a focal
-# length change does not (docs/diagnosis.md).  Normalized half-widths of the spread.
+# length change does not (docs/explanations/diagnosis.md).  Normalized half-widths of the spread.
 DIAGNOSTIC_SPREAD = {"E1.rotationXerror": 0.3, "E1.rotationYerror": 0.3, "E2.rotationXerror": 0.3,
                      "E2.rotationYerror": 0.3}
 
@@ -734,10 +787,10 @@ class Version:
 def evaluate(meas: Measurement, state: ModelState, twin, *, model_rays: int | None = None, seed: int = MODEL_SEED,
              table: ParameterTable = METRIXS) -> Misfit:
     """The twin at the model's compensated configurations vs. the measurement (fresh rays)."""
-    model_rays = model_rays or 4 * int(meas.n_rays)  # a sharper model than the measurement
+    model_rays = model_rays or 4 * meas.ray_budget  # a sharper model than the measurement
     hx, hy = simulate(twin, meas.configurations, state, model_rays, [seed + i for i in range(meas.n)], table,
                       meas.screen)
-    return misfit(meas.hist_x, meas.hist_y, hx, hy, meas.n_rays, model_rays=model_rays, floor_x=meas.floor_x,
+    return misfit(meas.hist_x, meas.hist_y, hx, hy, meas.ray_budget, model_rays=model_rays, floor_x=meas.floor_x,
                   floor_y=meas.floor_y)
 
 
@@ -801,23 +854,21 @@ def retest_effects(meas: Measurement, state: ModelState, names: Sequence[str] | 
     """Each of ``names`` (default: every effect of ``state``) tested given the others.
 
     Effects are added one after another, each the best candidate *then*; an effect added early
-    may have stood in for one added later (measured on the scenario grid: photon energy, which
-    the offsets half mimic, ranked above a hidden source divergence, and once the divergence
-    was in it was fitted within 1 σ of zero).  So, after the forward steps, each effect is
-    removed in turn, the rest refitted from where the full model ended with every stage of
-    ``options`` (default :data:`FIT`, as the full model was: an effect the offsets half mimic
-    moves the beam, and the offsets need the features' wide basin to take it back; measured
-    with the last stage alone, a photon energy fitted to 1.0 σ from zero cost Δχ² = 860 to
-    remove), and both traced with fresh rays (two draws, the smaller gain counts).  An effect
-    is kept when the model without it is beyond noise and its gain exceeds the diagnosis's
-    price (``p ln N`` times the dispersion).  ``executor`` runs each refit's ray draws side by
-    side.
+    may have stood in for one added later (photon energy, which the offsets half mimic, can rank
+    above a hidden source divergence and fit to zero once the divergence is in).  So, after the
+    forward steps, each effect is removed in turn, the rest refitted from where the full model
+    ended with every stage of ``options`` (default :data:`FIT`, as the full model was: an effect
+    the offsets half mimic moves the beam, and the offsets need the features' wide basin to take
+    it back: with the last stage alone, removing even an effect fitted near zero looks costly),
+    and both traced with fresh rays (two draws, the smaller gain counts).  An effect is kept when
+    the model without it is beyond noise and its gain exceeds the diagnosis's price (``p ln N``
+    times the dispersion).  ``executor`` runs each refit's ray draws side by side.
     """
     names = list(state.effects if names is None else names)
     o = FitOptions.resolve(options, FIT)
     engine = engine_for(meas, o, table)
     verifier = Twin(engine)
-    verify_rays = int(verify_rays or 4 * meas.n_rays)
+    verify_rays = int(verify_rays or 4 * meas.ray_budget)
 
     def verify(st: ModelState, draw: int) -> Misfit:
         return _fresh_misfit(verifier, meas, st, verify_rays, seed, draw, table)[0]

@@ -41,7 +41,7 @@ def calibration_record(model, *, table: ParameterTable = METRIXS, measurement_ui
     post = Posterior.of(cal, table)
     if post is None:
         raise CalibrationFileError("the model has no covariance: a calibration file needs the fit's uncertainty")
-    cov = np.where(np.isfinite(post.covariance), post.covariance, None).tolist()
+    cov = [[v if math.isfinite(v) else None for v in row] for row in post.covariance.tolist()]
     return {"format": FORMAT, "version": VERSION, "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
             "parameter_table": table.name, "parameter_table_version": table.version,
             "measurement_uid": measurement_uid, "model_uid": cal.uid, "label": cal.state.label,

@@ -1,6 +1,6 @@
 """One fit engine: offsets and effects fitted through the differentiable twin.
 
-The model of a measurement is the torch twin (:class:`~bluesky_offsets.physics.torch_engine.TorchEngine`)
+The model of a measurement is the torch twin (:class:`~bluesky_offsets.physics.engine.TorchEngine`)
 traced at the measured configurations plus the offsets, with the state's effects.  Its
 Jacobian in the offsets and in every effect parameter is exact: each ray's screen position
 and soft weight are differentiated (:meth:`TorchEngine.ray_jacobian`), and the histograms,
@@ -60,7 +60,7 @@ from bluesky_offsets.model.values import ModelState
 from bluesky_offsets.physics.noise import bin_variance
 from bluesky_offsets.physics.parameters import MAX_OFFSET, METRIXS, ParameterTable
 from bluesky_offsets.physics.screen import add_overrides, tensor_overrides
-from bluesky_offsets.physics.torch_engine import FORWARD_AD
+from bluesky_offsets.physics.engine import FORWARD_AD
 
 STAGES = ("features", "profiles", "bins")
 #: added to a fit's seed for rays none of its configurations traced (each configuration ``i``
@@ -77,54 +77,61 @@ CROSS_SEED = 5_000_011
 class FitOptions:
     """How a fit runs.
 
-    rays : model rays per configuration (one set for the whole fit).
-    feature_rays : fewer rays for the feature stage (its five numbers per configuration are
+    Parameters
+    ----------
+    rays : int
+        model rays per configuration (one set for the whole fit).
+    feature_rays : int or None
+        fewer rays for the feature stage (its five numbers per configuration are
         robust to ray noise, and a stage costs in proportion to its rays); None: ``rays``.
-    seed : their seed.
-    stages : ``(stage, iterations)`` in order, stages from :data:`STAGES`.
-    profile_factor : camera bins summed per profile bin (x, y).
-    kernel : width (bins) of the kernel that turns the rays' moves into bin derivatives.
-    prior_sigma : a Gaussian prior on the offsets (normalized units): by default the spread of
+    seed : int
+        their seed.
+    stages : tuple of (str, int)
+        ``(stage, iterations)`` in order, stages from :data:`STAGES`.
+    profile_factor : tuple of (int, int)
+        camera bins summed per profile bin (x, y).
+    kernel : float
+        width (bins) of the kernel that turns the rays' moves into bin derivatives.
+    prior_sigma : float or None
+        a Gaussian prior on the offsets (normalized units): by default the spread of
         the model's own prior, offsets uniform within ±``MAX_OFFSET`` (``MAX_OFFSET / √3``).  It
         keeps the directions no measurement sees (compensating combinations) where they are,
         and it bounds the uncertainty an effect inherits from them; None: no prior.
-    damping : Levenberg-Marquardt's starting damping.
-    tolerance : a stage stops when an accepted step lowers χ² by less than this fraction.
-    soft_values : the features and profiles stages compare the soft beam, a smooth objective
+    damping : float
+        Levenberg-Marquardt's starting damping.
+    tolerance : float
+        a stage stops when an accepted step lowers χ² by less than this fraction.
+    soft_values : bool
+        the features and profiles stages compare the soft beam, a smooth objective
         that the Jacobian differentiates exactly (True), or RAYX's hard counts (False, the
-        default).  Measured: from the nominal twin with all-34 offsets at 5 % the hard counts
-        refused every step of one draw (chi2/dof stuck at 155, truth 1.03) and the soft beam
-        reached 2.5; but with the soft beam the diagnosis of a defocus of 25 mm on another draw
-        named nothing (hard: found, z = 25.3 ± 0.8 mm), and in the paper's coarse bins the
-        one-bin kernel widens the beam (chi2/dof 3.5 instead of 1.2).  Not the default until
-        that is understood.
-    offset_bound : the offsets stay within ± this (normalized; default the model's ``MAX_OFFSET``).
-    secant : after an accepted step that gains, update the Jacobian by Broyden's rank-one
+        default).  The soft beam can move where the hard counts refuse every step, but it can
+        hide a defocus from the diagnosis, and in the paper's coarse bins its one-bin kernel
+        widens the beam: not the default until that is understood.
+    offset_bound : float
+        the offsets stay within ± this (normalized; default the model's ``MAX_OFFSET``).
+    secant : bool
+        after an accepted step that gains, update the Jacobian by Broyden's rank-one
         secant (the change the twin actually made along the step) instead of a new exact one: a
         value costs a tenth of a Jacobian.  A step refused on an updated Jacobian is retried on
         the twin's own, a step that gains little is followed by the twin's own, and the
         uncertainty is always read from the twin's Jacobian at the solution.  Off by default:
-        measured, the offsets fits of three grid scenarios ended lower and faster on updates
-        (a thermal bump's χ²/dof 2.50 → 1.90 in 10 s instead of 17), but an 8-configuration
-        fit in the paper's bins stalled at 1.38 in the features (exact: 0.11) and ended at 1.80
-        with fresh rays (exact: 0.75), and a diagnosis's 5 + 5 iteration candidate fit of a
-        12 mm defocus ended at z = 7 mm.
-    ray_draws : a fit with effect parameters repeated on this many independent draws of the
+        updates can speed a fit up, but they can also stall one in coarse bins far above the exact
+        Jacobian's end, and leave a short candidate fit of an effect well short of its value.
+    ray_draws : int
+        a fit with effect parameters repeated on this many independent draws of the
         model's rays, each later draw starting where the first ended; the solution is their mean
         and the covariance adds their spread (their sample covariance, one draw's: not divided
         by their number, see :func:`fit`) to the Gauss-Newton one.  An offsets-only fit is one
         draw: it starts a diagnosis (whose candidate fits refit the offsets) or a refit, and
-        each draw costs a fit (about 8 s for the main job's 14 configurations on one core).
+        each draw costs a whole fit.
         Why: on RAYX's hard counts with a fixed set of rays the χ² is a staircase along the
         directions where offsets compensate an effect (an aperture's size against the source's
         divergence), and one draw ends on whichever step is near, farther from the truth than its
-        curvature says.  Measured (docs/benchmarks.md, "Ray draws"): a hidden source divergence
-        of 0.5 that single-draw fits put at 0.476 and 0.458 (σ 0.010), refitted on four other
-        draws from there, came out at 0.480-0.510 and 0.475-0.517; with four draws in the
-        analysis's refits, the five scenario-grid runs that had missed by 2.1-3.8 σ came within
-        1.8 σ, their σ 17-43 % wider.
+        curvature says; the mean over draws, and their spread in the σ, cover that
+        (the scenario grid: docs/benchmarks.md, "Diagnosis on the differentiable twin").
         1: one draw.
-    engine : options of the torch engine (:class:`~bluesky_offsets.physics.torch_engine.TorchOptions`).
+    engine : mapping, optional
+        options of the torch engine (:class:`~bluesky_offsets.physics.engine.TorchOptions`).
     """
 
     rays: int = 5000
@@ -218,7 +225,8 @@ class FitResult:
         return self.sigma[:len(self.state.offsets)]
 
     def effect_sigma(self) -> dict[str, dict[str, float]]:
-        s, out = self.sigma, {}
+        s = self.sigma
+        out: dict[str, dict[str, float]] = {}
         for k, name in enumerate(self.names[len(self.state.offsets):], len(self.state.offsets)):
             eff, p = name.split(".", 1)
             out.setdefault(eff, {})[p] = float(s[k])
@@ -236,10 +244,8 @@ def engine_for(meas, options: FitOptions, table: ParameterTable = METRIXS):
     Why not the engine's default, one stream shared by all configurations: the measured frames'
     noise is independent from frame to frame, and the uncertainties assume the model's is too.
     With shared rays the model's sampling error of the source (its drawn spread, say) is the
-    same in every configuration and no number of configurations averages it out.  Measured on
-    the IOC's hidden divergence +0.5 at the true offsets (14 configurations, 5,000 rays): with
-    shared rays χ² was lowest at +0.44 on one seed (curvature σ 0.007) and beyond +0.5 on three
-    others; with a stream per configuration at +0.47 to +0.53 on all four.
+    same in every configuration and no number of configurations averages it out: a fitted
+    effect (the source's divergence, say) then lands off the truth by many times its σ.
     """
     from bluesky_offsets.physics.beamline import torch_engine
     return torch_engine(table, meas.spec, {"common_rays": False, **dict(options.engine or {})})
@@ -264,7 +270,7 @@ class _Model:
                                          meas.floor_x, meas.floor_y)  # measured: fixed
         self.n_traces = 0
         self.soft = bool(options.soft_values)
-        self._measured: dict[str, np.ndarray] = {}
+        self._measured: dict[str, tuple[np.ndarray, np.ndarray | None]] = {}
         # the rays' values last traced without derivatives ((z, rays), Beam): an accepted step
         # asks for the Jacobian where its values were just traced, which then traces no value again
         self._last: tuple | None = None
@@ -318,7 +324,7 @@ class _Model:
                 beam = self.engine.beam(vals, add_overrides(ov, stage) if stage else ov, n_rays=rays,
                                         seed=self.o.seed, edge=self.engine.options.edge)
             self._last = (key, beam)
-            from bluesky_offsets.physics.torch_engine import histograms
+            from bluesky_offsets.physics.engine import histograms
             hx, hy = histograms(beam, spec, soft=soft, kernel=self.o.kernel)
             h, J = torch.cat([hx, hy], 1), None
         return self._detector(st, h, J)
@@ -441,7 +447,9 @@ def _fisher(mdl: _Model, other: _Model, stage: str, z: np.ndarray, pa: _Products
     both models' values.  ``pa``: ``mdl``'s products at ``z`` with their Jacobian, when at hand."""
     pa = pa if pa is not None and pa.jacobian is not None else mdl.products(stage, z, True)
     pb = other.products(stage, z, True)
+    assert pa.jacobian is not None and pb.jacobian is not None  # products(..., True)
     if stage == "features":
+        assert pa.variance is not None and pb.variance is not None  # features carry their variance
         w = 1.0 / (mdl.vm + 0.5 * (pa.variance + pb.variance))
     else:
         (m, floor), f = mdl.measured(stage), 0.5 * (pa.values + pb.values)
@@ -465,6 +473,7 @@ class _Products:
     def secant(self, new: _Products, step: np.ndarray) -> _Products:
         """``new`` with this Jacobian updated along ``step`` (Broyden's rank-one update): the
         update that makes the Jacobian reproduce the change the twin actually made."""
+        assert self.jacobian is not None  # a stage's products carry the Jacobian its steps came from
         c, k, p = self.jacobian.shape
         J = self.jacobian.reshape(c * k, p)
         miss = (new.values - self.values).reshape(-1) - J @ step
@@ -553,7 +562,8 @@ def _stage(mdl: _Model, stage: str, z: np.ndarray, pr: _Products, iterations: in
 T = TypeVar("T")
 
 
-def gather(calls: Sequence[Callable[[], T]], executor: Executor | None = None) -> list[T]:
+# each call is called with no arguments; `...`: a lambda's defaults bind its loop variables
+def gather(calls: Sequence[Callable[..., T]], executor: Executor | None = None) -> list[T]:
     """Every call's result, in the calls' order: side by side on ``executor``, one after the
     other without one.  The executor is a thread pool or a Dask cluster
     (:class:`~bluesky_offsets.model.cluster.ClusterExecutor`: each call pickled to a worker
@@ -601,6 +611,7 @@ def _runs(jobs: Sequence[tuple[_Model, np.ndarray, dict]], ridge: np.ndarray,
     return [end[:4] for end in ends]
 
 
+# long: a 32-line numpy docstring over 91 lines of one Levenberg-Marquardt loop, read at once
 def fit(meas, state, engine, options: FitOptions | Mapping | None = None, *,
         progress: Callable[[dict], None] | None = None, table: ParameterTable = METRIXS,
         also_from: Sequence = (), executor: Executor | None = None) -> FitResult:
@@ -620,16 +631,12 @@ def fit(meas, state, engine, options: FitOptions | Mapping | None = None, *,
         one that ends lowest is kept, its last stage's χ² judged on rays none of the fits traced
         (the options' seed + :data:`FRESH_SEED`); the history's ``start`` says which run each iteration belongs
         to.  Why several starts: the fit ends near where it starts on RAYX's hard counts, and
-        neither a start's χ² nor its first stage's end tells which start ends lowest (measured on
-        the README's demo: the surrogate finder's offsets, for a defocus it cannot represent,
-        start lower than no offsets and end their first stage lower, but end the fit at χ²/dof
-        4.85 against 4.35, and the effect refitted from there at z = 23.2 mm against 21.4 for 20;
-        docs/diagnosis.md).  The ends of the other starts that the frames do not tell from the kept
+        neither a start's χ² nor its first stage's end tells which start ends lowest (a surrogate
+        finder's offsets for a defocus it cannot represent start lower and end higher than no
+        offsets).  The ends of the other starts that the frames do not tell from the kept
         one widen its covariance (:attr:`FitResult.alternatives`).  Why other rays: each fit ends
-        fitted to its own rays' noise, and
-        the end that is lowest on them need not be (measured on a fresh clone, hidden source
-        divergence 0.5: the start kept on the fit's own rays compared at χ²/dof 3.92 on fresh
-        rays, and the divergence refitted from there at 0.39 ± 0.018; docs/diagnosis.md).
+        fitted to its own rays' noise, and the end that is lowest on them need not be lowest on
+        others (docs/explanations/diagnosis.md, "Why every start is fitted").
     executor : runs the starts side by side, then the ray draws (:func:`gather`; the result
         does not depend on it).
     """
@@ -665,12 +672,11 @@ def fit(meas, state, engine, options: FitOptions | Mapping | None = None, *,
     ks = range(1, o.ray_draws if mdl.params else 1)
     dms = [_Model(meas, state, engine, o.replace(seed=o.seed + k * RAY_DRAW_SEED), table) for k in ks]
     later = _runs([(dm, z, {"ray_draw": k}) for k, dm in zip(ks, dms)], ridge, progress, executor)
-    draws = [z] + [run[0] for run in later]
+    draws = np.asarray([z] + [run[0] for run in later])
     history += [h for run in later for h in run[3]]
     mdl.n_traces += sum(m.n_traces for m in models[1:] + dms)
     spread = None
     if len(draws) > 1:
-        draws = np.asarray(draws)
         z, exact = np.clip(draws.mean(0), *mdl.bounds()), False
         # what the rays leave in the mean: one draw's variance, not a quarter of it.  The later
         # draws start where the first ended, and a fit on RAYX's hard counts ends near where it
@@ -679,9 +685,7 @@ def fit(meas, state, engine, options: FitOptions | Mapping | None = None, *,
         # error, and their scatter shows only the part they moved: draws that move a fraction a
         # of the way (S: one draw's variance at its own minimum) scatter by a^2 S while their
         # mean varies by S((1 - 3a/4)^2 + 3a^2/16): the scatter is four times that at a = 1
-        # (conservative), equal to it at a = 0.6, and short of it below.  Over four, as before,
-        # it was short whenever a < 1; on the scenario grid (docs/benchmarks.md, "One draw's
-        # spread") that left 4 of 33 runs beyond 2 sigma.
+        # (conservative), equal to it at a = 0.6, and short of it below: so the larger is kept.
         spread = np.cov(draws.T, ddof=1)
     if not exact:
         # the uncertainty (and everything read from the Jacobian) at the twin's own Jacobian
@@ -710,8 +714,7 @@ def fit(meas, state, engine, options: FitOptions | Mapping | None = None, *,
     if jk is not None:
         v = np.diag(cov)
         # a parameter that one configuration alone determines has no delete-one estimate (its
-        # step without that configuration is unbounded): its Gauss-Newton σ stands (measured on
-        # the scenario grid, a grating added beside a defocus: the steps overflowed, NaN in the covariance)
+        # step without that configuration is unbounded, and overflows to NaN): its Gauss-Newton σ stands
         ok = np.isfinite(v) & (v > 0) & np.isfinite(np.diag(jk))
         widen[ok] = np.sqrt(np.maximum(1.0, np.diag(jk)[ok] / v[ok]))
         cov = cov * np.outer(widen, widen)  # the variances widened, the correlations kept

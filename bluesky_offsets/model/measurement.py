@@ -111,6 +111,13 @@ class Measurement:
         return len(self.configurations)
 
     @property
+    def ray_budget(self) -> int:
+        """``n_rays``, which a comparison with a model needs (a MeasurementError without it)."""
+        if self.n_rays is None:
+            raise MeasurementError(f"measurement {self.uid or ''} does not say its ray budget; pass n_rays")
+        return self.n_rays
+
+    @property
     def histograms(self) -> np.ndarray:
         """``(n, bins_x + bins_y)``: x then y histogram per configuration (the surrogate's
         output layout at the paper's binning)."""
@@ -149,7 +156,7 @@ class Measurement:
         screen = None
         if self.screen is not None or other.screen is not None:
             screen = np.vstack([as_screen(self.screen, self.n), as_screen(other.screen, other.n)])
-        floors = [None, None]
+        floors: list[np.ndarray | None] = [None, None]
         if self.floor_x is not None or other.floor_x is not None:
             floors = [np.vstack([_or_zeros(a.floor_x if k == 0 else a.floor_y, a.hist_x if k == 0 else a.hist_y)
                                  for a in (self, other)]) for k in (0, 1)]
@@ -162,7 +169,8 @@ class Measurement:
         """The same measurement in coarser bins (e.g. the paper's, for the surrogate)."""
         hx, hy = self.spec.rebin(self.hist_x, self.hist_y, coarse)
         fx = fy = None
-        if self.floor_x is not None:  # independent pixels: the floors add up as the bins do
+        # (both floors or neither) independent pixels: the floors add up as the bins do
+        if self.floor_x is not None and self.floor_y is not None:
             fx, fy = self.spec.rebin(self.floor_x, self.floor_y, coarse)
         return replace(self, hist_x=hx, hist_y=hy, spec=coarse, floor_x=fx, floor_y=fy)
 
@@ -195,7 +203,8 @@ class Measurement:
         rays = n_rays or self.n_rays
         if not rays:
             raise MeasurementError(f"measurement {self.uid or ''} does not say its ray budget; pass n_rays")
-        if resolution == "camera" and self.profile_x is not None and self.profile_spec is not None:
+        if (resolution == "camera" and self.profile_x is not None and self.profile_y is not None
+                and self.profile_spec is not None):
             return replace(self, configurations=cfg, hist_x=self.profile_x, hist_y=self.profile_y,
                            spec=self.profile_spec, n_rays=int(rays), profile_x=None, profile_y=None, images=None,
                            floor_x=self.profile_floor_x, floor_y=self.profile_floor_y,

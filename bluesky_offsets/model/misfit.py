@@ -317,7 +317,7 @@ def residual_signature(meas_x, meas_y, model_x, model_y, spec) -> Signature:
 def correlate_with_parameters(signature: Signature, configurations: np.ndarray, names: Sequence[str],
                               top: int = 5) -> list[tuple[str, str, float]]:
     """Strongest Pearson correlations between residual signatures and the commanded parameters
-    across configurations: ``(signature, parameter, r)``, largest |r| first."""
+    across configurations: ``(signature, parameter, r)``, largest ``|r|`` first."""
     cfg = np.asarray(configurations, dtype=float)
     out = []
     for key, d in signature.delta.items():

@@ -159,7 +159,7 @@ def _combinations(cov: np.ndarray, names, top: int = 4, most: int = 6) -> tuple[
     offsets (no component above 0.9), best first."""
     c = np.nan_to_num(cov)
     lam, vec = np.linalg.eigh(0.5 * (c + c.T))
-    out = []
+    out: list[dict] = []
     for j in np.argsort(lam):
         s = math.sqrt(max(lam[j], 0.0))
         if s >= DETERMINED * PRIOR_SIGMA or len(out) >= most:

@@ -26,8 +26,8 @@ from bluesky_offsets.physics.screen import per_frame_overrides
 
 def solve_normal(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """``a x = b`` for the fits' normal equations; least squares where ``a`` is singular (a
-    Jacobian with no information on some direction, e.g. all zero: measured as a 'Singular
-    matrix' failure of the diagnose command)."""
+    Jacobian with no information on some direction, e.g. all zero, where ``solve`` fails with
+    'Singular matrix')."""
     try:
         return np.linalg.solve(a, b)
     except np.linalg.LinAlgError:
@@ -69,9 +69,9 @@ def simulate_raw_many(twin, configurations: np.ndarray, states: Sequence[ModelSt
     return [(hx[i * n:(i + 1) * n], hy[i * n:(i + 1) * n]) for i in range(len(states))]
 
 
-def _frames_overrides(overrides: dict, screen, n: int) -> list[dict]:
+def _frames_overrides(overrides: dict, screen, n: int) -> list[Mapping]:
     ov = per_frame_overrides(overrides, screen, n)
-    return list(ov) if isinstance(ov, list) else [ov] * n
+    return list(ov) if isinstance(ov, list) else [overrides] * n  # the stage never moved: ``ov`` is ``overrides``
 
 
 def detector_view(hx, hy, state: ModelState, spec):
@@ -97,8 +97,7 @@ def simulate_frames(twin, configurations: np.ndarray, state: ModelState, n_rays:
     Why not :func:`simulate` where the state has detector-level effects: it applies them to
     counted histograms, which smooths the counting noise along with the beam (a blurred frame
     then carries a fraction of the noise its counts imply), and the analysis's noise model (counts)
-    read every misfit of such frames as within noise (measured on the scenario grid's blurred
-    frames: χ²/dof 0.001-0.008 at the hidden truth, where counted frames give 0.9-1.1).
+    would read every misfit of such frames as within noise (χ²/dof far below 1 at the truth).
     Without detector-level effects the twin's counted histograms are such frames already:
     :func:`simulate`'s.  ``seed``: the configurations' seeds (as :func:`simulate`), which also
     seed the draw (None: unseeded)."""

@@ -34,7 +34,8 @@ class ModelState:
         return np.array([v for name in self.effects for v in self.effects[name].values()], dtype=float)
 
     def set_effect_vector(self, vec: np.ndarray) -> dict[str, dict[str, float]]:
-        out, i = {}, 0
+        out: dict[str, dict[str, float]] = {}
+        i = 0
         for name, vals in self.effects.items():
             out[name] = {}
             for k in vals:

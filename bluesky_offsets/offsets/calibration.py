@@ -126,7 +126,7 @@ def twin_polish(problem: F.OffsetProblem, twin, offsets, *, iterations: int = 4,
     meas = Measurement(cfg, obs[:, :spec.bins_x], obs[:, spec.bins_x:], N, spec,
                        metadata={"parameter_table_version": problem.table.version})
     # the features first: in the paper's bins a focus fills a bin or two, and from the surrogate's
-    # solution the bins alone refused every step (measured: chi2/dof 10.1 held for 4 iterations)
+    # solution the bins alone can refuse every step
     rays = max(int(round(N * oversample)), 1)
     opts = FitOptions(rays=rays, feature_rays=None, seed=seed, offset_bound=problem.limit,
                       stages=(("features", int(iterations)), ("bins", int(iterations))))
@@ -172,7 +172,7 @@ class OffsetFinder:
 
     model: object = None  # ForwardModel; None: the shipped surrogate
     # Levenberg-Marquardt: on measured bright configurations multi-start Adam can stall in a
-    # valley 100x above the surrogate's minimum (bench_calibration_session: 1.8e-4 vs 1.5e-6)
+    # valley far above the surrogate's minimum
     method: str = "levenberg-marquardt"
     budget: F.Budget = field(default_factory=lambda: F.Budget(evaluations=20_000, seconds=120))
     settings: dict = field(default_factory=dict)

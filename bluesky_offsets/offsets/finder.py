@@ -57,7 +57,7 @@ import torch
 
 from bluesky_offsets.errors import InputError
 from bluesky_offsets.physics.parameters import MAX_OFFSET, METRIXS, ParameterTable
-from bluesky_offsets.physics.torch_engine import FORWARD_AD
+from bluesky_offsets.physics.engine import FORWARD_AD
 
 # torch.func has no batching rule for Mish's backward yet: correct, just slower; not the user's concern
 warnings.filterwarnings("ignore", message=".*batching rule for aten::mish", category=UserWarning)
@@ -113,6 +113,12 @@ class SurrogateForwardModel(torch.nn.Module):
     clamp at zero, as the surrogate's own ``predict`` does, and keeps both as
     buffers so that ``.to(device)`` moves everything.  Weights are frozen.
     """
+
+    # its buffers (register_buffer), which nn.Module's __getattr__ types as Tensor | Module
+    out_low: torch.Tensor
+    out_span: torch.Tensor
+    chamber: torch.Tensor
+    mirrored: torch.Tensor
 
     def __init__(self, surrogate, chamber=None):
         super().__init__()
@@ -475,7 +481,7 @@ class FinderResult:
              "evaluations": self.evaluations, "seconds": self.seconds, "settings": self.settings,
              "seed": self.seed, "device": self.device,
              "history": {k: [float(v) for v in vals] for k, vals in self.history.items()}}
-        if self.solutions is not None:
+        if self.solutions is not None and self.solution_losses is not None:  # set together
             d["solutions"] = self.solutions.tolist()
             d["solution_losses"] = self.solution_losses.tolist()
         return d
@@ -501,7 +507,7 @@ class _Tracker:
         self.t0 = time.perf_counter()
         self.best_loss = math.inf
         self.best = torch.zeros(objective.problem.n_parameters, device=objective.device, dtype=objective.dtype)
-        self.hist = {"evaluations": [], "seconds": [], "loss": []}
+        self.hist: dict[str, list[float]] = {"evaluations": [], "seconds": [], "loss": []}
         self.callback, self.callback_every, self._last_cb = callback, callback_every, -math.inf
         self._last_cb_evals = -1
         total = budget.evaluations
@@ -550,6 +556,7 @@ class _Tracker:
             self._emit(now)
 
     def _emit(self, now: float) -> None:
+        assert self.callback is not None  # called only where there is one
         self._last_cb, self._last_cb_evals = now, self.obj.evaluations
         self.callback({"method": self.method, "evaluations": self.obj.evaluations, "seconds": now,
                        "loss": self.best_loss, "offsets": self.best.double().cpu().numpy()})
@@ -589,7 +596,7 @@ class SmartWalker:
     candidates even when it is worse (``"comma"``: the paper's text read
     literally, "evaluate these offsets ... take only the best solution").  With
     m = 1e6 the two coincide; at m = 256-1024 on this CPU neither leaves the
-    valley that traps the benchmark's seed 9 (docs/benchmarks.md).  The paper
+    valley that traps the benchmark's seed 9.  The paper
     uses m = 1e6 on an A100 (200 iterations).  The CPU default m = 4096 keeps one iteration (4096 x 16
     model rows) at ~30 MB of activations for a 7-layer, 512-wide MLP and a
     fraction of a second on two cores; :func:`paper_budget` gives the

@@ -61,7 +61,7 @@ def jacobian(model, configurations: np.ndarray, offsets: np.ndarray) -> np.ndarr
         return model(c + x)
 
     # forward mode: one pass per input (34) instead of one per output (configurations x 100 bins);
-    # measured 1.1 s instead of 5.4 s for 16 configurations on one core, equal to float32 rounding
+    # several times faster here, and equal to reverse mode to float32 rounding
     J = torch.autograd.functional.jacobian(f, o, vectorize=True, strategy="forward-mode")
     return J.double().cpu().numpy()
 
@@ -223,13 +223,14 @@ def analyze(problem: OffsetProblem, model, offsets, *, n_rays: int | None = None
     alone = np.where(fii > 0, 1.0 / np.sqrt(np.where(fii > 0, fii, 1.0)), np.inf)
     ratio = sigma / prior
     status = ["determined" if r < thresholds[0] else "undetermined" if r >= thresholds[1] else "weak" for r in ratio]
+    low, high = thresholds
     spread, n_sol = (None, 0)
     if solutions is not None and solution_losses is not None:
         spread, n_sol = solution_spread(solutions, solution_losses, noise_mse=problem.noise_mse or 0.0)
     return IdentifiabilityReport(names=names, offsets=offsets, sigma=sigma, sigma_conditional=alone,
                                  prior_sigma=prior, status=status, correlation=corr, fisher=F, eigenvalues=lam,
                                  eigenvectors=V, n_configurations=len(rows), n_rays=N, model_mse=float(model_mse),
-                                 spread=spread, n_solutions=n_sol, thresholds=tuple(thresholds))
+                                 spread=spread, n_solutions=n_sol, thresholds=(low, high))
 
 
 def configuration_curve(problem: OffsetProblem, model, offsets, counts: Sequence[int] | None = None,
@@ -246,9 +247,9 @@ def configuration_curve(problem: OffsetProblem, model, offsets, counts: Sequence
         sig.append(r.sigma)
         nd.append(len(r.determined()))
         nu.append(len(r.undetermined()))
-    sig = np.asarray(sig)
-    return {"counts": list(counts), "sigma": sig, "n_determined": nd, "n_undetermined": nu,
-            "median_sigma": np.median(sig, axis=1).tolist()}
+    sigma = np.asarray(sig)
+    return {"counts": list(counts), "sigma": sigma, "n_determined": nd, "n_undetermined": nu,
+            "median_sigma": np.median(sigma, axis=1).tolist()}
 
 
 def plot_identifiability(report: IdentifiabilityReport, path, curve: dict | None = None,

@@ -45,7 +45,7 @@ from bluesky_offsets.errors import InputError
 from bluesky_offsets.options import refuse_unknown
 from bluesky_offsets.physics import effects as E
 from bluesky_offsets.physics.parameters import MAX_OFFSET, METRIXS, ParameterTable
-from bluesky_offsets.physics.torch_engine import FORWARD_AD
+from bluesky_offsets.physics.engine import FORWARD_AD
 from bluesky_offsets.physics.twin import CAMERA
 from bluesky_offsets.streams import stream
 
@@ -73,26 +73,38 @@ class DarkStart(ValueError):
 class OptimizeOptions:
     """How :func:`optimize_settings` runs (unknown keys are refused).
 
-    rays, seed : the model rays of the optimization (one set: common random numbers).
-    starts : the current setting and ``starts - 1`` random ones within ``spread`` of each free
+    Parameters
+    ----------
+    rays, seed : int
+        the model rays of the optimization (one set: common random numbers).
+    starts : int
+        the current setting and ``starts - 1`` random ones within ``spread`` of each free
         motor's range around it.
-    screen, global_starts : ``screen`` settings drawn over the reachable box (half-widths from
+    screen, global_starts : int
+        ``screen`` settings drawn over the reachable box (half-widths from
         ``spread`` to each free motor's whole range), the objective evaluated at each; the
         ``global_starts`` best are started from too (0: the local starts alone).
-    draws : states drawn from the calibration's covariance that the objective averages over,
+    draws : int
+        states drawn from the calibration's covariance that the objective averages over,
         beside the fitted one (0, the default, or no covariance: the fitted state alone); each
         traces ``rays // (draws + 1)`` rays.  Off by default: where most offsets are
         undetermined the draws' average favours a compromise over the fitted state's focus
-        (docs/optimize.md).
-    iterations : Levenberg-Marquardt steps per start at most; ``tolerance`` the relative gain
+        (docs/explanations/optimize.md).
+    iterations : int
+        Levenberg-Marquardt steps per start at most; ``tolerance`` the relative gain
         below which a start ends.
-    check_rays, check_seed : the prediction: the hard beam, fresh rays.
-    flag_above : a state parameter whose uncertainty alone changes a predicted width by more
+    check_rays, check_seed : int
+        the prediction: the hard beam, fresh rays.
+    flag_above : float
+        a state parameter whose uncertainty alone changes a predicted width by more
         than this (relative) is flagged.
-    trust_below : the prediction is trusted while its relative uncertainty stays below this.
-    samples : states drawn from the calibration's covariance to read the prediction's spread as
+    trust_below : float
+        the prediction is trusted while its relative uncertainty stays below this.
+    samples : int
+        states drawn from the calibration's covariance to read the prediction's spread as
         frames would (:func:`sampled_sigma`); 0 or 1: the linear propagation alone.
-    engine : torch engine options (:class:`~bluesky_offsets.physics.torch_engine.TorchOptions`).
+    engine : mapping, optional
+        torch engine options (:class:`~bluesky_offsets.physics.engine.TorchOptions`).
     """
 
     rays: int = 20_000
@@ -125,7 +137,7 @@ class OptimizeOptions:
 
     @classmethod
     def resolve(cls, options: OptimizeOptions | Mapping | None) -> OptimizeOptions:
-        if isinstance(options, cls):
+        if isinstance(options, OptimizeOptions):
             return options
         options = dict(options or {})
         refuse_unknown(cls, options, "unknown optimize option(s)")
@@ -238,6 +250,7 @@ class _Problem:
     def residuals(self, rays: list[Rays]) -> torch.Tensor:
         """The target's residuals of every state, scaled so that their sum of squares is the mean
         cost over the states, and the transmission floor on the mean intensity."""
+        assert self.start is not None  # optimize() sets it before the first step
         r = torch.cat([self.target.residuals(x, self.start).reshape(-1) for x in rays]) / math.sqrt(len(rays))
         if self.floor > 0:  # the transmission floor, a steep wall
             mean = torch.stack([x.intensity for x in rays]).mean()
@@ -349,7 +362,7 @@ def bounds(current, constraints: Constraints, limits=None, table: ParameterTable
     for name in constraints.hold:
         free[table.index(name)] = False
     # a hair inside: a setting reached as start + (setting - current) must not round past a limit
-    # (measured: 14.000000000000002 against E1 roll's 14, refused by the motor)
+    # (e.g. 14.000000000000002 against a limit of 14, which the motor refuses)
     margin = 1e-9 * table.span
     lo, hi = lo + margin, hi - margin
     free &= hi > lo
@@ -452,7 +465,7 @@ def predict_many(states, configuration, *, rays: int = 100_000, seed: int = 12_3
                  table: ParameterTable = METRIXS) -> list[tuple[Focus, np.ndarray, np.ndarray]]:
     """:func:`predict` for several states (one batch, the same rays) at one configuration."""
     from bluesky_offsets.physics.beamline import torch_engine
-    from bluesky_offsets.physics.torch_engine import histograms
+    from bluesky_offsets.physics.engine import histograms
     engine = engine or torch_engine(table)
     vals, ovs = [], []
     for st in states:
@@ -529,7 +542,9 @@ def _uncertainty(pb: _Problem, cfg, covariance, names, o: OptimizeOptions, table
     C = cov[np.ix_(cov_idx, cov_idx)]
     sig, contrib = {}, {}
     for axis in "xy":
-        r, J, g = pb.linearized(cfg, lambda rays, a=axis: per_ray(rays[0], a), columns=rj_cols, effects=True)
+        # mypy cannot infer a lambda with a default argument (the loop variable bound)
+        r, J, g = pb.linearized(cfg, lambda rays, a=axis: per_ray(rays[0], a),  # type: ignore[misc]
+                                columns=rj_cols, effects=True)
         var = float(r @ r)                     # g: d var / d state
         JtJ = J.T @ J                          # half the Gauss-Newton Hessian of var
         first = float(g @ C @ g)
@@ -606,13 +621,16 @@ def optimize_settings(target, state, current, *, limits=None, constraints: Const
     inits = _starts(pb, o)
     ulo, uhi = pb.bounds_u()
     runs = gather([lambda u0=u0, label=label: _lm(pb, u0, progress, label) for label, u0 in inits], executor)
-    best, history, starts = None, [], []
+    best: tuple[np.ndarray, float] | None = None
+    history: list[dict] = []
+    starts: list[dict] = []
     for u, cost, hist in runs:
         history += hist
         starts.append({"start": hist[0]["start"], "cost_start": hist[0]["cost"], "cost": cost,
                        "iterations": hist[-1]["iteration"]})
         if best is None or cost < best[1]:
             best = (u, cost)
+    assert best is not None  # the current setting is always a start
     u, cost = best
     if not math.isfinite(cost):
         raise DarkStart("every start lost the light in the model: find the beam first")

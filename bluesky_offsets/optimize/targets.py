@@ -42,8 +42,8 @@ REFOCUSING = ("E1", "E2")
 MONOCHROMATOR = tuple(p.name for p in METRIXS if p.motorized and p.component not in REFOCUSING)
 """Every motor upstream of the refocusing mirrors (source, aperture, M1, grating, exit slit): held by
 default.  They set the photon energy, the resolution and the flux; moved to focus, they trim the beam
-on slit edges, where the calibration knows the least.  Measured (docs/optimize.md): with all motors
-free the model's smallest focus lost half of the light on the true beamline while the model kept 90 %."""
+on slit edges, where the calibration knows the least, so light the model keeps there can be lost on
+the true beamline (docs/explanations/optimize.md, "The closed loop, and what it gives")."""
 
 
 # --------------------------------------------------------------------------- #
@@ -318,13 +318,20 @@ def target_from(spec) -> Target:
 class Constraints:
     """What the optimizer may do.
 
-    hold : parameters whose motors must not move (default: all but the refocusing mirrors,
+    Parameters
+    ----------
+    hold : tuple of str
+        parameters whose motors must not move (default: all but the refocusing mirrors,
         :data:`MONOCHROMATOR`; ``()`` frees every motor).
-    travel : ``{parameter: largest move}`` from where the motor stands (its units).
-    limits : ``{parameter: (low, high)}`` narrower than the motors' own (twin coordinates).
-    keep_transmission : the fraction of the current transmission that must stay (0.98: lose at
+    travel : mapping
+        ``{parameter: largest move}`` from where the motor stands (its units).
+    limits : mapping
+        ``{parameter: (low, high)}`` narrower than the motors' own (twin coordinates).
+    keep_transmission : float or None
+        the fraction of the current transmission that must stay (0.98: lose at
         most 2 % of the light); None: no such bound.
-    min_transmission : an absolute floor (fraction of the source rays on the screen), or None.
+    min_transmission : float or None
+        an absolute floor (fraction of the source rays on the screen), or None.
     """
 
     hold: tuple[str, ...] = MONOCHROMATOR

@@ -36,6 +36,7 @@ import functools
 import tomllib
 from dataclasses import dataclass, fields
 from pathlib import Path
+from typing import Any
 
 from bluesky_offsets.errors import InputError
 from bluesky_offsets.physics.geometry import MISALIGNMENT_KEYS
@@ -90,12 +91,12 @@ class Beamline:
             raise BeamlineError(f"engine kind {kind!r}; known: rayx, torch")
         if self.builtin == "metrixs":
             if kind == "torch":
-                from bluesky_offsets.physics.torch_engine import TorchEngine
+                from bluesky_offsets.physics.engine import TorchEngine
                 return TorchEngine(self.table, self.detector.histograms)
             return RayxEngine(self.table, self.detector.histograms)
         if kind == "rayx":
             return RmlEngine(self)
-        from bluesky_offsets.physics.torch_rml import RmlTorchEngine
+        from bluesky_offsets.physics.engine import RmlTorchEngine
         return RmlTorchEngine(self)
 
     def rml_objects(self) -> dict[str, str]:
@@ -104,7 +105,13 @@ class Beamline:
             from bluesky_offsets.physics.metrixs import nominal_beamline
             return {o.name: o.type for o in nominal_beamline().objects}
         from bluesky_offsets.physics.rml import read_rml
-        return {o.name: o.type for o in read_rml(self.rml).objects}
+        return {o.name: o.type for o in read_rml(self.rml_file()).objects}
+
+    def rml_file(self) -> Path:
+        """The RML file of a beamline that is not built in."""
+        if self.rml is None:
+            raise BeamlineError(f"beamline {self.name}: neither an RML file nor a built-in geometry")
+        return self.rml
 
 
 def _keys(section: dict, allowed, where: str) -> None:
@@ -117,7 +124,7 @@ def _keys(section: dict, allowed, where: str) -> None:
 
 def _detector(section: dict, where: str) -> Detector:
     _keys(section, [f.name for f in fields(Detector)], where)
-    out = {}
+    out: dict[str, Any] = {}
     for f in fields(Detector):
         if f.name not in section:
             continue
@@ -184,7 +191,7 @@ def _check_against_rml(bl: Beamline, path: Path) -> None:
     object's own parameters; the detector's image plane is an ImagePlane."""
     from bluesky_offsets.physics.metrixs import nominal_beamline
     from bluesky_offsets.physics.rml import read_rml
-    rml = nominal_beamline() if bl.builtin == "metrixs" else read_rml(bl.rml)
+    rml = nominal_beamline() if bl.builtin == "metrixs" else read_rml(bl.rml_file())
     objects = {o.name: o for o in rml.objects}
     for p in bl.table:
         if p.element not in objects:
@@ -214,9 +221,9 @@ def torch_engine(table: ParameterTable, hist: HistogramSpec | None = None, optio
     (or a table with no description) or the described RML's, binned by ``hist``."""
     bl = of_table(table)
     if bl is None or bl.builtin == "metrixs":
-        from bluesky_offsets.physics.torch_engine import TorchEngine
+        from bluesky_offsets.physics.engine import TorchEngine
         return TorchEngine(table=table, hist=hist, options=options)
-    from bluesky_offsets.physics.torch_rml import RmlTorchEngine
+    from bluesky_offsets.physics.engine import RmlTorchEngine
     return RmlTorchEngine(bl, hist, options)
 
 
@@ -258,7 +265,7 @@ class RmlEngine(RayxEngine):
         from bluesky_offsets.physics.rml import read_rml
         super().__init__(beamline.table, hist or beamline.detector.histograms)
         self.beamline = beamline
-        self.rml = read_rml(beamline.rml)
+        self.rml = read_rml(beamline.rml_file())
 
     def build(self, request: TraceRequest, n_rays: int):
         from bluesky_offsets.physics.metrixs import check_physical

@@ -296,6 +296,8 @@ class CameraCalibration:
         p = profiles(frame, self.geometry, dark=self.dark, gain=self.gain, read_noise=self.read_noise,
                      roi=self.roi, dark_frames=self.dark_frames)
         b = p.binned(self.geometry, hist)
+        # profiles() computes the floors; binning keeps them
+        assert p.floor_x is not None and p.floor_y is not None and b.floor_x is not None and b.floor_y is not None
         n = self.source_photons(exposure)
         return {"hist_x": b.x / n, "hist_y": b.y / n, "profile_x": p.x / n, "profile_y": p.y / n,
                 "floor_hx": b.floor_x / n**2, "floor_hy": b.floor_y / n**2,

@@ -30,6 +30,7 @@ from __future__ import annotations
 import math
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -82,7 +83,7 @@ class Effect:
                 raise InputError(f"effect {self.name!r} takes {len(names)} values ({names}), got {len(seq)}")
             out = dict(zip(names, seq))
         # tensors stay tensors (the differentiable twin takes gradients through the effects)
-        full = {n: (v if is_tensor(v) else float(v)) for n, v in ((n, out.get(n, 0.0)) for n in names)}
+        full: dict[str, Any] = {n: (v if is_tensor(v) else float(v)) for n, v in ((n, out.get(n, 0.0)) for n in names)}
         for n, v in full.items():
             if not (bool(v.isfinite().all()) if is_tensor(v) else math.isfinite(v)):
                 raise InputError(f"effect {self.name!r}: {n} = {v} is not finite")
@@ -143,7 +144,7 @@ def twin_overrides(effects: Mapping[str, Mapping[str, float]]) -> dict[str, dict
 
     Alignment errors of the same object add up; other fields must not clash.
     """
-    merged: dict[str, dict[str, object]] = {}
+    merged: dict[str, dict[str, Any]] = {}  # numbers or tensors
     for name, values in effects.items():
         eff = get(name)
         for obj, fields in eff.overrides(eff.values(values)).items():
@@ -230,9 +231,8 @@ class ChamberRotation(Effect):
 class SourceScale(Effect):
     """The electron beam's size or its divergence differs from the model (relative change of
     both planes).  Two effects rather than one with both parameters: a fit of both trades one
-    for the other with the offsets (measured against the IOC, a hidden divergence +50 %:
-    size −0.43, divergence +0.37 after the refit), and the diagnosis should name the one that
-    changed."""
+    for the other with the offsets (a hidden divergence comes back partly as a smaller size),
+    and the diagnosis should name the one that changed."""
 
     def __init__(self, what: str):
         self.what, self.name = what, f"source_{what}"

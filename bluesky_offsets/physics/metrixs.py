@@ -14,6 +14,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -120,11 +121,11 @@ class BeamlineState:
     """
 
     types: dict[str, str] = field(default_factory=dict)
-    fields: dict[str, dict[str, object]] = field(default_factory=dict)
-    misalignment: dict[str, dict[str, object]] = field(default_factory=dict)
+    fields: dict[str, dict[str, Any]] = field(default_factory=dict)  # numbers or tensors
+    misalignment: dict[str, dict[str, Any]] = field(default_factory=dict)
 
 
-def beamline_state(values, overrides: Mapping[str, Mapping[str, object]] | None = None,
+def beamline_state(values, overrides: Mapping[str, Mapping[str, Any]] | None = None,
                    table: ParameterTable = METRIXS) -> BeamlineState:
     """The changes of :func:`build_beamline`, without building it.
 

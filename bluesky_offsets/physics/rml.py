@@ -245,19 +245,31 @@ def read_rml(path: str | Path) -> RmlBeamline:
     return _from_root(root)
 
 
-def _from_root(root: ET.Element) -> RmlBeamline:
-    version = (root.findtext("version") or "1.15").strip()
+def _attr(node: ET.Element, key: str) -> str:
+    """An attribute every RML file has (an object's name and type, a parameter's id)."""
+    value = node.get(key)
+    if value is None:
+        raise RmlError(f"RML <{node.tag}> without {key!r}")
+    return value
+
+
+def _beamline(root: ET.Element) -> ET.Element:
     bl = root.find("beamline")
     if bl is None:
         raise RmlError("RML has no <beamline>")
+    return bl
+
+
+def _from_root(root: ET.Element) -> RmlBeamline:
+    version = (root.findtext("version") or "1.15").strip()
     objects = []
-    for node in bl.iter("object"):
+    for node in _beamline(root).iter("object"):
         params: dict[str, RmlParam] = {}
         for p in node.findall("param"):
-            pid = p.get("id")
+            pid = _attr(p, "id")
             attrs = {k: v for k, v in p.attrib.items() if k != "id"}
             params[pid] = RmlParam(pid, (p.text or "").strip(), attrs)
-        objects.append(RmlObject(node.get("name"), node.get("type"), params))
+        objects.append(RmlObject(_attr(node, "name"), _attr(node, "type"), params))
     if not objects:
         raise RmlError("RML beamline has no objects")
     return RmlBeamline(objects, version)
@@ -267,12 +279,13 @@ def read_world_vectors(path: str | Path) -> dict[str, dict[str, np.ndarray]]:
     """World vectors exactly as stored in an RML file, per object name."""
     root = ET.parse(path).getroot()
     out: dict[str, dict[str, np.ndarray]] = {}
-    for node in root.find("beamline").iter("object"):
+    for node in _beamline(root).iter("object"):
         vecs = {}
         for p in node.findall("param"):
-            if p.get("id") in WORLD_KEYS:
-                vecs[p.get("id")] = np.array([float(p.findtext(a)) for a in "xyz"])
-        out[node.get("name")] = vecs
+            pid = p.get("id")
+            if pid in WORLD_KEYS:
+                vecs[pid] = np.array([float(p.findtext(a, "")) for a in "xyz"])
+        out[_attr(node, "name")] = vecs
     return out
 
 

@@ -88,7 +88,8 @@ def add_overrides(base: Mapping | None, extra: Mapping) -> dict:
     return out
 
 
-def per_frame_overrides(overrides: Mapping | Sequence[Mapping] | None, screen, n: int) -> Mapping | list[dict] | None:
+def per_frame_overrides(overrides: Mapping | Sequence[Mapping] | None, screen,
+                        n: int) -> Mapping | Sequence[Mapping] | None:
     """The overrides of ``n`` frames with the stage at ``screen``: ``overrides`` as given (one
     mapping for all, or one per frame) where the stage never moved, else one mapping per frame
     with the stage's position added to the image plane's."""

@@ -64,8 +64,9 @@ class HistogramSpec:
 
     @classmethod
     def from_fingerprint(cls, fp: Mapping) -> HistogramSpec:
-        return cls(int(fp["bins_x"]), tuple(map(float, fp["range_x"])), int(fp["bins_y"]),
-                   tuple(map(float, fp["range_y"])))
+        lo_x, hi_x = map(float, fp["range_x"])
+        lo_y, hi_y = map(float, fp["range_y"])
+        return cls(int(fp["bins_x"]), (lo_x, hi_x), int(fp["bins_y"]), (lo_y, hi_y))
 
     @classmethod
     def from_centers(cls, centers_x, centers_y) -> HistogramSpec:

@@ -126,7 +126,7 @@ def _rayx_fix_seed(seed: int) -> None:
         lib = ctypes.CDLL(rayx.core.__file__)
         fn = lib._ZN4rayx7fixSeedEj
         fn.argtypes, fn.restype = [ctypes.c_uint32], None
-        _rayx_fix_seed._fn = fn
+        _rayx_fix_seed._fn = fn  # type: ignore[attr-defined]  # a function attribute caches the handle
     fn(int(seed) & 0xFFFFFFFF)
 
 
@@ -249,7 +249,7 @@ class BatchResult:
         return np.array([r.ok for r in self.results], dtype=bool)
 
     @property
-    def failures(self) -> list[tuple[int, np.ndarray, str]]:
+    def failures(self) -> list[tuple[int, np.ndarray, str | None]]:
         return [(i, r.values, r.error) for i, r in enumerate(self.results) if not r.ok]
 
     def __len__(self) -> int:
@@ -267,7 +267,7 @@ def make_engine(engine: TraceEngine | str | None = None, **options) -> TraceEngi
     if engine is None or engine == "rayx":
         return RayxEngine(**options)
     if engine == "torch":
-        from bluesky_offsets.physics.torch_engine import TorchEngine
+        from bluesky_offsets.physics.engine import TorchEngine
         return TorchEngine(**options)
     if isinstance(engine, str):
         raise InputError(f"unknown engine {engine!r}; known: {', '.join(ENGINES)}")
@@ -279,11 +279,9 @@ WORKER_ENV = {"OMP_NUM_THREADS": "1"}
 
 # The LocalCluster's housekeeping, slower than Dask's defaults: its event loops' 20 ms tick, the
 # workers' 10 ms stack sampler (the dashboard's profile), the nannies' 100 ms memory poll and the
-# 0.5 s system monitor with disk counters.  Measured on 2 cores, an idle cluster of two workers
-# took 10.2 % of a core with the defaults and 2.4 % with these (benchmarks/bench_cluster_idle.py,
-# docs/benchmarks.md "less CPU beside the fits"); over a demo that is CPU the fits beside it did
-# not get.  What runs, and where, is unchanged; the dashboard still shows tasks and memory (no
-# profile pane).
+# 0.5 s system monitor with disk counters: an idle cluster's CPU is the fits' loss
+# (benchmarks/bench_cluster_idle.py).  What runs, and where, is unchanged; the dashboard still
+# shows tasks and memory (no profile pane).
 QUIET_CLUSTER = {"distributed.admin.tick.interval": "200ms",
                  "distributed.worker.profile.enabled": False,
                  "distributed.worker.memory.monitor-interval": "1s",
@@ -298,7 +296,7 @@ class Twin:
     ----------
     engine : TraceEngine or str, optional
         ``"rayx"`` (the default, :class:`RayxEngine`: the reference), ``"torch"`` (the
-        differentiable twin, :class:`~bluesky_offsets.physics.torch_engine.TorchEngine`) or an engine.
+        differentiable twin, :class:`~bluesky_offsets.physics.engine.TorchEngine`) or an engine.
     n_rays : int
         Source rays per simulation (the paper: 1e5).
     scheduler : str, optional
@@ -309,6 +307,8 @@ class Twin:
     n_workers : int, optional
         Workers of the LocalCluster (default: all cores), one thread each.
     """
+
+    _borrowed = False  # a copy sharing another twin's workers (with_hist): closing it leaves them running
 
     def __init__(self, engine: TraceEngine | str | None = None, *, n_rays: int = 10_000,
                  scheduler: str | None = None, n_workers: int | None = None, client=None):
@@ -369,9 +369,8 @@ class Twin:
                 # input) is the only suspect: fail it at once instead of killing 3 more workers.
                 # glibc's heap for blocks up to 32 MiB: Dask's nanny sets MALLOC_TRIM_THRESHOLD_,
                 # which turns off glibc's adaptive mmap threshold, so that every array above
-                # 128 kB (each of a batch trace's ray arrays) was mapped and page-faulted afresh:
-                # the torch engine's dataset blocks took 3x the CPU of a plain process (0.7 s
-                # against 0.22 s a block of 256 draws).  glibc reads it at start: pre-spawn.
+                # 128 kB (each of a batch trace's ray arrays) would be mapped and page-faulted
+                # afresh, at several times a plain process's CPU.  glibc reads it at start: pre-spawn.
                 with dask.config.set({"distributed.scheduler.allowed-failures": 0,
                                       "distributed.nanny.pre-spawn-environ.MALLOC_MMAP_THRESHOLD_": 32 << 20,
                                       **QUIET_CLUSTER}):
@@ -414,12 +413,14 @@ class Twin:
         vals = self.table.validate(values, "parameter batch")
         if vals.ndim == 1:
             vals = vals[None, :]
+        ovs: list[Mapping]
         if overrides is None or isinstance(overrides, Mapping):
             ovs = [dict(overrides or {})] * len(vals)
         else:
             ovs = list(overrides)
             if len(ovs) != len(vals):
                 raise InputError(f"{len(ovs)} overrides for {len(vals)} configurations")
+        seeds: list[int | None]
         if seed is None:
             seeds = [None] * len(vals)
         elif isinstance(seed, (int, np.integer)):

@@ -19,14 +19,15 @@ an unbiased average over the uniform box.  ``screen_rays = 0`` disables the
 screen (every draw traced in full, the paper's scheme).  The screen hits of
 *every* draw are stored too, so pass rates are on record.
 
-Store layout (``zarr`` v3 group)
--------------------------------
-``raw/*``            rows in the order blocks finished (work area);
-``draws/screen_hits``  screen hits of every draw (-1: not screened / failed);
-``progress.json``      committed blocks -> rows, written atomically *after* the rows;
-``params, hist_x, hist_y, n_hits, screen_hits, stratum, weight, index``
-                       the finished dataset: exactly ``n_samples`` rows, the first
-                       ``n_samples`` accepted draws in draw order.
+The store is a ``zarr`` v3 group::
+
+    raw/*                  rows in the order blocks finished (work area);
+    draws/screen_hits      screen hits of every draw (-1: not screened / failed);
+    progress.json          committed blocks -> rows, written atomically *after* the rows;
+    params, hist_x, hist_y, n_hits, screen_hits, stratum, weight, index
+                           the finished dataset: exactly n_samples rows, the first
+                           n_samples accepted draws in draw order.
+
 Group attributes hold the generation settings and statistics.
 
 A killed run leaves at most uncommitted rows past the committed row count;
@@ -44,6 +45,7 @@ from collections.abc import Callable, Mapping
 from dataclasses import asdict, dataclass, field
 from datetime import datetime, timezone
 from pathlib import Path
+from typing import Any, Literal
 
 import numpy as np
 
@@ -116,7 +118,7 @@ class GenerationSettings:
     ----------
     engine : {"rayx", "torch"}
         The twin that traces: RAYX one draw at a time, or the torch engine a block at once
-        (:meth:`~bluesky_offsets.physics.torch_engine.TorchEngine.trace_batch`: the block's
+        (:meth:`~bluesky_offsets.physics.engine.TorchEngine.trace_batch`: the block's
         draws share one random stream, so a draw's rays depend on its block).
     chamber : bool
         Draw the focus chamber's translation (x, y, z; :data:`CHAMBER_INPUTS`) with the
@@ -171,6 +173,7 @@ def chamber_overrides(chamber) -> dict:
     """RML overrides that put the focus chamber at ``chamber`` (x, y, z in mm; (3,) for one
     draw, or (C, 3) for a batch of the torch engine)."""
     ch = chamber if isinstance(chamber, np.ndarray) else np.asarray(chamber, float)
+    cols: list[Any]  # tensors or numbers
     if ch.ndim == 2:
         import torch
         cols = [torch.as_tensor(ch[:, k], dtype=torch.float64) for k in range(3)]
@@ -410,7 +413,7 @@ class DatasetStore:
         except (OSError, json.JSONDecodeError) as exc:
             raise DatasetError(f"{self.progress_path} is unreadable ({exc})") from None
 
-    def _group(self, mode: str = "a"):
+    def _group(self, mode: Literal["r", "r+", "a", "w", "w-"] = "a"):
         import zarr
         try:
             return zarr.open_group(str(self.path), mode=mode)
@@ -697,7 +700,7 @@ def draw_in_memory(twin: Twin, settings: GenerationSettings, *, min_samples: int
     finally:
         bar.close()
     results.sort(key=lambda r: r["block"])
-    out = {k: np.concatenate([r[k] for r in results]) for k in _row_fields(settings)}
+    out: dict[str, Any] = {k: np.concatenate([r[k] for r in results]) for k in _row_fields(settings)}
     out["draw_screen_hits"] = np.concatenate([r["draw_screen_hits"] for r in results])
     out["n_draws"] = len(out["draw_screen_hits"])
     out["cpu_s"] = float(sum(r["cpu_s"] for r in results))

@@ -24,6 +24,7 @@ import contextlib
 import os
 import time
 from dataclasses import replace
+from typing import Any
 
 import numpy as np
 
@@ -131,7 +132,7 @@ def evaluate(model: Surrogate, *, n_samples: int = 500, min_nonempty: int = 100,
         if own:
             twin.close()
 
-    out = {"checkpoint": {"table_version": prov.get("table_version"),
+    out: dict[str, Any] = {"checkpoint": {"table_version": prov.get("table_version"),
                           "trained_on": {k: prov.get(k) for k in ("n_samples", "n_good", "n_rays", "twin")},
                           "test_metrics": model.metrics.get("test")},
            "n_rays": n_rays, "seed": seed, "engine": twin.engine.version,
@@ -174,8 +175,9 @@ def plot_comparison(model: Surrogate, data: dict, path, n: int = 3, seed: int = 
     import matplotlib.pyplot as plt
 
     from bluesky_offsets.physics.twin import HistogramSpec
-    hs = HistogramSpec(**{k: (tuple(v) if isinstance(v, list) else v)
-                          for k, v in model.histogram.items() if k != "normalization"})
+    spec: dict[str, Any] = {k: (tuple(v) if isinstance(v, list) else v)
+                            for k, v in model.histogram.items() if k != "normalization"}
+    hs = HistogramSpec(**spec)
     ne = np.flatnonzero(data["n_hits"] >= GOOD_MIN_RAYS)
     if len(ne) == 0:
         ne = np.arange(len(data["n_hits"]))

@@ -24,6 +24,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
@@ -36,10 +37,10 @@ from bluesky_offsets.physics.twin import SOURCE_FRAME, HistogramSpec
 
 FORMAT = "bluesky-offsets-surrogate/1"
 #: the shipped model: 34 parameters and the focus chamber's x, y, z in, torch-engine data at 1e4
-#: rays (docs/surrogate.md says how it was made and how close to the twin's noise it is)
+#: rays (docs/explanations/surrogate.md says how it was made and how close to the twin's noise it is)
 DEFAULT_CHECKPOINT = "surrogate.pt"
 # The checkpoints shipped in bluesky_offsets/data, by name: the default is the accurate one; "fast"
-# is its distilled student, sized for the CPU's evaluations per second (docs/surrogate.md)
+# is its distilled student, sized for the CPU's evaluations per second (docs/explanations/surrogate.md)
 SHIPPED = {"default": DEFAULT_CHECKPOINT, "fast": "surrogate_fast.pt"}
 
 
@@ -68,7 +69,7 @@ class Architecture:
       (a sigmoid), a second one the footprint's shape (a softmax over the
       axis' bins).  Trained on the likelihood of the ray counts (binomial for
       the transmission, multinomial for the shape), whose gradients do not
-      vanish on the mostly dark box (docs/surrogate.md says why this matters).
+      vanish on the mostly dark box (docs/explanations/surrogate.md says why this matters).
     * ``"joint"``: the same factors and loss from one net whose last layer gives
       the two transmission logits and the shape logits together: half the
       cost of "factored" per evaluation (what a CPU finder pays for).
@@ -77,8 +78,8 @@ class Architecture:
     pairs of nets, trained together from different initializations: the
     members' errors partly cancel.
 
-    ``activation``: Mish (the paper's) or SiLU, whose forward pass costs 2.3x less on a CPU
-    core at width 128 (three transcendental functions per unit against one; measured).
+    ``activation``: Mish (the paper's) or SiLU, whose forward pass costs about half on a CPU
+    core (one transcendental function per unit against three).
     """
 
     n_inputs: int = 34
@@ -175,10 +176,10 @@ class SurrogateNet(nn.Module):
             return self.layers(x)
         members = self._members()
         bx = self.bins_x
-        out = 0.0
+        out: Any = 0.0  # a tensor from the first member on
         for member in members:
             # softmax, not exp(log_softmax): the same histogram in fewer passes over the
-            # rows, which a small net's inference time notices (docs/surrogate.md, "Inference")
+            # rows, which a small net's inference time notices (docs/explanations/surrogate.md, "Inference")
             logit_t, z = self._logits(x, member)
             t = torch.sigmoid(logit_t)
             out = out + torch.cat([t[..., :1] * torch.softmax(z[..., :bx], -1),
@@ -199,7 +200,7 @@ class SurrogateNet(nn.Module):
         bx = self.bins_x
         hx, hy = target[..., :bx], target[..., bx:]
         frac = torch.stack([hx.sum(-1), hy.sum(-1)], -1).clamp(0.0, 1.0)
-        loss = 0.0
+        loss: Any = 0.0  # a tensor from the first member on
         for member in self._members():
             logit_t, log_sx, log_sy = self._factors(x, member)
             loss = loss + 2 * nn.functional.binary_cross_entropy_with_logits(logit_t, frac)
@@ -535,7 +536,7 @@ def load(path: str | os.PathLike | None = None, *, table: ParameterTable = METRI
         raise SurrogateError(f"surrogate checkpoint {path} is inconsistent ({type(exc).__name__}: {exc})") from None
     net.eval()
     provenance = dict(meta.get("provenance", {}))
-    # checkpoints from before the source-frame fix say nothing: their data was traced mirrored
+    # a checkpoint that records no source frame predates the record: its data was traced mirrored
     provenance.setdefault("source_frame", "mirrored")
     model = Surrogate(net, arch, norm, meta["table"], meta["histogram"], provenance,
                       meta.get("metrics", {}), meta.get("training", {}))

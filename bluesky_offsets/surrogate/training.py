@@ -186,7 +186,8 @@ def grown_split_indices(n: int, sizes, fractions, seed: int) -> tuple[np.ndarray
     for k, (a, b) in enumerate(zip(sizes, sizes[1:]), start=1):
         if b > a:
             parts.append(tuple(idx + a for idx in split_indices(b - a, fractions, seed + k)))
-    return tuple(np.concatenate([p[i] for p in parts]).astype(int) for i in range(3))
+    train, val, test = (np.concatenate([p[i] for p in parts]).astype(int) for i in range(3))
+    return train, val, test
 
 
 def _grown_from(path: str, init_path: str) -> bool:
@@ -196,7 +197,8 @@ def _grown_from(path: str, init_path: str) -> bool:
 
 def _size_chain(init_prov: dict) -> list[int]:
     """Store sizes the chain of starting models was trained on, oldest first."""
-    chain, p = [], init_prov
+    chain: list[int] = []
+    p: dict | None = init_prov
     while p:
         chain.append(int(p["n_samples"]))
         p = p.get("init")
@@ -281,6 +283,151 @@ def _warm_start(model: Surrogate, src: Surrogate, path: str) -> None:
     model.net.load_state_dict(src.net.state_dict())
 
 
+@dataclass(frozen=True, kw_only=True)
+class _Split:
+    """The samples' split and the targets: the traced histograms, or a teacher's predictions at
+    the training inputs; the warm start's model and provenance, the teacher's provenance."""
+
+    tr: np.ndarray
+    va: np.ndarray
+    te: np.ndarray
+    Y: np.ndarray
+    init: Surrogate | None = None
+    init_prov: dict | None = None
+    teacher_prov: dict | None = None
+
+
+def _split(data: Dataset, config: TrainConfig, table: ParameterTable, hist: HistogramSpec) -> _Split:
+    """The split that keeps a warm start's or a teacher's validation and test samples out of training."""
+    Y = data.hist.astype(np.float32)
+    init_src = init_prov = None
+    if config.init:
+        init_src = _load_init(config.init, table, hist)
+        init_prov = _init_provenance(init_src, config.init)
+        it = init_prov["training"]
+        if list(it.get("split", [])) != list(config.split) or it.get("seed") != config.seed:
+            raise TrainingError(f"cannot start from {config.init}: it was trained with split {it.get('split')} "
+                                f"and seed {it.get('seed')}, this run has {list(config.split)} and {config.seed}")
+        # the same store (grown), or that store followed by others (dataset.concat): either way
+        # the starting model's samples come first, in its order, and keep its split
+        if not _grown_from(str(data.meta.get("path")), str(init_prov.get("dataset"))):
+            raise TrainingError(f"cannot start from {config.init}: it was trained on {init_prov.get('dataset')}, "
+                                f"not {data.meta.get('path')} (its validation/test samples would leak)")
+        tr, va, te = grown_split_indices(len(data), _size_chain(init_prov), config.split, config.seed)
+    else:
+        tr, va, te = split_indices(len(data), config.split, config.seed)
+    if not config.teacher:
+        return _Split(tr=tr, va=va, te=te, Y=Y, init=init_src, init_prov=init_prov)
+    teacher = _load_init(config.teacher, table, hist)
+    teacher_prov = _init_provenance(teacher, config.teacher)
+    teacher_prov["weights_sha256"] = _weights_digest(teacher.net.state_dict())
+    if init_src is not None and not _same_teacher(init_src.provenance.get("teacher") or {}, teacher_prov):
+        # a student goes on from an earlier student of the same teacher (a new learning-rate
+        # schedule), never from a model that learned other targets
+        raise TrainingError(f"cannot start a student of {config.teacher} from {config.init}: it is not a "
+                            "student of that teacher (the same weights)")
+    tt = teacher_prov["training"]
+    if (teacher_prov.get("dataset") != data.meta.get("path") or teacher_prov.get("n_samples") != len(data)
+            or list(tt.get("split", [])) != list(config.split)
+            or tt.get("seed") != config.seed):
+        raise TrainingError(f"cannot distil from {config.teacher}: it was trained on {teacher_prov.get('dataset')} "
+                            f"({teacher_prov.get('n_samples')} samples, split {tt.get('split')}, seed "
+                            f"{tt.get('seed')}), this run has {data.meta.get('path')} ({len(data)}, "
+                            f"{list(config.split)}, {config.seed}): its validation/test samples would leak")
+    # the teacher's split is the one to keep (its chain of grown stores, if any)
+    earlier = _size_chain(teacher_prov)[:-1]
+    tr, va, te = (grown_split_indices(len(data), earlier, config.split, config.seed) if earlier
+                  else split_indices(len(data), config.split, config.seed))
+    # the teacher's histograms at the training inputs replace the traced ones there
+    Y = Y.copy()
+    Y[tr] = teacher.predict(data.inputs[tr]).astype(np.float32)
+    return _Split(tr=tr, va=va, te=te, Y=Y, init=init_src, init_prov=init_prov, teacher_prov=teacher_prov)
+
+
+def _provenance(data: Dataset, config: TrainConfig, split: _Split, chamber: bool) -> dict:
+    """Where the model's samples came from: the dataset, its split, its traces' settings."""
+    s = data.meta["settings"]
+    out = {"dataset": data.meta.get("path"), "n_samples": len(data),
+           "n_train": len(split.tr), "n_val": len(split.va), "n_test": len(split.te),
+           "n_good": int((data.n_hits >= config.good_min_rays).sum()),
+           "n_nonempty": int((data.n_hits > 0).sum()),
+           "n_rays": s["n_rays"], "scheme": s["scheme"],
+           "chamber": chamber, "engine": s.get("engine", "rayx"),
+           "scheme_text": data.meta.get("scheme"),
+           "dataset_seed": ([p["seed"] for p in data.meta["parts"]] if data.meta.get("parts") else s["seed"]),
+           "parts": data.meta.get("parts"),
+           "twin": data.meta.get("engine"), "source_frame": data.meta.get("source_frame", "mirrored"),
+           "table_version": data.meta.get("table_version"),
+           "dataset_complete": data.meta.get("complete"),
+           "generation_cpu_s": data.meta.get("stats", {}).get("cpu_s")}
+    if split.init_prov:
+        out["init"] = split.init_prov
+    if split.teacher_prov:
+        out["teacher"] = split.teacher_prov
+    return out
+
+
+@dataclass
+class _Progress:
+    """Where a training run stands: its history, best validation MSE, epochs without improvement."""
+
+    history: list[dict]
+    best_val: float = math.inf
+    stale: int = 0
+    epoch: int = 0
+    elapsed: float = 0.0
+
+
+def _resume(state_path: Path, run_dir: Path, config: TrainConfig, provenance: dict, n_samples: int, model: Surrogate,
+            opt, sched, rng: np.random.Generator, device) -> _Progress:
+    """The run's state from ``state.pt``, when it exists and the dataset and options agree."""
+    try:
+        st = torch.load(state_path, map_location=device, weights_only=False)
+    except Exception as exc:
+        raise TrainingError(f"cannot resume from {state_path} ({type(exc).__name__}: {exc}); "
+                            "remove it to start over") from None
+    old = st["config"]
+    diff = [k for k in _RESUME_KEYS
+            if json.dumps(old.get(k, getattr(TrainConfig, k, None))) != json.dumps(config.to_dict().get(k))]
+    if st["dataset"] != {"path": provenance["dataset"], "n_samples": n_samples}:
+        diff.append(f"dataset ({st['dataset']} vs {provenance['dataset']}, {n_samples} samples)")
+    if diff:
+        raise TrainingError(f"{run_dir} holds a run with different {', '.join(diff)}; "
+                            "use another run directory or the same options")
+    model.net.load_state_dict(st["model"])
+    opt.load_state_dict(st["optimizer"])
+    sched.load_state_dict(st["scheduler"])
+    rng.bit_generator.state = st["rng"]
+    torch.set_rng_state(st["torch_rng"])
+    log.info("resuming %s at epoch %d", run_dir, st["epoch"])
+    return _Progress(history=st["history"], best_val=st["best_val"], stale=st["stale"], epoch=st["epoch"],
+                     elapsed=st.get("elapsed", 0.0))
+
+
+def _one_epoch(model: Surrogate, opt, X: torch.Tensor, Yn: torch.Tensor, order: np.ndarray, config: TrainConfig,
+               label: str, progress: bool) -> float:
+    """One pass over ``order`` in batches; returns the running training loss."""
+    from bluesky_offsets.progress import bar as progress_bar
+
+    model.net.train()
+    order_t = torch.as_tensor(order, device=X.device)
+    n_batches = int(math.ceil(len(order) / config.batch_size))
+    running = 0.0
+    bar = progress_bar(range(n_batches), desc=label, unit="batch", leave=False, disable=not progress,
+                       mininterval=1.0)
+    for b in bar:
+        idx = order_t[b * config.batch_size:(b + 1) * config.batch_size]
+        loss = model.net.loss(X[idx], Yn[idx])
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+        running = 0.98 * running + 0.02 * loss.item() if b else loss.item()
+        if b % 200 == 0:
+            bar.set_postfix(loss=f"{running:.3e}", refresh=False)
+    bar.close()
+    return running
+
+
 def train(data: Dataset, run_dir: str | os.PathLike, config: TrainConfig | None = None, *,
           resume: bool = True, progress: bool = True, table: ParameterTable = METRIXS,
           hist: HistogramSpec | None = None) -> Surrogate:
@@ -301,165 +448,74 @@ def train(data: Dataset, run_dir: str | os.PathLike, config: TrainConfig | None 
     if len(data) < 10:
         raise TrainingError(f"dataset has only {len(data)} samples; need at least 10")
 
-    Y = data.hist.astype(np.float32)
-    if config.init:
-        init_src = _load_init(config.init, table, hist)
-        init_prov = _init_provenance(init_src, config.init)
-        it = init_prov["training"]
-        if list(it.get("split", [])) != list(config.split) or it.get("seed") != config.seed:
-            raise TrainingError(f"cannot start from {config.init}: it was trained with split {it.get('split')} "
-                                f"and seed {it.get('seed')}, this run has {list(config.split)} and {config.seed}")
-        # the same store (grown), or that store followed by others (dataset.concat): either way
-        # the starting model's samples come first, in its order, and keep its split
-        if not _grown_from(str(data.meta.get("path")), str(init_prov.get("dataset"))):
-            raise TrainingError(f"cannot start from {config.init}: it was trained on {init_prov.get('dataset')}, "
-                                f"not {data.meta.get('path')} (its validation/test samples would leak)")
-        tr, va, te = grown_split_indices(len(data), _size_chain(init_prov), config.split, config.seed)
-    else:
-        tr, va, te = split_indices(len(data), config.split, config.seed)
-    teacher_prov = None
-    if config.teacher:
-        teacher = _load_init(config.teacher, table, hist)
-        teacher_prov = _init_provenance(teacher, config.teacher)
-        teacher_prov["weights_sha256"] = _weights_digest(teacher.net.state_dict())
-        if config.init and not _same_teacher(init_src.provenance.get("teacher") or {}, teacher_prov):
-            # a student goes on from an earlier student of the same teacher (a new learning-rate
-            # schedule), never from a model that learned other targets
-            raise TrainingError(f"cannot start a student of {config.teacher} from {config.init}: it is not a "
-                                "student of that teacher (the same weights)")
-        tt = teacher_prov["training"]
-        if (teacher_prov.get("dataset") != data.meta.get("path") or teacher_prov.get("n_samples") != len(data)
-                or list(tt.get("split", [])) != list(config.split)
-                or tt.get("seed") != config.seed):
-            raise TrainingError(f"cannot distil from {config.teacher}: it was trained on {teacher_prov.get('dataset')} "
-                                f"({teacher_prov.get('n_samples')} samples, split {tt.get('split')}, seed "
-                                f"{tt.get('seed')}), this run has {data.meta.get('path')} ({len(data)}, "
-                                f"{list(config.split)}, {config.seed}): its validation/test samples would leak")
-        # the teacher's split is the one to keep (its chain of grown stores, if any)
-        earlier = _size_chain(teacher_prov)[:-1]
-        tr, va, te = (grown_split_indices(len(data), earlier, config.split, config.seed) if earlier
-                      else split_indices(len(data), config.split, config.seed))
-        # the teacher's histograms at the training inputs replace the traced ones there
-        Y = Y.copy()
-        Y[tr] = teacher.predict(data.inputs[tr]).astype(np.float32)
+    split = _split(data, config, table, hist)
+    tr, va, te = split.tr, split.va, split.te
     chamber = data.chamber is not None
-    norm = Normalization.fit(table, Y[tr], config.output_norm, chamber=chamber)
+    norm = Normalization.fit(table, split.Y[tr], config.output_norm, chamber=chamber)
     table.validate(data.params)
     X = torch.as_tensor((data.inputs - norm.in_low) / norm.in_span, dtype=torch.float32, device=device)
-    Yn = torch.as_tensor((Y - norm.out_low) / norm.out_span, dtype=torch.float32, device=device)
+    Yn = torch.as_tensor((split.Y - norm.out_low) / norm.out_span, dtype=torch.float32, device=device)
     Yt = torch.as_tensor(data.hist.astype(np.float32), device=device)  # metrics: always the traced histograms
     good_tr = tr[data.n_hits[tr] >= config.good_min_rays]
     bad_tr = tr[data.n_hits[tr] < config.good_min_rays]
 
     arch = Architecture(X.shape[1], hist.bins_x + hist.bins_y, config.width, config.n_layers, config.decoder, hist.bins_x,
                         config.members, config.activation)
-    provenance = {"dataset": data.meta.get("path"), "n_samples": len(data),
-                  "n_train": len(tr), "n_val": len(va), "n_test": len(te),
-                  "n_good": int((data.n_hits >= config.good_min_rays).sum()),
-                  "n_nonempty": int((data.n_hits > 0).sum()),
-                  "n_rays": data.meta["settings"]["n_rays"], "scheme": data.meta["settings"]["scheme"],
-                  "chamber": chamber, "engine": data.meta["settings"].get("engine", "rayx"),
-                  "scheme_text": data.meta.get("scheme"),
-                  "dataset_seed": ([p["seed"] for p in data.meta["parts"]] if data.meta.get("parts")
-                                   else data.meta["settings"]["seed"]),
-                  "parts": data.meta.get("parts"),
-                  "twin": data.meta.get("engine"), "source_frame": data.meta.get("source_frame", "mirrored"),
-                  "table_version": data.meta.get("table_version"),
-                  "dataset_complete": data.meta.get("complete"),
-                  "generation_cpu_s": data.meta.get("stats", {}).get("cpu_s")}
+    provenance = _provenance(data, config, split, chamber)
     torch.manual_seed(config.seed)
-    if config.init:
-        provenance["init"] = init_prov
-    if teacher_prov:
-        provenance["teacher"] = teacher_prov
     model = Surrogate.new(arch, norm, table, hist, provenance=provenance, training=config.to_dict())
-    if config.init:
-        _warm_start(model, init_src, config.init)
+    if split.init is not None:
+        assert config.init is not None  # split.init was loaded from it
+        _warm_start(model, split.init, config.init)
     model.to(device)
     opt = torch.optim.Adam(model.net.parameters(), lr=config.lr)
     sched = torch.optim.lr_scheduler.ExponentialLR(opt, gamma=config.gamma)
     rng = np.random.default_rng(stream(config.seed, "training.epoch_order"))
     state_path, best_path = run_dir / "state.pt", run_dir / "best.pt"
-    history: list[dict] = []
-    start_epoch, best_val, stale, elapsed = 0, math.inf, 0, 0.0
+    run = (_resume(state_path, run_dir, config, provenance, len(data), model, opt, sched, rng, device)
+           if resume and state_path.exists() else _Progress(history=[]))
 
-    if resume and state_path.exists():
-        try:
-            st = torch.load(state_path, map_location=device, weights_only=False)
-        except Exception as exc:
-            raise TrainingError(f"cannot resume from {state_path} ({type(exc).__name__}: {exc}); "
-                                "remove it to start over") from None
-        old = st["config"]
-        diff = [k for k in _RESUME_KEYS
-                if json.dumps(old.get(k, getattr(TrainConfig, k, None))) != json.dumps(config.to_dict().get(k))]
-        if st["dataset"] != {"path": provenance["dataset"], "n_samples": len(data)}:
-            diff.append(f"dataset ({st['dataset']} vs {provenance['dataset']}, {len(data)} samples)")
-        if diff:
-            raise TrainingError(f"{run_dir} holds a run with different {', '.join(diff)}; "
-                                "use another run directory or the same options")
-        model.net.load_state_dict(st["model"])
-        opt.load_state_dict(st["optimizer"])
-        sched.load_state_dict(st["scheduler"])
-        rng.bit_generator.state = st["rng"]
-        torch.set_rng_state(st["torch_rng"])
-        history, best_val, stale = st["history"], st["best_val"], st["stale"]
-        start_epoch, elapsed = st["epoch"], st.get("elapsed", 0.0)
-        log.info("resuming %s at epoch %d", run_dir, start_epoch)
-
-    t_start = time.perf_counter() - elapsed
-    epochs = progress_bar(range(start_epoch, config.epochs), desc="epochs", unit="epoch", disable=not progress,
-                          initial=start_epoch, total=config.epochs)
+    t_start = time.perf_counter() - run.elapsed
+    epochs = progress_bar(range(run.epoch, config.epochs), desc="epochs", unit="epoch", disable=not progress,
+                          initial=run.epoch, total=config.epochs)
     for epoch in epochs:
         t_ep = time.perf_counter()
-        model.net.train()
         order = epoch_order(good_tr, bad_tr, config.good_fraction, config.epoch_samples, rng)
-        order_t = torch.as_tensor(order, device=device)
-        n_batches = int(math.ceil(len(order) / config.batch_size))
-        running = 0.0
-        bar = progress_bar(range(n_batches), desc=f"epoch {epoch + 1}", unit="batch", leave=False,
-                           disable=not progress, mininterval=1.0)
-        for b in bar:
-            idx = order_t[b * config.batch_size:(b + 1) * config.batch_size]
-            loss = model.net.loss(X[idx], Yn[idx])
-            opt.zero_grad(set_to_none=True)
-            loss.backward()
-            opt.step()
-            running = 0.98 * running + 0.02 * loss.item() if b else loss.item()
-            if b % 200 == 0:
-                bar.set_postfix(loss=f"{running:.3e}", refresh=False)
-        bar.close()
+        running = _one_epoch(model, opt, X, Yn, order, config, f"epoch {epoch + 1}", progress)
         sched.step()
         model.net.eval()
         val = _metrics(model, X[va], Yt[va], data.n_hits[va])
-        train_s = time.perf_counter() - t_ep
-        rec = {"epoch": epoch + 1, "train_loss": running, "val_mse": val.get("mse"),
-               "val_mse_nonempty": val.get("mse_nonempty"), "lr": opt.param_groups[0]["lr"],
-               "seconds": train_s, "samples": len(order)}
-        history.append(rec)
-        improved = val.get("mse", math.inf) < best_val * (1.0 - config.min_delta)
-        if improved:
-            best_val, stale = val["mse"], 0
+        run.history.append({"epoch": epoch + 1, "train_loss": running, "val_mse": val.get("mse"),
+                            "val_mse_nonempty": val.get("mse_nonempty"), "lr": opt.param_groups[0]["lr"],
+                            "seconds": time.perf_counter() - t_ep, "samples": len(order)})
+        if val.get("mse", math.inf) < run.best_val * (1.0 - config.min_delta):
+            run.best_val, run.stale = val["mse"], 0
             model.metrics = {"val": val, "epoch": epoch + 1}
             model.save(best_path, metadata_json=False)
         else:
-            stale += 1
-        elapsed = time.perf_counter() - t_start
+            run.stale += 1
+        run.elapsed = time.perf_counter() - t_start
         _save_atomic({"model": model.net.state_dict(), "optimizer": opt.state_dict(),
                       "scheduler": sched.state_dict(), "rng": rng.bit_generator.state,
-                      "torch_rng": torch.get_rng_state(), "history": history, "best_val": best_val,
-                      "stale": stale, "epoch": epoch + 1, "elapsed": elapsed, "config": config.to_dict(),
+                      "torch_rng": torch.get_rng_state(), "history": run.history, "best_val": run.best_val,
+                      "stale": run.stale, "epoch": epoch + 1, "elapsed": run.elapsed, "config": config.to_dict(),
                       "dataset": {"path": provenance["dataset"], "n_samples": len(data)}}, state_path)
-        (run_dir / "history.json").write_text(json.dumps(history, indent=1))
+        (run_dir / "history.json").write_text(json.dumps(run.history, indent=1))
         epochs.set_postfix(loss=f"{running:.3e}", val_mse=f"{val.get('mse', float('nan')):.3e}",
                            val_ne=f"{val.get('mse_nonempty', float('nan')):.3e}", refresh=False)
-        if config.patience and stale >= config.patience:
-            log.info("early stop after epoch %d (%d epochs without improvement)", epoch + 1, stale)
+        if config.patience and run.stale >= config.patience:
+            log.info("early stop after epoch %d (%d epochs without improvement)", epoch + 1, run.stale)
             break
-        if config.max_minutes is not None and elapsed > 60 * config.max_minutes:
+        if config.max_minutes is not None and run.elapsed > 60 * config.max_minutes:
             log.info("time budget of %.1f min used up after epoch %d", config.max_minutes, epoch + 1)
             break
     epochs.close()
+    return _best(best_path, run_dir, run.history, X, Yt, data, va, te, table, hist, device)
 
+
+def _best(best_path: Path, run_dir: Path, history: list[dict], X: torch.Tensor, Yt: torch.Tensor, data: Dataset,
+          va: np.ndarray, te: np.ndarray, table: ParameterTable, hist: HistogramSpec, device) -> Surrogate:
+    """The best epoch's model with its test and validation metrics, saved again with them."""
     from bluesky_offsets.surrogate.network import load
     if not best_path.exists():
         raise TrainingError(f"no epoch finished in {run_dir}")

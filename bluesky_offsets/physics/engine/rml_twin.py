@@ -1,10 +1,10 @@
 """The differentiable torch engine on a described beamline's own RML.
 
 Each parameter column drives its element's field (gradients flow through the compiled frames
-and surfaces, :func:`torch_engine.compile_beamline` with ``beamline=``); the source rays are
+and surfaces, :func:`.compiling.compile_beamline` with ``beamline=``); the source rays are
 RAYX's own draws of the description's source in its local frame (the source's misalignments act
 in the engine), cached per seed and count and shared by every configuration of a batch; slit
-kicks follow RAYX's counters.  Everything else is :class:`~torch_engine.TorchEngine`'s.
+kicks follow RAYX's counters.  Everything else is :class:`~.torch_twin.TorchEngine`'s.
 """
 
 from __future__ import annotations
@@ -15,10 +15,12 @@ import numpy as np
 import torch
 
 from bluesky_offsets.errors import InputError
-from bluesky_offsets.physics import torch_random as rnd
+from bluesky_offsets.physics.engine import random_streams as rnd
+from bluesky_offsets.physics.engine.compiling import _MIS_KEYS, compile_beamline
+from bluesky_offsets.physics.engine.sampling import Rays, given_units, rays_from_arrays
+from bluesky_offsets.physics.engine.torch_twin import TorchEngine
 from bluesky_offsets.physics.rml import read_rml
 from bluesky_offsets.physics.screen import on_image_plane
-from bluesky_offsets.physics.torch_engine import TorchEngine, compile_beamline, given_units, rays_from_arrays
 from bluesky_offsets.physics.twin import HistogramSpec, _import_rml, _rayx_fix_seed
 
 
@@ -71,7 +73,6 @@ class RmlTorchEngine(TorchEngine):
     def _columns(self, per_config: list, c: int) -> dict:
         """One overrides mapping of ``(C,)`` columns from one mapping per configuration (a field a
         configuration leaves out keeps the RML's value); element types must agree."""
-        from bluesky_offsets.physics.torch_engine import _MIS_KEYS
         if len(per_config) != c:
             raise InputError(f"{len(per_config)} overrides for {c} configurations")
         keys = {(e, k) for ov in per_config for e, f in ov.items() for k in f}
@@ -97,7 +98,6 @@ class RmlTorchEngine(TorchEngine):
         """One RAYX draw for a batch, or one per configuration for a sequence of seeds."""
         if not isinstance(seed, (list, tuple)):
             return _rayx_source(self, n_rays, seed)
-        from bluesky_offsets.physics.torch_engine import Rays
         parts = [_rayx_source(self, n_rays, s) for s in seed]
         return Rays(*(torch.cat([getattr(r, f) for r in parts], 0) for f in
                       ("x", "y", "z", "dx", "dy", "dz", "energy", "ctr")))
