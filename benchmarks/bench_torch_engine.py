@@ -37,7 +37,8 @@ from _machine import machine  # noqa: E402
 
 from bluesky_offsets.physics.parameters import METRIXS  # noqa: E402
 from bluesky_offsets.physics.engine import TorchEngine  # noqa: E402
-from bluesky_offsets.physics.twin import RayxEngine, TraceRequest, _rayx_fix_seed  # noqa: E402
+from bluesky_offsets.physics.twin import RayxEngine, TraceRequest  # noqa: E402
+from bluesky_offsets.physics.rayx_calls import fix_seed  # noqa: E402
 
 
 def configurations(n, seed=0):
@@ -69,7 +70,7 @@ def bench_trace(sizes, threads, device, repeat):
             path = Path("/tmp/bench_torch_engine.rml")
             rx.build(reqs[0], n_rays).write(path)
             bl = rayx.import_beamline(str(path))
-            _rayx_fix_seed(1)
+            fix_seed(1)
             t_bare = best(lambda: [bl.trace() for _ in reqs], repeat)
             row = {"threads": nthreads, "rays": n_rays, "configs": n_cfg,
                    "rayx_engine_us_per_ray": 1e6 * t_rx / (n_rays * n_cfg),

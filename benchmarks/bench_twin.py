@@ -28,7 +28,8 @@ def bench_overhead(n_rays: int, repeats: int) -> dict:
 
     from bluesky_offsets.physics.metrixs import build_beamline
     from bluesky_offsets.physics.parameters import METRIXS
-    from bluesky_offsets.physics.twin import RayxEngine, TraceRequest, _rayx_fix_seed
+    from bluesky_offsets.physics.twin import RayxEngine, TraceRequest
+    from bluesky_offsets.physics.rayx_calls import fix_seed
 
     engine = RayxEngine()
     values = METRIXS.reference
@@ -36,7 +37,7 @@ def bench_overhead(n_rays: int, repeats: int) -> dict:
     build_beamline(values, n_rays=n_rays).write(path)
     ours, bare_trace, bare_import_trace = [], [], []
     for i in range(repeats):
-        _rayx_fix_seed(i)
+        fix_seed(i)
         t = time.perf_counter()
         bl = rayx.import_beamline(str(path))
         t1 = time.perf_counter()

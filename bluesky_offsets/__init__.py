@@ -2,8 +2,10 @@
 
 
 def __getattr__(name):
-    """``bluesky_offsets.load_calibration``: loaded when first asked for (the package itself
-    imports nothing heavy)."""
+    """``bluesky_offsets.load_calibration`` and ``write_calibration``: loaded when first asked for.
+
+    The package itself imports nothing heavy.
+    """
     if name in ("load_calibration", "write_calibration"):
         from bluesky_offsets.model import export
         return getattr(export, name)

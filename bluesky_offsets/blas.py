@@ -1,5 +1,7 @@
-"""The BLAS kernels pinned so that another CPU's arithmetic gives the same digits
-(:func:`pin_kernels`; docs/explanations/diagnosis.md, "Another CPU's arithmetic")."""
+"""The BLAS kernels pinned so that another CPU's arithmetic gives the same digits.
+
+See :func:`pin_kernels` and docs/explanations/diagnosis.md, "Another CPU's arithmetic".
+"""
 
 from __future__ import annotations
 
@@ -8,9 +10,10 @@ import platform
 
 
 def pin_kernels() -> None:
-    """Pin MKL's (torch's BLAS) kernels to its one vendor-neutral code path on x86-64, and
-    OpenBLAS's (numpy's) to its AVX2 kernels where the CPU has AVX2, unless the environment
-    already says otherwise.
+    """Pin MKL's and OpenBLAS's kernels to one code path each, unless the environment says otherwise.
+
+    MKL's (torch's BLAS) kernels go to its one vendor-neutral code path on x86-64, and
+    OpenBLAS's (numpy's) to its AVX2 kernels where the CPU has AVX2.
 
     Why: both libraries pick their kernels by CPU, and their sums then round differently; a fit
     on RAYX's hard counts amplifies such a last-bit difference along its path (the normal
@@ -22,7 +25,8 @@ def pin_kernels() -> None:
     It must happen before numpy or torch is imported: the command line calls it first thing,
     the test suite through its plugin (:mod:`bluesky_offsets.testing`), and every process they
     start (the IOC, the Dask workers) inherits the environment.
-    ``MKL_CBWR=AUTO`` and ``OPENBLAS_CORETYPE=`` (empty) in the environment undo it."""
+    ``MKL_CBWR=AUTO`` and ``OPENBLAS_CORETYPE=`` (empty) in the environment undo it.
+    """
     if x86_64():
         os.environ.setdefault("MKL_CBWR", "COMPATIBLE")
     if x86_with_avx2():
@@ -30,6 +34,7 @@ def pin_kernels() -> None:
 
 
 def x86_64() -> bool:
+    """Whether this machine's CPU is x86-64 (as :func:`platform.machine` names it)."""
     return platform.machine().lower() in ("x86_64", "amd64")
 
 

@@ -46,10 +46,13 @@ def _figure(figsize, show: bool | None):
 
 
 def in_background(callback):
-    """``callback`` on a thread of its own (:class:`bluesky_offsets.queued.QueuedCallback`) when it
-    draws no windows (Agg figures, written as PNG), else itself: a GUI's figures belong to its
-    main loop.  Writing a 20-panel footprint figure takes 0.8 s, which the RunEngine would wait
-    for at the end of every run that draws on it.  :func:`flush` before reading ``written``."""
+    """``callback`` on a thread of its own when it draws no windows, else itself.
+
+    On its own thread: a :class:`bluesky_offsets.queued.QueuedCallback`, for Agg figures written
+    as PNG; a GUI's figures belong to its main loop.  Writing a 20-panel footprint figure takes
+    0.8 s, which the RunEngine would wait for at the end of every run that draws on it.
+    :func:`flush` before reading ``written``.
+    """
     from bluesky_offsets.queued import QueuedCallback
     if _windows(getattr(callback, "show", None)):
         return callback
@@ -57,8 +60,11 @@ def in_background(callback):
 
 
 def flush(callbacks) -> None:
-    """Wait until the callbacks (made with :func:`in_background` or not) have drawn every
-    document so far and written every figure drawn on since it was last written."""
+    """Wait until the callbacks have drawn every document so far and written every figure changed since.
+
+    The callbacks may be made with :func:`in_background` or not; a figure is written when it was
+    drawn on since it was last written.
+    """
     for cb in callbacks:
         if hasattr(type(cb), "flush"):
             cb.flush()
@@ -135,6 +141,7 @@ class LiveFootprints(CallbackBase):
 
     # the measurement ------------------------------------------------------ #
     def start(self, doc):
+        """Open a figure for a measuring run; note a run that compares a model with a drawn measurement."""
         uid = doc["uid"]
         if doc.get("plan_name") in self.plans and doc.get("configurations") is not None:
             n = len(doc["configurations"])
@@ -146,11 +153,13 @@ class LiveFootprints(CallbackBase):
                                "label": doc.get("version_label") or doc.get("effect") or doc.get("plan_name")}
 
     def descriptor(self, doc):
+        """Note the stream of a descriptor of a run drawn here."""
         run = doc["run_start"]
         if run in self._runs:
             self._descriptors[doc["uid"]] = (run, doc.get("name", "primary"))
 
     def event(self, doc):
+        """Draw a measured frame's histograms, or a model's over the measurement's panel."""
         run_uid, stream = self._descriptors.get(doc["descriptor"], (None, None))
         if run_uid is None:
             return
@@ -169,6 +178,7 @@ class LiveFootprints(CallbackBase):
                              f"{run['label']}: χ²/dof {float(data.get('chi2_reduced', math.nan)):.3g}")
 
     def stop(self, doc):
+        """Write the run's measurement figure if it changed and was not written in the last ``every`` s."""
         run = self._runs.pop(doc["run_start"], None)
         if run is None or run["measurement"] not in self._changed:
             return
@@ -266,13 +276,16 @@ class LiveFitProgress(CallbackBase):
         self._descriptors: dict[str, tuple[str, str]] = {}
 
     def start(self, doc):
+        """Note the run and its plan's name; its figure opens with its first point."""
         self._runs[doc["uid"]] = {"plan": doc.get("plan_name", "run"), "fig": None, "lines": {}, "x": {}, "y": {}}
 
     def descriptor(self, doc):
+        """Note a ``finder`` or ``progress`` stream's descriptor."""
         if doc.get("name") in self.STREAMS and doc["run_start"] in self._runs:
             self._descriptors[doc["uid"]] = (doc["run_start"], doc["name"])
 
     def event(self, doc):
+        """Add the event's finite loss or χ²/dof to its run's curve."""
         run_uid, stream = self._descriptors.get(doc["descriptor"], (None, None))
         if run_uid is None:
             return
@@ -303,6 +316,7 @@ class LiveFitProgress(CallbackBase):
         _redraw(run["fig"])
 
     def stop(self, doc):
+        """Write the run's figure as ``progress-<plan>-<uid>.png`` if it drew one and there is a ``directory``."""
         run = self._runs.pop(doc["run_start"], None)
         if run is None or run["fig"] is None or self.directory is None:
             return

@@ -9,8 +9,10 @@ from bluesky_offsets.errors import InputError
 
 
 def refuse_unknown(cls, given: Iterable[str], what: str) -> None:
-    """Raise ``ValueError("<what> [unknown keys]; known: [fields]")`` when ``given`` names a key
-    that is not an init field of the dataclass ``cls``."""
+    """Raise ``InputError("<what> [unknown keys]; known: [fields]")`` for keys ``cls`` does not take.
+
+    It is raised when ``given`` names a key that is not an init field of the dataclass ``cls``.
+    """
     known = {f.name for f in fields(cls) if f.init}
     unknown = sorted(set(given) - known)
     if unknown:

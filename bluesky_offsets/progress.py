@@ -1,5 +1,7 @@
-"""Progress as people read it: a live bar on a terminal; in a file or a pipe, one line per finished
-task with its count and duration (and one a minute while a long one runs); nothing under ``-q``.
+r"""Progress as people read it: a live bar on a terminal, one line per task in a file, nothing under ``-q``.
+
+On a terminal, a live bar; in a file or a pipe, one line per finished task with its count and
+duration (and one a minute while a long one runs); nothing under ``-q``.
 
 :func:`bar` takes tqdm's arguments and returns a tqdm bar on a terminal, else a :class:`Lines`
 with the part of tqdm's interface this package uses.  :func:`set_quiet` is the CLI's ``-q``.
@@ -10,7 +12,7 @@ with the part of tqdm's interface this package uses.  :func:`set_quiet` is the C
 ...     b.update(3)
 ...     b.set_postfix(best=0.25)
 >>> out.getvalue()
-'tracing: 3/3 sim, 2.5 s, best=0.25\\n'
+'tracing: 3/3 sim, 2.5 s, best=0.25\n'
 """
 
 from __future__ import annotations
@@ -30,6 +32,7 @@ def set_quiet(quiet: bool = True) -> None:
 
 
 def quiet() -> bool:
+    """Whether progress is off (after :func:`set_quiet`)."""
     return _quiet
 
 
@@ -42,8 +45,10 @@ def interactive(stream: TextIO | None = None) -> bool:
 def bar(iterable: Iterable | None = None, *, desc: str = "", total: int | None = None, unit: str = "it",
         disable: bool = False, leave: bool = True, file: TextIO | None = None,
         clock: Callable[[], float] = time.monotonic, **tqdm_options: Any):
-    """A progress bar: tqdm's on a terminal, :class:`Lines` elsewhere (a transient one, ``leave=False``,
-    prints nothing there), silent when ``disable`` or quiet."""
+    """A progress bar: tqdm's on a terminal, :class:`Lines` elsewhere, silent when ``disable`` or quiet.
+
+    A transient bar (``leave=False``) prints nothing outside a terminal.
+    """
     if total is None and iterable is not None and hasattr(iterable, "__len__"):
         total = len(iterable)  # type: ignore[arg-type]
     if disable or _quiet or (not leave and not interactive(file)):
@@ -84,14 +89,17 @@ class Lines:
         self.close()
 
     def update(self, n: int = 1) -> None:
+        """Count ``n`` more done (and write a line if a minute has passed since the last)."""
         self.n += n
         self.refresh()
 
     def set_postfix(self, ordered_dict: dict | None = None, refresh: bool = True, **kwargs: Any) -> None:
+        """Show ``key=value`` pairs after the count (``refresh`` is tqdm's, ignored here)."""
         items = {**(ordered_dict or {}), **kwargs}
         self._postfix = ", ".join(f"{k}={v}" for k, v in items.items())
 
     def set_postfix_str(self, s: str = "", refresh: bool = True) -> None:
+        """Show ``s`` after the count (``refresh`` is tqdm's, ignored here)."""
         self._postfix = s
 
     def refresh(self) -> None:
@@ -102,10 +110,12 @@ class Lines:
                 self._line(" (running)", now)
 
     def write(self, s: str) -> None:
+        """Print ``s`` as a line of its own to the file (nothing with ``file=None``)."""
         if self._file is not None:
             print(s, file=self._file, flush=True)
 
     def close(self) -> None:
+        """Write the task's final line, once (later calls do nothing)."""
         if self._closed:
             return
         self._closed = True

@@ -84,14 +84,18 @@ class QueuedCallback:
             raise self._error_type(exc) from exc
 
     def __call__(self, name: str, doc: dict) -> None:
+        """Queue the document for the callback (raising a failure of the callback kept from before)."""
         self._raise()
         if not self._thread.is_alive():
             raise RuntimeError(f"{self._thread.name}: closed, the {name!r} document was not delivered")
         self._queue.put((name, doc))
 
     def flush(self) -> None:
-        """Wait until the callback has had every document queued so far and, where it has a
-        ``flush`` of its own (work it defers, such as a figure's next write), has run that."""
+        """Wait until the callback has had every document queued so far, and its own ``flush`` run.
+
+        The callback's own ``flush`` is run where it has one (work it defers, such as a figure's
+        next write).
+        """
         self._queue_own_flush()
         self._queue.join()
         self._raise()

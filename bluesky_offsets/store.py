@@ -126,8 +126,10 @@ def _profiles(ds, keys, hk, start, hist_x, hist_y):
 
 
 def camera_floors(get, with_profiles: bool) -> dict:
-    """A camera's noise floors of a run's frames as :class:`Measurement` fields (``get(key)`` the
-    values of the reading ``floor_hx`` ...); ``{}`` for a detector without them."""
+    """A camera's noise floors of a run's frames as :class:`Measurement` fields.
+
+    ``get(key)`` gives the values of the reading ``floor_hx`` ...; ``{}`` for a detector without them.
+    """
     try:
         out = {"floor_x": np.asarray(get("floor_hx"), float), "floor_y": np.asarray(get("floor_hy"), float)}
         if with_profiles:
@@ -139,9 +141,11 @@ def camera_floors(get, with_profiles: bool) -> dict:
 
 
 def consistent_profiles(profile_x, profile_y, fingerprint, hist_x, hist_y):
-    """``(profile_x, profile_y)`` as float arrays if, binned as ``fingerprint`` says, they sum up
-    to the histograms; ``(None, None)`` otherwise (a detector backend without rays publishes
-    zeros)."""
+    """``(profile_x, profile_y)`` as float arrays if they are consistent with the histograms.
+
+    Consistent: binned as ``fingerprint`` says, they sum up to the histograms; ``(None, None)``
+    otherwise (a detector backend without rays publishes zeros).
+    """
     from bluesky_offsets.physics.twin import HistogramSpec
     try:
         px, py = np.asarray(profile_x, dtype=float), np.asarray(profile_y, dtype=float)
@@ -164,11 +168,13 @@ def _first_line(exc: BaseException) -> str:
 
 
 def _init_catalog(uri: str) -> None:
-    """A new tiled catalog at ``uri``: its tables created and stamped with alembic's head, as
-    ``tiled catalog init`` does.  In this process, on a thread of its own (its event loop and
-    its SQLite connections stay there): tiled's ``init_if_not_exists`` starts that command as a
-    subprocess, a new interpreter importing tiled: seconds that every new store of a test and
-    of a demo would pay."""
+    """Create a new tiled catalog at ``uri``: its tables created and stamped with alembic's head.
+
+    As ``tiled catalog init`` does, but in this process, on a thread of its own (its event loop
+    and its SQLite connections stay there): tiled's ``init_if_not_exists`` starts that command as
+    a subprocess, a new interpreter importing tiled: seconds that every new store of a test and
+    of a demo would pay.
+    """
     import asyncio
     import threading
 
@@ -213,7 +219,8 @@ def _relocate(path: Path, db: Path) -> str | None:
     directory, could not load a run ("Refusing to serve file://... outside the readable storage
     area").  The old place is read from the tables' URI (``duckdb://localhost/<place>/tables.duckdb``)
     and every URI under it is rewritten to ``path`` in one transaction.  Returns the old place,
-    or None when the catalog already points here (or holds no tables yet)."""
+    or None when the catalog already points here (or holds no tables yet).
+    """
     from contextlib import closing
 
     head, tail = "duckdb://localhost/", "/tables.duckdb"
@@ -284,9 +291,12 @@ class RunStore:
         return self._client
 
     def flush(self) -> None:
-        """Wait until every document handed to :attr:`writer` is written, and to the writers of the
-        other stores open on the same catalog in this process (a plan given the location rather
-        than the store opens one of its own); raise :class:`StoreError` if one could not be."""
+        """Wait until every document handed to :attr:`writer`, or to another store's on this catalog, is written.
+
+        The other stores are those open on the same catalog in this process (a plan given the
+        location rather than the store opens one of its own); raise :class:`StoreError` if a
+        document could not be written.
+        """
         for writer in list(_WRITERS.get(self._catalog, ())):
             writer.flush()
 
@@ -337,8 +347,11 @@ class RunStore:
 
     @property
     def frames_directory(self) -> Path:
-        """Where a camera writes its files so that this embedded store can serve them (a tiled server
-        serves the directories its own configuration names: this raises StoreError)."""
+        """Where a camera writes its files so that this embedded store can serve them.
+
+        A tiled server serves the directories its own configuration names: for one, this raises
+        StoreError.
+        """
         if self._frames is None:
             raise StoreError(f"run store {self.location}: a tiled server reads the camera's files where its "
                              "configuration allows (readable_storage); give the camera that directory")
@@ -346,8 +359,11 @@ class RunStore:
 
     @property
     def writer(self):
-        """The callback for ``RE.subscribe`` (one per store): documents go to a ``TiledWriter`` on
-        a thread of its own, in order; every read of the store waits for them (:meth:`flush`)."""
+        """The callback for ``RE.subscribe`` (one per store).
+
+        Documents go to a ``TiledWriter`` on a thread of its own, in order; every read of the store
+        waits for them (:meth:`flush`).
+        """
         if self._writer is None:
             from bluesky_tiled_plugins import TiledWriter
 
@@ -385,8 +401,11 @@ class RunStore:
         return keys[-n:] if n else keys
 
     def latest(self, plan_names, **match) -> str | None:
-        """Uid of the most recent run that ended successfully, whose ``plan_name`` is one of
-        ``plan_names`` and whose start document has ``match``'s values; None if there is none."""
+        """Uid of the most recent successful run of one of ``plan_names`` whose start has ``match``'s values.
+
+        ``plan_names`` is one name or several; successful: the stop document's ``exit_status`` is
+        ``"success"``.  None if there is none.
+        """
         from tiled.queries import Eq, In
         names = [plan_names] if isinstance(plan_names, str) else list(plan_names)
         results = self.client.search(In("start.plan_name", names))
@@ -406,8 +425,10 @@ class RunStore:
         return m
 
     def close(self) -> None:
-        """Write what is queued, then close (an embedded catalog's server ends with it); a
-        document that could not be written raises :class:`StoreError` after the close."""
+        """Write what is queued, then close (an embedded catalog's server ends with it).
+
+        A document that could not be written raises :class:`StoreError` after the close.
+        """
         writer, self._writer = self._writer, None
         try:
             if writer is not None:
@@ -436,9 +457,11 @@ _SHARED: dict[str, RunStore] = {}
 
 
 def shared_store(location: str | os.PathLike | None = None) -> RunStore:
-    """One open :class:`RunStore` per location for the whole process: what plans that take a
-    run uid read from when they are given no store (a queueserver session, a script), and
-    what its RunEngine writes to (``shared_store().subscribe(RE)``)."""
+    """One open :class:`RunStore` per location for the whole process.
+
+    What plans that take a run uid read from when they are given no store (a queueserver
+    session, a script), and what its RunEngine writes to (``shared_store().subscribe(RE)``).
+    """
     loc = str(location) if location is not None else default_store_location()
     if loc not in _SHARED or _SHARED[loc]._context is None and not loc.startswith(("http://", "https://")):
         _SHARED[loc] = RunStore(loc)

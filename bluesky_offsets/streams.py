@@ -1,5 +1,6 @@
-"""Named random streams: every use of a user's seed draws from a stream of its own, named here, so
-that two uses never share numbers by accident and a new use takes a name, not an arithmetic offset.
+"""Named random streams: every use of a user's seed draws from a stream of its own, named here.
+
+Two uses then never share numbers by accident, and a new use takes a name, not an arithmetic offset.
 The offsets never change, so a seed gives the same numbers in every version.
 
 >>> stream(0, "demo.ioc_noise")
@@ -30,8 +31,10 @@ MODEL_SEED = 777
 
 
 def stream(seed: int, name: str, *, draw: int = 0) -> int:
-    """The seed of stream ``name`` drawn from ``seed`` (``draw``: the how-many-th block of a
-    stream that yields one per draw)."""
+    """The seed of stream ``name`` drawn from ``seed``.
+
+    ``draw`` is the how-many-th block of a stream that yields one per draw.
+    """
     if name not in OFFSETS:
         raise InputError(f"no random stream {name!r}; known: {sorted(OFFSETS)}")
     return int(seed) + OFFSETS[name] * (1 + int(draw))

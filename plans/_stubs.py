@@ -1,5 +1,8 @@
-"""Plan stubs the plans share: computed results into event streams, slow work in a worker
-thread with live progress, and a run of its own or the one already open."""
+"""Plan stubs the plans share.
+
+Computed results into event streams, slow work in a worker thread with live progress, and a run
+of its own or the one already open.
+"""
 
 from __future__ import annotations
 
@@ -23,7 +26,8 @@ class Record:
     """A readable whose values the plan sets: how computed results enter an event stream.
 
     One instance per stream (the RunEngine requires the same objects in every event of a
-    stream); numbers, strings and arrays longer than 16 values."""
+    stream); numbers, strings and arrays longer than 16 values.
+    """
 
     def __init__(self, name: str):
         self.name, self.parent = name, None
@@ -54,8 +58,11 @@ class Record:
 
 
 def emit_rows(stream: str, rows: Sequence[Mapping[str, Any]], record: Record | None = None) -> MsgGenerator[None]:
-    """One event per row in ``stream`` (rows share their keys); ``record``: the stream's readable
-    where events are added to it over several calls (the RunEngine wants the same one each time)."""
+    """One event per row in ``stream`` (rows share their keys).
+
+    ``record``: the stream's readable where events are added to it over several calls (the
+    RunEngine wants the same one each time).
+    """
     rec = record or Record(stream)
     for row in rows:
         rec.set(row)

@@ -48,6 +48,7 @@ class OnTwin:
 
     def __call__(self, suggestions: Sequence[Mapping], actuators: Sequence, sensors: Sequence | None = None,
                  md: Mapping[str, Any] | None = None) -> MsgGenerator[list[Mapping]]:
+        """Yield one null message and return the suggestions unchanged, as the readings to evaluate."""
         yield from bps.null()
         return [dict(s) for s in suggestions]
 
@@ -71,11 +72,13 @@ class TwinFocus:
         self.reference_focus = self.focus(self.reference)
 
     def focus(self, configuration):
+        """The calibrated model's predicted focus at twin ``configuration`` (table order, physical units)."""
         from bluesky_offsets.optimize.optimizer import predict
         return predict(self.state, configuration, rays=self.rays, seed=self.seed, engine=self.engine,
                        table=self.table)[0]
 
     def __call__(self, uid: Sequence[Mapping], suggestions: Sequence[Mapping]) -> list[dict]:
+        """``{"_id": ..., "focus_um2": ...}`` for each suggestion, traced on the twin (1e9 where not finite)."""
         out = []
         for s in suggestions:
             f = self.focus(_configuration(self.reference, self.names, s, self.table))
@@ -126,8 +129,10 @@ def focus_agent(calibration, motors: Mapping[str, Any], reference, *, span: Mapp
 # the offset finder behind blop's Optimizer protocol
 # --------------------------------------------------------------------------- #
 class Collector(CallbackBase):
-    """Keeps each run's start document and event data, by run uid: how an evaluation function
-    reads what the acquisition plan measured."""
+    """Keeps each run's start document and event data, by run uid.
+
+    It is how an evaluation function reads what the acquisition plan measured.
+    """
 
     def __init__(self):
         super().__init__()
@@ -136,13 +141,16 @@ class Collector(CallbackBase):
         self._run_of: dict[str, str] = {}
 
     def start(self, doc):
+        """Keep the run's start document and open its list of event data."""
         self.starts[doc["uid"]] = doc
         self.events[doc["uid"]] = []
 
     def descriptor(self, doc):
+        """Note which run the descriptor's events belong to."""
         self._run_of[doc["uid"]] = doc["run_start"]
 
     def event(self, doc):
+        """Append the event's data to its run's list."""
         self.events[self._run_of[doc["descriptor"]]].append(doc["data"])
 
 
@@ -154,13 +162,16 @@ def _ending(data: Mapping, suffix: str) -> np.ndarray:
 
 
 class FrameHistograms:
-    """blop evaluation function: each acquired frame's histograms (x then y), by suggestion,
-    read from the acquisition run (``blop_acquisition_order`` names the frames' suggestions)."""
+    """blop evaluation function: each acquired frame's histograms (x then y), by suggestion.
+
+    They are read from the acquisition run (``blop_acquisition_order`` names the frames' suggestions).
+    """
 
     def __init__(self, collector: Collector):
         self.collector = collector
 
     def __call__(self, uid: str, suggestions: Sequence[Mapping]) -> list[dict]:
+        """``{"_id": ..., "hist": ...}`` for each frame of run ``uid``, in acquisition order."""
         order = self.collector.starts[uid]["blop_acquisition_order"]
         events = self.collector.events[uid]
         if len(events) != len(order):
@@ -203,6 +214,7 @@ class OffsetOptimizer:
         self.histograms: list[np.ndarray] = []
 
     def suggest(self, num_points: int | None = None) -> list[dict]:
+        """The ``num_points`` (default 1) candidates the surrogate predicts brightest at the current offsets."""
         from bluesky_offsets.offsets.finder import _predict, model_device, model_dtype
         n = int(num_points or 1)
         dofs = list(self.names)
@@ -224,6 +236,7 @@ class OffsetOptimizer:
         return out
 
     def ingest(self, points: Sequence[Mapping]) -> None:
+        """Add the points' measured histograms and refit the offsets on every frame so far."""
         from bluesky_offsets.offsets import finder as F
         for p in points:
             c = self._pending.pop(p[ID]) if p.get(ID) in self._pending else \
@@ -237,4 +250,5 @@ class OffsetOptimizer:
         self.offsets, self.loss = r.offsets, float(r.loss)
 
     def get_best_points(self) -> list[tuple[str, dict, dict]]:
+        """The current offsets (normalized, by parameter name) and the fit's MSE, as one best point."""
         return [("offsets", dict(zip(self.table.names, map(float, self.offsets))), {"mse": self.loss})]

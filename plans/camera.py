@@ -37,6 +37,7 @@ class CameraCheck:
     gain_measured: bool
 
     def line(self) -> str:
+        """One line for the operator: the dark frames, the read noise and the gain, measured or kept."""
         g = self.calibration
         if self.gain_measured:
             gain = f"gain {g.gain:.2f} ± {self.gain_sigma:.2f} ADU/photon (photon transfer, {self.light_frames} frames)"
@@ -50,8 +51,9 @@ class CameraCheck:
 
 def calibrate_camera(camera, *, darks: int = 4, frames: int = 8, max_gain_error: float = 0.1,
                      md: Mapping | None = None) -> MsgGenerator[CameraCheck]:
-    """Dark frames with the shutter closed, then ``frames`` where the beam stands: the camera's dark,
-    read noise and (photon transfer) gain; one run, the dark frames in the ``dark`` stream.
+    """Measure the camera's dark, read noise and (photon transfer) gain, in one run.
+
+    Dark frames with the shutter closed (the ``dark`` stream), then ``frames`` where the beam stands.
 
     Parameters
     ----------
@@ -118,8 +120,11 @@ def _with_dark(cal: CameraCalibration, dark: np.ndarray) -> CameraCalibration:
 
 
 def take_darks(camera, n: int = 4, *, md: Mapping | None = None) -> MsgGenerator[CameraCalibration]:
-    """``n`` dark frames with the shutter closed (one run, stream ``dark``): the camera's dark frame
-    and read noise from now on; no light needed, so a session takes them first."""
+    """``n`` dark frames with the shutter closed (one run, stream ``dark``).
+
+    They give the camera's dark frame and read noise from now on; no light is needed, so a session
+    takes them first.
+    """
     if n < 2:
         raise InputError("take_darks: two or more dark frames")
     taken = {}
@@ -139,9 +144,12 @@ def take_darks(camera, n: int = 4, *, md: Mapping | None = None) -> MsgGenerator
 def calibrate_where_bright(camera, beamline, m: Measurement, *, darks: int = 4, frames: int = 8,
                            max_gain_error: float = 0.1, md: Mapping | None = None,
                            report=None) -> MsgGenerator[Measurement]:
-    """After measurement ``m`` (taken with ``camera``): back to its brightest frame's configuration
+    """Calibrate ``camera`` where measurement ``m`` was brightest, and rescale ``m`` to the gain measured.
+
+    After measurement ``m`` (taken with ``camera``): back to its brightest frame's configuration
     (and screen), :func:`calibrate_camera` there, and ``m`` rescaled from the gain it was reduced
-    with to the one measured (unchanged where the gain was kept).  ``report(check)`` sees the result."""
+    with to the one measured (unchanged where the gain was kept).  ``report(check)`` sees the result.
+    """
     from .measure import scan_configurations
 
     k = int(np.argmax(m.hist_x.sum(axis=1)))
@@ -157,9 +165,12 @@ def calibrate_where_bright(camera, beamline, m: Measurement, *, darks: int = 4, 
 
 
 def camera_steps(chamber, beamline, *, md: Mapping | None = None, say=print):
-    """What a session adds for a camera chamber: ``(darks, measured)``, the plan that takes its dark
-    frames first and the hook that calibrates its gain where the measurement was brightest
-    (:func:`plans.workflow.calibration_session`'s ``measured``); ``(None, None)`` for another chamber."""
+    """What a session adds for a camera chamber: ``(darks, measured)``.
+
+    ``darks`` is the plan that takes its dark frames first, ``measured`` the hook that calibrates
+    its gain where the measurement was brightest (:func:`plans.workflow.calibration_session`'s
+    ``measured``); ``(None, None)`` for another chamber.
+    """
     if not callable(getattr(chamber, "calibrate", None)):
         return None, None
 

@@ -39,8 +39,11 @@ log = logging.getLogger("bluesky_offsets.workflow")
 
 @dataclass
 class Designed:
-    """What :func:`measure_designed` did: the beam search, the measurement, each batch's design
-    record, the offsets' estimate and the design's precision after the last batch."""
+    """What :func:`measure_designed` did.
+
+    The beam search, the measurement, each batch's design record, the offsets' estimate and the
+    design's precision after the last batch.
+    """
 
     beam: SearchResult
     measurement: Measurement
@@ -55,6 +58,7 @@ class Designed:
 
     @property
     def uid(self) -> str | None:
+        """The measurement run's uid (None where it has none)."""
         return self.measurement.uid
 
 
@@ -129,8 +133,11 @@ VALIDATION_P = 1e-3
 
 
 def validation_limit(dof: float) -> float:
-    """The χ²/dof a calibration must stay within on ``dof`` validation degrees of freedom: 1.3, or
-    the χ² noise alone exceeds with probability ``VALIDATION_P`` where that is higher."""
+    """The χ²/dof a calibration must stay within on ``dof`` validation degrees of freedom.
+
+    It is 1.3 (``VALIDATION_LIMIT``), or the χ²/dof noise alone exceeds with probability
+    ``VALIDATION_P`` where that is higher.
+    """
     from scipy.stats import chi2
     return max(VALIDATION_LIMIT, float(chi2.isf(VALIDATION_P, max(dof, 1.0)) / max(dof, 1.0)))
 
@@ -145,27 +152,33 @@ class Validation:
 
     @property
     def chi2_reduced(self) -> float:
+        """The model's χ²/dof on the validation frames, all frames together."""
         return float(self.comparison.misfit.chi2_reduced_total)
 
     @property
     def mse_over_noise(self) -> float:
+        """The model's MSE on the validation frames over the MSE noise alone would give."""
         mf = self.comparison.misfit
         return float(mf.mse_total / max(mf.expected_mse_total, 1e-300))
 
     @property
     def limit(self) -> float:
+        """The χ²/dof the validation must stay within (:func:`validation_limit` of its dof)."""
         return validation_limit(float(self.comparison.misfit.dof_total))
 
     @property
     def passed(self) -> bool:
+        """Whether the χ²/dof stays within :attr:`limit`."""
         return self.chi2_reduced <= self.limit
 
     def summary(self) -> dict:
+        """χ²/dof, MSE over noise, frames, run uid, limit and verdict, as a plain dict."""
         return {"chi2_reduced": self.chi2_reduced, "mse_over_noise": self.mse_over_noise,
                 "configurations": self.measurement.n, "uid": self.uid, "passed": self.passed,
                 "limit": self.limit}
 
     def line(self) -> str:
+        """One line for the operator: frames, χ²/dof, MSE over noise and the verdict."""
         how = "passed" if self.passed else f"FAILED (above {self.limit:.2f}): the offsets reproduce the frames " \
                                            "they were fitted to, not the beamline elsewhere"
         return (f"validation on {self.measurement.n} frames no fit used: chi2/dof = {self.chi2_reduced:.2f}, "
@@ -174,9 +187,11 @@ class Validation:
 
 def validation_settings(model, fitted: Measurement, n: int, *, options: DesignOptions,
                         table: ParameterTable = METRIXS) -> tuple[np.ndarray, np.ndarray]:
-    """``n`` settings (configurations, screen) far from the ``fitted`` frames' and from each other
-    (:func:`bluesky_offsets.design.far_from`), among candidates on which the calibrated ``model``
-    puts at least twice the design's floor on the screen."""
+    """``n`` settings (configurations, screen) far from the ``fitted`` frames' and from each other.
+
+    Chosen by :func:`bluesky_offsets.design.far_from` among candidates on which the calibrated
+    ``model`` puts at least twice the design's floor on the screen.
+    """
     import torch
 
     from bluesky_offsets.design import candidate_settings, far_from
@@ -213,10 +228,13 @@ def validation_settings(model, fitted: Measurement, n: int, *, options: DesignOp
 def measure_validation(beamline, chamber, model, fitted: Measurement, twin, *, n: int = 6,
                        options: DesignOptions | Mapping | None = None, table: ParameterTable = METRIXS,
                        md: Mapping | None = None, show: bool = True) -> MsgGenerator[Validation]:
-    """Frames at ``n`` settings no fit used, far from the ``fitted`` ones (other motor settings,
-    other screen positions: :func:`validation_settings`), and the calibrated ``model`` compared with
-    them in the same run (its ``misfit`` and ``misfit_total`` streams): the test that the offsets
-    are right, not only the frames.  ``model``: a calibrated state or an analysis."""
+    """Measure frames at ``n`` settings no fit used and compare the calibrated ``model`` with them.
+
+    The settings are far from the ``fitted`` ones (other motor settings, other screen positions:
+    :func:`validation_settings`), and the comparison is in the same run (its ``misfit`` and
+    ``misfit_total`` streams): the test that the offsets are right, not only the frames.
+    ``model``: a calibrated state or an analysis.
+    """
     from bluesky_offsets.model.state import CalibratedState
 
     from .diagnose import compare_model
@@ -251,11 +269,14 @@ def measure_validation(beamline, chamber, model, fitted: Measurement, twin, *, n
 # --------------------------------------------------------------------------- #
 def record_posterior(model, *, measurement_uid: str | None = None, table: ParameterTable = METRIXS,
                      md: Mapping | None = None) -> MsgGenerator[str | None]:
-    """A run (``plan_name`` "record_posterior") whose ``posterior`` stream has one event per offset and
-    effect parameter of the calibrated ``model``: value ± σ in its unit, its class and the parameters
-    it trades with (:class:`bluesky_offsets.model.posterior.Posterior`); its start document names the
-    parameter table's version, the fit's run and the measurement.  None (no run) where the model has
-    no covariance."""
+    """Record the calibrated ``model``'s posterior as a run (``plan_name`` "record_posterior"); its uid.
+
+    The run's ``posterior`` stream has one event per offset and effect parameter: value ± σ in its
+    unit, its class and the parameters it trades with
+    (:class:`bluesky_offsets.model.posterior.Posterior`); its start document names the parameter
+    table's version, the fit's run and the measurement.  None (no run) where the model has no
+    covariance.
+    """
     from bluesky_offsets.model.posterior import Posterior
     from bluesky_offsets.model.state import CalibratedState
 

@@ -88,12 +88,15 @@ class Comparison:
 
     @property
     def within_noise(self) -> bool:
+        """Whether the model's total misfit is within the measurement's noise."""
         return not self.misfit.total_beyond_noise()
 
     def version(self) -> Version:
+        """The compared model as a version (label, state, misfit, effect σ) for the error history."""
         return Version(self.label, self.state, self.misfit, self.effect_sigma)
 
     def total_row(self) -> dict:
+        """The comparison's totals as one event row: χ²/dof, χ², dof, MSE against noise, frames beyond noise."""
         mf = self.misfit
         return {"model": self.label, "chi2_reduced": mf.chi2_reduced_total, "chi2": mf.chi2_total,
                 "dof": mf.dof_total, "mse": mf.mse_total, "expected_mse": mf.expected_mse_total,
@@ -103,12 +106,15 @@ class Comparison:
 
 @dataclass
 class Refinement:
+    """What :func:`refine_offsets` produced: the fit's result, its comparison with the measurement and its run."""
+
     result: RefineResult
     comparison: Comparison
     uid: str | None = None
 
     @property
     def state(self) -> ModelState:
+        """The fitted model state."""
         return self.result.state
 
     @property
@@ -120,12 +126,16 @@ class Refinement:
 
 @dataclass
 class Ranking:
+    """What :func:`diagnose_effects` produced: the diagnosis (candidates ranked, verdict) and its run."""
+
     diagnosis: Diagnosis
     uid: str | None = None
 
 
 @dataclass
 class Refit:
+    """What :func:`add_effect_and_refit` produced: the effect added, the refitted model, its σ, comparison and run."""
+
     effect: str
     state: ModelState
     sigma: dict[str, dict[str, float]]
@@ -153,8 +163,11 @@ class Refit:
 
 @dataclass
 class Pruning:
-    """The backward step after effects were added: each tested with the others in, the weakest
-    dropped where it no longer earns its place (:func:`bluesky_offsets.model.diagnosis.retest_effects`)."""
+    """What the backward step after effects were added produced (:func:`retest_effects`).
+
+    Each added effect is tested with the others in, and the weakest dropped where it no longer earns
+    its place (:func:`bluesky_offsets.model.diagnosis.retest_effects`).
+    """
 
     tests: list[dict]                       # per effect: gain, price, kept (EffectTest.as_dict)
     dropped: str | None
@@ -168,6 +181,7 @@ class Pruning:
 
     @property
     def calibrated(self) -> CalibratedState:
+        """The model after the step with its refit's covariance (None when the run stored none)."""
         names = None if self.fit_names is None else tuple(self.fit_names)
         return CalibratedState(self.state, self.covariance, names, self.uid)
 
@@ -206,11 +220,14 @@ class Analysis:
         return self.pruning.tests if self.pruning is not None else []
 
     def magnitudes(self) -> dict[str, dict[str, tuple[float, float]]]:
-        """``{effect: {parameter: (value, sigma)}}`` of the effects the analysis ends with, in
-        the order they were added, from the last fit (the pruning's, else the last refit's)."""
+        """``{effect: {parameter: (value, sigma)}}`` of the effects the analysis ends with.
+
+        In the order they were added, from the last fit (the pruning's, else the last refit's).
+        """
         if not self.refits:
             return {}
-        if self.pruning is not None and self.pruning.dropped is not None:  # self.dropped
+        if self.dropped is not None:
+            assert self.pruning is not None  # an effect is dropped by the pruning only
             state, sigma = self.pruning.state, self.pruning.sigma
         else:
             state, sigma = self.refits[-1].state, self.refits[-1].sigma
@@ -220,10 +237,12 @@ class Analysis:
 
     @property
     def could_hide(self) -> dict[str, dict[str, float]]:
-        """With the model the analysis ends with within noise: how large each candidate it does
-        not hold could be and still hide behind the offsets
+        """How large each candidate the final model does not hold could be and still hide behind the offsets.
+
+        Only with the model the analysis ends with within noise
         (:func:`~bluesky_offsets.model.diagnosis.detection_limits`: of the last diagnosis when it
-        found the model within noise, of the last refit when that reached the noise); else empty."""
+        found the model within noise, of the last refit when that reached the noise); else empty.
+        """
         if self._ends_with_refit:
             return self.refit_limits
         last = self.rankings[-1].diagnosis if self.rankings else None
@@ -236,18 +255,24 @@ class Analysis:
 
     @property
     def refit_limits(self) -> dict[str, dict[str, float]]:
-        """The last refit's detection limits (held when it reached the noise) where the analysis
-        ends with that refit's model; else empty."""
+        """The last refit's detection limits where the analysis ends with that refit's model; else empty.
+
+        The refit holds them when it reached the noise.
+        """
         return self.refits[-1].limits if self._ends_with_refit else {}
 
     @property
     def could_hide_json(self) -> dict[str, dict[str, float | None]]:
-        """:attr:`could_hide` for a JSON file: a parameter the data do not see at all (an infinite
-        limit) as null, so that strict JSON parsers read it."""
+        """:attr:`could_hide` for a JSON file.
+
+        A parameter the data do not see at all (an infinite limit) is null, so that strict JSON
+        parsers read it.
+        """
         return {e: {q: (v if np.isfinite(v) else None) for q, v in d.items()} for e, d in self.could_hide.items()}
 
     @property
     def could_hide_line(self) -> str:
+        """:attr:`could_hide` as one line of text."""
         return "could hide within noise, behind the offsets: " + D.limits_text(self.could_hide)
 
     @property
@@ -265,7 +290,8 @@ class Analysis:
         if not found:
             return last.verdict if last else "not diagnosed"
         tail = "" if last is None or last.best is not None else f"; then {last.verdict}"
-        if self.pruning is not None and self.pruning.dropped is not None:  # self.dropped
+        if self.dropped is not None:
+            assert self.pruning is not None  # an effect is dropped by the pruning only
             t = next(t for t in self.pruning.tests if t["effect"] == self.dropped)
             why = ("without it the model is within noise" if not t["beyond_noise_without"] else
                    f"with the others in it bought Δχ² = {t['gain']:.3g}, below its price {t['price']:.3g}")
@@ -282,13 +308,18 @@ class Analysis:
 
     @property
     def versions(self) -> list[Version]:
+        """Each compared model version, in order: the error history."""
         return [c.version() for c in self.comparisons]
 
     @property
     def calibrated(self) -> CalibratedState:
-        """The model the analysis ends with and the covariance of the fit that gave it (the last
-        refit's, else the offsets fit's): what :func:`plans.optimize.optimize_beam` optimizes on."""
-        if self.pruning is not None and self.pruning.dropped is not None:  # self.dropped
+        """The model the analysis ends with and the covariance of the fit that gave it.
+
+        The covariance is the last refit's, else the offsets fit's: what
+        :func:`plans.optimize.optimize_beam` optimizes on.
+        """
+        if self.dropped is not None:
+            assert self.pruning is not None  # an effect is dropped by the pruning only
             return self.pruning.calibrated
         if self.refits and self.refits[-1].covariance is not None:
             return self.refits[-1].calibrated
@@ -298,6 +329,7 @@ class Analysis:
 
     @property
     def final(self) -> Comparison:
+        """The last comparison: the model the analysis ends with against the measurement."""
         return self.comparisons[-1]
 
 
@@ -306,8 +338,9 @@ class Analysis:
 # --------------------------------------------------------------------------- #
 def resolve_measurement(measurement, store=None, *, n_rays: int | None = None, resolution: str = "camera",
                         table: ParameterTable = METRIXS) -> tuple[Measurement, dict]:
-    """The measurement as the fits read it (:meth:`Measurement.for_analysis`) and the run
-    metadata worth linking.
+    """The measurement as the fits read it, and the run metadata worth linking.
+
+    The fits read it through :meth:`Measurement.for_analysis`.
 
     ``measurement`` is a :class:`bluesky_offsets.model.measurement.Measurement` or a measurement
     run's uid in ``store``; the camera-resolution profiles are taken where it has them
@@ -453,8 +486,9 @@ def refine_offsets(measurement, state: ModelState, twin, forward_model=None, *, 
                    options: FitOptions | Mapping | None = None, label: str = "+ offsets", open_run: bool = True,
                    md: Mapping | None = None, show: bool = True, also_from: Sequence[ModelState] = (),
                    executor: Executor | None = None, table: ParameterTable = METRIXS) -> MsgGenerator[Refinement]:
-    """Fit the offsets (and the state's effects), starting from ``state`` (and from each of
-    ``also_from``: the fit that ends lowest is kept).
+    """Fit the offsets (and the state's effects), starting from ``state``.
+
+    Also from each of ``also_from``: the fit that ends lowest is kept.
 
     :func:`bluesky_offsets.model.state.refine`: the one fit engine (the differentiable twin, exact
     Jacobians; features, then profiles, then bins), options :class:`~bluesky_offsets.model.fit.FitOptions`
@@ -513,8 +547,11 @@ def refine_offsets(measurement, state: ModelState, twin, forward_model=None, *, 
 # diagnose
 # --------------------------------------------------------------------------- #
 def ranking_rows(d: Diagnosis) -> list[dict]:
-    """One row per candidate, best first: score, its parts, fitted values and the predicted
-    residual signature beside the observed one."""
+    """One row per candidate of diagnosis ``d``, best first.
+
+    Each row: score, its parts, fitted values and the predicted residual signature beside the
+    observed one.
+    """
     rows = []
     for rank, c in enumerate(d.candidates, 1):
         eff = E.get(c.name)
@@ -582,6 +619,7 @@ def diagnose_effects(measurement, state: ModelState, twin, forward_model=None, *
 # add an effect, refit, error history
 # --------------------------------------------------------------------------- #
 def history_rows(versions: Sequence[Version]) -> list[dict]:
+    """One ``error_history`` row per model version: χ²/dof, MSE against noise, effects and their σ (JSON)."""
     rows = []
     for i, v in enumerate(versions):
         mf = v.misfit
@@ -683,8 +721,9 @@ def retest_effects(measurement, state: ModelState, twin, *, store=None, names: S
                    history: Sequence[Version] = (), options: FitOptions | Mapping | None = None, seed: int = 0,
                    open_run: bool = True, md: Mapping | None = None, show: bool = True,
                    executor: Executor | None = None, table: ParameterTable = METRIXS) -> MsgGenerator[Pruning]:
-    """The backward step: each of ``names`` (default: every effect of ``state``) tested with the
-    others in, and the weakest dropped where it no longer earns its place.
+    """The backward step: each effect tested with the others in, the weakest dropped if it no longer earns its place.
+
+    The effects tested are ``names`` (default: every effect of ``state``).
 
     :func:`bluesky_offsets.model.diagnosis.retest_effects` (the rest refitted without each,
     ``options`` default :data:`bluesky_offsets.model.diagnosis.FIT`).  Streams
@@ -794,8 +833,11 @@ def restore_pruning(res: Mapping, history: Sequence[Version], uid: str | None = 
 
 
 def analysis_key(meas: Measurement, settings: Mapping) -> str:
-    """What makes two analyses the same: the measurement as fitted (its uid, configurations and
-    histograms) and every setting that changes a result.  Stored with each step's run."""
+    """The key of an analysis: a hash of what makes two analyses the same.
+
+    That is the measurement as fitted (its uid, configurations and histograms) and every setting
+    that changes a result.  Stored with each step's run.
+    """
     import hashlib
     h = hashlib.sha256()
     h.update(json.dumps(_jsonable({"uid": meas.uid, **settings}), sort_keys=True, default=str).encode())
@@ -807,8 +849,10 @@ def analysis_key(meas: Measurement, settings: Mapping) -> str:
 
 
 def completed_steps(store, key: str) -> dict[str, str]:
-    """``{step: uid}`` of the runs of analysis ``key`` in ``store`` that ended successfully (the
-    latest run of each step)."""
+    """``{step: uid}`` of the runs of analysis ``key`` in ``store`` that ended successfully.
+
+    The latest run of each step.
+    """
     from tiled.queries import Eq
     runs = store.client.search(Eq("start.analysis_key", key))
     done = {}
@@ -831,8 +875,7 @@ def analyse_measurement(measurement, twin, forward_model=None, *, store=None,
                         folds: int = 4, seed: int = 0, refit_from_twin: bool = D.REFIT_FROM_TWIN, resume: bool = False,
                         md: Mapping | None = None, show: bool = True, resolution: str = "camera",
                         executor: Executor | None = None, table: ParameterTable = METRIXS) -> MsgGenerator[Analysis]:
-    """Compare, fit the offsets, diagnose, add the winning effect and refit, diagnose again — one
-    run each.
+    """Compare, fit the offsets, diagnose, add the winning effect and refit, diagnose again — one run each.
 
     Parameters
     ----------

@@ -41,8 +41,10 @@ from .motion import (
 
 
 class CommandedConfiguration:
-    """Readable holding the configuration being measured (index and twin-coordinate vector),
-    so that every event says which configuration it belongs to."""
+    """Readable holding the configuration being measured (index and twin-coordinate vector).
+
+    Read with every frame, so that every event says which configuration it belongs to.
+    """
 
     def __init__(self, n_parameters: int, name: str = "commanded", screen: bool = False):
         self.name = name
@@ -53,12 +55,14 @@ class CommandedConfiguration:
         self._time = 0.0
 
     def update(self, index: int, vector: np.ndarray, screen: np.ndarray | None = None) -> None:
+        """Hold configuration ``index`` (``vector``, and the screen's x, y, z where it has one), stamped now."""
         import time
         self._index, self._vector, self._time = int(index), np.asarray(vector, float), time.time()
         if self._screen is not None and screen is not None:
             self._screen = np.asarray(screen, float)
 
     def read(self) -> dict:
+        """The held index, configuration vector (and screen position) as a Bluesky reading."""
         out = {"config_index": {"value": self._index, "timestamp": self._time},
                "configuration": {"value": self._vector, "timestamp": self._time}}
         if self._screen is not None:  # three numbers: short arrays do not keep their type in the store
@@ -67,6 +71,7 @@ class CommandedConfiguration:
         return out
 
     def describe(self) -> dict:
+        """The data keys :meth:`read` returns, with their dtype and shape."""
         out = {"config_index": {"source": "plan", "dtype": "integer", "shape": []},
                "configuration": {"source": "plan", "dtype": "array", "shape": [len(self._vector)],
                                  "dtype_numpy": "<f8"}}
@@ -101,8 +106,11 @@ def _reference_vector(reference, start: Mapping, table: ParameterTable) -> np.nd
 
 
 def _with_stage(beamline, motors: dict, screen) -> tuple[dict, dict | None]:
-    """The scan's motors with the chamber's stage (when the beamline has one) and the stage's
-    positions per frame (None: no stage); a screen to move without a stage is refused."""
+    """The scan's motors with the chamber's stage, and the stage's positions per frame.
+
+    The stage is added when the beamline has one (positions None: no stage); a screen to move
+    without a stage is refused.
+    """
     stage = resolve_stage(beamline)
     if stage is None:
         if moved(screen):
@@ -141,8 +149,10 @@ def scan_configurations(configurations, beamline, chamber, *, reference=None, ta
     margin = yield from limit_margins(motors)
 
     def plan_targets(cfgs, scr):
-        """Each frame's motor targets and stage positions (None: no stage), checked against the limits
-        and kept a margin inside them (:func:`plans.motion.pull_inside`; the configurations follow)."""
+        """Each frame's motor targets and stage positions (None: no stage), checked against the limits.
+
+        They are kept a margin inside them (:func:`plans.motion.pull_inside`; the configurations follow).
+        """
         cfgs = np.array(as_configurations(cfgs, table), dtype=float)
         tgts = [{n: start[n] + (cfg[col[n]] - ref[col[n]]) for n in col} for cfg in cfgs]
         scrs = None
@@ -211,8 +221,11 @@ def scan_configurations(configurations, beamline, chamber, *, reference=None, ta
 
 
 def _scan_md(chamber, table: ParameterTable, motors, start, ref, configs, screens) -> MsgGenerator[dict]:
-    """The scan's start document: the table, the configurations and the reference, where the
-    motors started, which signals hold what, and what the detector says of itself."""
+    """The scan's start document.
+
+    The table, the configurations and the reference, where the motors started, which signals hold
+    what, and what the detector says of itself.
+    """
     truth_id = yield from _optional_read(chamber, "truth_id")
     n_rays = yield from _optional_read(chamber, "num_rays")
     profile_axes = []

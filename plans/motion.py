@@ -60,9 +60,11 @@ def resolve_motors(beamline, table: ParameterTable = METRIXS) -> dict:
 
 
 def resolve_stage(beamline) -> dict | None:
-    """``{"stage.x": movable, "stage.y": ..., "stage.z": ...}``: the focus chamber's translation
-    stage (``beamline.chamber_stage``, or a mapping's ``"chamber_stage"`` entry: a device or a
-    mapping of its axes); None for a beamline without one."""
+    """The focus chamber's translation stage, ``{"stage.x": movable, "stage.y": ..., "stage.z": ...}``.
+
+    Taken from ``beamline.chamber_stage``, or a mapping's ``"chamber_stage"`` entry (a device or a
+    mapping of its axes); None for a beamline without one.
+    """
     stage = (beamline.get("chamber_stage") if isinstance(beamline, Mapping)
              else getattr(beamline, "chamber_stage", None))
     if stage is None:
@@ -113,11 +115,14 @@ def read_positions(motors: Mapping) -> MsgGenerator[dict]:
 
 
 def read_setpoints(motors: Mapping, tolerance: Mapping) -> MsgGenerator[dict]:
-    """Where the motors were last sent, ``{parameter name: setpoint}`` (the readback for a motor
-    without a ``user_setpoint``): relative moves count from there, not from a noisy readback.
+    """Where the motors were last sent, ``{parameter name: setpoint}``.
+
+    The readback stands in for a motor without a ``user_setpoint``; relative moves count from
+    there, not from a noisy readback.
 
     Raises :class:`MotionError` naming each motor whose readback is further from its setpoint
-    than ``tolerance`` (it did not arrive at its last move)."""
+    than ``tolerance`` (it did not arrive at its last move).
+    """
     readback = yield from read_positions(motors)
     out, off = {}, []
     for name, m in motors.items():
@@ -170,20 +175,24 @@ def _step(motor) -> MsgGenerator[float]:
 
 
 def _tolerance(motor) -> MsgGenerator[float]:
-    """How far from its target a motor may stand after a move: two steps (``MRES``, else
-    ``10**-precision``), or the retry deadband ``RDBD`` and the step the record rounds the target
-    to, when wider (an encoder-read axis)."""
+    """How far from its target a motor may stand after a move.
+
+    Two steps (``MRES``, else ``10**-precision``), or the retry deadband ``RDBD`` and the step the
+    record rounds the target to, when wider (an encoder-read axis).
+    """
     step = yield from _step(motor)
     band = yield from _read_optional(motor, "deadband")
     return max(2 * step, band + step if band else 0.0)
 
 
 def pull_inside(motors: Mapping, targets: Sequence[Mapping], margin: Mapping) -> MsgGenerator[list[dict]]:
-    """``targets`` with each position nearer a soft limit than ``margin`` (at it, or a rounding
-    beyond it: :func:`check_limits` passed them) moved ``margin`` inside: a record rounds a target
-    to its steps (-1.5 at 1e-5 steps reads back -1.5000000000000002) and an encoder reads around
-    it, and a client that checks the readback against the limits (ophyd-async's ``Motor``) then
-    refuses every later move."""
+    """``targets`` with each position nearer a soft limit than ``margin`` moved ``margin`` inside.
+
+    Such a position is at the limit, or a rounding beyond it (:func:`check_limits` passed them): a
+    record rounds a target to its steps (-1.5 at 1e-5 steps reads back -1.5000000000000002) and an
+    encoder reads around it, and a client that checks the readback against the limits
+    (ophyd-async's ``Motor``) then refuses every later move.
+    """
     out = [dict(t) for t in targets]
     for name, m in motors.items():
         lim = yield from _limits(m)
@@ -235,8 +244,10 @@ def tolerances(motors: Mapping) -> MsgGenerator[dict]:
 
 
 def limit_margins(motors: Mapping) -> MsgGenerator[dict]:
-    """How far inside its soft limits each motor is sent (:func:`pull_inside`): its arrival
-    tolerance and one step, so that its readback stays inside them, ``{name: margin}``."""
+    """How far inside its soft limits each motor is sent (:func:`pull_inside`), ``{name: margin}``.
+
+    The margin is its arrival tolerance and one step, so that its readback stays inside them.
+    """
     tol = yield from tolerances(motors)
     steps = yield from resolutions(motors)
     return {n: tol[n] + steps[n] for n in motors}
@@ -287,6 +298,8 @@ def verify_positions(motors: Mapping, target: Mapping, tolerance: Mapping | None
 
 
 def return_to(motors: Mapping, positions: Mapping, current: Mapping | None = None) -> MsgGenerator[None]:
-    """Move every motor back to ``positions`` (used as the finalizer of scans); ``current`` as
-    for :func:`move_to`."""
+    """Move every motor back to ``positions`` (used as the finalizer of scans).
+
+    ``current`` as for :func:`move_to`.
+    """
     yield from move_to(motors, positions, verify=False, current=current)

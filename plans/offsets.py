@@ -60,13 +60,16 @@ class OffsetResult:
         return self.offsets * self.table.span
 
     def as_mapping(self) -> dict[str, float]:
+        """``{parameter name: normalized offset}`` in table order."""
         return {n: float(v) for n, v in zip(self.table.names, self.offsets)}
 
 
 class FinderResult(Protocol):
-    """What a finder returns: normalized offsets (fractions of each range, table order) and its
-    final loss.  Anything else it carries (uncertainties ``sigma``, ``status``, ``history``,
-    ``twin_mse``) goes into the run when present."""
+    """What a finder returns: normalized offsets (fractions of each range, table order) and its final loss.
+
+    Anything else it carries (uncertainties ``sigma``, ``status``, ``history``, ``twin_mse``) goes
+    into the run when present.
+    """
 
     offsets: np.ndarray
     loss: float
@@ -74,11 +77,16 @@ class FinderResult(Protocol):
 
 @runtime_checkable
 class Finder(Protocol):
-    """An offset finder: a measurement in, a :class:`FinderResult` out.  ``callback`` (a finder
-    may leave it out of its signature) receives progress dicts (evaluations, seconds, loss)."""
+    """An offset finder: a measurement in, a :class:`FinderResult` out.
+
+    ``callback`` (a finder may leave it out of its signature) receives progress dicts
+    (evaluations, seconds, loss).
+    """
 
     def __call__(self, measurement: Measurement, *,
-                 callback: Callable[[dict], None] | None = None) -> FinderResult: ...
+                 callback: Callable[[dict], None] | None = None) -> FinderResult:
+        """Find the offsets that explain ``measurement``, reporting progress to ``callback``."""
+        ...
 
 
 def _as_result(raw, table: ParameterTable) -> OffsetResult:

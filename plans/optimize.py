@@ -50,8 +50,11 @@ class BeamStep:
 
 @dataclass
 class BeamResult:
-    """What :func:`optimize_beam` did: the beam measured before, each move (one, or two with the
-    closed loop), the frames as a measurement (``measurement.uid``: the run)."""
+    """What :func:`optimize_beam` did.
+
+    The beam measured before, each move (one, or two with the closed loop), the frames as a
+    measurement (``measurement.uid``: the run).
+    """
 
     before: Focus
     steps: list[BeamStep]
@@ -65,14 +68,17 @@ class BeamResult:
 
     @property
     def optimum(self) -> BeamOptimum:
+        """The last move's computed settings and the beam predicted there."""
         return self.steps[-1].optimum
 
     @property
     def after(self) -> Focus:
+        """The beam measured after the last move."""
         return self.steps[-1].after
 
     @property
     def uid(self) -> str | None:
+        """The uid of the last move's measurement run."""
         return self.steps[-1].uid
 
     def lines(self) -> list[str]:
@@ -95,9 +101,12 @@ class BeamResult:
 
 
 def motor_limits(motors: Mapping, table: ParameterTable = METRIXS) -> MsgGenerator[tuple[np.ndarray, np.ndarray]]:
-    """Each motor's soft limits as (lo, hi) arrays in table order, intersected with its parameter's
-    travel (the twin's domain) and brought as far inside as the scans send a motor
-    (:func:`plans.motion.limit_margins`); fixed parameters at their design values."""
+    """Each motor's soft limits as (lo, hi) arrays in table order, within its parameter's travel.
+
+    The limits are intersected with the parameter's travel (the twin's domain) and brought as far
+    inside as the scans send a motor (:func:`plans.motion.limit_margins`); fixed parameters at
+    their design values.
+    """
     lo = np.array([p.limits[0] if p.motorized else p.reference for p in table], float)
     hi = np.array([p.limits[1] if p.motorized else p.reference for p in table], float)
     margins = yield from limit_margins(motors)
@@ -150,8 +159,10 @@ def _beam_rows(before: Focus, o: BeamOptimum, after: Focus) -> list[dict]:
 def _move_and_measure(opt: BeamOptimum, beamline, chamber, frames: int, before_frames: bool, md: dict,
                       table: ParameterTable, before: Focus | None):
     """Frames at the current setting (``before_frames``), then at the optimum, where the motors stay.
+
     Returns the measurement and ``{"before": ..., "after": ...}``, each (focus, profile x, profile y)
-    of its frames (no "before" without ``before_frames``: ``before`` is the focus to compare with)."""
+    of its frames (no "before" without ``before_frames``: ``before`` is the focus to compare with).
+    """
     configs = ([opt.current] * frames if before_frames else []) + [opt.settings] * frames
     read: dict = {}
     n_before = frames if before_frames else 0

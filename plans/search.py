@@ -56,9 +56,12 @@ def enough_rays(hist_x, hist_y, threshold: float = HIGH_RAY_THRESHOLD) -> np.nda
 
 def sample_candidates(n: int, *, rng: np.random.Generator | int | None = None, around=None,
                       spread: float | np.ndarray | None = None, table: ParameterTable = METRIXS) -> np.ndarray:
-    """Candidate configurations: uniform in the sampling box (the paper), or uniform within
-    ``±spread`` (normalized units, scalar or per parameter) around ``around``, clipped to the box.
-    Fixed parameters stay at their design values."""
+    """``n`` candidate configurations, uniform in the sampling box or around ``around``.
+
+    Uniform in the sampling box (the paper), or uniform within ``±spread`` (normalized units,
+    scalar or per parameter) around ``around``, clipped to the box.  Fixed parameters stay at
+    their design values.
+    """
     rng = np.random.default_rng(rng)
     if around is None:
         cand = table.sample_uniform(n, rng)

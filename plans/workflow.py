@@ -90,16 +90,21 @@ class MeasurementDesign:
 
 
 def candidate_configurations(design: MeasurementDesign, start: np.ndarray) -> np.ndarray:
-    """The start (an operator begins where the beam is), then ``design.candidates``
-    configurations around it (:func:`bluesky_offsets.model.diagnosis.diagnostic_configurations`,
-    drawn from ``design.seed``)."""
+    """The start, then ``design.candidates`` configurations around it.
+
+    The start comes first because an operator begins where the beam is; the others are
+    :func:`bluesky_offsets.model.diagnosis.diagnostic_configurations`, drawn from ``design.seed``.
+    """
     return np.vstack([start, D.diagnostic_configurations(start, design.candidates, seed=design.seed, table=METRIXS)])
 
 
 def measurement_design(design: MeasurementDesign, bright: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """What is measured and what is analysed: the ``bright`` configurations, then the first
-    ``design.reopened`` of them again with the slits open; the indices the fits use: the first bright
-    ones and all open ones, ``design.analysed`` in all."""
+    """What is measured and what is analysed: the configurations and the indices the fits use.
+
+    Measured are the ``bright`` configurations, then the first ``design.reopened`` of them again
+    with the slits open; the fits use the first bright ones and all open ones, ``design.analysed``
+    in all.
+    """
     n_open = min(design.reopened, len(bright))
     configs = np.vstack([bright, D.open_aperture(bright[:n_open])]) if n_open else np.asarray(bright)
     n_bright = max(0, min(len(bright), design.analysed - n_open))
@@ -108,8 +113,11 @@ def measurement_design(design: MeasurementDesign, bright: np.ndarray) -> tuple[n
 
 @dataclass
 class Measured:
-    """What :func:`measure_bright` (or :func:`plans.design.measure_designed`) did: the beam search
-    and the measurement; ``designed`` the design's record where the frames were designed."""
+    """What :func:`measure_bright` (or :func:`plans.design.measure_designed`) did.
+
+    The beam search and the measurement; ``designed`` the design's record where the frames were
+    designed.
+    """
 
     beam: SearchResult
     measurement: Measurement
@@ -119,6 +127,7 @@ class Measured:
 
     @property
     def uid(self) -> str | None:
+        """The measurement run's uid (None where it has none)."""
         return self.measurement.uid
 
     @property
@@ -178,8 +187,11 @@ def measure_bright(beamline, chamber, *, bright: int = 16, reopened: int = 4, an
 
 
 def measure(beamline, chamber, configurations: list, *, md: dict | None = None) -> MsgGenerator[Measurement]:
-    """:func:`plans.measure_configurations` with plain values: ``configurations`` a list of
-    34-number lists (twin coordinates, table order) or of ``{parameter: value}`` dicts."""
+    """:func:`plans.measure_configurations` with plain values.
+
+    ``configurations`` is a list of 34-number lists (twin coordinates, table order) or of
+    ``{parameter: value}`` dicts.
+    """
     from plans import measure_configurations
     return (yield from measure_configurations(configurations, beamline, chamber, md=md))
 
@@ -195,8 +207,11 @@ PLANS_OF_KIND = {
 
 
 def resolve_run(store, uid: str, kind: str, **match) -> str:
-    """``uid`` itself, or for ``"last"`` the most recent successful run of ``kind``
-    (:data:`PLANS_OF_KIND`) whose start document has ``match``'s values."""
+    """``uid`` itself, or for ``"last"`` the most recent successful run of ``kind`` that matches.
+
+    ``kind`` is a key of :data:`PLANS_OF_KIND`; the run's start document must have ``match``'s
+    values.
+    """
     if uid != "last":
         if uid not in store:
             raise KeyError(f"no run {uid!r} in the store at {store.location}")
@@ -218,9 +233,10 @@ def _store(store):
 # --------------------------------------------------------------------------- #
 def find_offsets_in_store(measurement: str = "last", *, evaluations: int = 3000, seed: int = 0,
                           checkpoint: str | None = None, store=None, md: dict | None = None) -> MsgGenerator:
-    """The surrogate finder (:class:`bluesky_offsets.offsets.calibration.OffsetFinder`,
-    ``evaluations`` of the surrogate, ``seed``) on a stored measurement's configurations inside the
-    surrogate's box (the slits-open ones are outside it).
+    """The surrogate finder on a stored measurement's configurations inside the surrogate's box.
+
+    The finder is :class:`bluesky_offsets.offsets.calibration.OffsetFinder` (``evaluations`` of the
+    surrogate, ``seed``); the slits-open configurations are outside the box.
 
     ``measurement`` is a run uid or ``"last"``; ``checkpoint`` another surrogate (default the
     shipped one).  Returns the :class:`plans.offsets.OffsetResult`; the run is a ``find_offsets``
@@ -273,10 +289,12 @@ def calibration_session(beamline, chamber, twin, forward_model, *, design: Measu
                         fit=None, scan=None, fit_top: int | None = D.FIT_TOP, resolution: str = "camera",
                         measurement_md: dict | None = None, analysis_md: dict | None = None,
                         step=log.info, executor=None, measured=None, table=METRIXS) -> MsgGenerator[Session]:
-    """The session on a beamline.  With :class:`~bluesky_offsets.design.DesignOptions` (the default
-    of the demo and ``calibrate``): :func:`plans.design.measure_designed`, then
-    :func:`plans.diagnose.analyse_measurement` of every designed frame from the bare twin and the
-    design's last estimate of the offsets, then validation frames no fit used
+    """The calibration session on a beamline: the measurement, its analysis and (designed) validation frames.
+
+    With :class:`~bluesky_offsets.design.DesignOptions` (the default of the demo and ``calibrate``):
+    :func:`plans.design.measure_designed`, then :func:`plans.diagnose.analyse_measurement` of every
+    designed frame from the bare twin and the design's last estimate of the offsets, then
+    validation frames no fit used
     (:func:`plans.design.measure_validation`).  With a :class:`MeasurementDesign` (the bright
     design): :func:`measure_bright`, :func:`surrogate_offsets` on it, then the analysis of the
     analysed configurations from the bare twin and the surrogate's offsets.  ``step(text)``
@@ -284,7 +302,8 @@ def calibration_session(beamline, chamber, twin, forward_model, *, design: Measu
     side by side (the same result); seeds from ``design.seed``.  ``measured(m)``, a plan, gets the
     designed measurement before the analysis and returns the one to analyse (a camera calibrated
     where its frames were brightest: :func:`plans.camera.calibrate_where_bright`).  ``table`` names
-    the beamline; a described one (not METRIXS) is measured by design only: the surrogate is METRIXS's."""
+    the beamline; a described one (not METRIXS) is measured by design only: the surrogate is METRIXS's.
+    """
     from bluesky_offsets.model.state import ModelState
 
     from .diagnose import analyse_measurement
@@ -375,8 +394,9 @@ def analyse(measurement: str = "last", offsets: str | None = "last", *, candidat
             rounds: int = D.ROUNDS, fit: dict | None = None, scan: dict | None = None,
             fit_top: int | None = D.FIT_TOP, resolution: str = "camera", seed: int = 0, rays: int | None = None,
             scheduler: str | None = None, resume: bool = False, store=None, md: dict | None = None) -> MsgGenerator:
-    """Compare, fit the offsets, diagnose, add the winner, refit, diagnose again, on a stored
-    measurement (:func:`plans.diagnose.analyse_measurement`; one run per step).
+    """Compare, fit the offsets, diagnose, add the winner, refit, diagnose again, on a stored measurement.
+
+    :func:`plans.diagnose.analyse_measurement`, one run per step.
 
     Parameters
     ----------
@@ -458,10 +478,12 @@ def analyse(measurement: str = "last", offsets: str | None = "last", *, candidat
 # the better beam
 # --------------------------------------------------------------------------- #
 def calibrated_in_store(uid: str = "last", store=None):
-    """The calibrated state (:class:`bluesky_offsets.model.state.CalibratedState`) of a stored
-    ``add_effect_and_refit`` or ``refine_offsets`` run (``"last"``: the newest), with its fit's
-    covariance; or of a calibration file (a path ending in ``.json``:
-    :func:`bluesky_offsets.model.export.load_calibration`)."""
+    """The calibrated state of a stored fitted model's run, or of a calibration file.
+
+    A :class:`bluesky_offsets.model.state.CalibratedState`: of a stored ``add_effect_and_refit`` or
+    ``refine_offsets`` run (``"last"``: the newest), with its fit's covariance; or of a calibration
+    file (a path ending in ``.json``: :func:`bluesky_offsets.model.export.load_calibration`).
+    """
     if str(uid).endswith(".json"):
         from bluesky_offsets.model.export import load_calibration
         return load_calibration(uid)
@@ -477,11 +499,14 @@ def calibrated_in_store(uid: str = "last", store=None):
 def optimize(beamline, chamber, target: dict | None = None, model: str = "last", *, frames: int = 1,
              constraints: dict | None = None, options: dict | None = None, store=None,
              md: dict | None = None) -> MsgGenerator:
-    """:func:`plans.optimize.optimize_beam` with plain values, for a queue: ``target`` a mapping
-    (``{"kind": "spot_size", "rms_x": 0.2, "rms_y": 0.05}``; default the smallest focus),
-    ``model`` the uid of a fitted model's run, ``"last"`` or a calibration file (:func:`calibrated_in_store`),
-    ``constraints``/``options`` mappings of :class:`bluesky_offsets.optimize.Constraints` /
-    :class:`~bluesky_offsets.optimize.OptimizeOptions` fields."""
+    """:func:`plans.optimize.optimize_beam` with plain values, for a queue.
+
+    ``target`` a mapping (``{"kind": "spot_size", "rms_x": 0.2, "rms_y": 0.05}``; default the
+    smallest focus), ``model`` the uid of a fitted model's run, ``"last"`` or a calibration file
+    (:func:`calibrated_in_store`), ``constraints``/``options`` mappings of
+    :class:`bluesky_offsets.optimize.Constraints` / :class:`~bluesky_offsets.optimize.OptimizeOptions`
+    fields.
+    """
     from .optimize import optimize_beam
     cal = calibrated_in_store(model, store)
     return (yield from optimize_beam(target or "smallest_focus", cal, beamline, chamber, frames=frames,
@@ -494,10 +519,12 @@ def optimize(beamline, chamber, target: dict | None = None, model: str = "last",
 # --------------------------------------------------------------------------- #
 def measure_for_offsets(beamline, chamber, *, frames: int = 60, batch: int = 8, criterion: str = "D",
                         seed: int = 0, options: dict | None = None, md: dict | None = None) -> MsgGenerator:
-    """:func:`plans.design.measure_designed` with plain values: the frame budget (the beam search's
-    included), the batch size, the criterion, the seed, and any other
-    :class:`~bluesky_offsets.design.DesignOptions` field in ``options`` (an unknown key is refused).
-    The queue's default measurement; :func:`analyse` then fits it (``measurement="last"``)."""
+    """:func:`plans.design.measure_designed` with plain values: the queue's default measurement.
+
+    The frame budget (the beam search's included), the batch size, the criterion, the seed, and any
+    other :class:`~bluesky_offsets.design.DesignOptions` field in ``options`` (an unknown key is
+    refused).  :func:`analyse` then fits it (``measurement="last"``).
+    """
     from .design import measure_designed
     o = DesignOptions.from_mapping(options, frames=frames, batch=batch, criterion=criterion, seed=seed)
     return (yield from measure_designed(beamline, chamber, options=o, md=md))
@@ -506,9 +533,12 @@ def measure_for_offsets(beamline, chamber, *, frames: int = 60, batch: int = 8, 
 def validate(beamline, chamber, model: str = "last", measurement: str = "last", *, frames: int = 6,
              seed: int = 0, rays: int | None = None, scheduler: str | None = None, store=None,
              md: dict | None = None) -> MsgGenerator:
-    """:func:`plans.design.measure_validation` with plain values: ``frames`` settings far from the
-    fitted frames of ``measurement`` (a run uid or ``"last"``), measured, and the calibrated
-    ``model`` (a fitted model's run uid or ``"last"``) compared with them."""
+    """:func:`plans.design.measure_validation` with plain values.
+
+    ``frames`` settings far from the fitted frames of ``measurement`` (a run uid or ``"last"``),
+    measured, and the calibrated ``model`` (a fitted model's run uid or ``"last"``) compared with
+    them.
+    """
     from bluesky_offsets.physics.twin import Twin
 
     from .design import measure_validation
@@ -526,8 +556,11 @@ def validate(beamline, chamber, model: str = "last", measurement: str = "last", 
 
 
 def export_calibration(path: str, model: str = "last", measurement: str = "last", *, store=None) -> MsgGenerator:
-    """Write the calibrated ``model`` (a fitted model's run uid or ``"last"``) as a calibration file
-    (:func:`bluesky_offsets.model.export.write_calibration`) at ``path``, linked to ``measurement``."""
+    """Write the calibrated ``model`` as a calibration file at ``path``, linked to ``measurement``.
+
+    ``model`` is a fitted model's run uid or ``"last"``; the file is written by
+    :func:`bluesky_offsets.model.export.write_calibration`.
+    """
     import bluesky.plan_stubs as bps
 
     from bluesky_offsets.model.export import write_calibration

@@ -43,7 +43,8 @@ class Frame:
 
     ``profile_x``/``profile_y`` are the same footprint projected at the camera's own
     resolution (:data:`bluesky_offsets.physics.twin.CAMERA`) and ``xy`` the rays' screen points;
-    None when the backend has no rays."""
+    None when the backend has no rays.
+    """
 
     hist_x: np.ndarray
     hist_y: np.ndarray
@@ -72,8 +73,10 @@ class FootprintBackend(Protocol):
 
     def submit(self, values: np.ndarray, n_rays: int) -> cf.Future:
         """Start one frame at the true parameter vector ``values``; the future yields a :class:`Frame`.
+
         A backend that can move the screen also takes ``screen=`` (the chamber stage's x, y, z in
-        mm); the IOC passes it only while the stage stands away from 0."""
+        mm); the IOC passes it only while the stage stands away from 0.
+        """
 
     def close(self) -> None:
         """Release workers."""
@@ -201,7 +204,7 @@ class TwinBackend:
 
     An abort stops the worker at once and the next frame goes to a spare worker that is
     already warm; a worker that died is replaced before the next frame.  RAYX's input files
-    live only for their import (:func:`bluesky_offsets.physics.twin._import_rml`).
+    live only for their import (:func:`bluesky_offsets.physics.rayx_calls.import_rml`).
 
     Parameters
     ----------
@@ -301,6 +304,7 @@ class TwinBackend:
         self.abort()
 
     def close(self) -> None:
+        """Kill the active and the spare worker and stop taking frames."""
         with self._swap:
             for w in (self._active, self._spare):
                 if w is not None:
@@ -313,8 +317,10 @@ class TwinBackend:
 # a trained surrogate
 # --------------------------------------------------------------------------- #
 def finite_ray_sample(p: np.ndarray, n_rays: int, rng: np.random.Generator) -> np.ndarray:
-    """Counts of ``n_rays`` source rays over bins with expected fractions ``p`` (the rest
-    misses the window): the noise a frame of that ray budget has."""
+    """Counts of ``n_rays`` source rays over bins with expected fractions ``p`` (the rest misses the window).
+
+    The draw has the noise a frame of that ray budget has.
+    """
     p = np.clip(np.nan_to_num(np.asarray(p, float)), 0.0, None)
     total = p.sum()
     if total > 1.0:
@@ -374,17 +380,21 @@ class SurrogateBackend:
         return Frame(cx / n, cy / n, None, int(max(cx.sum(), cy.sum())), int(n_rays), time.perf_counter() - t0)
 
     def submit(self, values: np.ndarray, n_rays: int, screen=None) -> cf.Future:
+        """One frame at the true ``values``, the screen moved by ``screen`` (x, y, z mm; None: 0); a future."""
         return self._pool.submit(self._frame, values, n_rays, screen)
 
     def close(self) -> None:
+        """Finish the frame in progress, drop the queued ones and stop the worker thread."""
         self._pool.shutdown(wait=True, cancel_futures=True)
 
 
 def make_backend(spec: str, *, overrides: Mapping | None = None, hist: HistogramSpec | None = None,
                  noise_seed: int | None = None, beamline: str | None = None) -> FootprintBackend:
-    """Backend from its command-line name: ``twin``, ``surrogate[:checkpoint]`` or ``module:factory``
-    (``noise_seed``: see :class:`TwinBackend`; a factory's backend draws its own noise; ``beamline``:
-    a description file the twin traces instead of METRIXS)."""
+    """Backend from its command-line name: ``twin``, ``surrogate[:checkpoint]`` or ``module:factory``.
+
+    ``noise_seed``: see :class:`TwinBackend` (a factory's backend draws its own noise);
+    ``beamline``: a description file the twin traces instead of METRIXS.
+    """
     if spec == "twin":
         return TwinBackend(overrides=overrides, hist=hist, noise_seed=noise_seed, beamline=beamline)
     if beamline is not None:

@@ -45,9 +45,10 @@ _COMPRESSION = ("None", "N-bit", "szip", "zlib", "Blosc", "BSLZ4", "LZ4", "JPEG"
 
 @dataclass(frozen=True, kw_only=True)
 class CameraNoise:
-    """How the simulated camera turns photons into counts (ADU); typical of a directly illuminated
-    soft X-ray CCD: a photon of ~930 eV frees ~255 electrons, read at 4 electrons per ADU, with
-    3 electrons of read noise.
+    """How the simulated camera turns photons into counts (ADU).
+
+    The defaults are typical of a directly illuminated soft X-ray CCD: a photon of ~930 eV frees
+    ~255 electrons, read at 4 electrons per ADU, with 3 electrons of read noise.
 
     Parameters
     ----------
@@ -203,6 +204,7 @@ class HDF5Plugin(NDArrayBase):
 
     @file_path.putter
     async def file_path(self, instance, value):
+        """Take the directory (created where ``CreateDirectory`` asks) and say whether it is writable."""
         path = Path(value)
         if int(self.create_directory.value) != 0 and not path.exists():
             try:
@@ -216,6 +218,7 @@ class HDF5Plugin(NDArrayBase):
 
     @capture.putter
     async def capture(self, instance, value):
+        """Start a capture into the next file (completing when it ends), or stop it with ``Done``."""
         if value == "Done":
             await self._stop("stopped")
             return SkipWrite
@@ -331,6 +334,7 @@ class CamDriver(NDArrayBase):
 
     @acquire.startup
     async def acquire(self, instance, async_lib):
+        """Publish the sensor's size at startup."""
         # the frame's size is known before the first frame, as a configured sensor's is
         rows, cols = self._shape
         for pv, v in ((self.array_size_x_rbv, cols), (self.array_size_y_rbv, rows),
@@ -339,6 +343,7 @@ class CamDriver(NDArrayBase):
 
     @acquire_time.putter
     async def acquire_time(self, instance, value):
+        """Take an exposure time within [1e-4, 1000] s and echo it to the readback."""
         if not 1e-4 <= value <= 1000:
             raise ValueError(f"AcquireTime must lie in [1e-4, 1000] s, got {value}")
         await self.acquire_time_rbv.write(value)
@@ -346,6 +351,7 @@ class CamDriver(NDArrayBase):
 
     @num_images.putter
     async def num_images(self, instance, value):
+        """Take a frame count within [1, 100000] and echo it to the readback."""
         if not 1 <= value <= 100000:
             raise ValueError(f"NumImages must lie in [1, 100000], got {value}")
         await self.num_images_rbv.write(value)
@@ -353,6 +359,7 @@ class CamDriver(NDArrayBase):
 
     @acquire.putter
     async def acquire(self, instance, value):
+        """Start an acquisition (completing when it ends), or stop the running one with ``Done``."""
         if value == "Done":
             self._stop.set()
             return SkipWrite
@@ -403,8 +410,11 @@ class CamDriver(NDArrayBase):
 
 
 class FocusCamera:
-    """The chamber's camera: ``<prefix>cam1:`` and ``<prefix>HDF1:``, frames from ``trace(n_rays)`` (a
-    future of a :class:`Frame` with the rays' screen points) through the camera model."""
+    """The chamber's camera: ``<prefix>cam1:`` and ``<prefix>HDF1:``.
+
+    Its frames come from ``trace(n_rays)`` (a future of a :class:`Frame` with the rays' screen
+    points) through the camera model.
+    """
 
     def __init__(self, prefix: str, *, trace: Callable, geometry: CameraGeometry | None = None,
                  noise: CameraNoise | None = None, max_rays: int = 200_000,

@@ -67,10 +67,14 @@ log = logging.getLogger("sim_iocs.metrixs")
 
 
 class RefusedPutInOneLine(logging.Filter):
-    """caproto logs a refused put with its whole traceback (25 lines a put); the refusal's own
-    message names the field and the reason, so one line says it."""
+    """Log filter that shortens caproto's record of a refused put to one line.
+
+    caproto logs a refused put with its whole traceback (25 lines a put); the refusal's own
+    message names the field and the reason, so one line says it.
+    """
 
     def filter(self, record: logging.LogRecord) -> bool:
+        """Rewrite a refused put's record as one line without its traceback; let every record through."""
         if record.exc_info and str(record.msg).startswith("Invalid write request"):
             ex = record.exc_info[1]
             args = record.args if isinstance(record.args, tuple) else ()  # caproto passes a tuple
@@ -81,15 +85,19 @@ class RefusedPutInOneLine(logging.Filter):
 
 
 class BeaconRefusedOnce(logging.Filter):
-    """caproto logs every beacon that no CA repeater receives with its traceback, again at each
+    """Log filter that reports a refused beacon once per address, in one line.
+
+    caproto logs every beacon that no CA repeater receives with its traceback, again at each
     beacon period (15 s): one line the first time for each address says it; clients find the IOC by
-    their own searches all the same."""
+    their own searches all the same.
+    """
 
     def __init__(self):
         super().__init__()
         self._seen: set[str] = set()
 
     def filter(self, record: logging.LogRecord) -> bool:
+        """Pass a failed beacon's record once per address, as a one-line warning; pass every other record."""
         if not str(record.msg).startswith("Failed to send beacon"):
             return True
         where = str(record.args[0]) if isinstance(record.args, tuple) and record.args else "?"
@@ -118,9 +126,11 @@ def motor_pv(param, prefix: str = "") -> str:
 
 
 def axis_settings(param, start: float, *, move_time: float = 4.0, accel_time: float = 0.2) -> AxisSettings:
-    """Motor-record settings for one parameter: soft limits = its travel (the table's box except
-    for the slit openings), a full-travel move takes ``move_time`` seconds, resolution 1e-5 of the
-    box's order of magnitude."""
+    """Motor-record settings for one parameter.
+
+    Soft limits = its travel (the table's box except for the slit openings), a full-travel move
+    takes ``move_time`` seconds, resolution 1e-5 of the box's order of magnitude.
+    """
     resolution = 10.0 ** (math.floor(math.log10(param.high - param.low)) - 5)
     low, high = param.limits
     span = high - low
@@ -130,8 +140,10 @@ def axis_settings(param, start: float, *, move_time: float = 4.0, accel_time: fl
 
 
 def stage_settings(axis, *, move_time: float = 4.0, accel_time: float = 0.2) -> AxisSettings:
-    """Motor-record settings of one axis of the chamber's stage (:data:`bluesky_offsets.physics.screen.STAGE`):
-    at 0 at start, 0.1 µm steps, a full-travel move in ``move_time`` seconds."""
+    """Motor-record settings of one axis of the chamber's stage (:data:`bluesky_offsets.physics.screen.STAGE`).
+
+    At 0 at start, 0.1 µm steps, a full-travel move in ``move_time`` seconds.
+    """
     return AxisSettings(description=f"chamber stage {axis.name}", egu=axis.unit, low=axis.low, high=axis.high,
                         start=0.0, velocity=axis.span / move_time, accel_time=accel_time, resolution=1e-4)
 
@@ -245,6 +257,7 @@ class FocusChamber(PVGroup):
 
     @acquire.startup
     async def acquire(self, instance, async_lib):
+        """Publish the truth id, table version, axes and limits at startup, and warm up the backend."""
         await self.truth_id.write(self._truth_id)
         await self.table_version.write(self._table.version)
         for pv, axis in ((self.axis_x, self._hist.centers_x), (self.axis_y, self._hist.centers_y),
@@ -266,12 +279,14 @@ class FocusChamber(PVGroup):
 
     @num_rays.putter
     async def num_rays(self, instance, value):
+        """Take a ray budget within [0, the IOC's maximum]."""
         if not 0 <= value <= self._max_rays:
             raise ValueError(f"NumRays must lie in [0, {self._max_rays}], got {value}")
         return value
 
     @acquire_time.putter
     async def acquire_time(self, instance, value):
+        """Take a finite acquisition time within [0, ``MAX_ACQUIRE_TIME``] s."""
         if not (math.isfinite(value) and 0 <= value <= MAX_ACQUIRE_TIME):
             raise ValueError(f"AcquireTime must lie in [0, {MAX_ACQUIRE_TIME:g}] s, got {value}")
         return value
@@ -283,6 +298,7 @@ class FocusChamber(PVGroup):
 
     @acquire.putter
     async def acquire(self, instance, value):
+        """Take a frame (completing when it is done), or abort the frame being taken with ``Done``."""
         if value == "Done":
             if self._frame is not None and not self._frame.done():
                 self._abort.set()
@@ -382,8 +398,11 @@ class _Aborted(Exception):
 
 
 def submit_frame(backend: FootprintBackend, values: np.ndarray, n_rays: int, screen: np.ndarray):
-    """``backend.submit`` with the chamber's stage where it stands; a backend that cannot move the
-    screen (a plugged-in one without a ``screen`` argument) is asked only while the stage is at 0."""
+    """``backend.submit`` with the chamber's stage where it stands.
+
+    A backend that cannot move the screen (a plugged-in one without a ``screen`` argument) is asked
+    only while the stage is at 0.
+    """
     if not np.any(screen):
         return backend.submit(values, n_rays)
     try:
@@ -479,6 +498,7 @@ class MetrixsIOC:
         return pos
 
     def true_state(self) -> np.ndarray:
+        """The true parameter vector at the motors' present positions (the hidden truth applied)."""
         return self.truth.true_values(self.positions())
 
     def screen(self) -> np.ndarray:
@@ -507,6 +527,7 @@ class MetrixsIOC:
         return "\n".join(lines)
 
     def close(self) -> None:
+        """Close the backend and its workers."""
         self.backend.close()
 
 
@@ -514,6 +535,7 @@ class MetrixsIOC:
 # command line
 # --------------------------------------------------------------------------- #
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Add the IOC's command-line options to ``parser``."""
     parser.add_argument("--prefix", default=DEFAULT_PREFIX, help=f"PV prefix (default {DEFAULT_PREFIX})")
     parser.add_argument("--beamline", default=None, metavar="FILE|NAME",
                         help="serve a described beamline (a TOML file, or a shipped one: energize) instead of "
@@ -635,8 +657,11 @@ def _interfaces(given: list[str] | None) -> list[str]:
 
 
 def _beacon_environment(interfaces: list[str]) -> None:
-    """Beacons to the served loopback interface, not caproto's default 255.255.255.255,
-    unless the caller chose their addresses (``EPICS_CAS_BEACON_ADDR_LIST``)."""
+    """Send beacons to the served loopback interface, not caproto's default 255.255.255.255.
+
+    Only where every served interface is a loopback one, and not where the caller chose their
+    addresses (``EPICS_CAS_BEACON_ADDR_LIST``).
+    """
     if os.environ.get("EPICS_CAS_BEACON_ADDR_LIST"):
         return
     loop = [i for i in interfaces if i.startswith("127.")]
@@ -684,10 +709,12 @@ def serve(args) -> int:
 
 
 def _completed(command):
-    """A failed put-with-completion answered the way an EPICS IOC answers it: a
-    WriteNotifyResponse with ECA_PUTFAIL.  caproto's server sends an ErrorResponse instead,
+    """A failed put-with-completion answered the way an EPICS IOC answers it.
+
+    That is a WriteNotifyResponse with ECA_PUTFAIL.  caproto's server sends an ErrorResponse instead,
     which caproto's own clients (ophyd's control layer among them) never match to the put:
-    it would wait until its timeout."""
+    it would wait until its timeout.
+    """
     import caproto as ca
     if isinstance(command, ca.ErrorResponse):
         req = command.original_request
@@ -741,6 +768,7 @@ def add_cli(subparsers) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """``python -m sim_iocs.metrixs``: parse ``argv`` and serve the IOC; the exit status (2 for a bad parameter)."""
     parser = argparse.ArgumentParser(prog="python -m sim_iocs.metrixs",
                                      description="Simulated METRIXS beamline (caproto IOC).")
     add_arguments(parser)

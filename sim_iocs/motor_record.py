@@ -58,8 +58,10 @@ def steps(position: float, resolution: float) -> int:
 
 
 def _finite(value, field: str, *, above: float | None = None, at_least: float | None = None) -> float:
-    """``value`` as a finite float (optionally ``> above`` or ``>= at_least``), or ValueError
-    naming the field: NaN and infinities never reach a published value or the motion."""
+    """``value`` as a finite float (optionally ``> above`` or ``>= at_least``), or ValueError naming the field.
+
+    NaN and infinities never reach a published value or the motion.
+    """
     try:
         v = float(value)
     except (TypeError, ValueError):
@@ -139,13 +141,17 @@ class AxisSettings:
 
     @property
     def precision(self) -> int:
+        """Display precision (PREC): the decimals of one step ``resolution``, within [0, 12]."""
         return int(min(max(-math.floor(math.log10(self.resolution)), 0), 12))
 
 
 @dataclass(frozen=True, kw_only=True)
 class Mechanics:
-    """How an axis really moves (EGU).  The default is a perfect axis: the load follows the
-    commanded steps exactly and the readback is the step count."""
+    """How an axis really moves (EGU).
+
+    The default is a perfect axis: the load follows the commanded steps exactly and the readback is
+    the step count.
+    """
 
     encoder: bool = False        # readback from an encoder on the load (UEIP) instead of the step count
     readback_noise: float = 0.0  # encoder noise, σ
@@ -164,6 +170,7 @@ class Mechanics:
 
     @property
     def perfect(self) -> bool:
+        """Whether the load follows the commanded steps exactly (no backlash, step-scale error or stall)."""
         return not (self.backlash or self.step_scale or self.stalled)
 
 
@@ -172,12 +179,15 @@ _INTEGER = re.compile(rb"\s*[+-]?\d+\s*")
 
 
 class StrictText:
-    """A numeric field that takes a put as text only when the text is a plain number of its kind:
-    caproto reads ``''`` as 0 and Python's ``'1_0'`` as 10, which the record would refuse."""
+    """A numeric field that takes a put as text only when the text is a plain number of its kind.
+
+    caproto reads ``''`` as 0 and Python's ``'1_0'`` as 10, which the record would refuse.
+    """
 
     pattern = _NUMBER
 
     async def write_from_dbr(self, data, data_type, metadata, *, flags=0):
+        """Refuse a text put that is not a plain number of the field's kind; pass the rest to caproto."""
         if data_type in (ChannelType.STRING, ChannelType.CHAR):
             texts = [data] if isinstance(data, (str, bytes)) else list(data)
             for t in texts:
@@ -350,6 +360,7 @@ class MotorRecord(PVGroup):
 
     @property
     def moving(self) -> bool:
+        """Whether a motion is under way."""
         return self._motion is not None and not self._motion.done()
 
     def _uses_encoder(self) -> bool:
@@ -409,6 +420,7 @@ class MotorRecord(PVGroup):
     # -------------------------------------------------------------- startup
     @val.startup
     async def val(self, instance, async_lib):
+        """Publish the axis's settings, limits, position and status at startup."""
         s = self.settings
         prec = s.precision
         units = dict(units=s.egu, precision=prec)
@@ -531,8 +543,11 @@ class MotorRecord(PVGroup):
         await self._finish_motion(generation, limit_hit)
 
     async def _approach(self, distance: float) -> str | None:
-        """Step the motor by ``distance`` (dial units), the last ``BDST`` of it at ``BVEL`` from
-        ``BDST``'s side, as the record takes out backlash; the limit switch hit, if any."""
+        """Step the motor by ``distance`` (dial units); the limit switch hit, if any.
+
+        The last ``BDST`` of it is taken at ``BVEL`` from ``BDST``'s side, as the record takes out
+        backlash.
+        """
         bdst = self.bdst.value
         if not bdst:
             legs = [(distance, self.velo.value, self.accl.value)]
@@ -625,6 +640,7 @@ class MotorRecord(PVGroup):
     # --------------------------------------------------------------- putters
     @val.putter
     async def val(self, instance, value):
+        """Move to user position VAL (completing when the move ends); in SET mode, redefine the position there."""
         value = _finite(value, "VAL")
         if self.set_.value == "Set":
             await self._redefine_user(value)
@@ -635,6 +651,7 @@ class MotorRecord(PVGroup):
 
     @dval.putter
     async def dval(self, instance, value):
+        """Move to dial position DVAL (completing when the move ends); in SET mode, redefine the position there."""
         value = _finite(value, "DVAL")
         if self.set_.value == "Set":
             await self._redefine_user(self._user_from_dial(value))
@@ -644,6 +661,7 @@ class MotorRecord(PVGroup):
 
     @rlv.putter
     async def rlv(self, instance, value):
+        """Move by RLV (user units) from the present target; RLV reads 0 again."""
         target_user = self._user_from_dial(self._target_dial) + _finite(value, "RLV")
         await self._move_and_wait(self._dial_from_user(target_user))
         return 0.0
@@ -655,12 +673,14 @@ class MotorRecord(PVGroup):
 
     @twf.putter
     async def twf(self, instance, value):
+        """Tweak forward by TWV."""
         if value:
             await self._tweak(+1.0)
         return 0
 
     @twr.putter
     async def twr(self, instance, value):
+        """Tweak in reverse by TWV."""
         if value:
             await self._tweak(-1.0)
         return 0
@@ -675,24 +695,28 @@ class MotorRecord(PVGroup):
 
     @homf.putter
     async def homf(self, instance, value):
+        """Home: move to the axis's start position and mark it homed."""
         if value:
             await self._home()
         return 0
 
     @homr.putter
     async def homr(self, instance, value):
+        """Home: move to the axis's start position and mark it homed."""
         if value:
             await self._home()
         return 0
 
     @stop.putter
     async def stop(self, instance, value):
+        """Stop the motion."""
         if value:
             await self._halt()
         return 0
 
     @spmg.putter
     async def spmg(self, instance, value):
+        """Stop, pause or resume (Move, Go) the motion."""
         if value == "Stop":
             await self._halt()
         elif value == "Pause":
@@ -735,6 +759,7 @@ class MotorRecord(PVGroup):
 
     @off.putter
     async def off(self, instance, value):
+        """Set the user offset OFF, refused where a user coordinate would not be finite."""
         off = _finite(value, "OFF")
         self._check_user(offset=off, field="OFF")
         self._offset = off
@@ -744,10 +769,12 @@ class MotorRecord(PVGroup):
 
     @twv.putter
     async def twv(self, instance, value):
+        """Take a finite tweak step TWV."""
         return _finite(value, "TWV")
 
     @dir.putter
     async def dir(self, instance, value):
+        """Set the user direction (Pos, Neg) and republish the limits and position."""
         # As in the record, OFF is kept: the user coordinates change sign.
         self._sign = -1.0 if value == "Neg" else 1.0
         await self._publish_limits()
@@ -756,11 +783,13 @@ class MotorRecord(PVGroup):
 
     @hlm.putter
     async def hlm(self, instance, value):
+        """Set the user high limit (the dial limit it maps to)."""
         await self._set_user_limit(_finite(value, "HLM"), high=True)
         return SkipWrite
 
     @llm.putter
     async def llm(self, instance, value):
+        """Set the user low limit (the dial limit it maps to)."""
         await self._set_user_limit(_finite(value, "LLM"), high=False)
         return SkipWrite
 
@@ -778,12 +807,14 @@ class MotorRecord(PVGroup):
 
     @dhlm.putter
     async def dhlm(self, instance, value):
+        """Set the dial high limit and republish the user limits."""
         await self._set_dial_limit(_finite(value, "DHLM"), high=True)
         await self._publish_limits()
         return SkipWrite
 
     @dllm.putter
     async def dllm(self, instance, value):
+        """Set the dial low limit and republish the user limits."""
         await self._set_dial_limit(_finite(value, "DLLM"), high=False)
         await self._publish_limits()
         return SkipWrite
@@ -794,6 +825,7 @@ class MotorRecord(PVGroup):
 
     @velo.putter
     async def velo(self, instance, value):
+        """Take a speed VELO fast enough to cross the travel within ``MAX_MOVE_TIME``, kept within [VBAS, VMAX]."""
         v = _finite(value, "VELO", above=0.0)
         if v < self._slowest():
             raise ValueError(f"VELO must be >= {self._slowest():.3g} (the whole travel within {MAX_MOVE_TIME:g} s)")
@@ -802,6 +834,7 @@ class MotorRecord(PVGroup):
 
     @vmax.putter
     async def vmax(self, instance, value):
+        """Take the maximum speed VMAX (0: none), lowering VELO to it where faster."""
         vmax = _finite(value, "VMAX", at_least=0.0)  # 0: no maximum
         if 0 < vmax < max(self.vbas.value, self._slowest()):
             raise ValueError(f"VMAX must be 0 or >= max(VBAS, {self._slowest():.3g})")
@@ -811,6 +844,7 @@ class MotorRecord(PVGroup):
 
     @vbas.putter
     async def vbas(self, instance, value):
+        """Take the base speed VBAS (at most VMAX), raising VELO to it where slower."""
         vbas = _finite(value, "VBAS", at_least=0.0)
         if self.vmax.value > 0 and vbas > self.vmax.value:
             raise ValueError("VBAS must be <= VMAX")
@@ -820,41 +854,50 @@ class MotorRecord(PVGroup):
 
     @hvel.putter
     async def hvel(self, instance, value):
+        """Take the homing speed HVEL, its sign dropped."""
         return _finite(abs(_finite(value, "HVEL")), "HVEL", above=0.0)  # a speed: its sign is dropped
 
     @accl.putter
     async def accl(self, instance, value):
+        """Take the acceleration time ACCL, within [1 ms, ``MAX_ACCEL_TIME``]."""
         # the record's ACCL is seconds to velocity: kept within [1 ms, MAX_ACCEL_TIME]
         return min(max(_finite(value, "ACCL"), 1e-3), MAX_ACCEL_TIME)
 
     @mres.putter
     async def mres(self, instance, value):
+        """Take a positive motor resolution MRES (EGU per step)."""
         return _finite(value, "MRES", above=0.0)
 
     @eres.putter
     async def eres(self, instance, value):
+        """Take a finite encoder resolution ERES."""
         return _finite(value, "ERES")
 
     @rres.putter
     async def rres(self, instance, value):
+        """Take a finite readback resolution RRES."""
         return _finite(value, "RRES")
 
     @rdbd.putter
     async def rdbd(self, instance, value):
+        """Take a non-negative retry deadband RDBD."""
         return _finite(value, "RDBD", at_least=0.0)
 
     @rtry.putter
     async def rtry(self, instance, value):
+        """Take the retry count RTRY, within [0, 255]."""
         return min(max(int(value), 0), 255)  # the record's RTRY is an unsigned char
 
     @ueip.putter
     async def ueip(self, instance, value):
+        """Use the encoder for the readback (refused on an axis without one)."""
         if value == "Yes" and not self.mechanics.encoder:
             raise ValueError("UEIP: this axis has no encoder")
         return value
 
     @bdst.putter
     async def bdst(self, instance, value):
+        """Take the backlash distance BDST, shorter than the axis's travel."""
         bdst = _finite(value, "BDST")
         if abs(bdst) > self._axis_high - self._axis_low:
             raise ValueError("BDST must be shorter than the axis's travel")
@@ -862,6 +905,7 @@ class MotorRecord(PVGroup):
 
     @bvel.putter
     async def bvel(self, instance, value):
+        """Take a backlash speed BVEL fast enough to cross the travel within ``MAX_MOVE_TIME``."""
         v = _finite(value, "BVEL", above=0.0)
         if v < self._slowest():
             raise ValueError(f"BVEL must be >= {self._slowest():.3g} (the whole travel within {MAX_MOVE_TIME:g} s)")
@@ -869,14 +913,17 @@ class MotorRecord(PVGroup):
 
     @bacc.putter
     async def bacc(self, instance, value):
+        """Take the backlash acceleration time BACC, within [1 ms, ``MAX_ACCEL_TIME``]."""
         return min(max(_finite(value, "BACC"), 1e-3), MAX_ACCEL_TIME)
 
     @urev.putter
     async def urev(self, instance, value):
+        """Take a finite distance per motor revolution UREV."""
         return _finite(value, "UREV")
 
     @prec.putter
     async def prec(self, instance, value):
+        """Take the display precision PREC (within [0, 15]) and set it on the position fields."""
         value = min(max(int(value), 0), 15)
         for pv in (self.val, self.rbv, self.dval, self.drbv, self.hlm, self.llm, self.dhlm, self.dllm):
             await pv.write_metadata(precision=value)
@@ -884,6 +931,7 @@ class MotorRecord(PVGroup):
 
     @egu.putter
     async def egu(self, instance, value):
+        """Take the engineering units EGU and set them on the position fields."""
         for pv in (self.val, self.rbv, self.dval, self.drbv, self.hlm, self.llm, self.dhlm, self.dllm):
             await pv.write_metadata(units=str(value))
         return value

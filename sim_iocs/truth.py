@@ -78,8 +78,10 @@ def default_start(table: ParameterTable = METRIXS) -> np.ndarray:
 
 
 def _field_value(obj, field, x):
-    """An RML field value: a number, or a word such as an element type (a thermal bump turns
-    M1 into a ``Toroid``)."""
+    """An RML field value: a number, or a word such as an element type.
+
+    A word stays text: a thermal bump turns M1 into a ``Toroid``.
+    """
     if isinstance(x, str):
         try:
             return float(x)
@@ -131,6 +133,7 @@ class Truth:
 
     @classmethod
     def from_mapping(cls, spec: Mapping, table: ParameterTable = METRIXS, source: str = "") -> Truth:
+        """The truth a truth file's mapping describes (offsets, overrides, start, motors); unknown keys refused."""
         known = {"offsets", "offsets_physical", "overrides", "start", "comment", "salt", "motors"}
         unknown = set(spec) - known
         if unknown:
@@ -152,6 +155,7 @@ class Truth:
 
     @classmethod
     def from_file(cls, path: str | Path, table: ParameterTable = METRIXS) -> Truth:
+        """The truth in the JSON truth file at ``path`` (:meth:`from_mapping`)."""
         p = Path(path)
         try:
             spec = json.loads(p.read_text())
@@ -182,11 +186,14 @@ class Truth:
 
     @property
     def physical_offsets(self) -> np.ndarray:
+        """The hidden offsets in physical units (mm/mrad), table order."""
         return self.offsets * self.table.span
 
     def true_values(self, positions) -> np.ndarray:
-        """True beamline state for motor positions ``positions`` (table order; fixed entries
-        are taken at their design value whatever is passed)."""
+        """True beamline state for motor positions ``positions`` (table order).
+
+        Fixed entries are taken at their design value whatever is passed.
+        """
         pos = self.table.validate(positions, "positions")
         pos = np.where(self.table.motorized, pos, self.table.reference)
         return pos + self.physical_offsets

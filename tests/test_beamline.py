@@ -100,12 +100,13 @@ def test_rayx_traces_a_described_beamline_as_its_rml_says():
     traces it ray for ray as the shipped file; a mirror's pitch turns the beam by twice the angle."""
     import rayx
 
-    from bluesky_offsets.physics.twin import TraceRequest, Twin, _rayx_fix_seed, footprint
+    from bluesky_offsets.physics.twin import TraceRequest, Twin, footprint
+    from bluesky_offsets.physics.rayx_calls import fix_seed
     bl = load_beamline(shipped("energize"))
     eng = bl.engine()
     r = eng.trace(TraceRequest(bl.table.reference, seed=7), 1000, keep_rays=True)
     raw = rayx.import_beamline(str(bl.rml))
-    _rayx_fix_seed(7)
+    fix_seed(7)
     x, y, _ = footprint(raw.trace(), len(raw.sources) + len(raw.elements), 1000)
     assert r.n_hits == len(x) > 50
     assert np.max(np.abs(r.rays - np.column_stack([x, y]))) < 1e-9
@@ -173,14 +174,15 @@ def test_the_torch_engine_traces_energize_from_rayx_source_rays(tmp_path):
 
     from bluesky_offsets.physics.engine import compile_beamline, rays_from_arrays, trace_rays
     from bluesky_offsets.physics.engine import random_streams as rnd
-    from bluesky_offsets.physics.twin import TraceRequest, _rayx_fix_seed, footprint
+    from bluesky_offsets.physics.rayx_calls import fix_seed
+    from bluesky_offsets.physics.twin import TraceRequest, footprint
     bl = load_beamline(shipped("energize"))
     vals = bl.table.reference.copy()
     vals[bl.table.index("M4.rotationXerror")], vals[bl.table.index("PG.rotationZerror")] = 0.1, 0.5
     n = 2000
     rml = bl.engine().build(TraceRequest(vals), n)
     rb = rayx.import_beamline(str(rml.write(tmp_path / "e.rml")))
-    _rayx_fix_seed(5)
+    fix_seed(5)
     rays = rb.trace()
     n_objects = len(rb.sources) + len(rb.elements)
     _, _, good = footprint(rays, n_objects, n)

@@ -22,7 +22,8 @@ from bluesky_offsets.physics.engine import random_streams as rnd
 from bluesky_offsets.physics.metrixs import build_beamline
 from bluesky_offsets.physics.parameters import METRIXS
 from bluesky_offsets.physics.rml import read_rml
-from bluesky_offsets.physics.twin import HistogramSpec, RayxEngine, Twin, TraceRequest, _rayx_fix_seed, footprint
+from bluesky_offsets.physics.twin import HistogramSpec, RayxEngine, Twin, TraceRequest, footprint
+from bluesky_offsets.physics.rayx_calls import fix_seed
 
 SHARED = Path(__file__).resolve().parent / "data" / "reference"  # provenance: its README.md
 RAYUI_FILES = sorted((SHARED / "rayui-misalignment").glob("*.rml"))
@@ -47,7 +48,7 @@ def _rayx_events(bl, n_rays, seed, tmp_path):
     path = bl.write(tmp_path / "t.rml")
     rb = rayx.import_beamline(str(path))
     rb.sources[0].numberOfRays = n_rays
-    _rayx_fix_seed(seed)
+    fix_seed(seed)
     rays = rb.trace()
     n_objects = len(rb.sources) + len(rb.elements)
     pid, peid = np.asarray(rays.path_id), np.asarray(rays.path_event_id)

@@ -12,7 +12,8 @@ from bluesky_offsets.physics.metrixs import nominal_beamline
 from bluesky_offsets.physics.noise import expected_repeat_mse, histogram_mse, load_noise_floor
 from bluesky_offsets.physics.parameters import METRIXS
 from bluesky_offsets.physics.rml import read_rml
-from bluesky_offsets.physics.twin import HistogramSpec, Twin, _rayx_fix_seed, footprint
+from bluesky_offsets.physics.twin import HistogramSpec, Twin, footprint
+from bluesky_offsets.physics.rayx_calls import fix_seed
 
 SHARED = Path(__file__).resolve().parent / "data" / "reference"  # provenance: its README.md
 METRIXS_RML = SHARED / "METRIX_U41_G1_H1_318eV_PS_MLearn_1.15.rml"
@@ -26,7 +27,7 @@ def twin():
 
 def _trace_file(path: Path, seed: int = 0):
     bl = rayx.import_beamline(str(path))
-    _rayx_fix_seed(seed)
+    fix_seed(seed)
     return bl, bl.trace()
 
 
@@ -62,7 +63,7 @@ def test_nominal_matches_direct_rayx_trace(twin, tmp_path):
     n = 20_000
     ref = rayx.import_beamline(str(METRIXS_RML))
     ref.sources[0].numberOfRays = n
-    _rayx_fix_seed(99)
+    fix_seed(99)
     xr, yr, idr = footprint(ref.trace(), 10, n)
     res = twin.trace(METRIXS.reference, n_rays=n, keep_rays=True, seed=99)
     assert res.n_hits == len(xr)

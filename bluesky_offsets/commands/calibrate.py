@@ -179,6 +179,7 @@ def _results(args, session, pv_map, store, designed: bool, live, t0: float) -> N
 
 
 def add_cli(sub) -> None:
+    """Register the ``calibrate`` sub-command on the command line's subparsers ``sub``."""
     from bluesky_offsets.commands.cli import add_analysis_options
     from bluesky_offsets.epics.pvmap import SIM_PREFIX
     from bluesky_offsets.model import diagnosis as D

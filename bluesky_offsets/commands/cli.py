@@ -38,8 +38,10 @@ class CliError(Exception):
 
 
 def quiet_logs() -> None:
-    """Dask's and tiled's INFO lines would drown the progress.  Their imports set their
-    loggers to INFO, so they are imported first."""
+    """Set Dask's, tiled's, httpx's and bokeh's loggers to WARNING: their INFO lines would drown the progress.
+
+    Their imports set their loggers to INFO, so they are imported first.
+    """
     import importlib
     import logging
     for module in ("distributed", "tiled.server.app"):
@@ -56,8 +58,11 @@ def quiet_logs() -> None:
 # params
 def add_analysis_options(p: argparse.ArgumentParser, *, fit_rays: int | None, fit_rays_help: str,
                          resolution_help: str) -> None:
-    """The options every verb that analyses a measurement shares (``demo``, ``diagnose``,
-    ``calibrate``): rounds of diagnosis, the fits' rays, screening, the binning fitted, threads."""
+    """Add the options every verb that analyses a measurement shares to the parser ``p``.
+
+    The verbs are ``demo``, ``diagnose`` and ``calibrate``; the options: rounds of diagnosis,
+    the fits' rays, screening, the binning fitted, threads.
+    """
     p.add_argument("--rounds", type=int, default=None,
                    help="diagnoses at most: after an effect is added the model is diagnosed again (default 3: two "
                         "hidden effects and one added before them that the backward step drops)")
@@ -93,8 +98,11 @@ def check_analysis_options(args) -> None:
 
 
 def default_threads() -> int:
-    """``$OMP_NUM_THREADS`` where set (a batch system's or a test runner's share of the
-    machine), else the cores this process may use."""
+    """The threads an analysis uses by default.
+
+    ``$OMP_NUM_THREADS`` where set (a batch system's or a test runner's share of the
+    machine), else the cores this process may use.
+    """
     try:
         return max(1, int(os.environ.get("OMP_NUM_THREADS", "")))
     except ValueError:
@@ -249,6 +257,7 @@ def _compare_engines(a, b, n_rays: int) -> dict:
 # entry point
 # --------------------------------------------------------------------------- #
 def build_parser() -> argparse.ArgumentParser:
+    """The ``bluesky-offsets`` argument parser, with the sub-commands of every module in :data:`EXTENSIONS`."""
     parser = argparse.ArgumentParser(prog="bluesky-offsets",
                                      description="Offset finding for the METRIXS beamline's digital twin.")
     parser.add_argument("-v", "--verbose", action="store_true", help="log more")
@@ -289,6 +298,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """Run ``bluesky-offsets`` on ``argv``; return the exit status (2: a user error, 3: a beamline error)."""
     parser = build_parser()
     args = parser.parse_args(argv)
     from bluesky_offsets.progress import set_quiet

@@ -69,6 +69,8 @@ def _design(**kw) -> MeasurementDesign:
 
 @dataclass
 class DemoSettings:
+    """The demo's settings: the simulated beamline, what is measured, the hidden truth, the analysis."""
+
     n_rays: int = 5000                # per measured frame
     # the simulated motors: seconds for a full-range move (velocity = range / move_time), far
     # faster than a real motor: the speed changes the wall time, not the frames or the results
@@ -126,15 +128,18 @@ class DemoSettings:
 
     @property
     def table(self):
+        """The parameter table: METRIXS's, or the described beamline's."""
         bl = self.described
         return METRIXS if bl is None else bl.table
 
     @property
     def display(self) -> str:
+        """The beamline's name as printed: ``METRIXS``, or the described beamline's table name."""
         return "METRIXS" if self.beamline is None else self.table.name
 
     @property
     def steps(self) -> int:
+        """The demo's numbered steps: 6 with the beam optimization, 5 without."""
         return 6 if self.optimize else 5
 
     @property
@@ -146,6 +151,7 @@ class DemoSettings:
 
     @property
     def hidden(self) -> dict[str, dict[str, float]]:
+        """The hidden effects' values by effect name (the unnamed ones left out)."""
         return {name: dict(values) for name, values in self.effects if name}
 
 
@@ -174,8 +180,10 @@ def demo_truth(s: DemoSettings) -> dict:
 # the simulated beamline
 # --------------------------------------------------------------------------- #
 class SimulatedBeamline:
-    """The simulated IOC (METRIXS, or the described ``beamline``: a description file) in a
-    subprocess on loopback, a free port; :meth:`stop` always kills it."""
+    """The simulated IOC in a subprocess on loopback, on a free port.
+
+    The IOC is METRIXS, or the described ``beamline`` (a description file); :meth:`stop` always kills it.
+    """
 
     def __init__(self, truth: Mapping, n_rays: int, work: Path, move_time: float = 0.5, noise_seed: int = 0,
                  motors: str = "perfect", beamline: Path | None = None):
@@ -202,12 +210,14 @@ class SimulatedBeamline:
             env=env, stdout=self._log, stderr=subprocess.STDOUT, start_new_session=True)
 
     def log(self) -> str:
+        """The IOC log's last 3000 characters ("" when it cannot be read)."""
         try:
             return self.log_path.read_text()[-3000:]
         except OSError:
             return ""
 
     def wait_ready(self, timeout: float = 120.0) -> None:
+        """Wait until the IOC's chamber message says it is ready; raise if it exits or ``timeout`` s pass."""
         from caproto.sync.client import read
         deadline = time.monotonic() + timeout
         while time.monotonic() < deadline:
@@ -225,6 +235,7 @@ class SimulatedBeamline:
         raise TimeoutError(f"the simulated IOC did not come up in {timeout:.0f} s:\n{self.log()}")
 
     def stop(self) -> None:
+        """Kill the IOC's process group and close its log and beacon sink."""
         from sim_iocs.ports import stop_process_group
         stop_process_group(self.proc)
         self._log.close()
@@ -235,10 +246,12 @@ class SimulatedBeamline:
 # the workflow as one plan
 # --------------------------------------------------------------------------- #
 def demo_plan(s: DemoSettings, beamline, chamber, twin, forward_model, log, executor=None):
-    """The session (:func:`plans.workflow.calibration_session`) with the demo's settings, then the
-    smallest focus on the calibrated twin (:func:`plans.optimize.optimize_beam`); steps numbered 2
-    to 5 of the demo's six; ``executor`` runs the analysis's independent fits.  Returns (session,
-    beam result or None)."""
+    """The demo as one plan: the calibration session, then the smallest focus on the calibrated twin.
+
+    The session is :func:`plans.workflow.calibration_session` with the demo's settings, the smallest
+    focus :func:`plans.optimize.optimize_beam`; steps numbered 2 to 5 of the demo's six; ``executor``
+    runs the analysis's independent fits.  Returns (session, beam result or None).
+    """
     import itertools
 
     from plans.optimize import optimize_beam
@@ -361,8 +374,10 @@ def run_demo(out: Path, settings: DemoSettings | None = None, store_location: st
 
 
 def _devices(s: DemoSettings, ioc: SimulatedBeamline, work: Path, store, RE, out: Path) -> tuple:
-    """The beamline's and the chamber's devices on the IOC, connected in ``RE``'s loop; the store and
-    the live views subscribed.  Returns (beamline, chamber, live views)."""
+    """The beamline's and the chamber's devices on the IOC, connected in ``RE``'s loop.
+
+    The store and the live views are subscribed.  Returns (beamline, chamber, live views).
+    """
     from bluesky_offsets.commands.session import ScanProgress, connect_devices
     from bluesky_offsets.epics.pvmap import PVMap
     from bluesky_offsets.live import LiveFitProgress, LiveFootprints, in_background
@@ -530,8 +545,11 @@ def _summary(s: DemoSettings, truth: Mapping, session, beam_result, best, writte
 
 
 def _true_best(truth: Mapping, beam):
-    """The hidden true beamline's smallest focus: the same optimizer, options and limits on the
-    true state (a simulation's check of the plan's result; the plan never sees it)."""
+    """The hidden true beamline's smallest focus.
+
+    The same optimizer, options and limits on the true state (a simulation's check of the plan's
+    result; the plan never sees it).
+    """
     from bluesky_offsets.model.state import ModelState
     from bluesky_offsets.optimize import optimize_settings
     true = ModelState(METRIXS.from_mapping(truth["offsets"], base=np.zeros(len(METRIXS))), label="hidden truth")
@@ -600,6 +618,7 @@ def _print_summary(summary: dict, analysis, location: str) -> None:
 
 
 def add_cli(sub) -> None:
+    """Register the ``demo`` sub-command on the command line's subparsers ``sub``."""
     from bluesky_offsets.commands.cli import add_analysis_options
     p = sub.add_parser("demo", help="the main job: calibrate and diagnose a simulated METRIXS end to end",
                        description=__doc__.split("\n\n", 1)[1] if __doc__ else None)
@@ -657,6 +676,7 @@ def add_cli(sub) -> None:
 
 
 def parse_effect(text: str) -> tuple[str, dict]:
+    """Read ``--effect NAME:PARAM=VALUE,...`` (or ``none``): the effect's name and all its values, checked."""
     from bluesky_offsets.commands.cli import CliError
     if text.lower() in ("none", ""):
         return ("", {})
@@ -684,8 +704,10 @@ def parse_effect(text: str) -> tuple[str, dict]:
 
 
 def _check_beamline(args, hidden: Sequence[str]) -> bool:
-    """``--beamline``'s description read and the options checked against it (one line each);
-    whether the demo ends with the beam optimization."""
+    """Read ``--beamline``'s description and check the options against it (one line each).
+
+    Returns whether the demo ends with the beam optimization.
+    """
     from bluesky_offsets.commands.cli import CliError
     from bluesky_offsets.physics.beamline import BeamlineError, resolve
     if args.beamline is None:

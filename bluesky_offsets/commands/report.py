@@ -62,22 +62,27 @@ def write_report(path: str | Path, *, title: str, sections: Sequence[tuple[str, 
 
 
 def image(path: Path, alt: str) -> str:
+    """The PNG at ``path`` as an inlined (base64) HTML figure, ``alt`` its alternative text and caption."""
     return _img(path, alt)
 
 
 def table(rows, columns=None, fmt: str = "{:.4g}") -> str:
+    """``rows`` (mappings) as an HTML table of ``columns`` (default: the first row's keys), floats in ``fmt``."""
     return _table(rows, columns, fmt)
 
 
 def verdict(text: str, warn: bool = False) -> str:
+    """``text`` as the report's highlighted verdict paragraph, in the warning colour when ``warn``."""
     return f"<p class='verdict{' warn' if warn else ''}'>{html.escape(text)}</p>"
 
 
 def pre(text: str) -> str:
+    """``text`` as a preformatted HTML block, escaped."""
     return f"<pre>{html.escape(text)}</pre>"
 
 
 def paragraph(text: str) -> str:
+    """``text`` as an HTML paragraph, escaped."""
     return f"<p>{html.escape(text)}</p>"
 
 
@@ -323,8 +328,10 @@ def validation_section(validation) -> str:
 
 
 def offsets_section(model, table) -> str:
-    """Each offset of the calibrated ``model`` as value ± σ with its class and the offsets it trades
-    with (:class:`bluesky_offsets.model.posterior.Posterior`)."""
+    """Each offset of the calibrated ``model`` as value ± σ with its class and the offsets it trades with.
+
+    The numbers are the model's :class:`bluesky_offsets.model.posterior.Posterior`.
+    """
     from bluesky_offsets.model.posterior import Posterior
     post = Posterior.of(model, table)
     if post is None:
@@ -344,12 +351,15 @@ def offsets_section(model, table) -> str:
 
 
 def table_(rows, columns=None, fmt: str = "{:.4g}") -> str:
+    """The same as :func:`table`, under a name that a parameter ``table`` does not shadow."""
     return _table(rows, columns, fmt)
 
 
 def limits_section(why: str, limits: Mapping[str, Mapping[str, float]]) -> str:
-    """What a model within noise cannot exclude (:func:`bluesky_offsets.model.diagnosis.detection_limits`),
-    after ``why`` it is within noise: a paragraph and a table."""
+    """What a model within noise cannot exclude, after ``why`` it is within noise: a paragraph and a table.
+
+    The limits are those of :func:`bluesky_offsets.model.diagnosis.detection_limits`.
+    """
     from bluesky_offsets.model.diagnosis import limit_text
     return (paragraph(f"{why} What that cannot exclude: how large each candidate could be and still be absorbed "
                       "by the offsets, the model staying within noise (linearised at the candidate's starting "
@@ -359,6 +369,7 @@ def limits_section(why: str, limits: Mapping[str, Mapping[str, float]]) -> str:
 
 
 def uid_section(uids: Mapping[str, str], store_location: str | None = None) -> str:
+    """The runs' uids by step as a table, and the Python lines that load them back from the store."""
     rows = [{"step": k, "run uid": v} for k, v in uids.items() if v]
     body = table_(rows)
     loc = f'"{store_location}"' if store_location else ""
@@ -375,8 +386,11 @@ def write_analysis_report(path: str | Path, analysis, spec, *, title: str = "mod
                           intro: Sequence[tuple[str, str]] = (), truth: Mapping | None = None,
                           uids: Mapping[str, str] | None = None, store_location: str | None = None,
                           extra: Sequence[tuple[str, str]] = (), table=None) -> Path:
-    """One self-contained HTML report of an analysis (of the beamline ``table`` names, default
-    METRIXS): figures inlined (base64 PNG), tables, ranking, error history, run uids; opens offline."""
+    """Write one self-contained HTML report of an analysis; it opens offline.
+
+    The analysis is of the beamline ``table`` names (default METRIXS); the report has its figures
+    inlined (base64 PNG), tables, ranking, error history and run uids.
+    """
     import tempfile
     with tempfile.TemporaryDirectory(prefix="bluesky-offsets-report-") as tmp:
         secs = [*intro, *analysis_sections(analysis, spec, Path(tmp), truth=truth, table=table), *extra]
@@ -392,8 +406,10 @@ def diag_label(analysis, k: int) -> str:
 
 
 def history_lines(analysis) -> list[str]:
-    """The error history of an analysis as aligned text lines (the terminal's version of the
-    report's table); an uncertainty that is not finite is left out."""
+    """The error history of an analysis as aligned text lines: the terminal's version of the report's table.
+
+    An uncertainty that is not finite is left out.
+    """
     lines = [f"  {'model':26s} {'chi2/dof':>9s} {'MSE':>10s} {'noise MSE':>10s} {'MSE/noise':>9s}  effects"]
     for c in analysis.comparisons:
         r = c.total_row()
@@ -412,9 +428,11 @@ def _value(name: str, value: float, sigma: float, effect: str | None = None) -> 
 
 
 def beam_section(result, work: Path, *, best=None) -> str:
-    """The optimized beam (:class:`plans.optimize.BeamResult`): the footprints before, after and
-    as predicted, each axis zoomed to its light, and a table of their sizes (``best``: the hidden
-    true beamline's best, a simulation's check, as a :class:`~bluesky_offsets.optimize.Focus`)."""
+    """The optimized beam (:class:`plans.optimize.BeamResult`): footprints and a table of their sizes.
+
+    The footprints before, after and as predicted, each axis zoomed to its light; ``best``: the
+    hidden true beamline's best, a simulation's check, as a :class:`~bluesky_offsets.optimize.Focus`.
+    """
     import matplotlib
     matplotlib.use("Agg", force=False)
     import matplotlib.pyplot as plt

@@ -1,6 +1,8 @@
-"""What the sessions on a beamline share (``demo``, ``calibrate``): the devices connected from a PV
-map, the workflow's lines under each step, a progress bar per measuring run, the Channel Access
-channels closed before an IOC goes."""
+"""What the sessions on a beamline share (``demo``, ``calibrate``).
+
+The devices connected from a PV map, the workflow's lines under each step, a progress bar per
+measuring run, the Channel Access channels closed before an IOC goes.
+"""
 
 from __future__ import annotations
 
@@ -11,8 +13,10 @@ from bluesky_offsets.commands.cli import CliError
 
 
 def connect_devices(pv_map, timeout: float):
-    """The ophyd-async beamline and chamber of ``pv_map``, connected; CliError naming the PVs
-    that did not answer within ``timeout`` seconds."""
+    """The ophyd-async beamline and chamber of ``pv_map``, connected.
+
+    CliError naming the PVs that did not answer within ``timeout`` seconds.
+    """
     from ophyd_async.core import NotConnectedError, init_devices
     try:
         with init_devices(timeout=timeout):
@@ -41,11 +45,13 @@ class StepLines(logging.Handler):
         self.logger.addHandler(self)
 
     def emit(self, record):
+        """Say the record's message, indented under the step, unless progress is quiet."""
         from bluesky_offsets.progress import quiet
         if not quiet():  # the steps' detail lines are progress too
             self.say("      " + record.getMessage())
 
     def close(self):
+        """Detach from the workflow logger and restore its level and propagation."""
         self.logger.removeHandler(self)
         self.logger.setLevel(self._level)
         self.logger.propagate = self._propagate
@@ -64,6 +70,7 @@ class ScanProgress:
         self.bright = 0
 
     def __call__(self, name, doc):
+        """Take one document: a bar at a measuring run's start, a tick per primary event, closed at its stop."""
         from bluesky_offsets.progress import bar
 
         from plans import enough_rays
@@ -86,9 +93,11 @@ class ScanProgress:
 
 
 def close_channels(RE) -> None:
-    """Close the devices' Channel Access channels before the IOC goes: otherwise libca prints
-    a "Virtual circuit disconnect" exception after the summary.  In the RunEngine's loop, whose
-    thread holds the CA context."""
+    """Close the devices' Channel Access channels before the IOC goes.
+
+    Otherwise libca prints a "Virtual circuit disconnect" exception after the summary.  In the
+    RunEngine's loop, whose thread holds the CA context.
+    """
     import asyncio
 
     async def purge():

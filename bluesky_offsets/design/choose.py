@@ -114,6 +114,7 @@ class DesignOptions:
         return cls(**opts)
 
     def replace(self, **changes) -> DesignOptions:
+        """These options with ``changes`` (field names and values) applied, validated as :meth:`from_mapping`."""
         return DesignOptions.from_mapping({f.name: getattr(self, f.name) for f in fields(self)}, **changes)
 
 
@@ -122,15 +123,17 @@ class DesignOptions:
 # --------------------------------------------------------------------------- #
 def candidate_settings(anchors: np.ndarray, n: int, rng: np.random.Generator, *, acceptance: np.ndarray,
                        options: DesignOptions, table: ParameterTable = METRIXS) -> tuple[np.ndarray, np.ndarray]:
-    """``n`` settings ``(configurations (n, P), screen (n, 3))`` around ``anchors`` (settings, twin
-    coordinates, where the beam was on the screen): each moves a share ``options.move`` of the
-    motors by up to a random fraction of 2.5 times their acceptance (the normalized half-width over
-    which the beam keeps half its light, :func:`bluesky_offsets.offsets.beam_search.acceptance`),
-    draws a slit opening anew with probability ``options.slits`` (log-uniform over its travel, above
-    twice the largest offset the model allows it: the slit stays open) and
-    places the stage anywhere in its travel along the beam (and up to ±1 mm across it, less where
-    the detector's window is narrow).  Every
-    value lies within its motor's limits; fixed parameters stay at their design values."""
+    """``n`` settings ``(configurations (n, P), screen (n, 3))`` drawn around ``anchors``.
+
+    ``anchors``: settings (twin coordinates) where the beam was on the screen.  Each setting moves a
+    share ``options.move`` of the motors by up to a random fraction of 2.5 times their acceptance
+    (the normalized half-width over which the beam keeps half its light,
+    :func:`bluesky_offsets.offsets.beam_search.acceptance`), draws a slit opening anew with
+    probability ``options.slits`` (log-uniform over its travel, above twice the largest offset the
+    model allows it: the slit stays open) and places the stage anywhere in its travel along the beam
+    (and up to ±1 mm across it, less where the detector's window is narrow).  Every value lies
+    within its motor's limits; fixed parameters stay at their design values.
+    """
     anchors = np.atleast_2d(anchors)
     base = anchors[rng.integers(len(anchors), size=n)]
     z = (base - table.low) / table.span
@@ -166,8 +169,11 @@ def candidate_settings(anchors: np.ndarray, n: int, rng: np.random.Generator, *,
 
 
 def _across(table: ParameterTable) -> tuple[float, float]:
-    """How far (mm) the stage moves the screen across the beam: 1 mm, or 0.4 of the detector's
-    half window where that is narrower (the beam stays in the window the fits read)."""
+    """How far (mm) the stage moves the screen across the beam, per axis (x, y).
+
+    1 mm, or 0.4 of the detector's half window where that is narrower (the beam stays in the
+    window the fits read).
+    """
     from bluesky_offsets.physics.beamline import of_table
     bl = of_table(table)
     if bl is None or bl.builtin is not None:
@@ -181,6 +187,7 @@ def _across(table: ParameterTable) -> tuple[float, float]:
 # the posterior the design works with, and the choice
 # --------------------------------------------------------------------------- #
 def prior_precision(n: int, sigma: float = PRIOR_SIGMA) -> np.ndarray:
+    """The prior's precision of ``n`` normalized offsets: the identity over ``sigma`` squared."""
     return np.eye(n) / sigma ** 2
 
 
@@ -219,8 +226,11 @@ def _gains(precision: np.ndarray, fisher: np.ndarray, criterion: str) -> np.ndar
 
 @dataclass(frozen=True)
 class Choice:
-    """A chosen batch: candidate indices in order, each one's predicted gain of the criterion, and
-    the precision after all of them."""
+    """A chosen batch of candidate frames.
+
+    The candidate indices in order, each one's predicted gain of the criterion, and the precision
+    after all of them.
+    """
 
     indices: list[int]
     gains: list[float]
@@ -229,9 +239,11 @@ class Choice:
 
 def select(fisher: np.ndarray, precision: np.ndarray, k: int, *, criterion: str = "D",
            allowed: np.ndarray | None = None) -> Choice:
-    """Greedy batch of ``k`` candidates (their ``fisher`` matrices, (C, P, P)), each the one that
-    adds most to the criterion given the ones chosen before it (the precision updated in turn);
-    only ``allowed`` candidates (a mask), each at most once."""
+    """Greedy batch of ``k`` candidates (their ``fisher`` matrices, (C, P, P)).
+
+    Each is the one that adds most to the criterion given the ones chosen before it (the precision
+    updated in turn); only ``allowed`` candidates (a mask), each at most once.
+    """
     if criterion not in CRITERIA:
         raise InputError(f"criterion must be one of {CRITERIA}, not {criterion!r}")
     ok = np.ones(len(fisher), bool) if allowed is None else np.asarray(allowed, bool).copy()
@@ -249,9 +261,11 @@ def select(fisher: np.ndarray, precision: np.ndarray, k: int, *, criterion: str 
 
 def far_from(fitted: tuple[np.ndarray, np.ndarray], candidates: tuple[np.ndarray, np.ndarray], n: int, *,
              allowed: np.ndarray | None = None, table: ParameterTable = METRIXS) -> list[int]:
-    """``n`` of the ``candidates`` (configurations, screen) as far as possible from the ``fitted``
-    settings and from each other (farthest-point order): distances over the motors in units of
-    their travel and the stage's axes in units of theirs.  The frames a calibration is tested on."""
+    """``n`` of the ``candidates`` (configurations, screen) as far as possible from the ``fitted`` settings.
+
+    Far also from each other (farthest-point order): distances over the motors in units of their
+    travel and the stage's axes in units of theirs.  The frames a calibration is tested on.
+    """
     def coords(cfg, screen):
         lo = np.array([p.limits[0] for p in table])
         hi = np.array([p.limits[1] for p in table])

@@ -40,8 +40,11 @@ def design_spec(spec: HistogramSpec = CAMERA, factor: tuple[int, int] = DESIGN_B
 
 @dataclass(frozen=True)
 class FrameInformation:
-    """Per candidate frame: its Fisher matrix in the normalized offsets ``(C, P, P)``, the share of
-    the source's photons it puts on the screen and that share's gradient in the offsets ``(C, P)``."""
+    """What each candidate frame would teach about the offsets, and how much light it puts on the screen.
+
+    Per candidate frame: its Fisher matrix in the normalized offsets ``(C, P, P)``, the share of
+    the source's photons it puts on the screen and that share's gradient in the offsets ``(C, P)``.
+    """
 
     fisher: np.ndarray
     intensity: np.ndarray
@@ -65,9 +68,11 @@ def positive_part(f: np.ndarray) -> np.ndarray:
 def frame_information(engine, configurations: np.ndarray, offsets: np.ndarray, *, photons: int, model_rays: int,
                       rays: int = 2000, screen=None, seed: int = 0, spec: HistogramSpec | None = None,
                       table: ParameterTable = METRIXS, chunk: int = 64, psd: bool = True) -> FrameInformation:
-    """The Fisher information of frames at ``configurations`` ((C, P) twin coordinates) and stage
-    positions ``screen`` ((C, 3) mm or None), for a beamline whose offsets are ``offsets``
-    (normalized), each frame of ``photons`` source photons fitted with ``model_rays`` model rays.
+    """The Fisher information of frames at ``configurations`` for a beamline whose offsets are ``offsets``.
+
+    ``configurations``: (C, P) twin coordinates; the stage at positions ``screen`` ((C, 3) mm or
+    None); ``offsets`` normalized; each frame of ``photons`` source photons fitted with
+    ``model_rays`` model rays.
 
     ``engine`` is a :class:`~bluesky_offsets.physics.engine.TorchEngine` with a random stream
     per configuration (``common_rays=False``); ``rays`` of it per candidate, in two halves.

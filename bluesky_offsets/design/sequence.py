@@ -37,10 +37,13 @@ STEP_SEED = 7_919
 
 @dataclass(frozen=True)
 class DesignStep:
-    """What one step chose, and why: the batch's settings, each frame's predicted gain of the
-    criterion and share of the source on the screen, the criterion before and after the batch,
-    the offsets' predicted σ after it, how many candidates were drawn and how many kept the beam on
-    the screen under the posterior, and the seconds it took."""
+    """What one step of the design chose, and why.
+
+    The batch's settings, each frame's predicted gain of the criterion and share of the source on
+    the screen, the criterion before and after the batch, the offsets' predicted σ after it, how
+    many candidates were drawn and how many kept the beam on the screen under the posterior, and the
+    seconds it took.
+    """
 
     step: int
     configurations: np.ndarray
@@ -57,6 +60,7 @@ class DesignStep:
 
     @property
     def n_determined(self) -> int:
+        """How many offsets the predicted σ after the batch counts as determined."""
         return classes(self.sigma).count("determined")
 
     def row(self) -> dict:
@@ -71,9 +75,11 @@ class DesignStep:
 
 def _screen_scan(anchor: np.ndarray, k: int, step: int, precision: np.ndarray, candidates: int,
                  options: DesignOptions, t0: float) -> DesignStep:
-    """``k`` frames at ``anchor`` (where the beam was found) with the screen spread along the beam
-    over the stage's travel: where the estimate lights no candidate, the real beam is still there,
-    and these frames give the next refit something to move the estimate with."""
+    """``k`` frames at ``anchor`` (where the beam was found) with the screen spread along the beam.
+
+    The screen spreads over the stage's travel: where the estimate lights no candidate, the real
+    beam is still there, and these frames give the next refit something to move the estimate with.
+    """
     z = np.linspace(STAGE[2].low, STAGE[2].high, k)
     screen = np.column_stack([np.zeros(k), np.zeros(k), z])
     c = criterion_value(precision, options.criterion)
@@ -84,10 +90,13 @@ def _screen_scan(anchor: np.ndarray, k: int, step: int, precision: np.ndarray, c
 def next_batch(engine, offsets: np.ndarray, precision: np.ndarray, anchors: np.ndarray, acceptance: np.ndarray,
                *, k: int, step: int, photons: int, options: DesignOptions,
                table: ParameterTable = METRIXS) -> DesignStep:
-    """The next ``k`` frames: candidates around ``anchors`` (settings where the beam was on the
-    screen), their information at ``offsets`` (the current estimate, normalized), those whose
-    beam stays on the screen under the posterior (``precision``), the best batch of them by the
-    criterion.  ``engine``: the torch twin, a random stream per configuration."""
+    """The next ``k`` frames, the most informative of candidates whose beam stays on the screen.
+
+    Candidates around ``anchors`` (settings where the beam was on the screen), their information at
+    ``offsets`` (the current estimate, normalized), those whose beam stays on the screen under the
+    posterior (``precision``), the best batch of them by the criterion.  ``engine``: the torch twin,
+    a random stream per configuration.
+    """
     t0 = time.perf_counter()
     rng = np.random.default_rng([options.seed, step])
     cfg, screen = candidate_settings(anchors, options.candidates, rng, acceptance=acceptance, options=options,
@@ -121,16 +130,20 @@ def posterior_precision(info, table: ParameterTable = METRIXS) -> np.ndarray:
 
 
 def dark_where_lit(meas, intensity: np.ndarray, floor: float) -> bool:
-    """Whether the model puts less than ``floor`` of the source on the screen (``intensity``, per
-    frame of ``meas``) in at least half the frames where the beamline put twice that: a fit from
-    there has no light to follow."""
+    """Whether the model is dark in at least half the frames where the beamline was lit.
+
+    Dark: the model puts less than ``floor`` of the source on the screen (``intensity``, per frame
+    of ``meas``); lit: the beamline put twice that.  A fit from there has no light to follow.
+    """
     lit = np.minimum(meas.hist_x.sum(1), meas.hist_y.sum(1)) >= 2 * floor
     return bool(lit.any()) and int(np.sum(lit & (np.asarray(intensity) < floor))) >= 0.5 * lit.sum()
 
 
 def update(meas, offsets: np.ndarray, *, options: DesignOptions, step: int, table: ParameterTable = METRIXS):
-    """The offsets refitted to every frame of ``meas`` from ``offsets`` (a short fit: the features,
-    then the camera's bins; the analysis fits again in full at the end).  Returns the fit's result."""
+    """The offsets refitted to every frame of ``meas`` from ``offsets``; returns the fit's result.
+
+    A short fit: the features, then the camera's bins; the analysis fits again in full at the end.
+    """
     from bluesky_offsets.model.fit import FitOptions, engine_for, fit
     from bluesky_offsets.model.state import ModelState
     o = FitOptions(rays=options.fit_rays, feature_rays=min(2000, options.fit_rays), seed=options.seed + step,
@@ -151,11 +164,14 @@ GLOBAL_SEED = 53
 
 def global_starts(meas, offsets: np.ndarray, *, photons: int, seed: int, keep: int = 3, draws: int = GLOBAL_DRAWS,
                   rounds: int = GLOBAL_ROUNDS, rays: int = 400, table: ParameterTable = METRIXS) -> np.ndarray:
-    """Starts for a fit whose estimate ``offsets`` is dark where the beamline was lit: the ``keep``
-    offset vectors whose twin frames at the settings of ``meas`` come nearest the measured ones
-    (χ² of the profiles, ``rays`` model rays a frame, common random numbers), searched by the
-    cross-entropy method: ``draws`` over the prior, then rounds drawn from the mean and spread of
-    the best :data:`GLOBAL_ELITE`, until the best explains half the light or ``rounds`` are done."""
+    """Starts for a fit whose estimate ``offsets`` is dark where the beamline was lit.
+
+    The ``keep`` offset vectors whose twin frames at the settings of ``meas`` come nearest the
+    measured ones (χ² of the profiles, ``rays`` model rays a frame, common random numbers), searched
+    by the cross-entropy method: ``draws`` over the prior, then rounds drawn from the mean and
+    spread of the best :data:`GLOBAL_ELITE`, until the best explains half the light or ``rounds``
+    are done.
+    """
     from bluesky_offsets.model.state import ModelState, simulate_raw_many
     from bluesky_offsets.physics.parameters import MAX_OFFSET
     from bluesky_offsets.physics.beamline import torch_engine
@@ -184,10 +200,12 @@ def global_starts(meas, offsets: np.ndarray, *, photons: int, seed: int, keep: i
 
 
 class DesignLoop:
-    """The designed measurement between its batches: where the beam was found, the estimate of the
-    offsets and the design's precision, and each batch's record.  :meth:`step` takes the frames so
-    far and returns the next batch (or None); the plan (:func:`plans.design.measure_designed`) and
-    the benchmark measure them."""
+    """The designed measurement between its batches.
+
+    It holds where the beam was found, the estimate of the offsets and the design's precision, and
+    each batch's record.  :meth:`step` takes the frames so far and returns the next batch (or None);
+    the plan (:func:`plans.design.measure_designed`) and the benchmark measure them.
+    """
 
     def __init__(self, options: DesignOptions, here: np.ndarray, budget: int, photons: int,
                  table: ParameterTable = METRIXS):
@@ -204,14 +222,19 @@ class DesignLoop:
         self.global_starts: list[int] = []  # the steps whose update also started from :func:`global_starts`
 
     def anchors(self, meas) -> np.ndarray:
-        """The settings of the frames that put the beam on the screen, both ways above twice the
-        floor (where the beam was found, before any)."""
+        """The settings of the frames that put the beam on the screen, both ways above twice the floor.
+
+        Before any such frame: where the beam was found.
+        """
         lit = np.minimum(meas.hist_x.sum(1), meas.hist_y.sum(1)) >= 2 * self.o.floor
         return meas.configurations[lit] if lit.any() else self.here[None]
 
     def step(self, meas, progress=None) -> tuple[DesignStep, dict] | None:
-        """Refit to the frames so far (two or more), then choose the next batch: the batch and its
-        record (a row of the ``design`` stream); None once the budget is spent or the target met."""
+        """Refit to the frames so far (two or more), then choose the next batch.
+
+        Returns the batch and its record (a row of the ``design`` stream); None once the budget is
+        spent or the target met.
+        """
         progress = progress or (lambda d: None)
         k = len(self.steps)
         left = self.budget - meas.n

@@ -117,11 +117,13 @@ class CameraChamber(StandardReadable):
 
     @AsyncStatus.wrap
     async def unstage(self) -> None:
+        """Stop the HDF5 plugin's capture, closing the frames' file."""
         await stop_busy_record(self.hdf.capture)
         await super().unstage()
 
     @AsyncStatus.wrap
     async def trigger(self) -> None:
+        """Take one frame, read it back from the HDF5 file and set the readings to its reduction."""
         if not await self.hdf.capture.get_value():  # a plan that does not stage its detectors
             await self._capture()
         before = await self.hdf.num_captured.get_value()

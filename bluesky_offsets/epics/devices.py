@@ -53,6 +53,7 @@ class FixedParameter(StandardReadable):
         super().__init__(name=name)
 
     def set(self, value, *args, **kwargs):
+        """Refuse: raise :class:`~bluesky_offsets.epics.pvs.FixedParameterError` (no motor moves it)."""
         raise FixedParameterError(fixed_message(self.parameter))
 
 
@@ -75,12 +76,14 @@ class ChamberStage(Device):
 
     @property
     def axes(self) -> dict[str, Motor]:
+        """Axis name (``x``, ``y``, ``z``) -> the stage's motor."""
         return {a: getattr(self, a) for a in STAGE_AXES}
 
 
 class MetrixsBeamline(Device):
-    """The METRIXS beamline: 28 motors and 6 fixed parameters grouped by component, and the
-    focus chamber's stage (``chamber_stage``) where it has one.
+    """The METRIXS beamline: 28 motors and 6 fixed parameters grouped by component.
+
+    The focus chamber's stage (``chamber_stage``) is part of it where it has one.
 
     Parameters
     ----------
@@ -130,6 +133,8 @@ class MetrixsBeamline(Device):
 
 
 class ChamberStatus(StrictEnum):
+    """The focus chamber's acquisition state, as its ``status`` PV gives it."""
+
     IDLE = "Idle"
     ACQUIRING = "Acquiring"
     ERROR = "Error"
@@ -137,9 +142,10 @@ class ChamberStatus(StrictEnum):
 
 
 class FocusChamber(StandardReadable):
-    """Focus-chamber detector: ``trigger()`` acquires one frame, ``read()`` gives both
-    histograms, the image (flattened, rows y), both profiles at the camera's resolution,
-    the ray count and the frame number.
+    """Focus-chamber detector: ``trigger()`` acquires one frame, ``read()`` gives what it measured.
+
+    The reading holds both histograms, the image (flattened, rows y), both profiles at the
+    camera's resolution, the ray count and the frame number.
 
     Parameters
     ----------
@@ -184,6 +190,7 @@ class FocusChamber(StandardReadable):
 
     @AsyncStatus.wrap
     async def trigger(self):
+        """Acquire one frame; :class:`~bluesky_offsets.epics.pvs.ChamberError` if it fails or is aborted."""
         try:
             await self.acquire.set(True, timeout=self.acquire_timeout)
         except Exception as exc:  # the put failed: an error or an abort, the chamber says which
@@ -201,8 +208,10 @@ class FocusChamber(StandardReadable):
 
 
 def focus_camera(prefix: str, directory, *, name: str = "camera"):
-    """The focus chamber's camera: ophyd-async's areaDetector classes as they are, its frames written by
-    the camera's HDF5 plugin into ``directory`` (a path the IOC can write and this process can read).
+    """The focus chamber's camera: ophyd-async's areaDetector classes as they are.
+
+    Its frames are written by the camera's HDF5 plugin into ``directory`` (a path the IOC can
+    write and this process can read).
 
     ``prefix`` is the detector's (``BL:cam:``, serving ``cam1:`` and ``HDF1:``).  A plain bluesky
     ``count([camera])`` takes frames; the run store records them as ``StreamResource``/``StreamDatum``

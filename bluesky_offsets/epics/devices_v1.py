@@ -1,5 +1,6 @@
-"""Classic ophyd (v1) devices of the METRIXS beamline, built on ``ophyd.EpicsMotor``: the same
-layout and PVs as the ophyd-async ones (:mod:`bluesky_offsets.epics.devices`).
+"""Classic ophyd (v1) devices of the METRIXS beamline, built on ``ophyd.EpicsMotor``.
+
+They have the same layout and PVs as the ophyd-async ones (:mod:`bluesky_offsets.epics.devices`).
 
 :func:`make_beamline_v1`, :class:`FocusChamberV1` and :func:`make_chamber_v1` (full PV names).
 """
@@ -37,12 +38,15 @@ class FixedParameterV1(SignalRO):
         super().__init__(**kwargs)
 
     def put(self, value, **kwargs):
+        """Refuse: raise :class:`~bluesky_offsets.epics.pvs.FixedParameterError`."""
         raise FixedParameterError(fixed_message(self.parameter))
 
     def set(self, value, **kwargs):
+        """Refuse: raise :class:`~bluesky_offsets.epics.pvs.FixedParameterError`."""
         raise FixedParameterError(fixed_message(self.parameter))
 
     def describe(self):
+        """The signal's description, with the parameter's unit as ``units``."""
         desc = super().describe()
         desc[self.name]["units"] = self.parameter.unit
         return desc
@@ -55,23 +59,29 @@ class MetrixsBeamlineV1(DeviceV1):
     _paths: dict[str, tuple[str, str]] = {}
 
     def parameter(self, name: str):
+        """Device of a parameter by its table name (``"E1.rotationXerror"``)."""
         comp, axis = self._paths[self.table[name].name]
         return getattr(getattr(self, comp), axis)
 
     @property
     def motors(self) -> dict[str, EpicsMotor]:
+        """Parameter name -> ``EpicsMotor``, table order (the motorized parameters)."""
         return {n: self.parameter(n) for n in self.table.motorized_names}
 
     @property
     def fixed(self) -> dict[str, FixedParameterV1]:
+        """Parameter name -> fixed parameter signal (the fixed-but-unknown ones)."""
         return {n: self.parameter(n) for n in self.table.fixed_names}
 
 
 def make_beamline_v1(prefix: str = "", name: str = "metrixs", *, table: ParameterTable = METRIXS,
                      pv_names: Mapping[str, str] | None = None,
                      stage: Mapping[str, str] | None = None) -> MetrixsBeamlineV1:
-    """The beamline as a classic ophyd Device of ``EpicsMotor``s (same layout as :class:`MetrixsBeamline`,
-    the chamber's stage as ``chamber_stage`` where ``stage`` names its records)."""
+    """The beamline as a classic ophyd Device of ``EpicsMotor`` components.
+
+    The same layout as :class:`MetrixsBeamline`, the chamber's stage as ``chamber_stage`` where
+    ``stage`` names its records.
+    """
     pvs = motor_pvs(table, prefix, pv_names)
     comps: dict[str, dict[str, Cpt]] = {}
     paths = {}
@@ -114,14 +124,18 @@ def _chamber_components(pvs: Mapping[str, str]) -> dict[str, Cpt]:
 
 
 class ChamberV1Base(DeviceV1):
-    """The focus chamber's behaviour (a frame per ``trigger``); its signals come from
-    :data:`_CHAMBER_V1` with the PV names of :class:`FocusChamberV1` or :func:`make_chamber_v1`."""
+    """The focus chamber's behaviour: a frame per ``trigger``.
+
+    Its signals come from :data:`_CHAMBER_V1` with the PV names of :class:`FocusChamberV1` or
+    :func:`make_chamber_v1`.
+    """
 
     def __init__(self, prefix: str = "", *, name: str, acquire_timeout: float = 120.0, **kwargs):
         super().__init__(prefix, name=name, **kwargs)
         self.acquire_timeout = acquire_timeout
 
     def trigger(self):
+        """Acquire one frame; the status fails with :class:`~bluesky_offsets.epics.pvs.ChamberError` if it does."""
         result = DeviceStatus(self, timeout=self.acquire_timeout)
         put = self.acquire.set(1)
 
@@ -153,8 +167,11 @@ FocusChamberV1 = create_device_from_components(
 
 def make_chamber_v1(prefix: str = "", *, name: str = "chamber", pv_names: Mapping[str, str] | None = None,
                     acquire_timeout: float = 120.0) -> ChamberV1Base:
-    """The focus chamber with full PV names (``pv_names``: signal -> PV, the others
-    ``prefix`` + the simulated IOC's suffix), e.g. from a :class:`bluesky_offsets.epics.pvmap.PVMap`."""
+    """The focus chamber as a classic ophyd Device with full PV names.
+
+    ``pv_names``: signal -> PV, the others ``prefix`` + the simulated IOC's suffix, e.g. from a
+    :class:`bluesky_offsets.epics.pvmap.PVMap`.
+    """
     cls = create_device_from_components("FocusChamberV1", base_class=ChamberV1Base,
                                         docstring=FocusChamberV1.__doc__,
                                         **_chamber_components(chamber_pvs(prefix, pv_names)))

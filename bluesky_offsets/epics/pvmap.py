@@ -90,8 +90,11 @@ class PVMap:
     @classmethod
     def simulated(cls, prefix: str = SIM_PREFIX, table: ParameterTable = METRIXS, *,
                   camera_directory: str | os.PathLike | None = None) -> PVMap:
-        """The simulated IOC's names (``sim_iocs.metrixs``) under ``prefix``; with ``camera_directory``
-        its camera instead of its histogram PVs (the simulated camera's data sheet and flux)."""
+        """The simulated IOC's names (``sim_iocs.metrixs``) under ``prefix``.
+
+        With ``camera_directory``, its camera instead of its histogram PVs (the simulated camera's
+        data sheet and flux).
+        """
         camera = None
         if camera_directory is not None:
             from dataclasses import asdict
@@ -105,6 +108,7 @@ class PVMap:
 
     @classmethod
     def from_file(cls, path: str | os.PathLike, table: ParameterTable = METRIXS) -> PVMap:
+        """The PV map in the TOML file ``path``, checked; :class:`PVMapError` naming the file and what is wrong."""
         path = Path(path)
         try:
             data = tomllib.loads(path.read_text())
@@ -131,6 +135,7 @@ class PVMap:
         return cls.simulated(os.environ.get(ENV_PREFIX, SIM_PREFIX), table)
 
     def to_toml(self) -> str:
+        """The map as a commented TOML file, the form :meth:`from_file` reads."""
         lines = [f"# PV map of the {_display(self.table)} devices (bluesky-offsets): edit the names for another IOC",
                  f"name = {_q(self.name)}", "", "[motors]"]
         for p in self.table:
@@ -159,8 +164,11 @@ class PVMap:
         return MetrixsBeamline("", name, table=self.table, pv_names=self.motors, stage=self.stage or None)
 
     def focus_chamber(self, name: str = "chamber"):
-        """The chamber detector the plans read: the histogram PVs' device, or the camera's
-        (:class:`~bluesky_offsets.epics.camera.CameraChamber`) with its data sheet's calibration."""
+        """The chamber detector the plans read: the histogram PVs' device, or the camera's.
+
+        The camera's is a :class:`~bluesky_offsets.epics.camera.CameraChamber` with its data sheet's
+        calibration.
+        """
         if self.camera is not None:
             from bluesky_offsets.epics.camera import CameraChamber
             return CameraChamber(self.camera["prefix"], self.camera["directory"], self.camera_calibration(),
@@ -182,6 +190,10 @@ class PVMap:
         return make_beamline_v1("", name, table=self.table, pv_names=self.motors, stage=self.stage or None)
 
     def focus_chamber_v1(self, name: str = "chamber"):
+        """The histogram PVs' chamber detector as a classic ophyd device.
+
+        Made by :func:`~bluesky_offsets.epics.devices_v1.make_chamber_v1`; a camera's has no v1 device here.
+        """
         from bluesky_offsets.epics.devices_v1 import make_chamber_v1
         return make_chamber_v1("", name=name, pv_names=self.chamber)
 
@@ -253,9 +265,11 @@ class PVCheck:
 
     @property
     def passed(self) -> bool:
+        """Whether every PV connected and no motor record mismatched."""
         return not self.missing and not self.mismatched
 
     def lines(self) -> list[str]:
+        """One line per missing or mismatched PV."""
         out = [f"missing: {k} ({pv}) did not connect" for k, pv in self.missing]
         out += [f"mismatch: {k} ({pv}): {why}" for k, pv, why in self.mismatched]
         return out

@@ -1,5 +1,7 @@
-"""METRIXS's EPICS names: which PV each motorized parameter and each focus-chamber signal
-reads, and the errors the devices raise.
+"""METRIXS's EPICS names: the PV of each motorized parameter and chamber signal, and the devices' errors.
+
+Which PV each motorized parameter and each focus-chamber signal reads, and the errors the
+devices raise.
 
 PV names default to ``<prefix><component>:<axis>`` (motor records) and
 ``<prefix>chamber:<PV>`` (detector), as served by ``sim_iocs.metrixs``; the real
@@ -28,6 +30,7 @@ class MotionError(RuntimeError):
 
 
 def fixed_message(p: Parameter) -> str:
+    """The error message for an attempt to move the fixed-but-unknown parameter ``p``."""
     return (f"{p.name} ({p.description}) is a fixed parameter, not a motor: it cannot be set. "
             f"Its true value is unknown; the offset finder estimates it as an offset from the "
             f"design value {p.reference:g} {p.unit}.")
@@ -39,6 +42,7 @@ def default_motor_pv(param: Parameter, prefix: str = "") -> str:
 
 
 def motor_pvs(table: ParameterTable, prefix: str, pv_names: Mapping[str, str] | None) -> dict[str, str]:
+    """Motor record per motorized parameter of ``table``: from ``pv_names``, else the simulation IOC's name."""
     pv_names = dict(pv_names or {})
     unknown = [n for n in pv_names if n not in table.motorized_names]
     if unknown:
@@ -58,6 +62,7 @@ CHAMBER_PVS = {
 
 
 def chamber_pvs(prefix: str, pv_names: Mapping[str, str] | None) -> dict[str, str]:
+    """Full PV per chamber signal: from ``pv_names``, else ``prefix`` + its suffix in :data:`CHAMBER_PVS`."""
     pv_names = dict(pv_names or {})
     unknown = set(pv_names) - set(CHAMBER_PVS)
     if unknown:
@@ -70,8 +75,10 @@ STAGE_AXES = ("x", "y", "z")
 
 
 def stage_pvs(prefix: str, pv_names: Mapping[str, str] | None) -> dict[str, str]:
-    """Motor record per stage axis: ``<prefix>x`` ... on the simulation IOC (``prefix`` the
-    chamber's), or ``pv_names``."""
+    """Motor record per stage axis: from ``pv_names``, else the simulation IOC's name.
+
+    The simulation IOC's are ``<prefix>x`` ... (``prefix`` the chamber's).
+    """
     pv_names = dict(pv_names or {})
     unknown = set(pv_names) - set(STAGE_AXES)
     if unknown:

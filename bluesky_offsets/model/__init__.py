@@ -1,1 +1,4 @@
-"""The calibrated model: the one measurement, the model state, the one fit engine, the misfit and the diagnosis of missing effects."""
+"""The calibrated model.
+
+The one measurement, the model state, the one fit engine, the misfit and the diagnosis of missing effects.
+"""

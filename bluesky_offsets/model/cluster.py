@@ -28,8 +28,10 @@ _SENDING: contextvars.ContextVar[ClusterExecutor | None] = contextvars.ContextVa
 
 @contextlib.contextmanager
 def one_thread():
-    """One torch thread and one BLAS thread for the fits run here: every sum in the same order
-    whatever the machine's cores (here and on a worker alike)."""
+    """One torch thread and one BLAS thread for the fits run here.
+
+    Every sum is then in the same order whatever the machine's cores (here and on a worker alike).
+    """
     import torch
     from threadpoolctl import threadpool_limits
     torch.set_num_threads(1)
@@ -41,12 +43,14 @@ class Progress:
     """A progress callback that can be sent to a worker process.
 
     Here it calls ``callback(record)``; pickled by a :class:`ClusterExecutor` it becomes a
-    :class:`_Published` on an event topic whose records the executor hands to ``callback``."""
+    :class:`_Published` on an event topic whose records the executor hands to ``callback``.
+    """
 
     def __init__(self, callback: Callable[[dict], None]):
         self.callback = callback
 
     def __call__(self, record: dict) -> None:
+        """Hand ``record`` to the callback."""
         self.callback(record)
 
     def __reduce__(self):
@@ -70,9 +74,11 @@ class _Published:
 
 
 class ClusterExecutor(Executor):
-    """Calls on the workers of a Dask ``client``'s cluster, each pickled with cloudpickle; the
-    :class:`Progress` callbacks in them forwarded here as the workers report.  A call that
-    holds this executor gets none on the worker (its own calls run there one after the other)."""
+    """Calls on the workers of a Dask ``client``'s cluster, each pickled with cloudpickle.
+
+    The :class:`Progress` callbacks in them are forwarded here as the workers report.  A call that
+    holds this executor gets none on the worker (its own calls run there one after the other).
+    """
 
     def __init__(self, client):
         self.client = client
@@ -80,6 +86,7 @@ class ClusterExecutor(Executor):
         self._topics: dict[int, tuple[str, Progress]] = {}
 
     def topic_for(self, progress: Progress) -> str:
+        """The event topic that carries ``progress``'s records here (subscribed at the first call)."""
         key = id(progress)
         if key not in self._topics:
             topic = f"bluesky-offsets-progress-{uuid.uuid4().hex}"
@@ -88,8 +95,10 @@ class ClusterExecutor(Executor):
         return self._topics[key][0]
 
     def submit(self, fn, /, *args, **kwargs) -> Future:
-        """``fn(*args, **kwargs)`` on a worker of the cluster, pickled with cloudpickle; the future
-        of its result."""
+        """Run ``fn(*args, **kwargs)`` on a worker of the cluster, pickled with cloudpickle.
+
+        Returns the future of its result.
+        """
         import cloudpickle
         token = _SENDING.set(self)
         try:
@@ -99,6 +108,7 @@ class ClusterExecutor(Executor):
         return self._remote.submit(_unpickle_and_call, blob)  # a call's own error raised where it is read
 
     def shutdown(self, wait: bool = True, *, cancel_futures: bool = False) -> None:
+        """Stop forwarding progress: unsubscribe the topics (the client and its cluster stay up)."""
         for topic, _ in self._topics.values():
             try:
                 self.client.unsubscribe_topic(topic)
@@ -121,15 +131,17 @@ def _unpickle_and_call(blob: bytes):
 
 @contextlib.contextmanager
 def analysis_executor(threads: int, twin=None):
-    """The executor an analysis's independent fits run on (None for one thread), each fit on
-    one torch thread and one BLAS thread: the workers of ``twin``'s Dask cluster
+    """The executor an analysis's independent fits run on (None for one thread).
+
+    Each fit runs on one torch thread and one BLAS thread: on the workers of ``twin``'s Dask cluster
     (:class:`~bluesky_offsets.model.cluster.ClusterExecutor`; the cluster starts here if it has
-    not) unless the twin traces in this process (``scheduler="inline"``), else ``threads``
+    not) unless the twin traces in this process (``scheduler="inline"``), else on ``threads``
     threads of this process.  Why not torch's or BLAS's own threads: the fits'
     arrays (10^4-10^5 rays, Jacobians of 10^4 rows) are too small to share, while whole fits
     run side by side with little in common (docs/benchmarks.md, "Torch engine").  One BLAS thread also keeps the
     arithmetic (the order of a matrix product's sums) the same on any number of cores.  Why
-    processes where there is a cluster: see the module text."""
+    processes where there is a cluster: see the module text.
+    """
     with one_thread():
         if threads <= 1:
             yield None

@@ -52,6 +52,8 @@ from bluesky_offsets.streams import MODEL_SEED, stream
 
 @dataclass
 class Candidate:
+    """One candidate effect as a diagnosis scored it: its fitted values, gains, price, held-out folds and verdict."""
+
     name: str
     n_params: int
     values: dict[str, float]
@@ -88,6 +90,7 @@ class Candidate:
 
     @property
     def feature_score(self) -> float:
+        """Gain on the features its fit saw ÷ the offsets-only fit's feature dispersion − p ln N."""
         return self.delta_chi2_all / self.feature_dispersion - self.feature_penalty
 
     @property
@@ -98,29 +101,36 @@ class Candidate:
         return self.feature_score
 
     def refit_start(self, label: str = "") -> ModelState:
-        """Where adding this candidate starts (:func:`add_effect_result` with ``values``): its
-        fit's offsets and the model's other effects as that fit left them.  Not the model's
+        """Where adding this candidate starts (:func:`add_effect_result` with ``values``).
+
+        Its fit's offsets and the model's other effects as that fit left them.  Not the model's
         effects as they were: the candidate fit refitted them with its offsets, and the two
         belong together (mixed, they start the refit far off, which can drive a true effect to
-        zero)."""
+        zero).
+        """
         st = self.refined_state
         if st is None:
             raise InputError(f"candidate {self.name!r} has no fit to start from")
         return ModelState(st.offsets, {k: v for k, v in st.effects.items() if k != self.name}, label or st.label)
 
     def twin_start(self) -> ModelState:
-        """The refit's second start (:data:`REFIT_FROM_TWIN`): the bare twin's offsets with the
-        model's other effects as :meth:`refit_start` has them."""
+        """The refit's second start (:data:`REFIT_FROM_TWIN`).
+
+        The bare twin's offsets with the model's other effects as :meth:`refit_start` has them.
+        """
         start = self.refit_start()
         return ModelState(np.zeros(len(start.offsets)), start.effects, "twin")
 
     @property
     def heldout_confirms(self) -> bool:
-        """The held-out folds do not contradict the candidate: it lowers the held-out χ² in at
-        least as many folds as it raises it."""
+        """The held-out folds do not contradict the candidate.
+
+        It lowers the held-out χ² in at least as many folds as it raises it.
+        """
         return self.folds_total > 0 and self.folds_improved >= self.folds_worse
 
     def as_dict(self) -> dict:
+        """The candidate's numbers and verdict as plain data (its refined state left out)."""
         return {"name": self.name, "n_params": self.n_params, "values": self.values, "sigma": self.sigma,
                 "delta_chi2_heldout": self.delta_chi2_heldout, "delta_chi2_all": self.delta_chi2_all,
                 "penalty": self.penalty, "score": self.score, "feature_score": self.feature_score,
@@ -133,6 +143,8 @@ class Candidate:
 
 @dataclass
 class Diagnosis:
+    """A diagnosis's outcome: the base misfit, the candidates ranked, the observed signature and its notes."""
+
     base_misfit: Misfit
     within_noise: bool
     candidates: list[Candidate]
@@ -148,6 +160,7 @@ class Diagnosis:
 
     @property
     def best(self) -> Candidate | None:
+        """The first significant candidate of the ranking; None where none is significant."""
         sig = [c for c in self.candidates if c.significant]
         return sig[0] if sig else None
 
@@ -158,6 +171,7 @@ class Diagnosis:
 
     @property
     def verdict(self) -> str:
+        """The diagnosis in one sentence: the missing effect with its values, or why none is named."""
         if self.best is None:
             if self.within_noise:
                 return "no significant missing effect"
@@ -172,6 +186,7 @@ class Diagnosis:
         return f"missing effect: {b.name} ({vals})" + rivals_text(self.rivals)
 
     def as_dict(self) -> dict:
+        """The verdict, misfit, signature, candidates, notes and limits as plain data."""
         return {"verdict": self.verdict, "within_noise": self.within_noise,
                 "base_misfit": self.base_misfit.as_dict(), "observed_signature": self.observed_signature,
                 "candidates": [c.as_dict() for c in self.candidates], "folds": self.folds,
@@ -200,6 +215,7 @@ def misfit_record(mf: Misfit | None) -> dict | None:
 
 
 def misfit_from(rec: dict | None) -> Misfit | None:
+    """The :class:`Misfit` a :func:`misfit_record` holds, with empty pulls (None for None)."""
     if rec is None:
         return None
     n = len(rec["chi2"])
@@ -248,14 +264,16 @@ apart, and the verdict should say so."""
 
 
 def lead_z(best: Misfit, other: Misfit, dispersion: float = 1.0, price: float = 0.0) -> float:
-    """By how many standard deviations the measurement prefers ``best`` over ``other``: two
-    models that are not nested, traced with the same fresh rays against it.
+    """By how many standard deviations the measurement prefers ``best`` over ``other``.
+
+    The two models are not nested, and are traced with the same fresh rays against it.
 
     Vuong's statistic on the bins: d_b = pull_other,b² − pull_best,b² over the bins where either
     model or the measurement has signal, lead = Σ d_b / ``dispersion`` − ``price`` (the
     difference of their prices p ln N), its spread √(n var d) / ``dispersion``.  Under "the two
     fit equally well" the lead is about normal with that spread, whatever the models: the bins'
-    own noise and the models' shape differences both enter var d."""
+    own noise and the models' shape differences both enter var d.
+    """
     a = np.concatenate([np.asarray(best.pulls_x, float).ravel(), np.asarray(best.pulls_y, float).ravel()])
     b = np.concatenate([np.asarray(other.pulls_x, float).ravel(), np.asarray(other.pulls_y, float).ravel()])
     keep = (a != 0) | (b != 0)
@@ -316,8 +334,10 @@ many as the bright design's 14 at :data:`FIT`'s and :data:`SCAN`'s."""
 
 
 def fits_for(designed: bool, rays: int | None = None) -> tuple[FitOptions, FitOptions]:
-    """The offsets fit's and the candidate fits' options for a designed (or the bright) measurement;
-    ``rays`` (``--fit-rays``): the fit's model rays, and the candidate fits' at most."""
+    """The offsets fit's and the candidate fits' options for a designed (or the bright) measurement.
+
+    ``rays`` (``--fit-rays``): the fit's model rays, and the candidate fits' at most.
+    """
     fit, scan = (DESIGNED_FIT, DESIGNED_SCAN) if designed else (FIT, SCAN)
     return fit.replace(rays=rays or fit.rays), scan.replace(rays=min(rays or scan.rays, scan.rays))
 
@@ -340,11 +360,13 @@ give it back, so a screen ranks it low where the full fits name it."""
 
 
 def starting_values(effect: E.Effect) -> list[dict[str, float]]:
-    """Where :func:`diagnose` starts fitting ``effect``: each parameter alone (of those marked
-    ``start``) at ±1/4 of its prior span when it may take either sign, at 1/4 of its bound when
-    one-sided; zero when none is marked.  Away from
-    zero on purpose: the offsets-only fit has absorbed what it could of the effect, and there
-    the effect's gradient is often flat (a defocus is symmetric about the focus)."""
+    """Where :func:`diagnose` starts fitting ``effect``: one start per marked parameter and sign.
+
+    Each parameter alone (of those marked ``start``) at ±1/4 of its prior span when it may take
+    either sign, at 1/4 of its bound when one-sided; zero when none is marked.  Away from zero on
+    purpose: the offsets-only fit has absorbed what it could of the effect, and there the effect's
+    gradient is often flat (a defocus is symmetric about the focus).
+    """
     out = []
     for q in effect.parameters:
         if not q.start:
@@ -369,9 +391,11 @@ UNSEPARABLE = 0.99
 
 
 def absorbed_share(fit: FitResult, n_offsets: int) -> float:
-    """The share of an effect's information (its diagonal of the fit's normal matrix, the offsets'
-    prior included) that the offsets can take over at the solution: 1 − Schur complement /
-    diagonal, the largest over the effect's parameters."""
+    """The share of an effect's information that the offsets can take over at the solution.
+
+    The information is the effect's diagonal of the fit's normal matrix, the offsets' prior
+    included; the share is 1 − Schur complement / diagonal, the largest over the effect's parameters.
+    """
     G = fit.jacobian
     assert G is not None  # fit() keeps its last stage's Jacobian
     A = G.T @ G + np.diag(fit.ridge if fit.ridge is not None else np.zeros(G.shape[1]))
@@ -388,9 +412,10 @@ def absorbed_share(fit: FitResult, n_offsets: int) -> float:
 def detection_limits(meas: Measurement, state: ModelState, engine, options: FitOptions, names: Sequence[str],
                      excess: float, *, executor: Executor | None = None,
                      table: ParameterTable = METRIXS) -> dict[str, dict[str, float]]:
-    """How large each candidate effect could be and still leave the offsets-only model within
-    noise: for each of its parameters, the magnitude at which, the offsets refitted to absorb
-    what they can, it would add ``excess`` to χ² (the noise gate's ``n_sigma √(2 dof)``).
+    """How large each candidate effect could be and still leave the offsets-only model within noise.
+
+    For each of its parameters, the magnitude at which, the offsets refitted to absorb what they
+    can, it would add ``excess`` to χ² (the noise gate's ``n_sigma √(2 dof)``).
 
     Linearised at each of the candidate's :func:`starting_values` (the state with the effect
     there; :func:`bluesky_offsets.model.fit.information`: one exact Jacobian of the twin each):
@@ -431,8 +456,10 @@ def limit_text(name: str, parameter: str, limit: float) -> str:
 
 def _fresh_misfit(verifier: Twin, meas: Measurement, st: ModelState, rays: int, seed: int, draw: int,
                   table: ParameterTable) -> tuple[Misfit, np.ndarray]:
-    """``st`` traced with fresh rays (draw ``draw`` of streams none of the fits traced) against
-    ``meas``: its misfit and the model's histograms (C, bins x + bins y)."""
+    """``st`` traced with fresh rays against ``meas``: its misfit and the model's histograms (C, bins x + bins y).
+
+    The rays are draw ``draw`` of streams none of the fits traced.
+    """
     seeds = [stream(seed, "diagnosis.fresh_rays", draw=draw) + i for i in range(meas.n)]
     hx, hy = simulate(verifier, meas.configurations, st, rays, seeds, table, meas.screen)
     return misfit(meas.hist_x, meas.hist_y, hx, hy, meas.ray_budget, model_rays=rays, floor_x=meas.floor_x,
@@ -440,8 +467,10 @@ def _fresh_misfit(verifier: Twin, meas: Measurement, st: ModelState, rays: int, 
 
 
 def _heldout(fit: FitResult, folds: Sequence[np.ndarray]) -> np.ndarray:
-    """Held-out χ² per fold: the fit re-solved without the fold's configurations (one
-    Gauss-Newton step from the all-data solution on its exact Jacobian), scored on the fold."""
+    """Held-out χ² per fold: the fit re-solved without the fold's configurations, scored on the fold.
+
+    The re-solve is one Gauss-Newton step from the all-data solution on its exact Jacobian.
+    """
     G, r, rows = fit.jacobian, fit.residuals, fit.rows
     assert G is not None and r is not None and rows is not None  # fit() keeps its last stage's
     out = []
@@ -523,8 +552,11 @@ def diagnose(meas: Measurement, state: ModelState, twin=None, forward_model=None
 
 @dataclass(frozen=True, kw_only=True)
 class _CandidateFits:
-    """:func:`diagnose`'s fits on one set of rays: the offsets-only reference (refitted from where
-    the best candidates left the offsets), each candidate's best fit or look, which were fitted."""
+    """:func:`diagnose`'s fits on one set of rays.
+
+    The offsets-only reference (refitted from where the best candidates left the offsets), each
+    candidate's best fit or look, and which were fitted.
+    """
 
     ref: FitResult
     best: dict[str, FitResult]
@@ -612,8 +644,11 @@ def _candidates(names: Sequence[str], fits: _CandidateFits, base_mf: Misfit, tab
 
 @dataclass(frozen=True, kw_only=True)
 class _Verified:
-    """:func:`diagnose`'s check with fresh rays: the refitted reference, its misfit, whether it is
-    within noise, the candidates it verified, the observed residual signature."""
+    """:func:`diagnose`'s check with fresh rays.
+
+    The refitted reference, its misfit, whether it is within noise, the candidates it verified,
+    the observed residual signature.
+    """
 
     ref_state: ModelState
     ref_mf: Misfit
@@ -626,8 +661,10 @@ class _Verified:
 def _verify(meas: Measurement, state: ModelState, out: list[Candidate], fits: _CandidateFits, *, verify, verifier,
             seed: int, n_sigma: float, fold_idx, folds: int, verify_top: int, executor: Executor | None,
             table: ParameterTable) -> _Verified:
-    """The best few verified with fresh rays beside the reference, and on held-out folds; ``out``
-    re-sorted, verified first, each with its gain, significance and predicted signature."""
+    """The best few verified with fresh rays beside the reference, and on held-out folds.
+
+    ``out`` is re-sorted, verified first, each with its gain, significance and predicted signature.
+    """
     ref, best, spec, n = fits.ref, fits.best, meas.spec, meas.n
     top = [c for c in out if c.score > 0 and c.fitted][:verify_top]
     ref_state = ModelState(ref.state.offsets, state.effects, f"{state.label} (offsets refitted)")
@@ -731,8 +768,11 @@ OPEN_APERTURE = {"ASBL.totalWidth": 4.0, "ASBL.totalHeight": 4.0, "ExitSlit.tota
 
 
 def open_settings(table: ParameterTable = METRIXS) -> dict[str, float]:
-    """The openings of an open aperture: METRIXS's :data:`OPEN_APERTURE`; on another beamline
-    every motorized opening at the end of its travel."""
+    """The openings of an open aperture.
+
+    METRIXS's :data:`OPEN_APERTURE`; on another beamline every motorized opening at the end of its
+    travel.
+    """
     if all(n in table.names for n in OPEN_APERTURE):
         return dict(OPEN_APERTURE)
     from bluesky_offsets.physics.metrixs import OPENING_FIELDS
@@ -741,9 +781,11 @@ def open_settings(table: ParameterTable = METRIXS) -> dict[str, float]:
 
 def open_aperture(configurations, settings: dict[str, float] | None = None,
                   table: ParameterTable = METRIXS) -> np.ndarray:
-    """Copies of ``configurations`` (n, P) with the slit openings of ``settings`` (physical,
-    default :func:`open_settings`).  They lie outside the surrogate's box: the twin models
-    them, the surrogate finder must not see them (``table.outside_box``)."""
+    """Copies of ``configurations`` (n, P) with the slit openings of ``settings``.
+
+    ``settings``: physical, default :func:`open_settings`.  They lie outside the surrogate's box:
+    the twin models them, the surrogate finder must not see them (``table.outside_box``).
+    """
     cfg = np.array(table.validate(np.atleast_2d(configurations), "configurations"), dtype=float)
     for name, value in (open_settings(table) if settings is None else settings).items():
         p = table[name]
@@ -771,12 +813,15 @@ def _with(state: ModelState, names: Sequence[str]) -> ModelState:
 # --------------------------------------------------------------------------- #
 @dataclass
 class Version:
+    """One version of the model: its label, state, misfit and effects' uncertainties."""
+
     label: str
     state: ModelState
     misfit: Misfit
     effect_sigma: dict[str, dict[str, float]] = field(default_factory=dict)
 
     def row(self) -> dict:
+        """The version as a row of the error history: χ²/dof, MSE against its noise, effects and their σ."""
         return {"model": self.label, "chi2_reduced": self.misfit.chi2_reduced_total,
                 "mse": self.misfit.mse_total, "expected_mse": self.misfit.expected_mse_total,
                 "mse_over_noise": self.misfit.mse_total / max(self.misfit.expected_mse_total, 1e-300),
@@ -808,13 +853,15 @@ def add_effect_result(meas: Measurement, state: ModelState, name: str, twin=None
                       values=None, options: FitOptions | Mapping | None = None, progress=None,
                       also_from: Sequence[ModelState] = (), executor: Executor | None = None,
                       table: ParameterTable = METRIXS):
-    """``state.with_effect(name, values)``, offsets and effect refitted with the one fit engine
-    (:func:`bluesky_offsets.model.state.refine`, options default :data:`FIT`); returns its
+    """``state.with_effect(name, values)``, offsets and effect refitted with the one fit engine.
+
+    The fit is :func:`bluesky_offsets.model.state.refine`, options default :data:`FIT`; returns its
     :class:`~bluesky_offsets.model.state.RefineResult`.  ``values`` starts the effect where the
     diagnosis found it (a :class:`Candidate` or its ``values``).  ``also_from``: more starts
     (offsets, and the model's other effects), each given the effect at ``values``; the fit that
     ends lowest on fresh rays is kept (:func:`bluesky_offsets.model.fit.fit`).  ``executor`` runs
-    the starts, then the fit's ray draws, side by side."""
+    the starts, then the fit's ray draws, side by side.
+    """
     if values is not None and not isinstance(values, dict):
         values = getattr(values, "values", values)  # a Candidate
     o = FitOptions.resolve(options, FIT)
@@ -842,6 +889,7 @@ class EffectTest:
         return self.beyond_noise_without and self.gain > self.price
 
     def as_dict(self) -> dict:
+        """The test's numbers, whether the effect is kept, and the χ²/dof without it."""
         return {"effect": self.effect, "n_params": self.n_params, "gain": self.gain, "price": self.price,
                 "beyond_noise_without": self.beyond_noise_without, "kept": self.kept,
                 "chi2_reduced_without": self.without.chi2_reduced}
@@ -892,13 +940,16 @@ def retest_effects(meas: Measurement, state: ModelState, names: Sequence[str] | 
 
 
 def weakest(tests: Sequence[EffectTest]) -> EffectTest | None:
-    """The test of the effect to drop, of those not kept: the one whose gain falls furthest
-    short of its price (None: every effect kept)."""
+    """The test of the effect to drop, of those not kept.
+
+    The one whose gain falls furthest short of its price (None: every effect kept).
+    """
     dropped = [t for t in tests if not t.kept]
     return min(dropped, key=lambda t: t.gain - t.price) if dropped else None
 
 
 def plot_error_history(versions: Sequence[Version], path, title: str = "model error across versions"):
+    """χ²/dof and MSE over its noise expectation of each model version, as bars on a log scale."""
     from bluesky_offsets.plotting import pyplot, save_figure
     plt = pyplot()
     fig, ax = plt.subplots(figsize=(6.5, 3.8), constrained_layout=True)

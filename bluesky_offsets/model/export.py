@@ -72,7 +72,8 @@ def load_calibration(path: str | os.PathLike, *, table: ParameterTable = METRIXS
     """The calibrated model of a calibration file, as a :class:`~bluesky_offsets.model.state.CalibratedState`.
 
     Raises :class:`CalibrationFileError` (one line: the file and why) for a file that does not read
-    as a calibration, or one of another parameter table version."""
+    as a calibration, or one of another parameter table version.
+    """
     from bluesky_offsets.model.state import CalibratedState, ModelState
     path = Path(path)
     try:

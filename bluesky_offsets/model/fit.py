@@ -178,6 +178,7 @@ class FitOptions:
         return cls(**opts)
 
     def replace(self, **changes) -> FitOptions:
+        """These options with ``changes`` (field names and values) applied, validated as :meth:`from_mapping`."""
         return FitOptions.from_mapping({f.name: getattr(self, f.name) for f in fields(self)}, **changes)
 
     @classmethod
@@ -191,8 +192,10 @@ class FitOptions:
 
 @dataclass
 class FitResult:
-    """Where a fit ended: the state, its χ² per stage, the uncertainties and the covariance
-    (normalized offsets, then effect parameters, in :attr:`names` order)."""
+    """Where a fit ended: the state, its χ² per stage, the uncertainties and the covariance.
+
+    The covariance is over the normalized offsets, then the effect parameters, in :attr:`names` order.
+    """
 
     state: ModelState
     history: list[dict]
@@ -214,17 +217,21 @@ class FitResult:
 
     @property
     def chi2_reduced(self) -> float:
+        """The last stage's χ² / dof at the solution (dof floored at 1)."""
         return self.chi2 / max(self.dof, 1.0)
 
     @property
     def sigma(self) -> np.ndarray:
+        """Every fitted parameter's standard deviation from the covariance, in :attr:`names` order."""
         return np.sqrt(np.clip(np.diag(self.covariance), 0, None))
 
     @property
     def offset_sigma(self) -> np.ndarray:
+        """The normalized offsets' standard deviations (the first entries of :attr:`sigma`)."""
         return self.sigma[:len(self.state.offsets)]
 
     def effect_sigma(self) -> dict[str, dict[str, float]]:
+        """The effect parameters' standard deviations, as ``{effect: {parameter: σ}}``."""
         s = self.sigma
         out: dict[str, dict[str, float]] = {}
         for k, name in enumerate(self.names[len(self.state.offsets):], len(self.state.offsets)):
@@ -237,9 +244,11 @@ class FitResult:
 # the model's products and their Jacobians
 # --------------------------------------------------------------------------- #
 def engine_for(meas, options: FitOptions, table: ParameterTable = METRIXS):
-    """The torch twin a fit of ``meas`` traces: its bins, the options' engine settings, and by
-    default a random stream of its own for each configuration (``common_rays=False``; fixed for
-    the whole fit, so the objective stays smooth).
+    """The torch twin a fit of ``meas`` traces.
+
+    It bins as ``meas``, takes the options' engine settings, and by default draws a random stream
+    of its own for each configuration (``common_rays=False``; fixed for the whole fit, so the
+    objective stays smooth).
 
     Why not the engine's default, one stream shared by all configurations: the measured frames'
     noise is independent from frame to frame, and the uncertainties assume the model's is too.
@@ -252,8 +261,11 @@ def engine_for(meas, options: FitOptions, table: ParameterTable = METRIXS):
 
 
 class _Model:
-    """The measurement's model as a function of the fitted vector z (normalized offsets, then
-    effect parameters): values and exact Jacobians of each stage's residuals."""
+    """The measurement's model as a function of the fitted vector z.
+
+    z holds the normalized offsets, then the effect parameters; the model gives the values and
+    exact Jacobians of each stage's residuals.
+    """
 
     def __init__(self, meas, state, engine, options: FitOptions, table: ParameterTable):
         self.meas, self.engine, self.o, self.table = meas, engine, options, table
@@ -294,8 +306,10 @@ class _Model:
         return min(o.rays, o.feature_rays) if stage == "features" and o.feature_rays else o.rays
 
     def histograms(self, z, jacobian: bool, rays: int | None = None, soft: bool = False):
-        """Model histograms (C, B) at the measurement's bins, and their Jacobian (C, B, P + p) in z
-        (``soft``: the soft beam's values, smooth in z, else RAYX's hard counts)."""
+        """Model histograms (C, B) at the measurement's bins, and their Jacobian (C, B, P + p) in z.
+
+        ``soft``: the soft beam's values, smooth in z, else RAYX's hard counts.
+        """
         rays = int(rays or self.o.rays)
         st = self.state(z)
         vals = self.meas.configurations + self.table.offsets_to_physical(st.offsets)
@@ -330,8 +344,10 @@ class _Model:
         return self._detector(st, h, J)
 
     def _detector(self, st, h, J):
-        """Detector-level effects on the histograms (affine in them) with their own columns;
-        the columns of every parameter in the state's order."""
+        """Detector-level effects on the histograms (affine in them) with their own columns.
+
+        The Jacobian's columns are every parameter's, in the state's order.
+        """
         if not self.det_effects:
             return h, J
         spec = self.meas.spec
@@ -375,8 +391,11 @@ class _Model:
 
     # -- each stage's products and residuals --------------------------------------------
     def products(self, stage: str, z, jacobian: bool) -> _Products:
-        """What ``stage`` compares, as the model predicts it at ``z``: beam features (C, 5), or
-        profile or camera bins (C, B), with their Jacobian in z (C, K, P + p) when asked."""
+        """What ``stage`` compares, as the model predicts it at ``z``.
+
+        Beam features (C, 5), or profile or camera bins (C, B), with their Jacobian in z
+        (C, K, P + p) when asked.
+        """
         rays = self.rays(stage)
         h, J = self.histograms(z, jacobian, rays, soft=stage != "bins" and self.soft)
         spec, nx = self.meas.spec, self.meas.spec.bins_x
@@ -416,9 +435,11 @@ class _Model:
         return self._measured[stage]
 
     def residuals(self, stage: str, pr: _Products):
-        """Normalized residuals (measured − model)/σ of ``stage`` (flat), their Jacobian in z
-        (rows, P + p; d model / dz / σ) when ``pr`` has one, the degrees of freedom and each
-        row's configuration."""
+        """Normalized residuals (measured − model)/σ of ``stage`` (flat), with their Jacobian and dof.
+
+        Returns the residuals, their Jacobian in z (rows, P + p; d model / dz / σ) when ``pr`` has
+        one, the degrees of freedom and each row's configuration.
+        """
         n_conf = self.meas.n
         if stage == "features":
             sd = np.sqrt(self.vm + pr.variance)
@@ -440,11 +461,14 @@ class _Model:
 
 
 def _fisher(mdl: _Model, other: _Model, stage: str, z: np.ndarray, pa: _Products | None = None) -> np.ndarray:
-    """The information of ``stage``'s residuals in z at ``z``: ``(Jaᵀ W Jb + Jbᵀ W Ja) / 2`` of the
-    Jacobians of two models with independent rays (``mdl``'s and ``other``'s), whose expectation is
-    the information itself (one Jacobian squared adds its rays' noise), its negative eigenvalues
-    (that noise) set to 0.  The weights are the residuals' (:meth:`_Model.residuals`) at the mean of
-    both models' values.  ``pa``: ``mdl``'s products at ``z`` with their Jacobian, when at hand."""
+    """The information of ``stage``'s residuals in z at ``z``, from two independent rays' Jacobians.
+
+    That is ``(Jaᵀ W Jb + Jbᵀ W Ja) / 2`` of the Jacobians of two models with independent rays
+    (``mdl``'s and ``other``'s), whose expectation is the information itself (one Jacobian squared
+    adds its rays' noise), its negative eigenvalues (that noise) set to 0.  The weights are the
+    residuals' (:meth:`_Model.residuals`) at the mean of both models' values.  ``pa``: ``mdl``'s
+    products at ``z`` with their Jacobian, when at hand.
+    """
     pa = pa if pa is not None and pa.jacobian is not None else mdl.products(stage, z, True)
     pb = other.products(stage, z, True)
     assert pa.jacobian is not None and pb.jacobian is not None  # products(..., True)
@@ -462,8 +486,11 @@ def _fisher(mdl: _Model, other: _Model, stage: str, z: np.ndarray, pa: _Products
 
 @dataclass
 class _Products:
-    """A stage's model values (C, K), their Jacobian in z (C, K, P + p) or None, the rays they
-    were traced with and (features) the values' own ray-noise variance."""
+    """A stage's model values (C, K) and what goes with them.
+
+    Their Jacobian in z (C, K, P + p) or None, the rays they were traced with and (features) the
+    values' own ray-noise variance.
+    """
 
     values: np.ndarray
     jacobian: np.ndarray | None
@@ -471,8 +498,10 @@ class _Products:
     variance: np.ndarray | None = None
 
     def secant(self, new: _Products, step: np.ndarray) -> _Products:
-        """``new`` with this Jacobian updated along ``step`` (Broyden's rank-one update): the
-        update that makes the Jacobian reproduce the change the twin actually made."""
+        """``new`` with this Jacobian updated along ``step`` (Broyden's rank-one update).
+
+        The update makes the Jacobian reproduce the change the twin actually made.
+        """
         assert self.jacobian is not None  # a stage's products carry the Jacobian its steps came from
         c, k, p = self.jacobian.shape
         J = self.jacobian.reshape(c * k, p)
@@ -510,10 +539,12 @@ def _ridge(mdl: _Model, o: FitOptions) -> np.ndarray:
 def _stage(mdl: _Model, stage: str, z: np.ndarray, pr: _Products, iterations: int, ridge: np.ndarray,
            history: list[dict], progress: Callable[[dict], None] | None, *, secant: bool,
            look: bool = False) -> tuple[np.ndarray, _Products, bool]:
-    """Levenberg-Marquardt on one stage from ``z``, whose products (with the twin's Jacobian)
-    are ``pr``; appends to ``history``.  Returns where it ended, the products there and whether
-    their Jacobian is the twin's own.  ``look`` (:func:`screen`): every accepted step updates
-    the Jacobian by its secant, none is recomputed, and all ``iterations`` run."""
+    """Levenberg-Marquardt on one stage from ``z``, whose products (with the twin's Jacobian) are ``pr``.
+
+    Appends to ``history``.  Returns where it ended, the products there and whether their Jacobian
+    is the twin's own.  ``look`` (:func:`screen`): every accepted step updates the Jacobian by its
+    secant, none is recomputed, and all ``iterations`` run.
+    """
     lo, hi = mdl.bounds()
     exact = True  # the Jacobian is the twin's at z (not a secant update of it)
     r, G, dof, _ = mdl.residuals(stage, pr)
@@ -564,14 +595,15 @@ T = TypeVar("T")
 
 # each call is called with no arguments; `...`: a lambda's defaults bind its loop variables
 def gather(calls: Sequence[Callable[..., T]], executor: Executor | None = None) -> list[T]:
-    """Every call's result, in the calls' order: side by side on ``executor``, one after the
-    other without one.  The executor is a thread pool or a Dask cluster
+    """Every call's result, in the calls' order: side by side on ``executor``, one after the other without one.
+
+    The executor is a thread pool or a Dask cluster
     (:class:`~bluesky_offsets.model.cluster.ClusterExecutor`: each call pickled to a worker
-    process), so a call returns everything it changes and mutates nothing the caller reads
-    after; a progress callback crosses as a :class:`~bluesky_offsets.model.cluster.Progress`.
-    Only independent work belongs here (a call must not wait on the same executor: a bounded
-    pool would deadlock); the order of the results, never which call finished first, decides
-    what follows."""
+    process), so a call returns everything it changes and mutates nothing the caller reads after; a
+    progress callback crosses as a :class:`~bluesky_offsets.model.cluster.Progress`.  Only
+    independent work belongs here (a call must not wait on the same executor: a bounded pool would
+    deadlock); the order of the results, never which call finished first, decides what follows.
+    """
     if executor is None:
         return [c() for c in calls]
     return [f.result() for f in [executor.submit(c) for c in calls]]
@@ -579,8 +611,10 @@ def gather(calls: Sequence[Callable[..., T]], executor: Executor | None = None) 
 
 def _stages(mdl: _Model, z: np.ndarray, ridge: np.ndarray, history: list[dict],
             progress: Callable[[dict], None] | None, tag: dict) -> tuple[np.ndarray, _Products, bool]:
-    """All of the options' stages from ``z`` on ``mdl``, each iteration's record tagged with
-    ``tag`` (which start, which ray draw); returns what the last :func:`_stage` returns."""
+    """All of the options' stages from ``z`` on ``mdl``; returns what the last :func:`_stage` returns.
+
+    Each iteration's record is tagged with ``tag`` (which start, which ray draw).
+    """
     def tagged(d):
         d.update(tag)
         if progress:
@@ -593,8 +627,10 @@ def _stages(mdl: _Model, z: np.ndarray, ridge: np.ndarray, history: list[dict],
 
 def _run(mdl: _Model, z: np.ndarray, ridge: np.ndarray, progress: Callable[[dict], None] | None,
          tag: dict) -> tuple:
-    """:func:`_stages` from ``z``: (z, products, exact, the run's history, the model's traces),
-    everything the run changed returned (it may run in a process of its own)."""
+    """:func:`_stages` from ``z``: (z, products, exact, the run's history, the model's traces).
+
+    Everything the run changed is returned (it may run in a process of its own).
+    """
     part: list[dict] = []
     z, pr, exact = _stages(mdl, z, ridge, part, progress, tag)
     return z, pr, exact, part, mdl.n_traces
@@ -602,8 +638,10 @@ def _run(mdl: _Model, z: np.ndarray, ridge: np.ndarray, progress: Callable[[dict
 
 def _runs(jobs: Sequence[tuple[_Model, np.ndarray, dict]], ridge: np.ndarray,
           progress: Callable[[dict], None] | None, executor: Executor | None) -> list[tuple]:
-    """:func:`_stages` for each ``(model, z, tag)``, side by side on ``executor``: each run's
-    (z, products, exact, its own history), in the jobs' order."""
+    """:func:`_stages` for each ``(model, z, tag)``, side by side on ``executor``.
+
+    Returns each run's (z, products, exact, its own history), in the jobs' order.
+    """
     ends = gather([lambda j=j: _run(j[0], z=j[1], ridge=ridge, progress=progress, tag=j[2]) for j in jobs],
                   executor)
     for (mdl, _, _), end in zip(jobs, ends):
@@ -731,10 +769,12 @@ def fit(meas, state, engine, options: FitOptions | Mapping | None = None, *,
 
 
 def _posterior_covariance(F: np.ndarray, ridge: np.ndarray) -> np.ndarray:
-    """(F + prior)⁻¹ for the information ``F``, scaled to unit diagonal first (the columns' units
-    differ by orders of magnitude).  A parameter the data do not see at all (a thermal bump below
-    its threshold: no bump, a zero column) has no uncertainty to give: NaN, not the
-    pseudo-inverse's "± 0"."""
+    """(F + prior)⁻¹ for the information ``F``, scaled to unit diagonal first.
+
+    The diagonal is scaled because the columns' units differ by orders of magnitude.  A parameter
+    the data do not see at all (a thermal bump below its threshold: no bump, a zero column) has no
+    uncertainty to give: NaN, not the pseudo-inverse's "± 0".
+    """
     A = F + np.diag(ridge)
     d = np.sqrt(np.clip(np.diag(A), 1e-300, None))
     cov = np.linalg.pinv(A / np.outer(d, d), rcond=1e-12) / np.outer(d, d)
@@ -745,12 +785,14 @@ def _posterior_covariance(F: np.ndarray, ridge: np.ndarray) -> np.ndarray:
 
 def information(meas, state, engine, options: FitOptions | Mapping | None = None, *,
                 table: ParameterTable = METRIXS) -> FitResult:
-    """``state`` looked at as it stands, no step taken: the last stage's residuals and the twin's
-    exact Jacobian there, and the covariance their information gives (two independent ray sets'
-    Jacobians, :func:`_fisher`; not inflated, not widened: what the data could say about each
-    parameter there, the others free).  Two Jacobians of the twin;
-    :func:`bluesky_offsets.model.diagnosis.detection_limits` reads from it how large an effect
-    could be and still hide behind the offsets."""
+    """``state`` looked at as it stands, no step taken.
+
+    The last stage's residuals and the twin's exact Jacobian there, and the covariance their
+    information gives (two independent ray sets' Jacobians, :func:`_fisher`; not inflated, not
+    widened: what the data could say about each parameter there, the others free).  Two Jacobians of
+    the twin; :func:`bluesky_offsets.model.diagnosis.detection_limits` reads from it how large an
+    effect could be and still hide behind the offsets.
+    """
     o = FitOptions.resolve(options)
     mdl = _Model(meas, state, engine, o, table)
     z = np.clip(mdl.vector(state), *mdl.bounds())
@@ -795,12 +837,15 @@ def jackknife_covariance(G: np.ndarray, r: np.ndarray, rows: np.ndarray, ridge: 
 
 def screen(meas, state, engine, options: FitOptions | Mapping | None = None, *, iterations: int = 6,
            table: ParameterTable = METRIXS) -> FitResult:
-    """A cheap look at ``state``: the features stage on one Jacobian of the twin (at ``state``)
-    and its secant updates, ``iterations`` Levenberg-Marquardt steps; then the last stage's
-    residuals where it ended (values only).  About a fifth of a :func:`fit`'s cost: what a
-    diagnosis ranks its candidate starts by before it fits the best of them.  The result's χ²
-    is the last stage's; its Jacobian and covariance are the features' at ``state`` (a look,
-    not a solution: no uncertainty is read from it)."""
+    """A cheap look at ``state``: secant steps of the features stage, then the last stage's χ² there.
+
+    The features stage on one Jacobian of the twin (at ``state``) and its secant updates,
+    ``iterations`` Levenberg-Marquardt steps; then the last stage's residuals where it ended (values
+    only).  About a fifth of a :func:`fit`'s cost: what a diagnosis ranks its candidate starts by
+    before it fits the best of them.  The result's χ² is the last stage's; its Jacobian and
+    covariance are the features' at ``state`` (a look, not a solution: no uncertainty is read from
+    it).
+    """
     o = FitOptions.resolve(options)
     mdl = _Model(meas, state, engine, o, table)
     z = np.clip(mdl.vector(state), *mdl.bounds())

@@ -119,8 +119,10 @@ class Measurement:
 
     @property
     def histograms(self) -> np.ndarray:
-        """``(n, bins_x + bins_y)``: x then y histogram per configuration (the surrogate's
-        output layout at the paper's binning)."""
+        """``(n, bins_x + bins_y)``: x then y histogram per configuration.
+
+        This is the surrogate's output layout at the paper's binning.
+        """
         return np.concatenate([self.hist_x, self.hist_y], axis=1)
 
     @property
@@ -131,10 +133,12 @@ class Measurement:
 
     @property
     def truth_id(self) -> str | None:
+        """The run's ``truth_id`` metadata (the published hash of a simulated IOC's hidden truth), or None."""
         return self.metadata.get("truth_id")
 
     @property
     def table_version(self) -> str | None:
+        """The version of the parameter table the run was taken with (its metadata); None if unknown."""
         return self.metadata.get("parameter_table_version")
 
     def subset(self, idx) -> Measurement:
@@ -148,8 +152,10 @@ class Measurement:
                        profile_floor_x=pick(self.profile_floor_x), profile_floor_y=pick(self.profile_floor_y))
 
     def joined(self, other: Measurement) -> Measurement:
-        """This measurement's frames, then ``other``'s, as one (binned alike; this one's uid and
-        metadata); each frame keeps where the chamber's stage stood."""
+        """One measurement of these frames, then ``other``'s (binned alike; this one's uid and metadata).
+
+        Each frame keeps where the chamber's stage stood.
+        """
         if self.spec != other.spec:
             raise MeasurementError(f"cannot join frames binned as {other.spec.fingerprint()} to frames binned as "
                                    f"{self.spec.fingerprint()}")
@@ -213,8 +219,11 @@ class Measurement:
                        profile_floor_x=None, profile_floor_y=None)
 
     def scaled(self, factor: float) -> Measurement:
-        """The measured fractions times ``factor``, the floors times its square: a camera's frames
-        reduced with another gain (``factor`` = the gain used / the gain measured)."""
+        """The measured fractions times ``factor``, the floors times its square.
+
+        These are a camera's frames reduced with another gain (``factor`` = the gain used / the gain
+        measured).
+        """
         def times(a, f):
             return None if a is None else np.asarray(a, float) * f
         return replace(self, hist_x=self.hist_x * factor, hist_y=self.hist_y * factor,

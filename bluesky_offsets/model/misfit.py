@@ -33,9 +33,11 @@ class MeasurementError(InputError):
 
 def check_histograms(hist_x, hist_y, bins_x: int | None = 50, bins_y: int | None = 50, what: str = "measurement",
                      floors=(None, None)):
-    """Validate a stack of x/y histograms; return float arrays (n, bins).  ``None`` bins: any.
-    With a camera's noise ``floors`` (variances, as the histograms) a bin may read below zero by up
-    to eight of the floor's σ, as a dark-subtracted one does."""
+    """Validate a stack of x/y histograms; return float arrays (n, bins).
+
+    ``None`` bins: any.  With a camera's noise ``floors`` (variances, as the histograms) a bin may
+    read below zero by up to eight of the floor's σ, as a dark-subtracted one does.
+    """
     hx = np.asarray(hist_x, dtype=float)
     hy = np.asarray(hist_y, dtype=float)
     if hx.ndim == 1:
@@ -72,26 +74,32 @@ class Misfit:
 
     @property
     def chi2_total(self) -> float:
+        """χ² summed over the configurations."""
         return float(self.chi2.sum())
 
     @property
     def dof_total(self) -> float:
+        """χ²'s expectation for a correct model (degrees of freedom), summed over the configurations."""
         return float(self.dof.sum())
 
     @property
     def chi2_reduced(self) -> np.ndarray:
+        """χ² / dof per configuration (dof floored at 1)."""
         return self.chi2 / np.maximum(self.dof, 1)
 
     @property
     def chi2_reduced_total(self) -> float:
+        """The total χ² over the total dof (floored at 1)."""
         return self.chi2_total / max(self.dof_total, 1)
 
     @property
     def mse_total(self) -> float:
+        """The mean squared error, averaged over the configurations."""
         return float(self.mse.mean())
 
     @property
     def expected_mse_total(self) -> float:
+        """A correct model's mean squared error, averaged over the configurations."""
         return float(self.expected_mse.mean())
 
     def beyond_noise(self, n_sigma: float = 3.0) -> np.ndarray:
@@ -99,15 +107,19 @@ class Misfit:
         return self.chi2 > self.dof + n_sigma * np.sqrt(2 * np.maximum(self.dof, 1))
 
     def noise_margin(self, n_sigma: float = 3.0) -> float:
-        """How far χ² may exceed its expectation and the model still be within noise: ``n_sigma``
-        times χ²'s spread √(2 dof) (the gate of :meth:`total_beyond_noise`; what a hidden effect
-        may add and hide, :func:`bluesky_offsets.model.diagnosis.detection_limits`)."""
+        """How far χ² may exceed its expectation and the model still be within noise.
+
+        That is ``n_sigma`` times χ²'s spread √(2 dof) (the gate of :meth:`total_beyond_noise`; what a
+        hidden effect may add and hide, :func:`bluesky_offsets.model.diagnosis.detection_limits`).
+        """
         return float(n_sigma * np.sqrt(2 * max(self.dof_total, 1)))
 
     def total_beyond_noise(self, n_sigma: float = 3.0) -> bool:
+        """Whether the total χ² exceeds the total dof by more than :meth:`noise_margin`."""
         return self.chi2_total > self.dof_total + self.noise_margin(n_sigma)
 
     def as_dict(self) -> dict:
+        """The misfit's totals, per-configuration χ²/dof and MSE, and the configurations beyond noise."""
         return {"chi2_total": self.chi2_total, "dof_total": self.dof_total,
                 "chi2_reduced_total": self.chi2_reduced_total, "mse_total": self.mse_total,
                 "expected_mse_total": self.expected_mse_total,
@@ -139,9 +151,12 @@ DARK_PULL2 = float(DARK_CUT * np.exp(-DARK_CUT**2 / 2) / np.sqrt(2 * np.pi) + 0.
 
 
 def compared(meas: np.ndarray, model: np.ndarray, floor=None) -> np.ndarray:
-    """The bins a chi-square counts: where light was measured or modelled; with a camera's floor,
-    where the model has light or the measurement reads beyond :data:`DARK_CUT` σ of its noise (the
-    camera's dark bins, thousands a frame, would else drown the light's bins in their noise)."""
+    """The bins a chi-square counts: where light was measured or modelled.
+
+    With a camera's floor: where the model has light or the measurement reads beyond
+    :data:`DARK_CUT` σ of its noise (the camera's dark bins, thousands a frame, would else drown the
+    light's bins in their noise).
+    """
     if floor is not None:
         return (np.asarray(model) > 0) | (np.asarray(meas) > DARK_CUT * np.sqrt(floor))
     return (meas > 0) | (model > 0)
@@ -199,8 +214,11 @@ def misfit(meas_x, meas_y, model_x, model_y, n_rays: int | Sequence[int], *,
 # residual signatures
 # --------------------------------------------------------------------------- #
 def _centroid_variance(h, centers: np.ndarray):
-    """Total, centroid and variance of histograms (..., bins); an empty one has centroid and
-    variance 0.  Numpy arrays or torch tensors alike (the fit differentiates them)."""
+    """Total, centroid and variance of histograms (..., bins).
+
+    An empty one has centroid and variance 0.  Numpy arrays or torch tensors alike (the fit
+    differentiates them).
+    """
     if not isinstance(h, np.ndarray):  # a torch tensor: the centres on its device and dtype
         centers = h.new_tensor(centers)
     tot = h.sum(-1)
@@ -210,17 +228,22 @@ def _centroid_variance(h, centers: np.ndarray):
 
 
 def _spot(h, centers: np.ndarray):
-    """Centroid and variance of a beam's histograms; the variance floored at the bin's own
-    spread (w^2 / 12: a beam inside one bin still has it).  Numpy or torch alike."""
+    """Centroid and variance of a beam's histograms.
+
+    The variance is floored at the bin's own spread (w^2 / 12: a beam inside one bin still has it).
+    Numpy or torch alike.
+    """
     w = (centers[-1] - centers[0]) / (len(centers) - 1)
     _, mu, v = _centroid_variance(h, centers)
     return mu, v.clip(min=w * w / 12)
 
 
 def feature_values(hist_x, hist_y, spec) -> list:
-    """The five numbers of :func:`beam_features` (intensity, then centroid and rms width per
-    axis) without their variances, as a list; numpy arrays or torch tensors alike, so that the
-    fit's model side is the same function as the measurement's."""
+    """The five numbers of :func:`beam_features` without their variances, as a list.
+
+    Intensity, then centroid and rms width per axis; numpy arrays or torch tensors alike, so that
+    the fit's model side is the same function as the measurement's.
+    """
     out = [hist_x.sum(-1)]
     for h, c in ((hist_x, spec.centers_x), (hist_y, spec.centers_y)):
         mu, v = _spot(h, c)
@@ -296,16 +319,20 @@ class Signature:
     delta: dict[str, np.ndarray] = field(default_factory=dict)  # "x.centroid" -> (n,)
 
     def mean(self) -> dict[str, float]:
+        """Each difference's mean over the configurations."""
         return {k: float(np.mean(v)) for k, v in self.delta.items()}
 
     def as_vector(self, keys: Sequence[str] | None = None) -> np.ndarray:
+        """The differences ``keys`` (default: all, sorted) stacked as columns: ``(n, len(keys))``."""
         keys = keys or sorted(self.delta)
         return np.stack([self.delta[k] for k in keys], axis=-1)
 
 
 def residual_signature(meas_x, meas_y, model_x, model_y, spec) -> Signature:
-    """How the model differs from the measurement, in physical terms, per configuration:
-    lost intensity, centroid shift, width change, asymmetry and tails, per axis."""
+    """How the model differs from the measurement, in physical terms, per configuration.
+
+    Lost intensity, centroid shift, width change, asymmetry and tails, per axis.
+    """
     out = {}
     for axis, m, f, c in (("x", meas_x, model_x, spec.centers_x), ("y", meas_y, model_y, spec.centers_y)):
         mm, fm = moments(m, c), moments(f, c)
@@ -316,8 +343,10 @@ def residual_signature(meas_x, meas_y, model_x, model_y, spec) -> Signature:
 
 def correlate_with_parameters(signature: Signature, configurations: np.ndarray, names: Sequence[str],
                               top: int = 5) -> list[tuple[str, str, float]]:
-    """Strongest Pearson correlations between residual signatures and the commanded parameters
-    across configurations: ``(signature, parameter, r)``, largest ``|r|`` first."""
+    """Strongest Pearson correlations between residual signatures and the commanded parameters.
+
+    Correlated across configurations: ``(signature, parameter, r)``, largest ``|r|`` first.
+    """
     cfg = np.asarray(configurations, dtype=float)
     out = []
     for key, d in signature.delta.items():
@@ -335,8 +364,11 @@ def correlate_with_parameters(signature: Signature, configurations: np.ndarray, 
 
 
 def failing_regions(misfit_: Misfit, spec, n_sigma: float = 3.0) -> list[dict]:
-    """Where the misfit sits: per failing configuration and axis, the bins whose pulls
-    exceed ``n_sigma`` and whether they lie in the core or the tails of the footprint."""
+    """Where the misfit sits, per failing configuration and axis.
+
+    For each configuration beyond noise and each axis with bins whose pulls exceed ``n_sigma``:
+    the range in mm those bins span, the largest pull, and the share of the configuration's χ² in them.
+    """
     out = []
     for i in np.flatnonzero(misfit_.beyond_noise(n_sigma)):
         for axis, pulls, centers in (("x", misfit_.pulls_x[i], spec.centers_x),

@@ -1,5 +1,4 @@
-"""What a calibration knows about each offset: value ± σ, whether the data determine it, with whom
-it trades.
+"""What a calibration knows about each offset: value ± σ, whether the data determine it, with whom it trades.
 
 A fit's covariance (:class:`~bluesky_offsets.model.state.CalibratedState`) holds the offsets'
 posterior in normalized units (fractions of each range); this module says it per parameter in
@@ -43,9 +42,11 @@ def classify(ratio: float) -> str:
 
 @dataclass(frozen=True)
 class Estimate:
-    """One parameter's posterior: value and σ in its unit, the same normalized by its range, the
-    class, the strongest compensating partners ``[(name, correlation)]`` and whether a bound
-    holds it."""
+    """One parameter's posterior.
+
+    Its value and σ in its unit, the same normalized by its range, the class, the strongest
+    compensating partners ``[(name, correlation)]`` and whether a bound holds it.
+    """
 
     name: str
     unit: str
@@ -64,6 +65,7 @@ class Estimate:
         return f"undetermined ({v})" if self.cls == "undetermined" else v
 
     def as_dict(self) -> dict:
+        """The estimate as plain JSON values (value, σ, unit, class, normalized, partners, at_bound)."""
         return {"value": self.value, "sigma": self.sigma, "unit": self.unit, "class": self.cls,
                 "normalized": self.normalized, "normalized_sigma": self.normalized_sigma,
                 "partners": [[n, c] for n, c in self.partners], "at_bound": self.at_bound}
@@ -81,8 +83,10 @@ class Posterior:
 
     @classmethod
     def of(cls, model, table: ParameterTable = METRIXS) -> Posterior | None:
-        """The posterior of a calibrated state (or an analysis, or a state with a covariance); None
-        where no covariance is known."""
+        """The posterior of a calibrated state (or an analysis, or a state with a covariance).
+
+        None where no covariance is known.
+        """
         from bluesky_offsets.model.state import CalibratedState
         cal = CalibratedState.of(model)
         if cal.covariance is None or cal.names is None:
@@ -113,14 +117,17 @@ class Posterior:
         return cls(tuple(offs), effects, _combinations(cov[:n, :n], names[:n]), cov, names)
 
     def counts(self) -> dict[str, int]:
+        """How many offsets are determined, weak and undetermined."""
         out = {"determined": 0, "weak": 0, "undetermined": 0}
         for e in self.offsets:
             out[e.cls] += 1
         return out
 
     def as_dict(self) -> dict:
-        """For ``summary.json`` and the calibration file: per offset and effect parameter, the
-        counts and the determined combinations."""
+        """The posterior as plain JSON values, for ``summary.json`` and the calibration file.
+
+        Per offset and effect parameter, the counts and the determined combinations.
+        """
         return {"offsets": {e.name: e.as_dict() for e in self.offsets},
                 "effects": {eff: {q: e.as_dict() for q, e in d.items()} for eff, d in self.effects.items()},
                 "counts": self.counts(), "combinations": list(self.combinations),
@@ -134,6 +141,7 @@ class Posterior:
                  **({"note": "at the ±20 % bound"} if e.at_bound else {})} for e in self.offsets]
 
     def lines(self) -> list[str]:
+        """The posterior as text lines: the counts, one line per offset, the determined combinations."""
         c = self.counts()
         out = [f"offsets: {c['determined']} determined, {c['weak']} weak, {c['undetermined']} undetermined "
                f"(σ below 0.1 / above 0.5 of the prior's)"]
@@ -155,8 +163,10 @@ def _partners(corr: np.ndarray, i: int, names, k: int = 2) -> tuple[tuple[str, f
 
 
 def _combinations(cov: np.ndarray, names, top: int = 4, most: int = 6) -> tuple[dict, ...]:
-    """The posterior's well-determined directions (σ below a tenth of the prior's) that mix
-    offsets (no component above 0.9), best first."""
+    """The posterior's well-determined directions that mix offsets, best first.
+
+    Well determined: σ below a tenth of the prior's; mixing: no component above 0.9.
+    """
     c = np.nan_to_num(cov)
     lam, vec = np.linalg.eigh(0.5 * (c + c.T))
     out: list[dict] = []
@@ -173,4 +183,5 @@ def _combinations(cov: np.ndarray, names, top: int = 4, most: int = 6) -> tuple[
 
 
 def summary(posterior: Posterior | None) -> Mapping | None:
+    """``posterior.as_dict()``, None for no posterior."""
     return None if posterior is None else posterior.as_dict()

@@ -25,9 +25,11 @@ from bluesky_offsets.physics.screen import per_frame_overrides
 
 
 def solve_normal(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """``a x = b`` for the fits' normal equations; least squares where ``a`` is singular (a
-    Jacobian with no information on some direction, e.g. all zero, where ``solve`` fails with
-    'Singular matrix')."""
+    """``a x = b`` for the fits' normal equations; least squares where ``a`` is singular.
+
+    ``a`` is singular for a Jacobian with no information on some direction (e.g. all zero),
+    where ``solve`` fails with 'Singular matrix'.
+    """
     try:
         return np.linalg.solve(a, b)
     except np.linalg.LinAlgError:
@@ -45,8 +47,10 @@ def _twin_overrides(state: ModelState) -> dict:
 
 def simulate_raw(twin, configurations: np.ndarray, state: ModelState, n_rays: int, seed=None,
                  table: ParameterTable = METRIXS, screen=None) -> tuple[np.ndarray, np.ndarray]:
-    """Twin histograms of ``state`` before detector-level effects, the chamber's stage at
-    ``screen`` ((n, 3) mm, :mod:`bluesky_offsets.physics.screen`; None: at 0)."""
+    """Twin histograms of ``state`` before detector-level effects.
+
+    The chamber's stage is at ``screen`` ((n, 3) mm, :mod:`bluesky_offsets.physics.screen`; None: at 0).
+    """
     n = len(np.atleast_2d(configurations))
     res = twin.trace_batch(_true_values(configurations, state, table),
                            overrides=per_frame_overrides(_twin_overrides(state), screen, n),
@@ -56,8 +60,10 @@ def simulate_raw(twin, configurations: np.ndarray, state: ModelState, n_rays: in
 
 def simulate_raw_many(twin, configurations: np.ndarray, states: Sequence[ModelState], n_rays: int, seeds,
                       table: ParameterTable = METRIXS, screen=None) -> list[tuple[np.ndarray, np.ndarray]]:
-    """:func:`simulate_raw` for several states at the same configurations and seeds, in one
-    batch (the workers stay busy; common random numbers make the states comparable)."""
+    """:func:`simulate_raw` for several states at the same configurations and seeds, in one batch.
+
+    One batch keeps the workers busy; common random numbers make the states comparable.
+    """
     n = len(configurations)
     if not states:
         return []
@@ -75,14 +81,17 @@ def _frames_overrides(overrides: dict, screen, n: int) -> list[Mapping]:
 
 
 def detector_view(hx, hy, state: ModelState, spec):
+    """Histograms ``hx``, ``hy`` through ``state``'s detector-level effects (unchanged where it has none)."""
     det = {n: v for n, v in state.effects.items() if E.get(n).level == "detector"}
     return E.apply_detector_effects(hx, hy, det, spec) if det else (hx, hy)
 
 
 def simulate(twin, configurations: np.ndarray, state: ModelState, n_rays: int, seed=None,
              table: ParameterTable = METRIXS, screen=None) -> tuple[np.ndarray, np.ndarray]:
-    """Twin histograms of ``state`` at the commanded ``configurations`` (n, 34) and stage
-    positions ``screen``, as the focus chamber would record them (detector-level effects applied)."""
+    """Twin histograms of ``state`` as the focus chamber would record them (detector-level effects applied).
+
+    ``configurations``: the commanded configurations (n, 34); ``screen``: the stage positions.
+    """
     hx, hy = simulate_raw(twin, configurations, state, n_rays, seed, table, screen)
     return detector_view(hx, hy, state, twin.hist)
 
@@ -90,9 +99,11 @@ def simulate(twin, configurations: np.ndarray, state: ModelState, n_rays: int, s
 def simulate_frames(twin, configurations: np.ndarray, state: ModelState, n_rays: int, seed=None,
                     table: ParameterTable = METRIXS, *, oversample: int = 16,
                     screen=None) -> tuple[np.ndarray, np.ndarray]:
-    """Frames of ``state`` as a photon-counting camera records them: the twin's histograms at
-    ``oversample`` × ``n_rays`` (near their expectation) through the detector-level effects,
-    then ``n_rays`` source photons drawn from them (how many reach the screen, then where).
+    """Frames of ``state`` as a photon-counting camera records them.
+
+    The twin's histograms at ``oversample`` × ``n_rays`` (near their expectation) go through the
+    detector-level effects, then ``n_rays`` source photons are drawn from them (how many reach
+    the screen, then where).
 
     Why not :func:`simulate` where the state has detector-level effects: it applies them to
     counted histograms, which smooths the counting noise along with the beam (a blurred frame
@@ -100,7 +111,8 @@ def simulate_frames(twin, configurations: np.ndarray, state: ModelState, n_rays:
     would read every misfit of such frames as within noise (χ²/dof far below 1 at the truth).
     Without detector-level effects the twin's counted histograms are such frames already:
     :func:`simulate`'s.  ``seed``: the configurations' seeds (as :func:`simulate`), which also
-    seed the draw (None: unseeded)."""
+    seed the draw (None: unseeded).
+    """
     if not any(E.get(n).level == "detector" for n in state.effects):
         return simulate(twin, configurations, state, n_rays, seed, table, screen)
     hx, hy = simulate(twin, configurations, state, n_rays * oversample, seed, table, screen)
@@ -127,6 +139,8 @@ def check_twin(meas: Measurement, twin) -> None:
 
 @dataclass
 class RefineResult:
+    """A refinement's outcome: the fitted state, its effects' uncertainties, the fit's history and the fit."""
+
     state: ModelState
     effect_sigma: dict[str, dict[str, float]]
     history: list[dict]
@@ -134,6 +148,7 @@ class RefineResult:
 
     @property
     def offset_sigma(self) -> np.ndarray:
+        """The fitted normalized offsets' standard deviations (the fit's)."""
         return self.fit.offset_sigma
 
     @property

@@ -1,6 +1,8 @@
-"""The calibrated model's values, apart from how they are fitted: :class:`ModelState` (normalized
-offsets and the included effects' values) and :class:`CalibratedState` (a state with the covariance
-of the fit that gave it)."""
+"""The calibrated model's values, apart from how they are fitted.
+
+:class:`ModelState` (normalized offsets and the included effects' values) and
+:class:`CalibratedState` (a state with the covariance of the fit that gave it).
+"""
 
 from __future__ import annotations
 
@@ -31,9 +33,11 @@ class ModelState:
                           f"{self.label} + {name}")
 
     def effect_vector(self) -> np.ndarray:
+        """The included effects' values as one vector, effect by effect in inclusion order."""
         return np.array([v for name in self.effects for v in self.effects[name].values()], dtype=float)
 
     def set_effect_vector(self, vec: np.ndarray) -> dict[str, dict[str, float]]:
+        """The effects' values read from ``vec`` (in :meth:`effect_vector`'s order), as a new mapping."""
         out: dict[str, dict[str, float]] = {}
         i = 0
         for name, vals in self.effects.items():
@@ -44,14 +48,17 @@ class ModelState:
         return out
 
     def effect_parameters(self) -> list[tuple[str, E.EffectParameter]]:
+        """The included effects' parameters as ``(effect name, parameter)``, in :meth:`effect_vector`'s order."""
         return [(name, p) for name in self.effects for p in E.get(name).parameters]
 
 
 @dataclass(frozen=True)
 class CalibratedState:
-    """A model state and the covariance of the fit that gave it: normalized offsets, then the
-    state's effect parameters, ``names`` in that order (None: no uncertainty known).  ``uid``:
-    the run the state comes from."""
+    """A model state and the covariance of the fit that gave it.
+
+    The covariance is over the normalized offsets, then the state's effect parameters,
+    ``names`` in that order (None: no uncertainty known).  ``uid``: the run the state comes from.
+    """
 
     state: ModelState
     covariance: np.ndarray | None = None
@@ -60,8 +67,11 @@ class CalibratedState:
 
     @classmethod
     def of(cls, model) -> CalibratedState:
-        """A :class:`CalibratedState` from itself, a :class:`ModelState` (no covariance) or an
-        analysis (``plans.diagnose.Analysis``: its ``calibrated`` model)."""
+        """A :class:`CalibratedState` from a calibrated model, a model state or an analysis.
+
+        ``model``: a :class:`CalibratedState` (itself), a :class:`ModelState` (no covariance) or an
+        analysis (``plans.diagnose.Analysis``: its ``calibrated`` model).
+        """
         if isinstance(model, cls):
             return model
         if isinstance(model, ModelState):

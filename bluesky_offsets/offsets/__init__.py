@@ -1,1 +1,4 @@
-"""Finding the offsets: the problem and its finder methods, identifiability, the beam search, evaluation, the Bluesky finder callable."""
+"""Finding the offsets.
+
+The problem and its finder methods, identifiability, the beam search, evaluation, the Bluesky finder callable.
+"""

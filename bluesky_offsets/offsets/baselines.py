@@ -51,14 +51,17 @@ def _scalar(obj: F.Objective, tr: F._Tracker):
 
 @dataclass
 class Powell:
-    """SciPy's bounded Powell from zero offsets (the uncompensated model), then from uniform
-    restarts while the budget lasts."""
+    """SciPy's bounded Powell from zero offsets, then from uniform restarts while the budget lasts.
+
+    Zero offsets: the uncompensated model.
+    """
 
     xtol: float = 1e-6
     ftol: float = 1e-12
     name = "powell"
 
     def run(self, obj: F.Objective, tr: F._Tracker, gen: torch.Generator) -> None:
+        """Powell from zero offsets, then from uniform restarts, until the budget is spent; ends kept in ``final``."""
         from scipy.optimize import minimize
         P, lim = obj.problem.n_parameters, obj.limit
         f, start = _scalar(obj, tr), np.zeros(P)
@@ -82,6 +85,7 @@ class Annealing:
     name = "annealing"
 
     def run(self, obj: F.Objective, tr: F._Tracker, gen: torch.Generator) -> None:
+        """Dual annealing over the offsets' box, restarted with the next seed until the budget is spent."""
         from scipy.optimize import dual_annealing
         P, lim = obj.problem.n_parameters, obj.limit
         f = _scalar(obj, tr)
@@ -107,6 +111,7 @@ class Genetic:
     name = "genetic"
 
     def run(self, obj: F.Objective, tr: F._Tracker, gen: torch.Generator) -> None:
+        """Generations of the genetic algorithm while the budget holds a whole one."""
         import logging
         _need("evotorch", "harness")
         from evotorch import Problem
@@ -135,9 +140,11 @@ class Genetic:
 
 @dataclass
 class Blop:
-    """blop's Ax optimizer (``blop.ax.optimizer.AxOptimizer``): Sobol points, then a Gaussian
-    process with the upper confidence bound (β = 10, the authors' setting), ``batch`` points per
-    suggestion, through blop's ``suggest``/``ingest`` protocol."""
+    """blop's Ax optimizer (``blop.ax.optimizer.AxOptimizer``): Sobol points, then a Gaussian process with UCB.
+
+    The upper confidence bound with β = 10 (the authors' setting), ``batch`` points per suggestion,
+    through blop's ``suggest``/``ingest`` protocol.
+    """
 
     sobol: int = 16
     beta: float = 10.0
@@ -155,6 +162,7 @@ class Blop:
         return opt
 
     def run(self, obj: F.Objective, tr: F._Tracker, gen: torch.Generator) -> None:
+        """Batches suggested by the optimizer, evaluated and ingested, until the budget is spent."""
         P, lim = obj.problem.n_parameters, obj.limit
         opt = self.optimizer(P, lim, int(torch.randint(1, 2**31 - 1, (1,), generator=gen)))
         while tr.cap(self.batch) > 0 and not tr.exhausted():
@@ -166,8 +174,7 @@ class Blop:
 
 
 def ucb_strategy(sobol: int, beta: float, seed: int | None = None):
-    """Ax's generation strategy: ``sobol`` quasi-random points (scrambled by ``seed``), then BoTorch
-    with qUCB(β)."""
+    """Ax's generation strategy: ``sobol`` quasi-random points (scrambled by ``seed``), then BoTorch with qUCB(β)."""
     from ax.adapter.registry import Generators
     from ax.generation_strategy.generation_strategy import GenerationStep, GenerationStrategy
     from botorch.acquisition import qUpperConfidenceBound

@@ -1,5 +1,7 @@
-"""Finding the beam from a dark start, as an operator does: open the slits, then scan the
-motors the beam is most sensitive to, upstream first, watching the counts.
+"""Finding the beam from a dark start, as an operator does.
+
+Open the slits, then scan the motors the beam is most sensitive to, upstream first, watching the
+counts.
 
 Which motors need a scan, and how finely, comes from the model: :func:`acceptance` sweeps
 each motor of the nominal twin around the start and measures over which part of its range
@@ -33,16 +35,19 @@ class ScanStep:
 
 
 def intensity(hist_x, hist_y) -> np.ndarray:
-    """The beam's share of the source rays on the screen (x and y histograms summed, as the
-    paper's threshold counts them)."""
+    """The beam's share of the source rays on the screen.
+
+    The x and y histograms summed, as the paper's threshold counts them.
+    """
     return np.nansum(np.atleast_2d(hist_x), axis=1) + np.nansum(np.atleast_2d(hist_y), axis=1)
 
 
 def acceptance(twin, start, *, open_slits: bool = True, rays: int = 500, seed: int = 0,
                table: ParameterTable = METRIXS) -> np.ndarray:
-    """Per parameter: the normalized half-width around ``start`` over which the model's beam
-    keeps half its intensity when that motor alone moves (NaN for fixed parameters; the
-    largest swept distance where it never drops that far).
+    """Per parameter: the normalized half-width around ``start`` over which the model's beam keeps half its intensity.
+
+    The half-width is taken with that motor alone moving (NaN for fixed parameters; the largest
+    swept distance where it never drops that far).
 
     ``twin`` traces (``trace_batch``), e.g. ``Twin(TorchEngine())``; ``open_slits`` sweeps
     with the slits open (:func:`bluesky_offsets.model.diagnosis.open_aperture`), as the search does.
@@ -74,9 +79,11 @@ def acceptance(twin, start, *, open_slits: bool = True, rays: int = 500, seed: i
 
 def schedule(widths: np.ndarray, fraction: float, *, max_points: int = 9,
              table: ParameterTable = METRIXS) -> list[ScanStep]:
-    """The motors to scan, upstream first (table order), each over ±``fraction`` of its range
-    with steps of about its acceptance (at most ``max_points`` positions, the middle one the
-    current position): those whose acceptance is narrower than the offsets they may carry."""
+    """The motors to scan: those whose acceptance is narrower than the offsets they may carry.
+
+    Upstream first (table order), each over ±``fraction`` of its range with steps of about its
+    acceptance (at most ``max_points`` positions, the middle one the current position).
+    """
     out = []
     for j, name in enumerate(table.names):
         w = widths[j]
@@ -103,9 +110,11 @@ class SearchResult:
 def search(start, open_widths: np.ndarray, closed_widths: np.ndarray, *, threshold: float, fraction: float = 0.05,
            max_frames: int = 120, max_points: int = 9,
            table: ParameterTable = METRIXS):
-    """The search as a coroutine: it yields configurations (k, P) to measure and is sent their
-    intensities (:func:`intensity`); it returns a :class:`SearchResult`.  ``threshold``: the
-    intensity of a bright frame (``plans.search.HIGH_RAY_THRESHOLD``, the paper's).
+    """The search as a coroutine; it returns a :class:`SearchResult`.
+
+    It yields configurations (k, P) to measure and is sent their intensities (:func:`intensity`).
+    ``threshold``: the intensity of a bright frame (``plans.search.HIGH_RAY_THRESHOLD``, the
+    paper's).
 
     1. the start as it is: bright, done;
     2. the slits open (:data:`bluesky_offsets.model.diagnosis.OPEN_APERTURE`); each motor of the

@@ -58,9 +58,11 @@ class Calibration:
     extra: dict = field(default_factory=dict)
 
     def physical_offsets(self, table: ParameterTable = METRIXS) -> np.ndarray:
+        """The offsets in each parameter's physical unit (normalized offsets times the ranges)."""
         return np.asarray(self.offsets) * table.span
 
     def physical_sigma(self, table: ParameterTable = METRIXS) -> np.ndarray:
+        """The offsets' uncertainties in each parameter's physical unit."""
         return np.asarray(self.sigma) * table.span
 
     def true_values(self, commanded, table: ParameterTable = METRIXS) -> np.ndarray:
@@ -68,6 +70,7 @@ class Calibration:
         return table.validate(commanded, "commanded configuration") + self.physical_offsets(table)
 
     def to_dict(self) -> dict:
+        """The calibration as plain JSON values (:meth:`load` reads them back)."""
         return {"offsets": np.asarray(self.offsets).tolist(), "sigma": np.asarray(self.sigma).tolist(),
                 "status": list(self.status), "loss": self.loss, "method": self.method,
                 "history": {k: [float(v) for v in vals] for k, vals in self.history.items()},
@@ -76,12 +79,14 @@ class Calibration:
                 "extra": self.extra}
 
     def save(self, path) -> Path:
+        """Write the calibration to ``path`` as JSON; returns the path."""
         path = Path(path)
         path.write_text(json.dumps(self.to_dict(), indent=1) + "\n")
         return path
 
     @classmethod
     def load(cls, path, table: ParameterTable = METRIXS) -> Calibration:
+        """The calibration saved at ``path``; a finder error if it was made for another table version."""
         d = json.loads(Path(path).read_text())
         if d.get("table_version") != table.version:
             raise F.FinderError(f"calibration {path} was made for parameter table {d.get('table_version')}, "
@@ -91,6 +96,7 @@ class Calibration:
                    tuple(d["names"]), d.get("source_uid"), d.get("created", ""), d.get("extra", {}))
 
     def report(self, table: ParameterTable = METRIXS) -> str:
+        """A text table: each parameter's physical offset ± σ, its unit and status, under the method and MSE."""
         lines = [f"offsets ({self.method}, MSE {self.loss:.3e}"
                  + (f", twin MSE {self.twin_mse:.3e} vs repeat {self.repeat_mse:.3e}" if self.twin_mse else "") + ")"]
         phys, ps = self.physical_offsets(table), self.physical_sigma(table)
@@ -105,11 +111,12 @@ class Calibration:
 def twin_polish(problem: F.OffsetProblem, twin, offsets, *, iterations: int = 4, n_rays: int | None = None,
                 seed: int = 0, oversample: float = 2.0,
                 callback: Callable[[dict], None] | None = None) -> tuple[np.ndarray, list[float]]:
-    """The surrogate's solution fitted on through the twin itself: the one fit engine
-    (:func:`bluesky_offsets.model.fit.fit`, the differentiable twin, exact Jacobians) on the
-    problem's 50 + 50 bins, ``iterations`` Levenberg-Marquardt steps on the beam features, then
-    as many on the bins, at ``oversample`` x the measurement's rays (one set of rays, so that a
-    step near the optimum is judged without sampling noise).
+    """The surrogate's solution fitted on through the twin itself.
+
+    The one fit engine (:func:`bluesky_offsets.model.fit.fit`, the differentiable twin, exact
+    Jacobians) on the problem's 50 + 50 bins, ``iterations`` Levenberg-Marquardt steps on the beam
+    features, then as many on the bins, at ``oversample`` x the measurement's rays (one set of rays,
+    so that a step near the optimum is judged without sampling noise).
 
     The surrogate finds the right valley, but its own error (~1e-6 per bin) is far above the
     counting noise of a 1e5-ray measurement (~4e-8).  Returns the offsets and the twin's MSE
@@ -188,6 +195,7 @@ class OffsetFinder:
             self.model = F.load_forward_model()
 
     def __call__(self, measurement, *, callback: Callable[[dict], None] | None = None) -> Calibration:
+        """The :class:`Calibration` of ``measurement``: the method's offsets, twin-polished where a twin is given."""
         n_rays, uid = measurement.n_rays, measurement.uid
         problem = F.problem_from_measurements(measurement.configurations, measurement.histograms, n_rays=n_rays,
                                               limit=self.limit, metadata={"uid": uid} if uid else None)
@@ -236,9 +244,11 @@ class CalibratedModel:
 
     @property
     def offsets(self) -> np.ndarray:
+        """The normalized offsets in use (zeros without a calibration)."""
         return np.zeros(len(self.table)) if self.calibration is None else np.asarray(self.calibration.offsets)
 
     def set_calibration(self, cal: Calibration | None) -> None:
+        """Use ``cal`` (None: none), the one in use kept in :attr:`history`; refused for another table version."""
         if cal is not None and cal.table_version != self.table.version:
             raise F.FinderError(f"calibration for table {cal.table_version}, model uses {self.table.version}")
         if self.calibration is not None:
@@ -246,14 +256,17 @@ class CalibratedModel:
         self.calibration = cal
 
     def true_values(self, commanded) -> np.ndarray:
+        """What the beamline is believed to be at the ``commanded`` physical settings: commanded + offsets."""
         return self.table.validate(commanded, "commanded configuration") + self.offsets * self.table.span
 
     def trace(self, commanded, **kw):
+        """The twin's trace at the true values of ``commanded`` (``kw`` passed to ``twin.trace``)."""
         if self.twin is None:
             raise F.FinderError("this calibrated model has no twin")
         return self.twin.trace(self.true_values(commanded), **kw)
 
     def predict(self, commanded) -> np.ndarray:
+        """The forward model's histograms at ``commanded`` normalized settings plus the offsets."""
         if self.forward_model is None:
             raise F.FinderError("this calibrated model has no forward model")
         x = self.table.normalize(commanded) + self.offsets
@@ -306,6 +319,7 @@ class LossPlot:
         self.ax.grid(alpha=0.3, which="both")
 
     def __call__(self, name, doc):
+        """Handle one document: reset on ``start``, plot each ``finder`` event, save on ``stop`` with a path."""
         if name == "start":
             self.x, self.y = [], []
             self.ax.set_title(f"offset finder {doc.get('uid', '')[:8]}")

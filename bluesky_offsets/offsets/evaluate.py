@@ -188,8 +188,11 @@ def twin_check(twin, problem: F.OffsetProblem, offsets, *, n_rays: int = 20_000,
 
 def plot_footprints(twin, problem: F.OffsetProblem, offsets, path, *, columns: Sequence[int] | None = None,
                     n_rays: int = 20_000, seed: int = 0, title: str = "") -> Path:
-    """Footprints re-simulated by the twin: uncompensated (the configuration as set), observed (with
-    the true offsets, or the measured histograms), compensated (with the found offsets) - Fig. 6."""
+    """Footprints re-simulated by the twin: uncompensated, observed and compensated (Fig. 6).
+
+    Uncompensated: the configuration as set; observed: with the true offsets, or the measured
+    histograms; compensated: with the found offsets.
+    """
     from bluesky_offsets.plotting import pyplot, save_figure
     plt = pyplot()
     cols = list(columns if columns is not None else range(min(4, problem.n)))

@@ -86,7 +86,9 @@ class ForwardModel(Protocol):
     of source rays per bin.  Any ``torch.nn.Module`` with that signature is one.
     """
 
-    def __call__(self, parameters: torch.Tensor) -> torch.Tensor: ...
+    def __call__(self, parameters: torch.Tensor) -> torch.Tensor:
+        """Histograms ``(..., 100)`` at normalized parameters ``(..., P)``."""
+        ...
 
 
 def model_device(model) -> torch.device:
@@ -99,6 +101,7 @@ def model_device(model) -> torch.device:
 
 
 def model_dtype(model) -> torch.dtype:
+    """The dtype of a model's parameters (its ``dtype`` attribute, else float32, for parameter-free callables)."""
     if isinstance(model, torch.nn.Module):
         for p in model.parameters():
             return p.dtype
@@ -148,6 +151,7 @@ class SurrogateForwardModel(torch.nn.Module):
         self.test_mse = float(test.get("mse_nonempty", test.get("mse", 0.0)) or 0.0)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """Histograms (fractions of source rays, clamped at zero) at normalized parameters ``x``."""
         if self.mirrored.numel():
             x = x.index_copy(-1, self.mirrored, 1.0 - x.index_select(-1, self.mirrored))
         if self.chamber.numel():
@@ -156,9 +160,11 @@ class SurrogateForwardModel(torch.nn.Module):
 
 
 def load_forward_model(path=None, device: str | torch.device | None = None, chamber=None) -> SurrogateForwardModel:
-    """The surrogate checkpoint at ``path`` (default: the one shipped in
-    ``bluesky_offsets/data``) as a :class:`ForwardModel` ready for the finder; ``chamber``
-    (x, y, z in mm) places the focus chamber for a checkpoint with the chamber's inputs."""
+    """The surrogate checkpoint at ``path`` as a :class:`ForwardModel` ready for the finder.
+
+    ``path`` defaults to the one shipped in ``bluesky_offsets/data``; ``chamber`` (x, y, z in mm)
+    places the focus chamber for a checkpoint with the chamber's inputs.
+    """
     from bluesky_offsets.surrogate.network import SurrogateError, load
     try:
         model = SurrogateForwardModel(load(path), chamber)
@@ -236,10 +242,12 @@ class OffsetProblem:
 
     @property
     def n(self) -> int:
+        """Number of configurations."""
         return len(self.configurations)
 
     @property
     def n_parameters(self) -> int:
+        """Number of parameters (offsets) per configuration."""
         return self.configurations.shape[1]
 
     def physical_configurations(self, offsets=None) -> np.ndarray:
@@ -248,6 +256,7 @@ class OffsetProblem:
         return self.table.denormalize(c)
 
     def summary(self) -> dict:
+        """The problem's size, source, seed, limit and noise, the observations' sums and its scalar metadata."""
         sums = self.observations.sum(axis=1)
         return {"n_configurations": self.n, "source": self.source, "seed": self.seed, "limit": self.limit,
                 "n_rays": self.n_rays, "noise_mse": self.noise_mse,
@@ -403,6 +412,7 @@ class Objective:
 
     @torch.no_grad()
     def __call__(self, offsets) -> torch.Tensor:
+        """The loss (MSE) of each candidate offset vector, ``(m, P)`` or one ``(P,)``; each is an evaluation."""
         x = torch.as_tensor(offsets, device=self.device, dtype=self.dtype)
         if x.ndim == 1:
             x = x[None]
@@ -477,6 +487,7 @@ class FinderResult:
         return float(self.history["evaluations"][hit[0]]), float(self.history["seconds"][hit[0]])
 
     def to_dict(self) -> dict:
+        """The result as plain JSON values (with the starts' solutions where the method kept them)."""
         d = {"method": self.method, "offsets": self.offsets.tolist(), "loss": self.loss,
              "evaluations": self.evaluations, "seconds": self.seconds, "settings": self.settings,
              "seed": self.seed, "device": self.device,
@@ -531,8 +542,10 @@ class _Tracker:
         return int(max(0, min(m, self.remaining_evaluations())))
 
     def update(self, candidates: torch.Tensor, losses: torch.Tensor, record: bool = True) -> None:
-        """Keep the best of ``candidates``; ``record``: add a point to the loss curve (a method that
-        scores one candidate at a time records at improvements and at intervals)."""
+        """Keep the best of ``candidates``; ``record``: add a point to the loss curve.
+
+        A method that scores one candidate at a time records at improvements and at intervals.
+        """
         losses = torch.nan_to_num(losses.detach(), nan=math.inf)
         i = int(torch.argmin(losses))
         if float(losses[i]) < self.best_loss:
@@ -613,6 +626,7 @@ class SmartWalker:
             raise InputError(f"selection must be 'plus' or 'comma', not {self.selection!r}")
 
     def run(self, obj: Objective, tr: _Tracker, gen: torch.Generator) -> None:
+        """Uniform candidates, then Gaussian steps around the best (``selection``) until the budget is spent."""
         P, lim = obj.problem.n_parameters, obj.limit
         m = tr.cap(self.candidates)
         x = _uniform(m, P, lim, gen, obj)
@@ -636,6 +650,7 @@ class MonteCarlo:
     name = "monte-carlo"
 
     def run(self, obj: Objective, tr: _Tracker, gen: torch.Generator) -> None:
+        """Batches of fresh uniform candidates until the budget is spent."""
         P, lim = obj.problem.n_parameters, obj.limit
         while not tr.exhausted():
             x = _uniform(tr.cap(self.candidates), P, lim, gen, obj)
@@ -678,6 +693,7 @@ class GradientMultiStart:
     name = "gradient"
 
     def run(self, obj: Objective, tr: _Tracker, gen: torch.Generator) -> None:
+        """Screen, then projected Adam steps of all starts together until the budget is spent; ends in ``final``."""
         lim = obj.limit
         x, start_losses = _best_starts(obj, tr, gen, self.screen, self.starts)
         k = len(x)
@@ -727,6 +743,7 @@ class LevenbergMarquardt:
     name = "levenberg-marquardt"
 
     def run(self, obj: Objective, tr: _Tracker, gen: torch.Generator) -> None:
+        """Screen, then damped Gauss-Newton steps of all starts while the budget allows; ends in ``final``."""
         P, lim = obj.problem.n_parameters, obj.limit
         x, loss = _best_starts(obj, tr, gen, self.screen, self.starts)
         k = len(x)
@@ -773,6 +790,7 @@ class CMAES:
     name = "cmaes"
 
     def run(self, obj: Objective, tr: _Tracker, gen: torch.Generator) -> None:
+        """CMA-ES from the screen's best, then from uniform points, population doubled, while budget is left."""
         import cma
         P, lim = obj.problem.n_parameters, obj.limit
         best, _ = _best_starts(obj, tr, gen, self.screen, 1)
@@ -903,4 +921,5 @@ def final_mse(problem: OffsetProblem, model, offsets) -> float:
 
 
 def available_methods() -> Sequence[str]:
+    """The names of the finder's methods."""
     return tuple(METHODS)

@@ -1,4 +1,4 @@
-"""Which offsets do the measured histograms actually pin down?
+"""Identifiability: which offsets the measured histograms actually pin down.
 
 The paper's recovered offsets deviate from the true ones with a normalized
 RMSE of 0.58 although the histograms match: components compensate each other
@@ -52,7 +52,7 @@ PAPER_RAYS = 100_000
 
 
 def jacobian(model, configurations: np.ndarray, offsets: np.ndarray) -> np.ndarray:
-    """d histogram / d offset at every configuration: ``(n, 100, P)``, float64."""
+    """The Jacobian d histogram / d offset at every configuration: ``(n, 100, P)``, float64."""
     device, dtype = model_device(model), model_dtype(model)
     c = torch.as_tensor(np.asarray(configurations), device=device, dtype=dtype)
     o = torch.as_tensor(np.asarray(offsets), device=device, dtype=dtype)
@@ -96,12 +96,15 @@ class IdentifiabilityReport:
 
     @property
     def ratio(self) -> np.ndarray:
+        """Each parameter's σ over the prior's σ (what :attr:`status` is read from)."""
         return self.sigma / self.prior_sigma
 
     def undetermined(self) -> list[str]:
+        """The names of the undetermined parameters."""
         return [n for n, s in zip(self.names, self.status) if s == "undetermined"]
 
     def determined(self) -> list[str]:
+        """The names of the determined parameters."""
         return [n for n, s in zip(self.names, self.status) if s == "determined"]
 
     def pairs(self, k: int = 5, min_info: float = 0.9) -> list[tuple[str, str, float]]:
@@ -129,12 +132,14 @@ class IdentifiabilityReport:
         return out
 
     def summary(self) -> dict:
+        """The counts per status, the median σ, the prior's σ and the data's size (configurations, rays)."""
         return {"n_configurations": self.n_configurations, "n_rays": self.n_rays,
                 "n_determined": len(self.determined()), "n_undetermined": len(self.undetermined()),
                 "n_weak": sum(s == "weak" for s in self.status),
                 "median_sigma": float(np.median(self.sigma)), "prior_sigma": self.prior_sigma}
 
     def to_dict(self) -> dict:
+        """The report as plain JSON values, with its pairs, directions and summary (and spread, if any)."""
         d = {"names": list(self.names), "offsets": self.offsets.tolist(), "sigma": self.sigma.tolist(),
              "sigma_conditional": self.sigma_conditional.tolist(), "prior_sigma": self.prior_sigma,
              "status": list(self.status), "ratio": self.ratio.tolist(),
@@ -254,8 +259,10 @@ def configuration_curve(problem: OffsetProblem, model, offsets, counts: Sequence
 
 def plot_identifiability(report: IdentifiabilityReport, path, curve: dict | None = None,
                          true_offsets=None) -> Path:
-    """Uncertainty per parameter (with the found and true offsets), correlation matrix,
-    and - given a :func:`configuration_curve` - the gain from more configurations."""
+    """Uncertainty per parameter (with the found and true offsets) and the correlation matrix.
+
+    Given a :func:`configuration_curve`, also the gain from more configurations.
+    """
     from bluesky_offsets.plotting import pyplot
     plt = pyplot()
     ncols = 3 if curve is not None else 2

@@ -61,8 +61,10 @@ from .targets import (
 
 
 class TargetUnreachable(ValueError):
-    """The model's best within the limits misses the target; nothing was moved.  The message
-    names the motors held at a limit that the target pushes against."""
+    """The model's best within the limits misses the target; nothing was moved.
+
+    The message names the motors held at a limit that the target pushes against.
+    """
 
 
 class DarkStart(ValueError):
@@ -137,6 +139,7 @@ class OptimizeOptions:
 
     @classmethod
     def resolve(cls, options: OptimizeOptions | Mapping | None) -> OptimizeOptions:
+        """``options`` as given, the defaults for None, or options from a mapping (unknown keys refused)."""
         if isinstance(options, OptimizeOptions):
             return options
         options = dict(options or {})
@@ -155,6 +158,7 @@ class Flag:
     motorized: bool
 
     def text(self) -> str:
+        """One line: the parameter, its σ, and its share of the width it affects most."""
         worst = max(self.effect, key=lambda a: self.effect[a])
         what = "its motor's setting is not pinned down" if self.motorized else "not pinned down"
         return (f"{self.parameter} (± {self.sigma:.3g} {self.unit}, {what}): its share ± {self.effect[worst]:.1%} "
@@ -182,9 +186,11 @@ class BeamOptimum:
     states: int = 1                 # states the objective averaged over (the fitted one and the posterior's draws)
 
     def relative_sigma(self, axis: str) -> float:
+        """The predicted rms width's uncertainty along ``axis`` (``"x"``/``"y"``) over the width."""
         return self.sigma[axis] / getattr(self.predicted, f"rms_{axis}")
 
     def summary(self) -> str:
+        """One line: the predicted rms widths with their σ and, where the prediction is not trusted, why."""
         p = self.predicted
         s = f"predicted {p.rms_x * 1e3:.1f} x {p.rms_y * 1e3:.1f} µm rms"
         if all(math.isfinite(self.sigma[a]) for a in "xy"):
@@ -200,9 +206,11 @@ class BeamOptimum:
 # the model as a function of the settings
 # --------------------------------------------------------------------------- #
 class _Problem:
-    """The target's residuals as a function of the free motors (``u``: fractions of each range
-    from the current setting), over the fitted state and the posterior's draws (rows of
-    ``offsets``, physical units; the first the fitted state's)."""
+    """The target's residuals as a function of the free motors, over the fitted state and the posterior's draws.
+
+    ``u``: the free motors' moves in fractions of each range from the current setting; the states
+    are the rows of ``offsets`` (physical units; the first the fitted state's).
+    """
 
     def __init__(self, target: Target, state, current, lo, hi, free, options: OptimizeOptions, engine, overrides,
                  table: ParameterTable, draws: np.ndarray | None = None):
@@ -248,8 +256,10 @@ class _Problem:
         return [out[i:i + S] for i in range(0, len(out), S)]
 
     def residuals(self, rays: list[Rays]) -> torch.Tensor:
-        """The target's residuals of every state, scaled so that their sum of squares is the mean
-        cost over the states, and the transmission floor on the mean intensity."""
+        """The target's residuals of every state, and the transmission floor on the mean intensity.
+
+        The residuals are scaled so that their sum of squares is the mean cost over the states.
+        """
         assert self.start is not None  # optimize() sets it before the first step
         r = torch.cat([self.target.residuals(x, self.start).reshape(-1) for x in rays]) / math.sqrt(len(rays))
         if self.floor > 0:  # the transmission floor, a steep wall
@@ -280,16 +290,18 @@ class _Problem:
                                         columns=columns), n
 
     def linearized(self, cfg, func: Callable[[list[Rays]], torch.Tensor], columns=None, effects: bool = False):
-        """``func``'s residuals at the rays of ``cfg`` (one :class:`Rays` per state), their
-        Jacobian (m, n) in the inputs ``columns`` (indices into the ray Jacobian's inputs; default
-        the free motors) with the rays' weights held, and the exact gradient (n,) of their sum of
-        squares.
+        """``func``'s residuals at the rays of ``cfg``, their Jacobian and the exact gradient of their sum of squares.
+
+        The residuals at the rays of ``cfg`` (one :class:`Rays` per state), their Jacobian (m, n) in
+        the inputs ``columns`` (indices into the ray Jacobian's inputs; default the free motors)
+        with the rays' weights held, and the exact gradient (n,) of their sum of squares.
 
         Why two: a ray in an aperture's soft edge has a weight derivative of the order of the
         weight over the edge's width.  Summed over the rays (the gradient) these average into
         the derivative of the light cut; squared ray by ray (a Gauss-Newton matrix) they would
         not, and would swamp it.  So the curvature comes from the rays' moves, the slope from
-        everything."""
+        everything.
+        """
         cols = np.flatnonzero(self.free) if columns is None else np.asarray(columns)
         rj, n = self.ray_jacobian(cfg, effects, cols)  # the derivatives in these inputs only
         rows = rj.rows
@@ -343,9 +355,11 @@ def _step(A: np.ndarray, g: np.ndarray, lam: float) -> np.ndarray:
 # the optimizer
 # --------------------------------------------------------------------------- #
 def bounds(current, constraints: Constraints, limits=None, table: ParameterTable = METRIXS):
-    """Lower and upper bounds (P,) of the settings and the free mask: the motors' limits
-    (``limits`` (lo, hi) arrays, default each parameter's travel), narrowed by the constraints'
-    limits and travel; held and fixed parameters stay where they are."""
+    """Lower and upper bounds (P,) of the settings and the free mask.
+
+    The motors' limits (``limits`` (lo, hi) arrays, default each parameter's travel), narrowed by
+    the constraints' limits and travel; held and fixed parameters stay where they are.
+    """
     current = np.asarray(current, float)
     if limits is None:
         lo = np.array([p.limits[0] for p in table])
@@ -417,17 +431,22 @@ def _lm(pb: _Problem, u0: np.ndarray, progress, label: str) -> tuple[np.ndarray,
 
 
 def _root(covariance) -> np.ndarray:
-    """A square root ``R`` (``R Rᵀ = C``) of the covariance, its non-finite entries as 0 and its
-    negative eigenvalues clipped: ``state + R z`` for standard normal ``z`` draws from it."""
+    """A square root ``R`` (``R Rᵀ = C``) of the covariance.
+
+    Its non-finite entries are taken as 0 and its negative eigenvalues clipped: ``state + R z`` for
+    standard normal ``z`` draws from it.
+    """
     cov = np.where(np.isfinite(covariance), covariance, 0.0)
     w, V = np.linalg.eigh(0.5 * (cov + cov.T))
     return V * np.sqrt(np.clip(w, 0, None))
 
 
 def posterior_draws(state, covariance, n: int, *, seed: int = 0, table: ParameterTable = METRIXS) -> np.ndarray | None:
-    """``n`` normalized offset vectors drawn from the calibration's covariance around ``state``'s
-    offsets (its first ``len(table)`` rows and columns), within the offsets' bounds; None without
-    a covariance or draws."""
+    """``n`` normalized offset vectors drawn from the calibration's covariance around ``state``'s offsets.
+
+    The covariance's first ``len(table)`` rows and columns; the draws lie within the offsets'
+    bounds; None without a covariance or draws.
+    """
     if covariance is None or n < 1:
         return None
     P = len(table)
@@ -437,8 +456,11 @@ def posterior_draws(state, covariance, n: int, *, seed: int = 0, table: Paramete
 
 
 def _starts(pb: _Problem, o: OptimizeOptions) -> list[tuple[str, np.ndarray]]:
-    """The labelled starts (``u``): the current setting, ``starts - 1`` random ones near it, and
-    the ``global_starts`` lowest-cost of ``screen`` settings drawn over the reachable box."""
+    """The labelled starts (``u``).
+
+    The current setting, ``starts - 1`` random ones near it, and the ``global_starts`` lowest-cost
+    of ``screen`` settings drawn over the reachable box.
+    """
     rng = np.random.default_rng(o.seed)
     ulo, uhi = pb.bounds_u()
     m = len(ulo)
@@ -455,8 +477,10 @@ def _starts(pb: _Problem, o: OptimizeOptions) -> list[tuple[str, np.ndarray]]:
 
 def predict(state, configuration, *, rays: int = 100_000, seed: int = 12_345, overrides=None, engine=None,
             table: ParameterTable = METRIXS) -> tuple[Focus, np.ndarray, np.ndarray]:
-    """The model's footprint at ``configuration`` as a frame reads it: the hard beam (fresh rays),
-    camera profiles, the state's detector-level effects; its :class:`Focus` and the profiles."""
+    """The model's footprint at ``configuration`` as a frame reads it: its :class:`Focus` and the profiles.
+
+    The hard beam (fresh rays), camera profiles, the state's detector-level effects.
+    """
     return predict_many([state], configuration, rays=rays, seed=seed, overrides=overrides, engine=engine,
                         table=table)[0]
 
@@ -488,10 +512,12 @@ def predict_many(states, configuration, *, rays: int = 100_000, seed: int = 12_3
 
 def sampled_sigma(state, configuration, covariance, names, *, samples: int = 24, rays: int = 30_000, seed: int = 0,
                   overrides=None, engine=None, table: ParameterTable = METRIXS) -> dict[str, float]:
-    """The spread of the predicted rms widths over states drawn from the calibration's covariance
-    (normalized offsets, then effect parameters, ``names`` in that order), each read as a frame is
-    (hard beam, camera pixels): what the linear propagation misses at an optimum, where a shifted
-    centroid lands the spot on other pixels, is in it."""
+    """The spread of the predicted rms widths over states drawn from the calibration's covariance.
+
+    The covariance is over the normalized offsets, then effect parameters, ``names`` in that order;
+    each state is read as a frame is (hard beam, camera pixels): what the linear propagation misses
+    at an optimum, where a shifted centroid lands the spot on other pixels, is in it.
+    """
     from bluesky_offsets.model.state import ModelState
     P = len(table)
     root = _root(covariance)

@@ -64,18 +64,22 @@ class Rays:
         return self.w.sum() / self.n_rays
 
     def centroid(self, axis: str) -> torch.Tensor:
+        """The light-weighted mean position along ``axis`` (``"x"`` or ``"y"``, mm)."""
         v = getattr(self, axis)
         return (self.w * v).sum() / self.w.sum().clamp(min=1e-300)
 
     def rms(self, axis: str) -> torch.Tensor:
+        """The light-weighted rms width along ``axis`` (``"x"`` or ``"y"``, mm)."""
         v = getattr(self, axis)
         d = v - self.centroid(axis)
         return torch.sqrt(((self.w * d * d).sum() / self.w.sum().clamp(min=1e-300)).clamp(min=1e-30))
 
 
 def per_ray(rays: Rays, axis: str) -> torch.Tensor:
-    """Residuals whose sum of squares is the variance along ``axis``: each ray's distance from
-    the centroid weighted by the square root of its share of the light."""
+    """Residuals whose sum of squares is the variance along ``axis``.
+
+    Each ray's distance from the centroid, weighted by the square root of its share of the light.
+    """
     v = getattr(rays, axis)
     share = rays.w / rays.w.sum().clamp(min=1e-300)
     return torch.sqrt(share.clamp(min=0)) * (v - rays.centroid(axis))
@@ -86,9 +90,12 @@ def per_ray(rays: Rays, axis: str) -> torch.Tensor:
 # --------------------------------------------------------------------------- #
 @dataclass(frozen=True)
 class Focus:
-    """A footprint's numbers: intensity (fraction of source rays on the screen), centroid and
-    rms width per axis (mm), FWHM per axis (mm), and the rms widths' statistical uncertainty
-    from the rays counted (mm; NaN when the ray count is not known)."""
+    """A footprint's numbers: intensity, centroid, rms width, FWHM and the widths' uncertainty.
+
+    Intensity (fraction of source rays on the screen), centroid and rms width per axis (mm), FWHM
+    per axis (mm), and the rms widths' statistical uncertainty from the rays counted (mm; NaN when
+    the ray count is not known).
+    """
 
     intensity: float
     x: float
@@ -101,9 +108,11 @@ class Focus:
     sigma_rms_y: float = float("nan")
 
     def as_dict(self) -> dict[str, float]:
+        """Every field as a float, by name."""
         return {f.name: float(getattr(self, f.name)) for f in fields(self)}
 
     def size(self, axis: str, measure: str = "rms") -> float:
+        """The width along ``axis`` (``"x"``/``"y"``) by ``measure`` (``"rms"`` or ``"fwhm"``), mm."""
         return float(getattr(self, f"{measure}_{axis}"))
 
 
@@ -124,8 +133,10 @@ def _fwhm(h: np.ndarray, centers: np.ndarray) -> float:
 
 
 def _around_peak(h: np.ndarray, c: np.ndarray, widths: float = 5.0) -> np.ndarray:
-    """``h`` zero beyond ``widths`` FWHM (at least ten bins) of its peak: a camera profile's moments
-    over the beam, not over the read noise of the whole window."""
+    """``h`` zero beyond ``widths`` FWHM (at least ten bins) of its peak.
+
+    A camera profile's moments are then over the beam, not over the read noise of the whole window.
+    """
     i = int(np.argmax(h))
     step = c[1] - c[0]
     half = max(widths * _fwhm(np.clip(h, 0, None), c), 10 * step)
@@ -133,11 +144,13 @@ def _around_peak(h: np.ndarray, c: np.ndarray, widths: float = 5.0) -> np.ndarra
 
 
 def focus_from_profiles(profile_x, profile_y, spec, n_rays: int | None = None) -> Focus:
-    """The :class:`Focus` of x/y profiles (fraction of source rays per bin) binned as ``spec``
-    (a :class:`~bluesky_offsets.physics.twin.HistogramSpec`): moments over the bin centres.
+    """The :class:`Focus` of x/y profiles (fraction of source rays per bin): moments over the bin centres.
+
+    The profiles are binned as ``spec`` (a :class:`~bluesky_offsets.physics.twin.HistogramSpec`).
     Measured frames and the model's predictions are both read with this.  ``n_rays``: the source
     rays behind the profiles (all frames), for the widths' statistical uncertainty (an rms of N
-    rays scatters by rms·√((κ−1)/4N), κ the profile's kurtosis)."""
+    rays scatters by rms·√((κ−1)/4N), κ the profile's kurtosis).
+    """
     out = []
     for h, c in ((np.asarray(profile_x, float), spec.centers_x), (np.asarray(profile_y, float), spec.centers_y)):
         if (h < 0).any():  # a camera's dark-subtracted noise: far bins would dominate the moments
@@ -162,16 +175,23 @@ def focus_from_profiles(profile_x, profile_y, spec, n_rays: int | None = None) -
 # --------------------------------------------------------------------------- #
 @runtime_checkable
 class Target(Protocol):
-    """What the beam should be.  ``residuals(rays, start)`` (torch, 1-D): their sum of squares
-    is minimized; ``start`` is the beam's :class:`Focus` where the optimization begins (for
-    scales).  ``unmet(focus)``: None when ``focus`` meets the target, else a line saying how
-    it falls short (a target with no threshold, the smallest focus, is always met)."""
+    """What the beam should be.
+
+    ``residuals(rays, start)`` (torch, 1-D): their sum of squares is minimized; ``start`` is the
+    beam's :class:`Focus` where the optimization begins (for scales).  ``unmet(focus)``: None when
+    ``focus`` meets the target, else a line saying how it falls short (a target with no threshold,
+    the smallest focus, is always met).
+    """
 
     name: str
 
-    def residuals(self, rays: Rays, start: Focus) -> torch.Tensor: ...
+    def residuals(self, rays: Rays, start: Focus) -> torch.Tensor:
+        """Residuals (torch, 1-D) whose sum of squares the optimizer minimizes; ``start`` sets scales."""
+        ...
 
-    def unmet(self, focus: Focus) -> str | None: ...
+    def unmet(self, focus: Focus) -> str | None:
+        """None when ``focus`` meets the target, else a line saying how it falls short."""
+        ...
 
 
 def _positive(name: str, v: float) -> None:
@@ -181,8 +201,11 @@ def _positive(name: str, v: float) -> None:
 
 @dataclass(frozen=True)
 class SmallestFocus:
-    """The smallest focus: the rms width of each axis relative to where it starts, weighted
-    (``weight_x``, ``weight_y``), squared and summed (0 ignores an axis)."""
+    """The smallest focus.
+
+    The rms width of each axis relative to where it starts, weighted (``weight_x``, ``weight_y``),
+    squared and summed (0 ignores an axis).
+    """
 
     weight_x: float = 1.0
     weight_y: float = 1.0
@@ -197,17 +220,21 @@ class SmallestFocus:
             raise InputError("smallest focus: weight_x and weight_y are both 0; nothing to minimize")
 
     def residuals(self, rays: Rays, start: Focus) -> torch.Tensor:
+        """Each axis's per-ray residuals over its starting rms width, times the square root of its weight."""
         return torch.cat([math.sqrt(self.weight_x) * per_ray(rays, "x") / start.rms_x,
                           math.sqrt(self.weight_y) * per_ray(rays, "y") / start.rms_y])
 
     def unmet(self, focus: Focus) -> str | None:
+        """None: the smallest focus has no threshold, it is always met."""
         return None
 
 
 @dataclass(frozen=True)
 class FocusAt:
-    """The focus centred at (``x``, ``y``) on the screen (mm), within ``tolerance`` (mm), and
-    otherwise as small as it can be (``size_weight``: how much the width counts beside the position)."""
+    """The focus centred at (``x``, ``y``) on the screen (mm), within ``tolerance`` (mm).
+
+    Otherwise as small as it can be (``size_weight``: how much the width counts beside the position).
+    """
 
     x: float
     y: float
@@ -222,11 +249,13 @@ class FocusAt:
         _positive("tolerance", self.tolerance)
 
     def residuals(self, rays: Rays, start: Focus) -> torch.Tensor:
+        """The centroid's distance from (``x``, ``y``) in tolerances, then the smallest focus's residuals, weighted."""
         pos = torch.stack([(rays.centroid("x") - self.x), (rays.centroid("y") - self.y)]) / self.tolerance
         size = SmallestFocus().residuals(rays, start) * math.sqrt(self.size_weight)
         return torch.cat([pos, size])
 
     def unmet(self, focus: Focus) -> str | None:
+        """None when the centre lies within twice the tolerance of (``x``, ``y``), else how far off it is."""
         d = math.hypot(focus.x - self.x, focus.y - self.y)
         if d <= 2 * self.tolerance:
             return None
@@ -236,8 +265,10 @@ class FocusAt:
 
 @dataclass(frozen=True)
 class SpotSize:
-    """A spot of the given rms widths (mm), e.g. a defocused 0.2 x 0.05 mm; ``tolerance`` is
-    relative (0.05: within 5 %)."""
+    """A spot of the given rms widths (mm), e.g. a defocused 0.2 x 0.05 mm.
+
+    ``tolerance`` is relative (0.05: within 5 %).
+    """
 
     rms_x: float
     rms_y: float
@@ -250,9 +281,11 @@ class SpotSize:
         _positive("tolerance", self.tolerance)
 
     def residuals(self, rays: Rays, start: Focus) -> torch.Tensor:
+        """Each axis's relative miss of its rms width, in tolerances."""
         return torch.stack([(rays.rms("x") / self.rms_x - 1.0), (rays.rms("y") / self.rms_y - 1.0)]) / self.tolerance
 
     def unmet(self, focus: Focus) -> str | None:
+        """None when both widths lie within twice the tolerance of the target, else the spot reached."""
         rel = [abs(focus.rms_x / self.rms_x - 1), abs(focus.rms_y / self.rms_y - 1)]
         if max(rel) <= 2 * self.tolerance:
             return None
@@ -273,6 +306,7 @@ class MaxTransmission:
         _positive("rms_y", self.rms_y)
 
     def residuals(self, rays: Rays, start: Focus) -> torch.Tensor:
+        """The light lost against the start (log, shifted positive), then each width's excess over its bound."""
         # -log I as a residual: sqrt of a positive shift keeps it a sum of squares
         light = torch.sqrt((5.0 - torch.log(rays.intensity.clamp(min=1e-12) / max(start.intensity, 1e-12)))
                            .clamp(min=0))
@@ -280,6 +314,7 @@ class MaxTransmission:
         return torch.cat([light[None], 30.0 * over])
 
     def unmet(self, focus: Focus) -> str | None:
+        """None when both widths are within 5 % above their bounds, else the spot it stays at."""
         if focus.rms_x <= 1.05 * self.rms_x and focus.rms_y <= 1.05 * self.rms_y:
             return None
         return (f"the spot stays at {focus.rms_x * 1e3:.1f} x {focus.rms_y * 1e3:.1f} µm rms, above the "
@@ -291,9 +326,11 @@ TARGETS = {"smallest_focus": SmallestFocus, "focus_at": FocusAt, "spot_size": Sp
 
 
 def target_from(spec) -> Target:
-    """A target from a :class:`Target`, a name (``"smallest_focus"``) or a mapping with
-    ``kind`` and the target's fields (``{"kind": "spot_size", "rms_x": 0.2, "rms_y": 0.05}``);
-    what the queue and the command line hand over."""
+    """A target from a :class:`Target`, a name or a mapping: what the queue and the command line hand over.
+
+    A name: ``"smallest_focus"``; a mapping: ``kind`` and the target's fields
+    (``{"kind": "spot_size", "rms_x": 0.2, "rms_y": 0.05}``).
+    """
     if isinstance(spec, Target):
         return spec
     if isinstance(spec, str):
@@ -364,6 +401,7 @@ class Constraints:
 
     @classmethod
     def from_mapping(cls, options: Mapping | None) -> Constraints:
+        """Constraints from a mapping of their fields (None: the defaults); an unknown key is refused."""
         options = dict(options or {})
         refuse_unknown(cls, options, "constraints: unknown key(s)")
         if "limits" in options:

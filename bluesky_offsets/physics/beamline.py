@@ -64,17 +64,22 @@ class Detector:
 
     @property
     def histograms(self) -> HistogramSpec:
+        """The binning the fits use: ``histogram_bins`` over the ``histogram_x``, ``histogram_y`` window."""
         return HistogramSpec(self.histogram_bins[0], self.histogram_x, self.histogram_bins[1], self.histogram_y)
 
     @property
     def camera(self) -> HistogramSpec:
+        """The camera's own binning: one bin per pixel (``camera_pixels``) over the same window."""
         return HistogramSpec(self.camera_pixels[0], self.histogram_x, self.camera_pixels[1], self.histogram_y)
 
 
 @dataclass(frozen=True, kw_only=True)
 class Beamline:
-    """A described beamline: its name, its RML (or the built-in geometry it names), the parameter
-    table, the detector, the effects that apply, and the file it came from."""
+    """A described beamline: its name, RML, parameter table, detector, effects and description file.
+
+    Its RML, or the built-in geometry it names instead; the effects that apply; ``path``, the file
+    it came from.
+    """
 
     name: str
     table: ParameterTable
@@ -85,8 +90,10 @@ class Beamline:
     path: Path | None = None
 
     def engine(self, kind: str = "rayx"):
-        """RAYX tracing this beamline (the reference twin; ``Twin(beamline.engine())``), or the
-        differentiable torch engine (``kind="torch"``)."""
+        """RAYX tracing this beamline, or the differentiable torch engine (``kind="torch"``).
+
+        RAYX is the reference twin: ``Twin(beamline.engine())``.
+        """
         if kind not in ("rayx", "torch"):
             raise BeamlineError(f"engine kind {kind!r}; known: rayx, torch")
         if self.builtin == "metrixs":
@@ -145,8 +152,10 @@ def _detector(section: dict, where: str) -> Detector:
 
 
 def load_beamline(path) -> Beamline:
-    """The :class:`Beamline` of a description file (TOML), checked against its RML and the effects
-    library; a :class:`BeamlineError` in one line for anything it cannot use."""
+    """The :class:`Beamline` of a description file (TOML), checked against its RML and the effects library.
+
+    A :class:`BeamlineError` in one line for anything it cannot use.
+    """
     from bluesky_offsets.physics import effects as E
     path = Path(path)
     try:
@@ -187,8 +196,11 @@ def load_beamline(path) -> Beamline:
 
 
 def _check_against_rml(bl: Beamline, path: Path) -> None:
-    """Every parameter's element is an object of the RML and its field a misalignment or one of the
-    object's own parameters; the detector's image plane is an ImagePlane."""
+    """Check that the parameters and the detector name what the RML has.
+
+    Every parameter's element is an object of the RML and its field a misalignment or one of the
+    object's own parameters; the detector's image plane is an ImagePlane.
+    """
     from bluesky_offsets.physics.metrixs import nominal_beamline
     from bluesky_offsets.physics.rml import read_rml
     rml = nominal_beamline() if bl.builtin == "metrixs" else read_rml(bl.rml_file())
@@ -217,8 +229,10 @@ def of_table(table: ParameterTable) -> Beamline | None:
 
 
 def torch_engine(table: ParameterTable, hist: HistogramSpec | None = None, options=None):
-    """The differentiable twin of the beamline ``table`` describes: METRIXS's built-in geometry
-    (or a table with no description) or the described RML's, binned by ``hist``."""
+    """The differentiable twin of the beamline ``table`` describes, binned by ``hist``.
+
+    METRIXS's built-in geometry (or a table with no description) or the described RML's.
+    """
     bl = of_table(table)
     if bl is None or bl.builtin == "metrixs":
         from bluesky_offsets.physics.engine import TorchEngine
@@ -241,8 +255,10 @@ def local_overrides(beamline: Beamline, overrides):
 
 
 def resolve(spec: str | Path) -> Beamline:
-    """A beamline from what a user types: a description file (``*.toml``) or a shipped name (read
-    once per process, as :func:`of_table` reads it)."""
+    """A beamline from what a user types: a description file (``*.toml``) or a shipped name.
+
+    A shipped name is read once per process, as :func:`of_table` reads it.
+    """
     spec = str(spec)
     return _described(Path(spec if spec.endswith(".toml") or Path(spec).is_file() else shipped(spec)).resolve())
 
@@ -257,9 +273,12 @@ def shipped(name: str) -> Path:
 
 
 class RmlEngine(RayxEngine):
-    """RAYX on a described beamline's RML: each parameter sets its element's field (a misalignment
-    switches the element's alignment errors on), ``overrides`` set any other field, the world
-    frames are recomputed from the element chain (``physics.rml``), the source emits ``n_rays``."""
+    """RAYX on a described beamline's RML.
+
+    Each parameter sets its element's field (a misalignment switches the element's alignment
+    errors on), ``overrides`` set any other field, the world frames are recomputed from the
+    element chain (``physics.rml``), the source emits ``n_rays``.
+    """
 
     def __init__(self, beamline: Beamline, hist: HistogramSpec | None = None):
         from bluesky_offsets.physics.rml import read_rml
@@ -268,6 +287,7 @@ class RmlEngine(RayxEngine):
         self.rml = read_rml(beamline.rml_file())
 
     def build(self, request: TraceRequest, n_rays: int):
+        """A copy of the RML set to ``request`` (parameters, then overrides) with ``n_rays`` source rays."""
         from bluesky_offsets.physics.metrixs import check_physical
         values = self.table.validate(request.values)
         check_physical(values, self.table)

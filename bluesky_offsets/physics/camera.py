@@ -115,13 +115,17 @@ class Roi:
     y1: int | None = None
 
     def cut(self, screen: np.ndarray) -> np.ndarray:
+        """The region of a screen image (or of a stack of them, on the last two axes)."""
         return screen[..., self.y0:self.y1, self.x0:self.x1]
 
 
 @dataclass(frozen=True)
 class Profiles:
-    """x and y profiles of a frame in photons per screen pixel column/row, with their variances and
-    the part of those that is the camera's own (read noise, the dark's noise: ``floor_x``/``floor_y``)."""
+    """The x and y profiles of a frame in photons per screen pixel column/row, with their variances.
+
+    Also the part of the variances that is the camera's own (read noise, the dark's noise:
+    ``floor_x``/``floor_y``).
+    """
 
     x: np.ndarray
     y: np.ndarray
@@ -132,11 +136,14 @@ class Profiles:
 
     @property
     def photons(self) -> float:
+        """The photons in the frame: the x profile's sum."""
         return float(self.x.sum())
 
     def binned(self, geometry: CameraGeometry, spec: HistogramSpec) -> Profiles:
-        """The profiles summed into the bins of ``spec`` (the paper's 50 x 50, or the camera's own),
-        whose edges must fall on pixel edges of ``geometry``'s window."""
+        """The profiles summed into the bins of ``spec`` (the paper's 50 x 50, or the camera's own).
+
+        The bins' edges must fall on pixel edges of ``geometry``'s window.
+        """
         own = geometry.spec
         ix = _groups(own.edges_x, spec.edges_x, "x")
         iy = _groups(own.edges_y, spec.edges_y, "y")
@@ -260,10 +267,12 @@ def photon_transfer(frames: np.ndarray, darks: np.ndarray, *, saturation: float 
 
 @dataclass(frozen=True, kw_only=True)
 class CameraCalibration:
-    """What turns a camera's frames into the twin's histograms: where its pixels lie, its dark frame,
-    gain and read noise (:func:`photon_transfer`), the region of interest, and the photons the source
-    sends per second of exposure (the flux at the screen, measured once: the histograms are fractions
-    of it, as the twin's are fractions of its source rays).
+    """What turns a camera's frames into the twin's histograms.
+
+    Where its pixels lie, its dark frame, gain and read noise (:func:`photon_transfer`), the region
+    of interest, and the photons the source sends per second of exposure (the flux at the screen,
+    measured once: the histograms are fractions of it, as the twin's are fractions of its source
+    rays).
 
     Examples
     --------
@@ -290,9 +299,13 @@ class CameraCalibration:
         return max(int(round(self.photons_per_second * exposure)), 1)
 
     def reduce(self, frame: np.ndarray, exposure: float, hist: HistogramSpec) -> dict:
-        """One frame as the twin's quantities: ``hist_x``/``hist_y`` (binned as ``hist``) and
-        ``profile_x``/``profile_y`` (the camera's pixels) as fractions of the source photons, their
-        camera-noise floors in fraction² (``floor_hx``, ``floor_hy``, ``floor_px``, ``floor_py``), ``photons`` on the screen and ``n_source``."""
+        """One frame as the twin's quantities, fractions of the source photons with their noise floors.
+
+        ``hist_x``/``hist_y`` (binned as ``hist``) and ``profile_x``/``profile_y`` (the camera's
+        pixels) as fractions of the source photons, their camera-noise floors in fraction²
+        (``floor_hx``, ``floor_hy``, ``floor_px``, ``floor_py``), ``photons`` on the screen and
+        ``n_source``.
+        """
         p = profiles(frame, self.geometry, dark=self.dark, gain=self.gain, read_noise=self.read_noise,
                      roi=self.roi, dark_frames=self.dark_frames)
         b = p.binned(self.geometry, hist)

@@ -43,6 +43,8 @@ _NOMINAL = nominal_beamline()
 
 @dataclass(frozen=True)
 class EffectParameter:
+    """One parameter of an effect: its name, unit, prior range (0 = absent) and meaning."""
+
     name: str
     unit: str
     low: float
@@ -54,6 +56,7 @@ class EffectParameter:
 
     @property
     def span(self) -> float:
+        """The prior range's width, ``high - low``."""
         return self.high - self.low
 
 
@@ -90,6 +93,7 @@ class Effect:
         return full
 
     def is_absent(self, values: Mapping[str, float]) -> bool:
+        """Whether every parameter of the effect is 0 in ``values`` (a missing one counts as 0)."""
         return all(v == 0.0 for v in self.values(values).values())
 
     # -- implementation -----------------------------------------------------
@@ -119,6 +123,7 @@ def _all(cond) -> bool:
 
 
 def register(effect: Effect) -> Effect:
+    """Add ``effect`` to :data:`EFFECTS` under its name (a name taken or empty is refused); return it."""
     if not effect.name or effect.name in EFFECTS:
         raise InputError(f"effect name {effect.name!r} is empty or already registered")
     EFFECTS[effect.name] = effect
@@ -126,6 +131,7 @@ def register(effect: Effect) -> Effect:
 
 
 def get(name: str) -> Effect:
+    """The registered effect ``name`` (an unknown name is refused, naming the known ones)."""
     try:
         return EFFECTS[name]
     except KeyError:
@@ -133,8 +139,10 @@ def get(name: str) -> Effect:
 
 
 def at_bound(effect: str, parameter: str, value: float) -> bool:
-    """Whether a fitted effect parameter sits on its prior range's edge (the fit was stopped there:
-    the value is a limit, not an estimate)."""
+    """Whether a fitted effect parameter sits on its prior range's edge.
+
+    The fit was stopped there: the value is a limit, not an estimate.
+    """
     p = next((q for q in get(effect).parameters if q.name == parameter), None)
     return p is not None and min(abs(value - p.low), abs(value - p.high)) <= 1e-6 * p.span
 
@@ -160,8 +168,10 @@ def twin_overrides(effects: Mapping[str, Mapping[str, float]]) -> dict[str, dict
 
 
 def apply_detector_effects(hist_x, hist_y, effects: Mapping[str, Mapping[str, float]], spec):
-    """Apply the detector-level effects among ``effects`` to histograms, in physical
-    order (blur and gain act on the signal, background adds to it)."""
+    """Apply the detector-level effects among ``effects`` to histograms, in physical order.
+
+    Blur and gain act on the signal, background adds to it.
+    """
     chosen = sorted(((get(n), v) for n, v in effects.items()), key=lambda ev: ev[0].order)
     for eff, values in chosen:
         if eff.level == "detector":
@@ -173,10 +183,12 @@ def apply_detector_effects(hist_x, hist_y, effects: Mapping[str, Mapping[str, fl
 # twin-level effects
 # --------------------------------------------------------------------------- #
 class ChamberTranslation(Effect):
-    """All three axes at once, for a model that should carry them together.  Not registered:
-    the diagnosis ranks the axes as separate effects (``chamber_x``, ``chamber_y``,
+    """The focus chamber's translation on all three axes at once, for a model that should carry them together.
+
+    Not registered: the diagnosis ranks the axes as separate effects (``chamber_x``, ``chamber_y``,
     ``chamber_z``), so that it names the one that is missing rather than a superset that wins
-    by absorbing noise; ``register(ChamberTranslation())`` ranks it too."""
+    by absorbing noise; ``register(ChamberTranslation())`` ranks it too.
+    """
 
     name = "chamber_translation"
     description = "focus-measurement chamber displaced (x, y across the beam; z along it)"
@@ -185,6 +197,7 @@ class ChamberTranslation(Effect):
                   EffectParameter("z", "mm", -33.0, 33.0, "along the beam"))
 
     def overrides(self, v):
+        """The image plane translated by ``x``, ``y`` and ``z`` (mm)."""
         return {IMAGE_PLANE: {"translationXerror": v["x"], "translationYerror": v["y"],
                               "translationZerror": v["z"]}}
 
@@ -197,8 +210,11 @@ CHAMBER_HIGH = np.array([p.high for p in ChamberTranslation.parameters])
 
 
 class ChamberShift(Effect):
-    """The focus-measurement chamber displaced across the beam: the whole footprint moves, as
-    offsets of the last mirrors move it too, so a fit starts it at zero."""
+    """The focus-measurement chamber displaced across the beam.
+
+    The whole footprint moves, as offsets of the last mirrors move it too, so a fit starts it at
+    zero.
+    """
 
     def __init__(self, axis: str):
         self.axis, self.name = axis, f"chamber_{axis}"
@@ -207,32 +223,41 @@ class ChamberShift(Effect):
         self.parameters = (EffectParameter(axis, "mm", -1.0, 1.0, f"{what} across the beam", start=False),)
 
     def overrides(self, v):
+        """The image plane translated along the effect's axis (mm)."""
         return {IMAGE_PLANE: {f"translation{self.axis.upper()}error": v[self.axis]}}
 
 
 class ChamberTranslationZ(Effect):
+    """The focus-measurement chamber displaced along the beam (defocus)."""
+
     name = "chamber_z"
     description = "focus-measurement chamber displaced along the beam (defocus)"
     parameters = (EffectParameter("z", "mm", -33.0, 33.0, "along the beam"),)
 
     def overrides(self, v):
+        """The image plane translated along the beam by ``z`` (mm)."""
         return {IMAGE_PLANE: {"translationZerror": v["z"]}}
 
 
 class ChamberRotation(Effect):
+    """The focus-measurement screen rotated about the beam."""
+
     name = "chamber_rotation"
     description = "focus-measurement screen rotated about the beam"
     parameters = (EffectParameter("angle", "mrad", -100.0, 100.0, "rotation about the beam axis"),)
 
     def overrides(self, v):
+        """The image plane rotated about the beam by ``angle`` (mrad)."""
         return {IMAGE_PLANE: {"rotationZerror": v["angle"]}}
 
 
 class SourceScale(Effect):
-    """The electron beam's size or its divergence differs from the model (relative change of
-    both planes).  Two effects rather than one with both parameters: a fit of both trades one
+    """The electron beam's size or its divergence differs from the model (relative change of both planes).
+
+    Two effects rather than one with both parameters: a fit of both trades one
     for the other with the offsets (a hidden divergence comes back partly as a smaller size),
-    and the diagnosis should name the one that changed."""
+    and the diagnosis should name the one that changed.
+    """
 
     def __init__(self, what: str):
         self.what, self.name = what, f"source_{what}"
@@ -241,6 +266,7 @@ class SourceScale(Effect):
         self.parameters = (EffectParameter(what, "rel", -0.5, 1.0, f"relative change of the source {what}"),)
 
     def overrides(self, v):
+        """The source's size or divergence, both planes, scaled by ``1 + change`` (which must stay positive)."""
         f = 1.0 + v[self.what]
         if _any(f <= 0):
             raise InputError(f"the source {self.what} must stay positive (relative change > -1)")
@@ -249,8 +275,10 @@ class SourceScale(Effect):
 
 
 class SourceSizeDivergence(Effect):
-    """Size and divergence together.  Not registered (see :class:`SourceScale`);
-    ``register(SourceSizeDivergence())`` ranks it too."""
+    """The electron beam's size and divergence together.
+
+    Not registered (see :class:`SourceScale`); ``register(SourceSizeDivergence())`` ranks it too.
+    """
 
     name = "source_size_divergence"
     description = "electron-beam size and divergence differ from the model (relative change)"
@@ -258,17 +286,21 @@ class SourceSizeDivergence(Effect):
                   EffectParameter("divergence", "rel", -0.5, 1.0, "relative change of the divergence"))
 
     def overrides(self, v):
+        """The source's size and divergence, each scaled as :class:`SourceScale` does."""
         size, div = SourceScale("size").overrides(v), SourceScale("divergence").overrides(v)
         return {SOURCE: {**size[SOURCE], **div[SOURCE]}}
 
 
 class PhotonEnergyOffset(Effect):
+    """The photon energy differs from the monochromator setting (undulator/energy calibration)."""
+
     name = "photon_energy"
     description = "photon energy differs from the monochromator setting (undulator/energy calibration)"
     # the exit slit passes a few 10 meV at 318 eV: 50 meV already empties the screen
     parameters = (EffectParameter("delta", "eV", -0.05, 0.05, "photon-energy offset"),)
 
     def overrides(self, v):
+        """The source's photon energy shifted by ``delta`` (eV)."""
         return {SOURCE: {"photonEnergy": _NOMINAL[SOURCE].get_float("photonEnergy") + v["delta"]}}
 
 
@@ -286,6 +318,7 @@ class SlopeError(Effect):
                            EffectParameter("sagittal", "µrad", 0.0, 4 * high, "extra rms slope error", start=False))
 
     def overrides(self, v):
+        """The mirror's meridional and sagittal slope errors, the extra ones (µrad) added in quadrature."""
         obj = _NOMINAL[self.element]
         urad_to_arcsec = 1e-6 * 180 / math.pi * 3600  # RAYX takes arcsec
         # in quadrature, written out so that a tensor of magnitudes keeps its gradient
@@ -295,9 +328,11 @@ class SlopeError(Effect):
 
 
 class ThermalBump(Effect):
-    """Heat load bulges M1: modelled by the bump's central meridional curvature,
-    a convex radius R = -sigma^2 / h over the illuminated length (RAYX ignores
-    RAY-UI's thermalDistortion fields, so M1 becomes a toroid)."""
+    """Heat load bulges M1: modelled by the bump's central meridional curvature.
+
+    A convex radius R = -sigma^2 / h over the illuminated length (RAYX ignores RAY-UI's
+    thermalDistortion fields, so M1 becomes a toroid).
+    """
 
     name = "thermal_bump_m1"
     description = "M1 thermal bump (convex meridional curvature from the heat load)"
@@ -306,6 +341,7 @@ class ThermalBump(Effect):
     min_height_nm = 25.0  # below: |R| > 2.5e7 mm, beyond RAYX's toroid precision; treated as absent
 
     def overrides(self, v):
+        """M1 as a toroid of the bump's convex meridional radius (none below ``min_height_nm``)."""
         h = v["height"]
         if _any(h < 0):
             raise InputError("thermal bump height must be >= 0 (a bulge)")
@@ -321,11 +357,14 @@ class ThermalBump(Effect):
 
 
 class LineDensityError(Effect):
+    """The grating's line density differs from its nominal value."""
+
     name = "grating_line_density"
     description = "grating line density differs from its nominal value"
     parameters = (EffectParameter("delta", "l/mm", -0.3, 0.3, "line-density error"),)
 
     def overrides(self, v):
+        """The grating's line density shifted by ``delta`` (l/mm)."""
         sg = _NOMINAL["Spherical Grating"]
         return {"Spherical Grating": {"lineDensity": sg.get_float("lineDensity") + v["delta"]}}
 
@@ -334,8 +373,10 @@ class LineDensityError(Effect):
 # detector-level effects (histograms; twin and surrogate alike)
 # --------------------------------------------------------------------------- #
 def _gauss_blur(h, sigma_bins):
-    """Gaussian blur of histograms (..., bins) by ``sigma_bins``; numpy or torch alike (a torch
-    ``sigma_bins`` keeps its gradient)."""
+    """Gaussian blur of histograms (..., bins) by ``sigma_bins``; numpy or torch alike.
+
+    A torch ``sigma_bins`` keeps its gradient.
+    """
     if is_tensor(h) or is_tensor(sigma_bins):
         import torch
         h = torch.as_tensor(h, dtype=torch.float64)
@@ -359,18 +400,23 @@ def _array(h):
 
 
 class DetectorBlur(Effect):
+    """The finite resolution of the screen/camera, as a Gaussian blur."""
+
     name = "detector_blur"
     description = "finite resolution of the screen/camera (Gaussian blur)"
     level = "detector"
     parameters = (EffectParameter("sigma", "mm", 0.0, 0.3, "rms blur"),)
 
     def apply_histograms(self, hx, hy, v, spec):
+        """Both histograms blurred by ``sigma`` (mm rms), in bins of ``spec``."""
         wx = (spec.range_x[1] - spec.range_x[0]) / spec.bins_x
         wy = (spec.range_y[1] - spec.range_y[0]) / spec.bins_y
         return _gauss_blur(_array(hx), v["sigma"] / wx), _gauss_blur(_array(hy), v["sigma"] / wy)
 
 
 class Background(Effect):
+    """A uniform background on the screen (stray light, dark signal)."""
+
     name = "background"
     description = "uniform background on the screen (stray light, dark signal)"
     level = "detector"
@@ -378,10 +424,13 @@ class Background(Effect):
     parameters = (EffectParameter("level", "fraction/bin", 0.0, 2e-3, "background per bin"),)
 
     def apply_histograms(self, hx, hy, v, spec):
+        """``level`` (fraction per bin) added to every bin of both histograms."""
         return _array(hx) + v["level"], _array(hy) + v["level"]
 
 
 class IntensityScale(Effect):
+    """The detector gain or beam current differs: a relative change of all counts."""
+
     name = "intensity_scale"
     description = "detector gain / beam current differs (relative change of all counts)"
     level = "detector"
@@ -389,6 +438,7 @@ class IntensityScale(Effect):
     parameters = (EffectParameter("delta", "rel", -0.3, 0.3, "relative intensity change"),)
 
     def apply_histograms(self, hx, hy, v, spec):
+        """Both histograms scaled by ``1 + delta``."""
         return _array(hx) * (1 + v["delta"]), _array(hy) * (1 + v["delta"])
 
 

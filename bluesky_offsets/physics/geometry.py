@@ -90,11 +90,13 @@ def rot_x(a) -> np.ndarray:
 
 
 def rot_y(a) -> np.ndarray:
+    """Right-handed active rotation by ``a`` rad about y."""
     c, s = _cos_sin(a)
     return _matrix([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]], c)
 
 
 def rot_z(a) -> np.ndarray:
+    """Right-handed active rotation by ``a`` rad about z."""
     c, s = _cos_sin(a)
     return _matrix([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]], c)
 
@@ -112,6 +114,7 @@ class Misalignment:
 
     @classmethod
     def from_rml(cls, values: dict) -> Misalignment:
+        """The misalignment of an RML ``alignmentError`` mapping (a key it leaves out is 0)."""
         t = [float(values.get(k, 0.0)) for k in MISALIGNMENT_KEYS]
         return cls(*t)
 
@@ -121,12 +124,14 @@ class Misalignment:
 
     @property
     def translation(self) -> np.ndarray:
+        """The translation ``(tx, ty, tz)`` in mm: an array of 3, or a ``(..., 3)`` tensor for tensors."""
         torch = _torch_of(*self._values)
         if torch is None:
             return np.array([self.tx, self.ty, self.tz], dtype=float)
         return torch.stack(torch.broadcast_tensors(*_tensors_like(*self._values)[:3]), -1)
 
     def rotation(self) -> np.ndarray:
+        """The rotation ``Rz(rz) · Ry(ry) · Rx(rx)`` (angles in mrad): (3, 3), or (..., 3, 3) for tensors."""
         rx, ry, rz = self.rx, self.ry, self.rz
         if _torch_of(*self._values) is not None:
             rx, ry, rz = _tensors_like(*self._values)[3:]
@@ -158,19 +163,24 @@ class ChainLink:
 
 @dataclass(frozen=True)
 class Frame:
+    """An element's world frame: its position (mm) and orientation (its x, y, z axes as columns)."""
+
     position: np.ndarray
     orientation: np.ndarray
 
     @property
     def x(self) -> np.ndarray:
+        """The frame's x axis (the orientation's column 0)."""
         return self.orientation[:, 0]
 
     @property
     def y(self) -> np.ndarray:
+        """The frame's y axis (the orientation's column 1)."""
         return self.orientation[:, 1]
 
     @property
     def z(self) -> np.ndarray:
+        """The frame's z axis (the orientation's column 2)."""
         return self.orientation[:, 2]
 
 
@@ -217,10 +227,12 @@ def chain_frames(links: Sequence[ChainLink]) -> list[Frame]:
 
 
 def ellipsoid_pole(a, b, design_grazing_rad, entrance_arm, exit_arm):
-    """The pole ``(y0, z0)`` of a mirror on the ellipse with half-axes ``a > b`` (RAYX's
-    construction: ellipse-centred coordinates, y along the minor axis, z along the major one),
-    from the design grazing angle; ``z0 > 0`` when the entrance arm is the longer one.
-    Numbers or tensors; for a tensor the caller guarantees ``a > b`` and a positive angle."""
+    """The pole ``(y0, z0)`` of a mirror on the ellipse with half-axes ``a > b``, from the design grazing angle.
+
+    RAYX's construction: ellipse-centred coordinates, y along the minor axis, z along the major
+    one; ``z0 > 0`` when the entrance arm is the longer one.
+    Numbers or tensors; for a tensor the caller guarantees ``a > b`` and a positive angle.
+    """
     torch = _torch_of(a, b, design_grazing_rad)
     if torch is None:
         if a <= b or design_grazing_rad <= 0:

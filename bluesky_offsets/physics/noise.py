@@ -33,11 +33,13 @@ def multinomial_variance(p, n_rays):
 
 def bin_variance(meas, model, n_rays, model_rays: int | None = None, model_var: float = 0.0,
                  floor=None) -> np.ndarray:
-    """The variance of a bin's measured − model fraction: ``p (1 - p) / N`` for the measurement
-    and ``p (1 - p) / N_model`` for a traced model (a mean model, e.g. a surrogate: its error
-    variance ``model_var`` instead), ``p`` the mean of both floored at one ray in ``N``; with a
-    camera's own noise ``floor`` (read noise; fraction²) that floor instead, added.  The one noise
-    model of every misfit and fit."""
+    """The variance of a bin's measured − model fraction: the one noise model of every misfit and fit.
+
+    It is ``p (1 - p) / N`` for the measurement and ``p (1 - p) / N_model`` for a traced model
+    (a mean model, e.g. a surrogate: its error variance ``model_var`` instead), ``p`` the mean of
+    both floored at one ray in ``N``; with a camera's own noise ``floor`` (read noise; fraction²)
+    that floor instead, added.
+    """
     n = np.asarray(n_rays, dtype=float)
     # counts: at least one ray's worth in a bin; a camera's floor is the variance an empty bin has
     p = np.maximum(0.5 * (np.asarray(meas, float) + np.asarray(model, float)), 0.0 if floor is not None else 1.0 / n)
@@ -62,8 +64,10 @@ def expected_repeat_mse(hist: np.ndarray, n_rays: int) -> np.ndarray:
 
 def good_configurations(twin, n: int, rng: np.random.Generator, *, min_hits: int = 10,
                         screen_rays: int = 500, max_draws: int = 20000) -> np.ndarray:
-    """``n`` configurations drawn uniformly from the sampling box that put at least
-    ``min_hits`` rays (at ``screen_rays`` source rays) on the screen."""
+    """``n`` configurations drawn uniformly from the sampling box that put rays on the screen.
+
+    Each puts at least ``min_hits`` rays (at ``screen_rays`` source rays) on the screen.
+    """
     found: list[np.ndarray] = []
     draws = 0
     while len(found) < n and draws < max_draws:

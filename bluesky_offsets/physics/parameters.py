@@ -86,10 +86,12 @@ class Parameter:
 
     @property
     def component(self) -> str:
+        """The part of ``name`` before its first ``.``: the element the parameter belongs to."""
         return self.name.split(".", 1)[0]
 
     @property
     def span(self) -> float:
+        """The sampling box's width, ``high - low``."""
         return self.high - self.low
 
 
@@ -140,6 +142,7 @@ class ParameterTable:
         return self.parameters[self.index(name)]
 
     def index(self, name: str) -> int:
+        """The position of parameter ``name`` in the table (an unknown name is refused, with a hint)."""
         try:
             return self._index[name]
         except KeyError:
@@ -149,10 +152,12 @@ class ParameterTable:
 
     @property
     def motorized_names(self) -> tuple[str, ...]:
+        """The names of the motorized parameters, in table order."""
         return tuple(p.name for p in self.parameters if p.motorized)
 
     @property
     def fixed_names(self) -> tuple[str, ...]:
+        """The names of the fixed-but-unknown (not motorized) parameters, in table order."""
         return tuple(p.name for p in self.parameters if not p.motorized)
 
     # -- validation and conversion -----------------------------------------
@@ -161,8 +166,10 @@ class ParameterTable:
         return _finite_array(values, len(self), self.names, what)
 
     def from_mapping(self, mapping: Mapping[str, float], base=None) -> np.ndarray:
-        """Build a vector from ``{name: value}``; unspecified entries come from ``base``
-        (default: the reference configuration)."""
+        """Build a vector from ``{name: value}``; unspecified entries come from ``base``.
+
+        ``base`` defaults to the reference configuration.
+        """
         vec = np.array(self.reference if base is None else self.validate(base), dtype=float, copy=True)
         for name, value in mapping.items():
             i = self.index(name)
@@ -176,6 +183,7 @@ class ParameterTable:
         return vec
 
     def to_mapping(self, values) -> dict[str, float]:
+        """One parameter vector as ``{name: value}``, in table order."""
         vec = self.validate(values)
         if vec.ndim != 1:
             raise ParameterError("to_mapping takes a single parameter vector")
@@ -202,6 +210,7 @@ class ParameterTable:
         return off
 
     def check_offsets(self, normalized_offsets, limit: float = MAX_OFFSET) -> None:
+        """Refuse normalized offsets beyond ``±limit`` of a parameter's range, naming the first such parameter."""
         off = self.validate(normalized_offsets, "offset vector")
         too_big = np.abs(off) > limit + 1e-12
         if too_big.any():
@@ -221,8 +230,10 @@ class ParameterTable:
         return rng.uniform(-limit, limit, shape)
 
     def outside_box(self, values) -> list[str]:
-        """Names of parameters whose value lies outside the sampling box, i.e. where a
-        surrogate trained on the box would have to extrapolate."""
+        """Names of parameters whose value lies outside the sampling box.
+
+        There a surrogate trained on the box would have to extrapolate.
+        """
         vec = self.validate(values)
         if vec.ndim != 1:
             raise ParameterError("outside_box takes a single parameter vector")
@@ -232,6 +243,7 @@ class ParameterTable:
 
     # -- identity -----------------------------------------------------------
     def as_records(self) -> list[dict]:
+        """The parameters as one mapping each: their fields, ``component`` and ``fixed_but_unknown``."""
         return [dict(asdict(p), component=p.component, fixed_but_unknown=not p.motorized)
                 for p in self.parameters]
 
@@ -275,11 +287,13 @@ UNITS = ("mm", "mrad")
 
 
 def parameter_from_record(rec: Mapping, where: str = "parameter") -> Parameter:
-    """One :class:`Parameter` from a beamline description's ``[[parameter]]`` entry; a
-    :class:`ParameterError` naming the entry and the key for anything it cannot use.
+    """One :class:`Parameter` from a beamline description's ``[[parameter]]`` entry.
+
+    A :class:`ParameterError` names the entry and the key for anything it cannot use.
 
     ``motor`` (the motor's device path, e.g. ``"e1.rx"``) makes it motorized; ``fixed`` (the
-    same for a fixed-but-unknown value) makes it not; exactly one of the two."""
+    same for a fixed-but-unknown value) makes it not; exactly one of the two.
+    """
     name = rec.get("name", "?") if isinstance(rec, Mapping) else "?"
     where = f"{where} {name!r}"
     if not isinstance(rec, Mapping):
@@ -318,8 +332,10 @@ def _real(x) -> bool:
 
 
 def table_from_description(path, *, name: str | None = None) -> ParameterTable:
-    """The :class:`ParameterTable` of a beamline description file (TOML, its ``[[parameter]]``
-    entries in order); the whole description is read by :func:`physics.beamline.load_beamline`."""
+    """The :class:`ParameterTable` of a beamline description file (TOML, its ``[[parameter]]`` entries in order).
+
+    The whole description is read by :func:`physics.beamline.load_beamline`.
+    """
     import tomllib
     from pathlib import Path
     with Path(path).open("rb") as f:

@@ -32,6 +32,7 @@ SOURCE_TYPES = {"Dipole", "Dipole Source"}
 
 
 def is_source_type(type_: str) -> bool:
+    """Whether an RML object type is a source (any "... Source", or one of :data:`SOURCE_TYPES`)."""
     return "Source" in type_ or type_ in SOURCE_TYPES
 
 
@@ -41,6 +42,8 @@ class RmlError(InputError):
 
 @dataclass
 class RmlParam:
+    """One ``<param>`` of an RML object: its id, its text and its other XML attributes (``comment``, ...)."""
+
     id: str
     value: str
     attrs: dict[str, str] = field(default_factory=dict)
@@ -56,15 +59,18 @@ class RmlObject:
 
     # -- parameter access ---------------------------------------------------
     def has(self, pid: str) -> bool:
+        """Whether the object has parameter ``pid``."""
         return pid in self.params
 
     def get(self, pid: str) -> str:
+        """Parameter ``pid``'s text (an :class:`RmlError` where the object has none)."""
         try:
             return self.params[pid].value
         except KeyError:
             raise RmlError(f"{self.name!r} ({self.type}) has no parameter {pid!r}") from None
 
     def get_float(self, pid: str, default: float | None = None) -> float:
+        """Parameter ``pid`` as a number; ``default`` where the object has none and a default is given."""
         if pid not in self.params and default is not None:
             return default
         try:
@@ -73,6 +79,7 @@ class RmlObject:
             raise RmlError(f"{self.name!r}: parameter {pid!r} = {self.get(pid)!r} is not a number") from None
 
     def comment(self, pid: str) -> str:
+        """Parameter ``pid``'s ``comment`` attribute ("" where it has none)."""
         return self.params[pid].attrs.get("comment", "") if pid in self.params else ""
 
     def set(self, pid: str, value, comment: str | None = None) -> None:
@@ -97,6 +104,7 @@ class RmlObject:
     # -- geometry -----------------------------------------------------------
     @property
     def is_source(self) -> bool:
+        """Whether the object is a source (:func:`is_source_type`)."""
         return is_source_type(self.type)
 
     @property
@@ -154,6 +162,8 @@ def chain_link(type_: str, get: Callable, comment: Callable, mis: Misalignment, 
 
 @dataclass
 class RmlBeamline:
+    """An RML beamline: its objects in beam order (the source first) and the RML version."""
+
     objects: list[RmlObject]
     version: str = "1.15"
 
@@ -164,6 +174,7 @@ class RmlBeamline:
         raise RmlError(f"no object named {name!r}; objects: {[o.name for o in self.objects]}")
 
     def copy(self) -> RmlBeamline:
+        """An independent copy: new objects and parameters, to set without touching this one."""
         # explicit copy: ~5x faster than deepcopy, which matters for low-ray pre-screens
         return RmlBeamline([RmlObject(o.name, o.type, {k: RmlParam(p.id, p.value, dict(p.attrs))
                                                          for k, p in o.params.items()})
@@ -171,10 +182,12 @@ class RmlBeamline:
 
     @property
     def sources(self) -> list[RmlObject]:
+        """The source objects."""
         return [o for o in self.objects if o.is_source]
 
     @property
     def elements(self) -> list[RmlObject]:
+        """The objects that are not sources, in beam order."""
         return [o for o in self.objects if not o.is_source]
 
     def frames(self) -> list[Frame]:
@@ -184,6 +197,7 @@ class RmlBeamline:
         return chain_frames([o.chain_link() for o in self.objects])
 
     def to_xml(self) -> str:
+        """The beamline as RML text, with world vectors recomputed from the chain (misalignments applied)."""
         frames = self.frames()
         lab = ET.Element("lab")
         ET.SubElement(lab, "version").text = self.version
@@ -207,6 +221,7 @@ class RmlBeamline:
         return "<?xml version='1.0' encoding='UTF-8'?>\n" + ET.tostring(lab, encoding="unicode") + "\n"
 
     def write(self, path: str | Path) -> Path:
+        """Write :meth:`to_xml` to ``path``; return the path."""
         path = Path(path)
         path.write_text(self.to_xml())
         return path
@@ -236,8 +251,10 @@ def _write_world(node: ET.Element, world: Mapping[str, np.ndarray]) -> None:
 
 
 def read_rml(path: str | Path) -> RmlBeamline:
-    """Parse an RML file into an :class:`RmlBeamline` (world vectors are kept as read
-    in :func:`read_world_vectors`, but recomputed on write)."""
+    """Parse an RML file into an :class:`RmlBeamline`.
+
+    World vectors are kept as read in :func:`read_world_vectors`, but recomputed on write.
+    """
     try:
         root = ET.parse(path).getroot()
     except (ET.ParseError, OSError) as exc:

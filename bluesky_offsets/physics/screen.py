@@ -36,6 +36,7 @@ class StageAxis:
 
     @property
     def span(self) -> float:
+        """The axis's travel, ``high - low`` (mm)."""
         return self.high - self.low
 
 
@@ -48,8 +49,10 @@ STAGE: tuple[StageAxis, ...] = (
 
 
 def as_screen(screen, n: int) -> np.ndarray:
-    """``screen`` as an ``(n, 3)`` float array (None: the stage at 0 for every frame); refuses
-    another shape or a value that is not finite, in one line."""
+    """``screen`` as an ``(n, 3)`` float array (None: the stage at 0 for every frame).
+
+    Another shape or a value that is not finite is refused, in one line.
+    """
     if screen is None:
         return np.zeros((n, 3))
     s = np.asarray(screen, dtype=float)
@@ -78,8 +81,11 @@ def check_travel(screen) -> None:
 
 
 def add_overrides(base: Mapping | None, extra: Mapping) -> dict:
-    """``base`` and ``extra`` RML overrides merged: misalignments of one object add up (the stage's
-    position and the chamber's hidden displacement), any other field of ``extra`` wins."""
+    """``base`` and ``extra`` RML overrides merged.
+
+    Misalignments of one object add up (the stage's position and the chamber's hidden
+    displacement); any other field of ``extra`` wins.
+    """
     out = {k: dict(v) for k, v in (base or {}).items()}
     for obj, fields in extra.items():
         tgt = out.setdefault(obj, {})
@@ -90,9 +96,11 @@ def add_overrides(base: Mapping | None, extra: Mapping) -> dict:
 
 def per_frame_overrides(overrides: Mapping | Sequence[Mapping] | None, screen,
                         n: int) -> Mapping | Sequence[Mapping] | None:
-    """The overrides of ``n`` frames with the stage at ``screen``: ``overrides`` as given (one
-    mapping for all, or one per frame) where the stage never moved, else one mapping per frame
-    with the stage's position added to the image plane's."""
+    """The overrides of ``n`` frames with the stage at ``screen``.
+
+    ``overrides`` as given (one mapping for all, or one per frame) where the stage never moved,
+    else one mapping per frame with the stage's position added to the image plane's.
+    """
     if not moved(screen):
         return overrides
     s = as_screen(screen, n)
@@ -101,8 +109,10 @@ def per_frame_overrides(overrides: Mapping | Sequence[Mapping] | None, screen,
 
 
 def tensor_overrides(screen, n: int, dtype=None, device=None) -> dict | None:
-    """The stage's positions as batched overrides of the torch engine (one ``(n,)`` tensor per
-    axis); None where the stage never moved."""
+    """The stage's positions as batched overrides of the torch engine (one ``(n,)`` tensor per axis).
+
+    None where the stage never moved.
+    """
     if not moved(screen):
         return None
     import torch
@@ -111,8 +121,11 @@ def tensor_overrides(screen, n: int, dtype=None, device=None) -> dict | None:
 
 
 def on_image_plane(overrides, image_plane: str):
-    """``overrides`` (one mapping, or one per configuration) with the effects' and the stage's
-    screen (METRIXS's ``ImagePlane``) renamed to a described beamline's ``image_plane``."""
+    """``overrides`` with the screen renamed to a described beamline's ``image_plane``.
+
+    ``overrides`` is one mapping, or one per configuration; the effects' and the stage's screen
+    (METRIXS's ``ImagePlane``) is renamed.
+    """
     if not overrides or image_plane == IMAGE_PLANE:
         return overrides
     if not isinstance(overrides, dict):

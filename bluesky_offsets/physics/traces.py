@@ -1,7 +1,9 @@
-"""What a twin is asked and answers, apart from how it traces: the histogram binning
-(:class:`HistogramSpec`, the camera's :data:`CAMERA`), a request (:class:`TraceRequest`), its result
-(:class:`TraceResult`) and the engine interface (:class:`TraceEngine`) that RAYX and the torch
-engine implement."""
+"""What a twin is asked and answers, apart from how it traces.
+
+The histogram binning (:class:`HistogramSpec`, the camera's :data:`CAMERA`), a request
+(:class:`TraceRequest`), its result (:class:`TraceResult`) and the engine interface
+(:class:`TraceEngine`) that RAYX and the torch engine implement.
+"""
 
 from __future__ import annotations
 
@@ -20,8 +22,10 @@ from bluesky_offsets.physics.parameters import ParameterTable
 # --------------------------------------------------------------------------- #
 @dataclass(frozen=True)
 class HistogramSpec:
-    """Binning of the focus-chamber footprint (paper: 50 bins over [-10, 10] mm in x,
-    50 bins over [-3, 3] mm in y), normalized as fraction of source rays."""
+    """Binning of the focus-chamber footprint, normalized as fraction of source rays.
+
+    The paper's: 50 bins over [-10, 10] mm in x, 50 bins over [-3, 3] mm in y.
+    """
 
     bins_x: int = 50
     range_x: tuple[float, float] = (-10.0, 10.0)
@@ -30,24 +34,28 @@ class HistogramSpec:
 
     @property
     def edges_x(self) -> np.ndarray:
+        """The ``bins_x + 1`` bin edges in x (mm)."""
         return np.linspace(*self.range_x, self.bins_x + 1)
 
     @property
     def edges_y(self) -> np.ndarray:
+        """The ``bins_y + 1`` bin edges in y (mm)."""
         return np.linspace(*self.range_y, self.bins_y + 1)
 
     @property
     def centers_x(self) -> np.ndarray:
+        """The ``bins_x`` bin centres in x (mm)."""
         e = self.edges_x
         return 0.5 * (e[1:] + e[:-1])
 
     @property
     def centers_y(self) -> np.ndarray:
+        """The ``bins_y`` bin centres in y (mm)."""
         e = self.edges_y
         return 0.5 * (e[1:] + e[:-1])
 
     def histograms(self, x: np.ndarray, y: np.ndarray, n_source_rays: int) -> tuple[np.ndarray, np.ndarray]:
-        """x and y histograms as fraction of ``n_source_rays`` per bin."""
+        """The x and y histograms as fraction of ``n_source_rays`` per bin."""
         hx = _hist1d(x, self.bins_x, self.range_x)
         hy = _hist1d(y, self.bins_y, self.range_y)
         scale = 1.0 / max(int(n_source_rays), 1)
@@ -59,11 +67,13 @@ class HistogramSpec:
         return img / max(int(n_source_rays), 1)
 
     def fingerprint(self) -> dict:
+        """The binning as a plain mapping (bins, ranges, normalization), as datasets record it."""
         return {"bins_x": self.bins_x, "range_x": list(self.range_x),
                 "bins_y": self.bins_y, "range_y": list(self.range_y), "normalization": "fraction of source rays"}
 
     @classmethod
     def from_fingerprint(cls, fp: Mapping) -> HistogramSpec:
+        """The spec a :meth:`fingerprint` describes."""
         lo_x, hi_x = map(float, fp["range_x"])
         lo_y, hi_y = map(float, fp["range_y"])
         return cls(int(fp["bins_x"]), (lo_x, hi_x), int(fp["bins_y"]), (lo_y, hi_y))
@@ -84,8 +94,10 @@ class HistogramSpec:
         return cls(bx, rx, by, ry)
 
     def factors(self, coarse: HistogramSpec) -> tuple[int, int]:
-        """How many of this spec's bins make one bin of ``coarse`` (x, y); ValueError if the
-        edges of ``coarse`` are not edges of this spec."""
+        """How many of this spec's bins make one bin of ``coarse`` (x, y).
+
+        ValueError if the edges of ``coarse`` are not edges of this spec.
+        """
         if self.range_x != coarse.range_x or self.range_y != coarse.range_y \
                 or self.bins_x % coarse.bins_x or self.bins_y % coarse.bins_y:
             raise InputError(f"histograms binned as {self.fingerprint()} cannot be re-binned to {coarse.fingerprint()}")
@@ -145,10 +157,12 @@ class TraceResult:
 
     @property
     def ok(self) -> bool:
+        """Whether the trace succeeded (no ``error``)."""
         return self.error is None
 
     @property
     def transmission(self) -> float:
+        """The fraction of source rays that reached the screen (0 without rays)."""
         return self.n_hits / self.n_rays if self.n_rays else 0.0
 
     def summary(self) -> dict:

@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import logging
 import os
-import tempfile
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
@@ -27,6 +26,7 @@ import numpy as np
 
 from bluesky_offsets.errors import InputError
 from bluesky_offsets.physics.parameters import METRIXS, ParameterTable
+from bluesky_offsets.physics.rayx_calls import ensure_random_stream, fix_seed, import_rml
 from bluesky_offsets.physics.traces import (  # noqa: F401 - the twin's types, here where users look
     CAMERA,
     HistogramSpec,
@@ -108,56 +108,6 @@ def footprint(rays, n_objects: int, n_source_rays: int) -> tuple[np.ndarray, np.
     return x, y, paths[good]
 
 
-_seeded_pids: set[int] = set()
-
-
-def _rayx_fix_seed(seed: int) -> None:
-    """Seed RAYX's global random generator (``rayx::fixSeed``, not exposed to Python).
-
-    RAYX draws each trace's seed from a process-global Mersenne twister that
-    starts from the same default state in every process, so without this,
-    parallel workers would repeat each other's noise.
-    """
-    import ctypes
-
-    import rayx
-    fn = getattr(_rayx_fix_seed, "_fn", None)
-    if fn is None:
-        lib = ctypes.CDLL(rayx.core.__file__)
-        fn = lib._ZN4rayx7fixSeedEj
-        fn.argtypes, fn.restype = [ctypes.c_uint32], None
-        _rayx_fix_seed._fn = fn  # type: ignore[attr-defined]  # a function attribute caches the handle
-    fn(int(seed) & 0xFFFFFFFF)
-
-
-def _ensure_random_stream() -> None:
-    pid = os.getpid()
-    if pid not in _seeded_pids:
-        _rayx_fix_seed(int.from_bytes(os.urandom(4), "little"))
-        _seeded_pids.add(pid)
-
-
-def _import_rml(beamline):
-    """RAYX's beamline from ours.  RAYX imports from a path only; the file holds the state traced
-    (a simulated beamline's hidden truth included), so on Linux it lives in memory
-    (``memfd_create``): no file another process could open by name, none left by a killed worker.
-    Elsewhere it lives only for the import in the system's temporary folder."""
-    import rayx
-    text = beamline.to_xml().encode()
-    if hasattr(os, "memfd_create") and os.path.isdir("/proc/self/fd"):
-        with os.fdopen(os.memfd_create("bluesky-offsets.rml"), "wb") as f:
-            f.write(text)
-            f.flush()
-            return rayx.import_beamline(f"/proc/self/fd/{f.fileno()}")
-    fd, name = tempfile.mkstemp(prefix="bluesky-offsets-", suffix=".rml")
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(text)
-        return rayx.import_beamline(name)
-    finally:
-        os.unlink(name)
-
-
 class RayxEngine:
     """RAYX (HZB's ray tracer) on the CPU, driving the METRIXS geometry."""
 
@@ -167,6 +117,7 @@ class RayxEngine:
 
     @property
     def version(self) -> str:
+        """Engine name and version (``rayx <version>``), recorded with every dataset and run."""
         from importlib.metadata import PackageNotFoundError, version
         try:
             return f"rayx {version('rayx')}"
@@ -174,20 +125,21 @@ class RayxEngine:
             return "rayx (unknown version)"
 
     def build(self, request: TraceRequest, n_rays: int):
+        """The RML beamline of ``request`` with ``n_rays`` source rays, refused where unphysical."""
         from bluesky_offsets.physics.metrixs import build_beamline, check_physical
         check_physical(request.values, self.table)
         return build_beamline(request.values, overrides=request.overrides, table=self.table, n_rays=n_rays)
 
     def trace(self, request: TraceRequest, n_rays: int, keep_rays: bool = False) -> TraceResult:
-
+        """Trace one beamline state with ``n_rays`` source rays in RAYX (the rays kept with ``keep_rays``)."""
         values = self.table.validate(request.values)
         if n_rays < 1:
             raise InputError(f"n_rays must be positive, got {n_rays}")
-        bl = _import_rml(self.build(request, n_rays))
+        bl = import_rml(self.build(request, n_rays))
         if request.seed is None:
-            _ensure_random_stream()
+            ensure_random_stream()
         else:
-            _rayx_fix_seed(request.seed)
+            fix_seed(request.seed)
         rays = bl.trace()
         n_objects = len(bl.sources) + len(bl.elements)
         x, y, _ = footprint(rays, n_objects, n_rays)
@@ -234,22 +186,27 @@ class BatchResult:
 
     @property
     def hist_x(self) -> np.ndarray:
+        """The x histograms stacked, (rows, bins_x)."""
         return np.stack([r.hist_x for r in self.results]) if self.results else np.empty((0, 0))
 
     @property
     def hist_y(self) -> np.ndarray:
+        """The y histograms stacked, (rows, bins_y)."""
         return np.stack([r.hist_y for r in self.results]) if self.results else np.empty((0, 0))
 
     @property
     def n_hits(self) -> np.ndarray:
+        """The rays on the screen per row."""
         return np.array([r.n_hits for r in self.results], dtype=np.int64)
 
     @property
     def ok(self) -> np.ndarray:
+        """Per row, whether its trace succeeded."""
         return np.array([r.ok for r in self.results], dtype=bool)
 
     @property
     def failures(self) -> list[tuple[int, np.ndarray, str | None]]:
+        """The failed rows as ``(index, values, error message)``."""
         return [(i, r.values, r.error) for i, r in enumerate(self.results) if not r.ok]
 
     def __len__(self) -> int:
@@ -321,17 +278,20 @@ class Twin:
 
     @property
     def table(self) -> ParameterTable:
+        """The engine's parameter table."""
         return self.engine.table
 
     @property
     def hist(self) -> HistogramSpec:
+        """The engine's histogram binning."""
         return self.engine.hist
 
     def with_hist(self, hist: HistogramSpec) -> Twin:
         """The same tracer and workers, histograms binned by ``hist`` (``self`` if it already is).
 
         The engine is copied with the new spec; the Dask client is shared (started first if
-        needed): the original twin owns it, closing the copy leaves it running."""
+        needed): the original twin owns it, closing the copy leaves it running.
+        """
         if hist == self.hist:
             return self
         import copy
@@ -358,6 +318,7 @@ class Twin:
     # -- batches ----------------------------------------------------------------
     @property
     def client(self):
+        """The Dask client of the batches: on ``scheduler``, or on a LocalCluster started on first use."""
         if self._client is None:
             from distributed import Client, LocalCluster
             if self.scheduler:
@@ -381,6 +342,7 @@ class Twin:
         return self._client
 
     def close(self) -> None:
+        """Close the Dask client and the LocalCluster this twin started (a copy leaves the original's running)."""
         if getattr(self, "_borrowed", False):
             self._client = None  # the twin it was made from owns the workers
             return

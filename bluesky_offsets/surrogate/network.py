@@ -1,5 +1,6 @@
-"""The neural surrogate of the twin: 34 beamline parameters (and the focus chamber's x, y, z)
--> x and y histograms.
+"""The neural surrogate of the twin: 34 beamline parameters -> x and y histograms.
+
+Optionally, the focus chamber's x, y, z are inputs too.
 
 Paper Sec. 3.1: min-max normalized inputs and outputs, seven linear layers,
 Mish after every layer but the last, 100 outputs (50 x bins then 50 y bins,
@@ -172,6 +173,7 @@ class SurrogateNet(nn.Module):
         return logit_t, torch.log_softmax(z[..., :bx], -1), torch.log_softmax(z[..., bx:], -1)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """Normalized outputs of normalized inputs ``x``; the likelihood decoders' averaged over the members."""
         if self.decoder == "bins":
             return self.layers(x)
         members = self._members()
@@ -245,11 +247,13 @@ class Normalization:
         return cls(in_low, in_span, lo, span, mode)
 
     def to_dict(self) -> dict:
+        """The normalization as plain lists, the form :meth:`from_dict` reads (stored in a checkpoint)."""
         return {"in_low": self.in_low.tolist(), "in_span": self.in_span.tolist(),
                 "out_low": self.out_low.tolist(), "out_span": self.out_span.tolist(), "mode": self.mode}
 
     @classmethod
     def from_dict(cls, d: Mapping) -> Normalization:
+        """The normalization :meth:`to_dict` gave (``mode`` "global" where it is missing)."""
         return cls(np.asarray(d["in_low"], float), np.asarray(d["in_span"], float),
                    np.asarray(d["out_low"], float), np.asarray(d["out_span"], float), d.get("mode", "global"))
 
@@ -290,6 +294,7 @@ class Surrogate:
     @classmethod
     def new(cls, arch: Architecture, norm: Normalization, table: ParameterTable = METRIXS,
             hist: HistogramSpec | None = None, **kw) -> Surrogate:
+        """An untrained surrogate of ``arch`` for ``table`` and ``hist``; InputError if they do not fit together."""
         hist = hist or HistogramSpec()
         if arch.n_inputs not in (len(table), len(table) + len(CHAMBER_INPUTS)) \
                 or arch.n_outputs != hist.bins_x + hist.bins_y or len(norm.in_low) != arch.n_inputs:
@@ -310,9 +315,11 @@ class Surrogate:
     # -- inference --------------------------------------------------------------
     @property
     def device(self) -> torch.device:
+        """The device the network's weights are on."""
         return next(self.net.parameters()).device
 
     def to(self, device) -> Surrogate:
+        """Move the network to ``device``; returns the surrogate itself."""
         self.net.to(device)
         return self
 
@@ -406,9 +413,12 @@ class Surrogate:
         return self.provenance.get("source_frame") == "mirrored"
 
     def _as_trained(self, x):
-        """Normalized inputs as the network saw them in training.  A network trained with the
-        mirrored source frame saw a source offset +t as -t: its four source inputs are
-        reflected in their (symmetric) boxes, so that it answers for the twin as it is now."""
+        """Normalized inputs as the network saw them in training.
+
+        A network trained with the mirrored source frame saw a source offset +t as -t: its four
+        source inputs are reflected in their (symmetric) boxes, so that it answers for the twin
+        as it is now.
+        """
         if not self.source_mirrored:
             return x
         cols = [i for i, n in enumerate(self.table["names"]) if n.startswith("U41_318eV.")]
@@ -425,6 +435,7 @@ class Surrogate:
 
     # -- persistence --------------------------------------------------------------
     def metadata(self) -> dict:
+        """The checkpoint's metadata: architecture, inputs, table, histogram, normalization, provenance, metrics."""
         n_par = sum(p.numel() for p in self.net.parameters())
         return {"format": FORMAT, "arch": self.arch.__dict__, "n_weights": int(n_par), "inputs": self.inputs,
                 "table": self.table, "table_version": _table_version(self.table),
@@ -469,8 +480,10 @@ def default_checkpoint(name: str = "default") -> Path:
 
 
 def resolve_checkpoint(path: str | os.PathLike | None) -> Path:
-    """A checkpoint's file: a path, a shipped name ("default", "fast") where no such file is here, or
-    the default for ``None``."""
+    """A checkpoint's file: a path, or a shipped name ("default", "fast") where no such file is here.
+
+    ``None`` gives the default checkpoint.
+    """
     if path is None:
         return default_checkpoint()
     if str(path) in SHIPPED and not Path(path).exists():
@@ -504,8 +517,9 @@ def _read(path: Path) -> tuple[dict, dict]:
 
 def load(path: str | os.PathLike | None = None, *, table: ParameterTable = METRIXS,
          hist: HistogramSpec | None = None, device=None) -> Surrogate:
-    """Load a checkpoint (a path, or a shipped one by name: "default", the default, or "fast")
-    after checking it fits ``table`` and ``hist``.
+    """Load a checkpoint after checking it fits ``table`` and ``hist``.
+
+    ``path`` is a path, or a shipped checkpoint by name: "default" (the default) or "fast".
 
     Raises
     ------

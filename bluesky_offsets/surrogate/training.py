@@ -147,11 +147,13 @@ class TrainConfig:
             raise InputError(f"device must be auto, cpu or cuda, got {self.device!r}")
 
     def to_dict(self) -> dict:
+        """The options as plain data (``split`` a list), as a checkpoint records them."""
         d = asdict(self)
         d["split"] = list(self.split)
         return d
 
     def resolved_device(self) -> torch.device:
+        """The torch device to train on: CUDA for "auto" where torch sees one, else the CPU."""
         if self.device == "auto":
             return torch.device("cuda" if torch.cuda.is_available() else "cpu")
         if self.device == "cuda" and not torch.cuda.is_available():
@@ -265,8 +267,11 @@ def _init_provenance(src: Surrogate, path: str) -> dict:
 
 
 def _same_teacher(recorded: dict, teacher: dict) -> bool:
-    """Whether a student's recorded teacher is ``teacher``: by its weights' digest, or, for a
-    student recorded before the digest was kept, by the teacher's data and training options."""
+    """Whether a student's recorded teacher is ``teacher``.
+
+    Compared by the teacher's weights' digest, or, for a student recorded before the digest was
+    kept, by the teacher's data and training options.
+    """
     if "weights_sha256" in recorded:
         return recorded["weights_sha256"] == teacher["weights_sha256"]
     return bool(recorded) and all(recorded.get(k) == teacher.get(k) for k in ("dataset", "n_samples", "training"))
@@ -285,8 +290,10 @@ def _warm_start(model: Surrogate, src: Surrogate, path: str) -> None:
 
 @dataclass(frozen=True, kw_only=True)
 class _Split:
-    """The samples' split and the targets: the traced histograms, or a teacher's predictions at
-    the training inputs; the warm start's model and provenance, the teacher's provenance."""
+    """The samples' split and the targets, the warm start's model and provenance, the teacher's provenance.
+
+    The targets are the traced histograms, or a teacher's predictions at the training inputs.
+    """
 
     tr: np.ndarray
     va: np.ndarray

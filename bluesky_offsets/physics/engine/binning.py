@@ -20,11 +20,12 @@ FEATURES = ("intensity", "centroid_x", "centroid_y", "width_x", "width_y")
 
 def histograms(beam: Beam, spec: HistogramSpec, *, soft: bool = False, kernel: float = 1.0,
                n_source: int | None = None):
-    """x and y histograms (C, bins) as fraction of source rays (RAYX's bin convention).
+    """The x and y histograms (C, bins) as fraction of source rays (RAYX's bin convention).
 
     ``soft``: every ray spreads its weight over the bins with a Gaussian kernel of ``kernel``
     bins rms (differentiable in the ray positions).  ``n_source``: the source rays the fractions
-    are of (default the beam's own; a chunk of a trace passes the whole trace's, so chunks add up)."""
+    are of (default the beam's own; a chunk of a trace passes the whole trace's, so chunks add up).
+    """
     w = beam.weight if soft else beam.alive.to(beam.x.dtype)
     hx = _hist(beam.x, w, spec.bins_x, spec.range_x, soft, kernel)
     hy = _hist(beam.y, w, spec.bins_y, spec.range_y, soft, kernel)
@@ -62,16 +63,22 @@ def _hist(v, w, bins, rng, soft, kernel):
 
 
 def moments(beam: Beam, *, soft: bool = True) -> torch.Tensor:
-    """Sufficient statistics (C, 5) of the beam: Σw, Σwx, Σwy, Σwx², Σwy² (w the soft weight
-    or the hard survival); sums over rays, so chunks of rays add up."""
+    """Sufficient statistics (C, 5) of the beam: Σw, Σwx, Σwy, Σwx², Σwy².
+
+    ``w`` is the soft weight or the hard survival; the statistics are sums over rays, so chunks of
+    rays add up.
+    """
     w = beam.weight if soft else beam.alive.to(beam.x.dtype)
     x, y = beam.x, beam.y
     return torch.stack([w.sum(-1), (w * x).sum(-1), (w * y).sum(-1), (w * x * x).sum(-1), (w * y * y).sum(-1)], -1)
 
 
 def features_from_moments(m: torch.Tensor, n_rays: int) -> torch.Tensor:
-    """Beam features (C, 5): intensity (fraction of source rays), centroid x, y, rms width
-    x, y (mm); centroid and width are NaN where no ray arrives."""
+    """Beam features (C, 5): intensity, centroid x, y, rms width x, y.
+
+    The intensity is a fraction of source rays, centroid and width are in mm; centroid and width
+    are NaN where no ray arrives.
+    """
     s0 = m[..., 0]
     s0s = torch.where(s0 > 0, s0, torch.ones_like(s0))
     cx, cy = m[..., 1] / s0s, m[..., 2] / s0s

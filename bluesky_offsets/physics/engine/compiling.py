@@ -31,8 +31,11 @@ _MIS_KEYS = {"translationXerror": "tx", "translationYerror": "ty", "translationZ
 
 @dataclass
 class Optic:
-    """One element as the tracer needs it; tensors have a leading configuration axis
-    (shape (C, 1) to broadcast over rays) or are plain numbers when constant."""
+    """One element as the tracer needs it.
+
+    Its tensors have a leading configuration axis (shape (C, 1) to broadcast over rays) or are
+    plain numbers when constant.
+    """
 
     name: str
     type: str
@@ -61,6 +64,7 @@ class CompiledBeamline:
 
     @property
     def names(self) -> list[str]:
+        """The optics' names, in beam order."""
         return [o.name for o in self.optics]
 
 
@@ -139,8 +143,10 @@ def compile_beamline(values, overrides: Mapping | Sequence[Mapping] | None = Non
 
 
 def _compiled_state(vals, overrides, table: ParameterTable, beamline, check: bool, device):
-    """The beamline to compile (METRIXS's nominal one, or ``beamline``) and its state at ``vals``:
-    every field and misalignment the parameters and ``overrides`` set, as (C,) columns."""
+    """The beamline to compile (METRIXS's nominal one, or ``beamline``) and its state at ``vals``.
+
+    The state is every field and misalignment the parameters and ``overrides`` set, as (C,) columns.
+    """
     c = vals.shape[0]
     if beamline is None:
         if vals.shape[1] != len(table):
@@ -192,8 +198,10 @@ def _world_frames(base, state, getter) -> list:
 
 
 def _source(src_obj, get, c: int, device) -> dict:
-    """The point source's sizes, divergences and energy as (C,) columns (other sources are traced
-    from given rays: their type alone)."""
+    """The point source's sizes, divergences and energy as (C,) columns.
+
+    Other sources are traced from given rays: their type alone.
+    """
     source = {"type": src_obj.type}
     if src_obj.type == "Point Source":
         source.update(width=get("sourceWidth"), height=get("sourceHeight"), depth=get("sourceDepth"),
@@ -312,8 +320,10 @@ def _sign_icurv(a24):
 
 
 def _take_optic(opt: Optic, c: int, owner: torch.Tensor) -> Optic:
-    """``opt`` with its configuration fields (leading axis ``c``) taken for each of the rays
-    ``owner`` (K,): every ray a configuration of its own (a compacting trace)."""
+    """``opt`` with its configuration fields (leading axis ``c``) taken for each of the rays ``owner`` (K,).
+
+    Every ray becomes a configuration of its own (a compacting trace).
+    """
     def take(v):
         if torch.is_tensor(v) and v.is_floating_point() and v.ndim >= 1 and v.shape[0] == c and c > 1:
             return v.index_select(0, owner)
@@ -327,16 +337,22 @@ def _take_optic(opt: Optic, c: int, owner: torch.Tensor) -> Optic:
 
 
 def _compiled_tensors(bl: CompiledBeamline, c: int) -> list[torch.Tensor]:
-    """The floating-point tensors of a compiled beamline with a configuration axis, in the
-    order :func:`_replace_tensors` visits them (each broadcast to a leading axis of ``c``)."""
+    """The floating-point tensors of a compiled beamline with a configuration axis.
+
+    They come in the order :func:`_replace_tensors` visits them, each broadcast to a leading axis
+    of ``c``.
+    """
     out: list[torch.Tensor] = []
     _replace_tensors(bl, c, None, c, out)
     return out
 
 
 def _replace_tensors(bl: CompiledBeamline, c: int, new, c_new: int, found: list | None = None) -> CompiledBeamline:
-    """A copy of ``bl`` with its floating tensors (leading axis ``c``, or 1) taken from the
-    iterator ``new`` (leading axis ``c_new``) in a fixed order; with ``found``, collect them."""
+    """A copy of ``bl`` with its floating tensors taken from the iterator ``new``.
+
+    The tensors (leading axis ``c``, or 1) are replaced by those of ``new`` (leading axis
+    ``c_new``) in a fixed order; with ``found``, collect them.
+    """
     def sub(v):
         if torch.is_tensor(v) and v.is_floating_point() and v.ndim >= 1 and v.shape[0] in (1, c):
             v = v.expand(c, *v.shape[1:]) if v.shape[0] == 1 and c != 1 else v

@@ -38,11 +38,13 @@ FORWARD_AD = threading.RLock()
 
 def _kept_ray_grads(bl: CompiledBeamline, fields: list[torch.Tensor], live: list[int], dfield_live: torch.Tensor,
                     rays_k: SourceUnits, conf: torch.Tensor, edge: float) -> list[torch.Tensor]:
-    """The derivatives (K, P) of the kept rays' x, y and soft weight in the inputs
-    (:meth:`TorchEngine.ray_jacobian <..torch_twin.TorchEngine.ray_jacobian>`): each ray ``k`` traced
-    as a configuration of its own (of ``conf[k]``, its randomness ``rays_k``) with its own copy of
-    the live compiled fields (``fields[i]`` for ``i`` in ``live``) as leaves, chained with its
-    configuration's d field / d input ``dfield_live`` (C, F', P)."""
+    """The derivatives (K, P) of the kept rays' x, y and soft weight in the inputs.
+
+    As :meth:`TorchEngine.ray_jacobian <..torch_twin.TorchEngine.ray_jacobian>` returns them: each
+    ray ``k`` traced as a configuration of its own (of ``conf[k]``, its randomness ``rays_k``) with
+    its own copy of the live compiled fields (``fields[i]`` for ``i`` in ``live``) as leaves,
+    chained with its configuration's d field / d input ``dfield_live`` (C, F', P).
+    """
     c, k_n, n_live = bl.n_configs, int(conf.numel()), dfield_live.shape[1]
     sub: list[Any] = [t.detach()[conf] for t in fields]  # tensors, the live ones as tuples of entries
     # the live fields' entries as leaves, in the order of their flattening: frame
@@ -84,7 +86,8 @@ class RayJacobian:
     rays whose expectation the hard beam's counts follow.  Only the rays whose soft weight is
     above :data:`RAY_WEIGHT_FLOOR` have derivatives: ``rows`` (K,) are their flat indices
     (configuration-major) and ``rows_jx``, ``rows_jy``, ``rows_jw`` (K, P) their derivatives;
-    every other ray's are 0 to rounding (:attr:`jx` etc. give them all, (C, N, P))."""
+    every other ray's are 0 to rounding (:attr:`jx` etc. give them all, (C, N, P)).
+    """
 
     x: torch.Tensor
     y: torch.Tensor
@@ -105,22 +108,27 @@ class RayJacobian:
 
     @property
     def jx(self) -> torch.Tensor:
+        """Every ray's x derivatives (C, N, P), 0 for the rays outside ``rows``."""
         return self._dense(self.rows_jx)
 
     @property
     def jy(self) -> torch.Tensor:
+        """Every ray's y derivatives (C, N, P), 0 for the rays outside ``rows``."""
         return self._dense(self.rows_jy)
 
     @property
     def jw(self) -> torch.Tensor:
+        """Every ray's soft weight derivatives (C, N, P), 0 for the rays outside ``rows``."""
         return self._dense(self.rows_jw)
 
     def histograms(self, spec: HistogramSpec, kernel: float = 1.0,
                    soft: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
-        """x then y histograms (C, bins_x + bins_y) as fractions of source rays and their
-        Jacobian (C, bins_x + bins_y, P) from the soft beam binned with a Gaussian kernel of
+        """The x then y histograms (C, bins_x + bins_y) as fractions of source rays, and their Jacobian.
+
+        The Jacobian (C, bins_x + bins_y, P) is the soft beam's, binned with a Gaussian kernel of
         ``kernel`` bins rms.  The values are RAYX's (hard counts, RAYX's binning), or with
-        ``soft`` the soft beam's, whose derivative the Jacobian is (a smooth objective)."""
+        ``soft`` the soft beam's, whose derivative the Jacobian is (a smooth objective).
+        """
         w = self.weight if soft else self.alive.to(self.x.dtype)
         hx = _hist(self.x, w, spec.bins_x, spec.range_x, soft, kernel)
         hy = _hist(self.y, w, spec.bins_y, spec.range_y, soft, kernel)
@@ -134,8 +142,10 @@ class RayJacobian:
 
 
 def _hist_jacobian(c, conf, v, w, jv, jw, bins, rng, kernel):
-    """d/dθ of Σ_i w_i K_b(v_i) for Gaussian-kernel bins K_b: Σ_i (K_b jw_i + w_i K_b' jv_i),
-    over the rays i of configuration ``conf[i]`` (of ``c``) with derivatives, each (K,)."""
+    """d/dθ of Σ_i w_i K_b(v_i) for Gaussian-kernel bins K_b: Σ_i (K_b jw_i + w_i K_b' jv_i).
+
+    The sum runs over the rays i of configuration ``conf[i]`` (of ``c``) with derivatives, each (K,).
+    """
     lo, hi = rng
     p = jv.shape[1]
     scale = bins / (hi - lo)
@@ -160,8 +170,11 @@ def _hist_jacobian(c, conf, v, w, jv, jw, bins, rng, kernel):
 
 
 def _batched_grad(part: torch.Tensor, inputs: list[torch.Tensor]) -> torch.Tensor:
-    """d part[c, k] / d inputs[c, ...] for every k in one batched backward pass (the
-    configurations are independent, so summing over them separates nothing), as (C, m, n_in)."""
+    """The derivatives d part[c, k] / d inputs[c, ...] for every k, as (C, m, n_in).
+
+    All in one batched backward pass: the configurations are independent, so summing over them
+    separates nothing.
+    """
     c, m = part.shape
     eye = torch.eye(m, dtype=part.dtype, device=part.device)[:, None, :].expand(m, c, m)
     try:

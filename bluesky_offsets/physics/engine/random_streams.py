@@ -60,9 +60,11 @@ def squares_normal(ctr: torch.Tensor, dtype=torch.float64) -> torch.Tensor:
 
 
 def rayx_trace_seed(fix_seed: int) -> float:
-    """The seed RAYX's next ``trace()`` uses after ``rayx::fixSeed(fix_seed)``: the first
-    output of ``std::mt19937(fix_seed)`` over 4294967295 (numpy's legacy seeding is the same
-    Mersenne twister initialisation)."""
+    """The seed RAYX's next ``trace()`` uses after ``rayx::fixSeed(fix_seed)``.
+
+    It is the first output of ``std::mt19937(fix_seed)`` over 4294967295 (numpy's legacy seeding
+    is the same Mersenne twister initialisation).
+    """
     first = int(np.random.RandomState(int(fix_seed) & 0xFFFFFFFF).randint(0, 1 << 32, dtype=np.uint64))
     return first / 4294967295.0
 
@@ -116,8 +118,10 @@ def fraunhofer_uniform_rayx(ctr: torch.Tensor, dim_mm, wavelength_nm) -> tuple[t
 
 @lru_cache(maxsize=4)
 def _sinc2_quantiles(n: int = 1 << 14) -> np.ndarray:
-    """Quantiles of the density ∝ sinc²(πt) on [-5, 5] (the kick in units of λ/b that
-    RAYX's rejection sampler accepts), at ``n + 1`` evenly spaced probabilities."""
+    """Quantiles of the density ∝ sinc²(πt) on [-5, 5], at ``n + 1`` evenly spaced probabilities.
+
+    The density is that of the kick in units of λ/b that RAYX's rejection sampler accepts.
+    """
     t = np.linspace(-5.0, 5.0, 2_000_001)
     dens = np.sinc(t) ** 2  # numpy's sinc is sin(πt)/(πt)
     cdf = np.concatenate([[0.0], np.cumsum(0.5 * (dens[1:] + dens[:-1]) * np.diff(t))])
@@ -126,8 +130,10 @@ def _sinc2_quantiles(n: int = 1 << 14) -> np.ndarray:
 
 
 def fraunhofer_uniform_fast(u: torch.Tensor) -> torch.Tensor:
-    """The same accepted ``u`` as :func:`fraunhofer_uniform_rayx` in distribution, from one
-    uniform draw by the inverse CDF (no rejection loop)."""
+    """The same accepted ``u`` as :func:`fraunhofer_uniform_rayx` in distribution, from one uniform draw.
+
+    The draw goes through the inverse CDF (no rejection loop).
+    """
     q = torch.as_tensor(_sinc2_quantiles(), dtype=torch.float64, device=u.device)
     n = q.numel() - 1
     pos = u.to(torch.float64).clamp(0.0, 1.0) * n

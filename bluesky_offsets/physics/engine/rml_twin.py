@@ -21,7 +21,8 @@ from bluesky_offsets.physics.engine.sampling import Rays, given_units, rays_from
 from bluesky_offsets.physics.engine.torch_twin import TorchEngine
 from bluesky_offsets.physics.rml import read_rml
 from bluesky_offsets.physics.screen import on_image_plane
-from bluesky_offsets.physics.twin import HistogramSpec, _import_rml, _rayx_fix_seed
+from bluesky_offsets.physics.rayx_calls import fix_seed, import_rml
+from bluesky_offsets.physics.traces import HistogramSpec
 
 
 SOURCE_CACHE = 64
@@ -29,8 +30,10 @@ SOURCE_CACHE = 64
 
 
 def _field_overrides(table, values, overrides=None) -> dict:
-    """``{element: {field: column}}`` of a parameter batch ``(C, P)`` (tensor columns keep their
-    gradients), the extra ``overrides`` on top."""
+    """``{element: {field: column}}`` of a parameter batch ``(C, P)``, the extra ``overrides`` on top.
+
+    Tensor columns keep their gradients.
+    """
     out: dict = {}
     for i, p in enumerate(table):
         out.setdefault(p.element, {})[p.field] = values[:, i]
@@ -49,6 +52,7 @@ class RmlTorchEngine(TorchEngine):
 
     @property
     def version(self) -> str:
+        """The engine as a run records it: torch's version, the RML's beamline, dtype and device."""
         o = self.options
         return (f"torch {torch.__version__} (bluesky-offsets tracer, {self.described.name} RML, RAYX's source rays, "
                 f"{o.dtype}, {o.device})")
@@ -71,8 +75,10 @@ class RmlTorchEngine(TorchEngine):
                                 dtype=o.torch_dtype, device=o.device)
 
     def _columns(self, per_config: list, c: int) -> dict:
-        """One overrides mapping of ``(C,)`` columns from one mapping per configuration (a field a
-        configuration leaves out keeps the RML's value); element types must agree."""
+        """One overrides mapping of ``(C,)`` columns from one mapping per configuration.
+
+        A field a configuration leaves out keeps the RML's value; element types must agree.
+        """
         if len(per_config) != c:
             raise InputError(f"{len(per_config)} overrides for {c} configurations")
         keys = {(e, k) for ov in per_config for e, f in ov.items() for k in f}
@@ -110,8 +116,8 @@ def _rayx_source(eng, n_rays: int, seed):
     if key not in eng.source_cache:
         bl = eng.rml.copy()
         bl.sources[0].set("numberRays", int(n_rays))
-        rb = _import_rml(bl)
-        _rayx_fix_seed(seed)
+        rb = import_rml(bl)
+        fix_seed(seed)
         rays = rb.trace()
         obj, pid = np.asarray(rays.object_id), np.asarray(rays.path_id)
         first = np.flatnonzero(obj == 0)

@@ -38,6 +38,7 @@ class Rays:
     ctr: torch.Tensor | None = None  # RAYX's counters (sampling="rayx")
 
     def slice(self, a: int, b: int) -> Rays:
+        """The rays ``a`` to ``b`` (exclusive) of every configuration."""
         def cut(t):
             return None if t is None else t[..., a:b]
         return Rays(*(cut(getattr(self, f.name)) for f in fields(self)))
@@ -45,14 +46,17 @@ class Rays:
 
 @dataclass
 class Draws:
-    """The fast stream's random numbers, drawn up front so that chunking changes nothing:
-    ``slits[name]`` (2, C|1, N) the kicks' accepted draws (width, height), ``slopes[name]``
-    (2, C|1, N) standard normals."""
+    """The fast stream's random numbers, drawn up front so that chunking changes nothing.
+
+    ``slits[name]`` (2, C|1, N) are the kicks' accepted draws (width, height), ``slopes[name]``
+    (2, C|1, N) standard normals.
+    """
 
     slits: dict[str, torch.Tensor]
     slopes: dict[str, torch.Tensor]
 
     def slice(self, a: int, b: int) -> Draws:
+        """The draws of rays ``a`` to ``b`` (exclusive) of every configuration."""
         return Draws({k: v[..., a:b] for k, v in self.slits.items()},
                      {k: v[..., a:b] for k, v in self.slopes.items()})
 
@@ -64,8 +68,11 @@ def _generator(seed: int | None, device) -> torch.Generator:
 
 
 def _streams(seed, n_configs: int, common: bool) -> list[int | None]:
-    """One seed per random stream: a sequence gives one per configuration as it is; else
-    one shared stream (common) or ``seed + i`` for configuration ``i``."""
+    """One seed per random stream.
+
+    A sequence gives one per configuration as it is; else one shared stream (``common``) or
+    ``seed + i`` for configuration ``i``.
+    """
     if isinstance(seed, Sequence):
         seeds = [None if s is None else int(s) for s in seed]
         if len(seeds) != n_configs:
@@ -94,17 +101,21 @@ def sample_source(bl: CompiledBeamline, n_rays: int, seed, *, sampling: str = "f
 
 @dataclass
 class SourceUnits:
-    """The source's unit draws (6 coordinates, each (C|1, N)) before the source's sizes scale
-    them, the later draws of the fast stream and RAYX's counters: what a trace's randomness is,
-    apart from the beamline it meets."""
+    """What a trace's randomness is, apart from the beamline it meets.
+
+    The source's unit draws (6 coordinates, each (C|1, N)) before the source's sizes scale them,
+    the later draws of the fast stream and RAYX's counters.
+    """
 
     coord: list[torch.Tensor]
     draws: Draws | LazyDraws | None
     ctr: torch.Tensor | None = None
 
     def take(self, configs: torch.Tensor, rays: torch.Tensor) -> SourceUnits:
-        """The rays ``rays`` of configurations ``configs`` (K each), every one its own
-        configuration (a leading axis of K, one ray each): (C|1, N) -> (K, 1)."""
+        """The rays ``rays`` of configurations ``configs`` (K each), every one its own configuration.
+
+        A leading axis of K, one ray each: (C|1, N) -> (K, 1).
+        """
         def pick(t):
             return t[..., configs if t.shape[-2] > 1 else 0, rays][..., None]
         d = self.draws
@@ -147,8 +158,11 @@ def _units_bytes(u: SourceUnits) -> int:
 
 def source_units(bl: CompiledBeamline, n_rays: int, seed, *, sampling: str = "fast",
                  common: bool = True, batch_stream: bool = False) -> SourceUnits:
-    """The random part of :func:`sample_source` (seeded draws come from a small cache: the
-    same tensors for the same seed, ray count and drawing elements)."""
+    """The random part of :func:`sample_source`.
+
+    Seeded draws come from a small cache: the same tensors for the same seed, ray count and
+    drawing elements.
+    """
     src = bl.source
     if src["type"] != "Point Source":
         raise RmlError(f"the torch engine samples point sources only ({src['type']!r}: pass rays)")
@@ -222,8 +236,10 @@ def _draw_units(bl: CompiledBeamline, n_rays: int, seed, *, sampling: str, commo
 
 
 def _batch_units(bl: CompiledBeamline, n_rays: int, seed, lazy: bool = False) -> SourceUnits:
-    """The fast stream's draws of :func:`source_units`, (C, N) each, from one generator
-    (``seed``: a number or a generator); ``lazy``: the later draws as :class:`LazyDraws`."""
+    """The fast stream's draws of :func:`source_units`, (C, N) each, from one generator.
+
+    ``seed`` is a number or a generator; ``lazy``: the later draws as :class:`LazyDraws`.
+    """
     dev, c, dists = bl.device, bl.n_configs, bl.source["dists"]
     g = seed if isinstance(seed, torch.Generator) else _generator(seed, dev)
     nn = torch.randn(4, c, n_rays, generator=g, device=dev, dtype=torch.float64)
@@ -244,25 +260,32 @@ def _batch_units(bl: CompiledBeamline, n_rays: int, seed, lazy: bool = False) ->
 
 
 class LazyDraws:
-    """The fast stream's later draws (slit kicks, slope errors) made as a ray meets the element,
-    for the rays in flight only: in a compacting trace the rays stopped upstream draw nothing
-    (most of a dim batch's rays).  Same distributions as :class:`Draws`, other numbers."""
+    """The fast stream's later draws (slit kicks, slope errors) made as a ray meets the element.
+
+    They are made for the rays in flight only: in a compacting trace the rays stopped upstream
+    draw nothing (most of a dim batch's rays).  Same distributions as :class:`Draws`, other
+    numbers.
+    """
 
     def __init__(self, generator: torch.Generator):
         self.generator = generator
 
     def slit(self, like: torch.Tensor) -> torch.Tensor:
+        """A slit's accepted kick draws (width, height) for the rays of ``like``, ``(2, *like.shape)``."""
         return rnd.fraunhofer_uniform_fast(torch.rand(2, *like.shape, generator=self.generator,
                                                       device=like.device, dtype=torch.float64))
 
     def slope(self, like: torch.Tensor) -> torch.Tensor:
+        """Standard normals for the slope errors of the rays of ``like``, ``(2, *like.shape)``."""
         return torch.randn(2, *like.shape, generator=self.generator, device=like.device, dtype=torch.float64)
 
 
 def source_rays(bl: CompiledBeamline, units: SourceUnits) -> Rays:
-    """The source's unit draws scaled by its sizes, divergences and energy (differentiable in them);
-    seven coordinates are rays given as they are (position, direction, energy: another source's
-    own draws, :func:`given_units`)."""
+    """The source's unit draws scaled by its sizes, divergences and energy (differentiable in them).
+
+    Seven coordinates are rays given as they are (position, direction, energy: another source's
+    own draws, :func:`given_units`).
+    """
     src, coord = bl.source, units.coord
     if len(coord) == 7:
         dt = bl.dtype

@@ -17,14 +17,19 @@ SEARCH_SHIFT = 1e-6  # mm: RAYX starts each search this far along the ray
 
 
 def _zero(v) -> bool:
-    """An exact number 0: a term it multiplies is left out (adding an exact zero changes no
-    rounding, and plane hits, normals and most quadric coefficients are exactly zero)."""
+    """Whether ``v`` is an exact number 0: a term it multiplies is left out.
+
+    Adding an exact zero changes no rounding, and plane hits, normals and most quadric
+    coefficients are exactly zero.
+    """
     return not torch.is_tensor(v) and v == 0.0
 
 
 def _poly(*terms):
-    """Sum of products, each term a tuple of factors multiplied left to right, terms added
-    left to right; terms with an exact-zero factor are skipped."""
+    """Sum of products, each term a tuple of factors; terms with an exact-zero factor are skipped.
+
+    Factors are multiplied left to right, and terms added left to right.
+    """
     out = None
     for term in terms:
         if any(_zero(f) for f in term):
@@ -87,8 +92,11 @@ def _quadric_case(q, case, p, d):
 
 
 def _quadric_hit(q, px, py, pz, dx, dy, dz):
-    """RAYX's quadric intersection (RAYX-CONVENTIONS.md §5.2): one root, chosen by the sign
-    of the ray's dominant direction component and the surface's ``icurv``."""
+    """RAYX's quadric intersection (RAYX-CONVENTIONS.md §5.2).
+
+    One root, chosen by the sign of the ray's dominant direction component and the surface's
+    ``icurv``.
+    """
     p, d = (px, py, pz), (dx, dy, dz)
     ax, ay, az = dx.abs(), dy.abs(), dz.abs()
     use_y = (ay >= ax) & (ay >= az)
@@ -158,8 +166,10 @@ def _toroid_hit(q, px, py, pz, dx, dy, dz):
 
 
 def _toroid_rehit(opt, hx, hy, hz, dx, dy, dz) -> torch.Tensor:
-    """Rays RAYX's toroid iteration finds on the same toroid again, just ahead of where they left it
-    (RAYX-CONVENTIONS §5.6): RAYX reflects them there until its event cap, and they are lost."""
+    """Rays RAYX's toroid iteration finds on the same toroid again, just ahead of where they left it.
+
+    See RAYX-CONVENTIONS §5.6: RAYX reflects them there until its event cap, and they are lost.
+    """
     with torch.no_grad():
         d = [_detach(v) for v in (dx, dy, dz)]
         p = [_detach(h) + SEARCH_SHIFT * v for h, v in zip((hx, hy, hz), d)]

@@ -86,13 +86,17 @@ class TorchOptions:
 
     @property
     def torch_dtype(self) -> torch.dtype:
+        """``dtype`` as a torch dtype (``torch.float64`` or ``torch.float32``)."""
         return torch.float64 if self.dtype == "float64" else torch.float32
 
 
 @dataclass(frozen=True)
 class TraceBatch:
-    """Hard histograms of a batch (:meth:`TorchEngine.trace_batch`): fractions of the
-    ``n_rays`` source rays per bin, (C, bins), and the rays on the screen, (C,)."""
+    """Hard histograms of a batch (:meth:`TorchEngine.trace_batch`) and the rays on the screen.
+
+    The histograms are fractions of the ``n_rays`` source rays per bin, (C, bins); the rays on
+    the screen are counts, (C,).
+    """
 
     hist_x: np.ndarray
     hist_y: np.ndarray
@@ -122,6 +126,7 @@ class TorchEngine:
 
     @property
     def version(self) -> str:
+        """Engine name and version, with its sampling, dtype and device, recorded with every dataset and run."""
         o = self.options
         return f"torch {torch.__version__} (bluesky-offsets tracer, {o.sampling} sampling, {o.dtype}, {o.device})"
 
@@ -132,6 +137,7 @@ class TorchEngine:
         return source_units(bl, n_rays, seed, sampling=o.sampling, common=o.common_rays)
 
     def compile(self, values, overrides=None) -> CompiledBeamline:
+        """The beamline at ``values`` (C, P) with ``overrides``, as tensors of the engine's dtype and device."""
         o = self.options
         return compile_beamline(values, overrides, table=self.table, dtype=o.torch_dtype, device=o.device)
 
@@ -165,7 +171,8 @@ class TorchEngine:
         """Trace requests as one batch (groups of equal element types), results in order.
 
         Requests that share one seed share their rays (common random numbers, when the
-        options say so); different seeds give each request its own stream."""
+        options say so); different seeds give each request its own stream.
+        """
         if n_rays < 1:
             raise InputError(f"n_rays must be positive, got {n_rays}")
         out: list[TraceResult | None] = [None] * len(requests)
@@ -241,12 +248,15 @@ class TorchEngine:
         return TraceBatch((hx / n_rays).numpy(), (hy / n_rays).numpy(), n_hits.numpy(), n_rays)
 
     def trace(self, request: TraceRequest, n_rays: int, keep_rays: bool = False) -> TraceResult:
+        """Trace one beamline state with ``n_rays`` source rays (:meth:`trace_many` with one request)."""
         return self.trace_many([request], n_rays, keep_rays)[0]
 
     # -- differentiable products --------------------------------------------------
     def inputs(self, values, effects: Mapping[str, Mapping[str, float]] | None = None):
-        """Leaf tensors for a Jacobian: parameters (C, 34) and one (C,) tensor per effect
-        parameter (so that every configuration gets its own derivative), with names."""
+        """Leaf tensors for a Jacobian, with names: parameters (C, 34) and one (C,) tensor per effect parameter.
+
+        One tensor per effect parameter, so that every configuration gets its own derivative.
+        """
         vals = torch.as_tensor(np.atleast_2d(self.table.validate(values)), dtype=torch.float64,
                                device=self.options.device)
         c = vals.shape[0]
@@ -274,9 +284,11 @@ class TorchEngine:
 
     def products(self, what: str, values, effects=None, *, n_rays: int, seed=0, overrides=None,
                  spec: HistogramSpec | None = None) -> torch.Tensor:
-        """Soft beam products (C, m) at fixed rays: ``"features"`` (intensity, centroid x/y,
-        rms width x/y), ``"histograms"`` (x then y, fraction of source rays) or
-        ``"profiles"`` (the same at the camera's resolution)."""
+        """Soft beam products (C, m) at fixed rays: ``"features"``, ``"histograms"`` or ``"profiles"``.
+
+        ``"features"`` are intensity, centroid x/y and rms width x/y; ``"histograms"`` x then y,
+        fraction of source rays; ``"profiles"`` the same at the camera's resolution.
+        """
         vals, leaves, _ = self.inputs(values, effects)
         return self._products(what, vals, leaves, n_rays, seed, overrides, spec)
 
@@ -292,8 +304,10 @@ class TorchEngine:
         return total
 
     def _product(self, what, beam, spec, n_rays: int):
-        """One chunk's share of a product of ``n_rays`` per configuration: moments are sums over its
-        rays; histograms fractions of all ``n_rays``."""
+        """One chunk's share of a product of ``n_rays`` per configuration.
+
+        Moments are sums over its rays; histograms fractions of all ``n_rays``.
+        """
         if what == "features":
             return moments(beam, soft=self.options.edge > 0)
         if what in ("histograms", "profiles"):
@@ -305,8 +319,9 @@ class TorchEngine:
 
     def jacobian(self, what: str, values, effects=None, *, n_rays: int, seed=0, overrides=None,
                  spec: HistogramSpec | None = None, mode: Literal["auto", "forward", "reverse"] = "auto"):
-        """Products (C, m) and their Jacobian (C, m, 34 + effect parameters), with the names
-        of the columns, for a whole batch of configurations at fixed rays.
+        """Products (C, m) and their Jacobian (C, m, 34 + effect parameters), with the columns' names.
+
+        For a whole batch of configurations at fixed rays.
 
         ``mode``: "reverse" (the default) takes one batched backward pass per chunk of rays
         for all product components; "forward" one forward-mode pass per input column.
@@ -457,9 +472,12 @@ class TorchEngine:
 
 
 def device_agreement(device: str = "cuda", *, n_rays: int = 20_000, seed: int = 3) -> dict:
-    """The same four configurations near the reference traced with RAYX's random stream on the
+    """Whether the CPU and ``device`` agree: the check a lent GPU runs before it traces anything for the record.
+
+    The same four configurations near the reference are traced with RAYX's random stream on the
     CPU and on ``device``: whether the same rays survive and how far their screen positions
-    differ (mm).  The check a lent GPU runs before it traces anything for the record."""
+    differ (mm).
+    """
     values = METRIXS.reference + 0.005 * METRIXS.span * np.random.default_rng(8).uniform(-1, 1, (4, len(METRIXS)))
     values[:, [METRIXS.index("E1.rotationZerror"), METRIXS.index("E2.rotationZerror")]] = 0.0
     with torch.no_grad():

@@ -74,10 +74,13 @@ class Beam:
 
 
 def _entries(m) -> tuple:
-    """A matrix (C, 3, 3) or vector (C, 3) as nested tuples of its entries (C,); given as such
-    (:meth:`TorchEngine.ray_jacobian`: every entry a leaf of its own), as it is.  Entries by
-    unbind, not by indexing: the backward of one index writes the whole matrix per entry,
-    which had made 60 % of a per-ray Jacobian (each ray has its own matrices there)."""
+    """A matrix (C, 3, 3) or vector (C, 3) as nested tuples of its entries (C,).
+
+    One given as such (:meth:`TorchEngine.ray_jacobian`: every entry a leaf of its own) is
+    returned as it is.  Entries by unbind, not by indexing: the backward of one index writes the
+    whole matrix per entry, which had made 60 % of a per-ray Jacobian (each ray has its own
+    matrices there).
+    """
     if isinstance(m, tuple):
         return m
     return tuple(_entries(row) for row in m.unbind(1)) if m.ndim > 2 else m.unbind(1)
@@ -248,8 +251,10 @@ def trace_rays(bl: CompiledBeamline, rays: Rays, draws: Draws | LazyDraws | None
 
 
 def _kick(u, wavelength, dim, dt):
-    """Fraunhofer kick (rad) of the accepted draw ``u`` for an opening ``dim`` mm (RAYX:
-    ``(u - 0.5) * 10 λ / b``, b in nm); none for a closed dimension, which draws nothing."""
+    """Fraunhofer kick (rad) of the accepted draw ``u`` for an opening ``dim`` mm.
+
+    As RAYX's ``(u - 0.5) * 10 λ / b``, b in nm; none for a closed dimension, which draws nothing.
+    """
     if not torch.is_tensor(dim):
         if dim == 0:
             return torch.zeros_like(u, dtype=dt)

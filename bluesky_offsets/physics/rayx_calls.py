@@ -1,0 +1,63 @@
+"""How RAYX is called: its process-global random generator seeded, a beamline imported from memory.
+
+Shared by the RAYX twin (:mod:`bluesky_offsets.physics.twin`) and the torch engine's RML twin
+(:mod:`bluesky_offsets.physics.engine.rml_twin`), which draws its source rays with RAYX.
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+
+_seeded_pids: set[int] = set()
+
+
+def fix_seed(seed: int) -> None:
+    """Seed RAYX's global random generator (``rayx::fixSeed``, not exposed to Python).
+
+    RAYX draws each trace's seed from a process-global Mersenne twister that
+    starts from the same default state in every process, so without this,
+    parallel workers would repeat each other's noise.
+    """
+    import ctypes
+
+    import rayx
+    fn = getattr(fix_seed, "_fn", None)
+    if fn is None:
+        lib = ctypes.CDLL(rayx.core.__file__)
+        fn = lib._ZN4rayx7fixSeedEj
+        fn.argtypes, fn.restype = [ctypes.c_uint32], None
+        fix_seed._fn = fn  # type: ignore[attr-defined]  # a function attribute caches the handle
+    fn(int(seed) & 0xFFFFFFFF)
+
+
+def ensure_random_stream() -> None:
+    """Seed RAYX once per process from the OS: parallel workers draw independent noise."""
+    pid = os.getpid()
+    if pid not in _seeded_pids:
+        fix_seed(int.from_bytes(os.urandom(4), "little"))
+        _seeded_pids.add(pid)
+
+
+def import_rml(beamline):
+    """RAYX's beamline from ours.
+
+    RAYX imports from a path only; the file holds the state traced
+    (a simulated beamline's hidden truth included), so on Linux it lives in memory
+    (``memfd_create``): no file another process could open by name, none left by a killed worker.
+    Elsewhere it lives only for the import in the system's temporary folder.
+    """
+    import rayx
+    text = beamline.to_xml().encode()
+    if hasattr(os, "memfd_create") and os.path.isdir("/proc/self/fd"):
+        with os.fdopen(os.memfd_create("bluesky-offsets.rml"), "wb") as f:
+            f.write(text)
+            f.flush()
+            return rayx.import_beamline(f"/proc/self/fd/{f.fileno()}")
+    fd, name = tempfile.mkstemp(prefix="bluesky-offsets-", suffix=".rml")
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(text)
+        return rayx.import_beamline(name)
+    finally:
+        os.unlink(name)
