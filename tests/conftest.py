@@ -59,6 +59,12 @@ os.environ.setdefault("EPICS_CA_CONN_TMO", "5")
 os.environ.setdefault("MPLBACKEND", "Agg")
 
 
+def pytest_xdist_auto_num_workers(config):
+    """``-n auto``: one worker more than the cores; the IOC demos wait on their subprocesses and the
+    IOC tests on Channel Access, and a third worker fills those waits (CI: 2 cores)."""
+    return (os.cpu_count() or 1) + 1
+
+
 def _threads_per_worker() -> int | None:
     """pytest-xdist's workers already fill the cores: each gets its share of them as torch's
     threads (and so do the demos and IOCs it starts, through the environment).  A fit's small
