@@ -866,7 +866,7 @@ def completed_steps(store, key: str) -> dict[str, str]:
 # --------------------------------------------------------------------------- #
 # the whole analysis
 # --------------------------------------------------------------------------- #
-# long: a 60-line numpy docstring over the analysis's resumable steps (97 lines), read in order
+# long: a 62-line numpy docstring over the analysis's resumable steps (97 lines), read in order
 def analyse_measurement(measurement, twin, forward_model=None, *, store=None,
                         starts: ModelState | Sequence[ModelState] | None = None, refine: bool = True,
                         candidates: Sequence[str] | None = None, add_best: bool = True, rounds: int = D.ROUNDS,

@@ -649,7 +649,7 @@ def _runs(jobs: Sequence[tuple[_Model, np.ndarray, dict]], ridge: np.ndarray,
     return [end[:4] for end in ends]
 
 
-# long: a 32-line numpy docstring over 91 lines of one Levenberg-Marquardt loop, read at once
+# long: a 28-line docstring over 88 lines of one Levenberg-Marquardt loop, read at once
 def fit(meas, state, engine, options: FitOptions | Mapping | None = None, *,
         progress: Callable[[dict], None] | None = None, table: ParameterTable = METRIXS,
         also_from: Sequence = (), executor: Executor | None = None) -> FitResult:
