@@ -21,7 +21,7 @@ from bluesky.utils import MsgGenerator
 
 from bluesky_offsets.errors import InputError
 from bluesky_offsets.model.measurement import Measurement
-from bluesky_offsets.physics.camera import CameraCalibration, dark_frame, photon_transfer
+from bluesky_offsets.physics.camera import CameraCalibration, DarkFrame, dark_frame, photon_transfer
 
 
 @dataclasses.dataclass(frozen=True)
@@ -79,7 +79,7 @@ def calibrate_camera(camera, *, darks: int = 4, frames: int = 8, max_gain_error:
         taken["light"] = yield from _stream(camera, frames, "primary")
 
     yield from inner()
-    dark, light = taken["dark"], taken["light"]
+    dark, light = dark_frame(taken["dark"]), taken["light"]
     base = _with_dark(camera.calibration, dark)
     measured = sigma = None
     try:
@@ -92,7 +92,7 @@ def calibrate_camera(camera, *, darks: int = 4, frames: int = 8, max_gain_error:
     if measured is not None and sigma is not None and measured > 0 and sigma < max_gain_error * measured:
         ok, cal = True, dataclasses.replace(base, gain=measured, gain_sigma=sigma)
     camera.calibrate(cal)
-    return CameraCheck(cal, measured, sigma, base.read_noise, len(dark), len(light), ok)
+    return CameraCheck(cal, measured, sigma, base.read_noise, dark.frames, len(light), ok)
 
 
 def _stream(camera, n: int, name: str) -> MsgGenerator[np.ndarray]:
@@ -113,9 +113,9 @@ def _closed(camera, n: int) -> MsgGenerator[np.ndarray]:
         yield from bps.mv(camera.shutter, "Open")
 
 
-def _with_dark(cal: CameraCalibration, dark: np.ndarray) -> CameraCalibration:
-    """``cal`` with the dark frame and read noise of the dark frames ``dark``."""
-    d = dark_frame(dark)
+def _with_dark(cal: CameraCalibration, dark: np.ndarray | DarkFrame) -> CameraCalibration:
+    """``cal`` with the dark level and read noise of the dark frames ``dark`` (or their :class:`DarkFrame`)."""
+    d = dark if isinstance(dark, DarkFrame) else dark_frame(dark)
     return dataclasses.replace(cal, dark=d.level, dark_frames=float(d.frames), read_noise=d.read_noise)
 
 

@@ -56,6 +56,7 @@ def test_photon_transfer_measures_the_gain_and_profiles_carry_the_noise():
     light = [noise.render(spot(), geo, pattern, 1.0, rng) for _ in range(4)]
     darks = np.array([noise.render(np.empty((0, 2)), geo, pattern, 1.0, rng) for _ in range(2)])
     pt = photon_transfer(light, darks)
+    assert photon_transfer(light, dark_frame(darks)) == pt  # the dark frames, or their DarkFrame
     assert abs(pt.gain - 7.0) < 3 * pt.gain_sigma and pt.gain_sigma < 0.08 * 7.0
     assert abs(pt.read_noise - 3.0) < 0.1
     dark = darks.mean(axis=0)

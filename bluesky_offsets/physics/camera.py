@@ -231,7 +231,8 @@ class PhotonTransfer:
     pixels: int
 
 
-def photon_transfer(frames: np.ndarray, darks: np.ndarray, *, saturation: float = 65535.0) -> PhotonTransfer:
+def photon_transfer(frames: np.ndarray, darks: np.ndarray | DarkFrame, *,
+                    saturation: float = 65535.0) -> PhotonTransfer:
     """The gain from four or more frames at one setting and two or more dark frames, by photon transfer.
 
     Over repeated frames a pixel of mean level ``m`` (ADU above dark) varies by
@@ -242,14 +243,14 @@ def photon_transfer(frames: np.ndarray, darks: np.ndarray, *, saturation: float 
     ratio low where few pixels hold the light; so the frames are split in two halves and each
     half's variance is divided by the other half's levels.  The σ is the first-order one, the
     pixels independent.  A bright spot holds few pixels: more frames, not brighter ones, shrink it.
+    ``darks`` are the dark frames, or the :class:`DarkFrame` already made of them.
     """
     f = np.asarray(frames, float).reshape(len(frames), -1)
-    d = np.asarray(darks, float).reshape(len(darks), -1)
-    if len(f) < 4 or len(d) < 2 or f.shape[1] != d.shape[1]:
+    dark = darks if isinstance(darks, DarkFrame) else dark_frame(darks)
+    if len(f) < 4 or dark.frames < 2 or f.shape[1] != dark.level.size:
         raise InputError("photon transfer: four or more frames and two or more dark frames of one camera")
     if f.max() >= saturation:
         raise InputError("photon transfer: a frame is saturated (a shorter exposure or less light)")
-    dark = dark_frame(darks)
     dark_mean, read2 = dark.level.reshape(-1), dark.read_noise ** 2
     halves = f[: len(f) // 2], f[len(f) // 2:]
     excess = [h.var(axis=0, ddof=1) - read2 for h in halves]
