@@ -273,7 +273,9 @@ class Analysis:
     @property
     def could_hide_line(self) -> str:
         """:attr:`could_hide` as one line of text."""
-        return "could hide within noise, behind the offsets: " + D.limits_text(self.could_hide)
+        # linear limits: an effect the offsets compensate non-linearly can hide beyond them
+        return "could hide within noise, behind the offsets (linearised; more can hide): " + \
+            D.limits_text(self.could_hide)
 
     @property
     def verdict(self) -> str:
