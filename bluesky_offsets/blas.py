@@ -13,7 +13,11 @@ def pin_kernels() -> None:
     """Pin MKL's and OpenBLAS's kernels to one code path each, unless the environment says otherwise.
 
     MKL's (torch's BLAS) kernels go to its one vendor-neutral code path on x86-64, and
-    OpenBLAS's (numpy's) to its AVX2 kernels where the CPU has AVX2.
+    OpenBLAS's (numpy's) to its AVX2 kernels where the CPU has AVX2. Where the CPU has AVX-512,
+    numpy's and torch's own vectorized functions run their AVX2 variants
+    (``NPY_DISABLE_CPU_FEATURES``, ``ATEN_CPU_CAPABILITY=avx2``): numpy's float64 ``exp``,
+    ``log``, ``arctan``, ``power`` and others round otherwise in their AVX-512 variants, and the
+    designed measurement then chooses other frames.
 
     Why: both libraries pick their kernels by CPU, and their sums then round differently; a fit
     on RAYX's hard counts amplifies such a last-bit difference along its path (the normal
@@ -25,12 +29,30 @@ def pin_kernels() -> None:
     It must happen before numpy or torch is imported: the command line calls it first thing,
     the test suite through its plugin (:mod:`bluesky_offsets.testing`), and every process they
     start (the IOC, the Dask workers) inherits the environment.
-    ``MKL_CBWR=AUTO`` and ``OPENBLAS_CORETYPE=`` (empty) in the environment undo it.
+    ``MKL_CBWR=AUTO``, ``OPENBLAS_CORETYPE=``, ``NPY_DISABLE_CPU_FEATURES=`` and
+    ``ATEN_CPU_CAPABILITY=default`` in the environment undo it.
     """
     if x86_64():
         os.environ.setdefault("MKL_CBWR", "COMPATIBLE")
     if x86_with_avx2():
         os.environ.setdefault("OPENBLAS_CORETYPE", "Haswell")
+    if _cpu_flag("avx512f"):
+        # numpy's float64 exp, log, arctan, power... and torch's vector kernels have AVX-512
+        # variants that round otherwise than the AVX2 ones every x86-64 CPU of today runs
+        os.environ.setdefault("NPY_DISABLE_CPU_FEATURES", _numpy_avx512_targets())
+        os.environ.setdefault("ATEN_CPU_CAPABILITY", "avx2")
+
+
+def _numpy_avx512_targets() -> str:
+    """The names numpy gives its AVX-512 dispatch targets (2.4 groups them as X86_V4), read without importing it."""
+    from importlib.metadata import PackageNotFoundError, version
+    try:
+        major, minor = (int(x) for x in version("numpy").split(".")[:2])
+    except (PackageNotFoundError, ValueError):
+        major, minor = 0, 0
+    if (major, minor) >= (2, 4):
+        return "X86_V4 AVX512_ICL AVX512_SPR"
+    return "AVX512F AVX512CD AVX512_KNL AVX512_KNM AVX512_SKX AVX512_CLX AVX512_CNL AVX512_ICL AVX512_SPR"
 
 
 def x86_64() -> bool:
@@ -40,10 +62,15 @@ def x86_64() -> bool:
 
 def x86_with_avx2() -> bool:
     """An x86-64 CPU with AVX2, as Linux reports it (elsewhere: False, the libraries' own choice)."""
+    return _cpu_flag("avx2")
+
+
+def _cpu_flag(flag: str) -> bool:
+    """Whether Linux reports ``flag`` for this x86-64 CPU (elsewhere: False)."""
     if not x86_64():
         return False
     try:
         with open("/proc/cpuinfo") as f:
-            return any(line.startswith("flags") and " avx2" in line for line in f)
+            return any(line.startswith("flags") and flag in line.split() for line in f)
     except OSError:
         return False

@@ -322,7 +322,6 @@ def test_another_cpus_arithmetic_gives_the_same_bits(defocus_case, tmp_path):
     (:func:`bluesky_offsets.blas.pin_kernels`) and torch's own kernels round alike at any vector
     width.  Without the pinning another CPU's analysis differs in its digits (docs/explanations/diagnosis.md,
     "Another CPU's arithmetic")."""
-    import os
     import subprocess
     import sys
     meas, truth, _ = defocus_case
@@ -330,16 +329,53 @@ def test_another_cpus_arithmetic_gives_the_same_bits(defocus_case, tmp_path):
     np.savez(data, cfg=meas.configurations, hx=meas.hist_x, hy=meas.hist_y, n=meas.n_rays, start=truth.offsets * 0.5)
     script = tmp_path / "fit.py"
     script.write_text(_ARITHMETIC_FIT)
-    base = {k: v for k, v in os.environ.items() if k not in ("MKL_CBWR", "OPENBLAS_CORETYPE", "ATEN_CPU_CAPABILITY",
-                                                            "MKL_ENABLE_INSTRUCTIONS")}
     outs = []
-    for extra in ({}, {"ATEN_CPU_CAPABILITY": "avx2", "MKL_ENABLE_INSTRUCTIONS": "AVX2"}):
+    for extra in ({}, AVX2_ONLY):
         proc = subprocess.run([sys.executable, str(script), str(data)], capture_output=True, text=True,
-                              env={**base, **extra}, timeout=300)
+                              env={**_unpinned_environment(), **extra}, timeout=300)
         assert proc.returncode == 0, proc.stderr[-2000:]
         outs.append(proc.stdout.split())
     assert outs[0][:2] == ["COMPATIBLE", "Haswell"], outs  # pinned by the call, not by this test
     assert outs[0] == outs[1], outs
+
+
+# how an AVX2-only CPU computes, on this one: torch's AVX2 kernels, MKL's AVX2 instructions, numpy's
+# AVX2 loops (its AVX-512 targets by the names numpy 2.4 and earlier give them)
+AVX2_ONLY = {"ATEN_CPU_CAPABILITY": "avx2", "MKL_ENABLE_INSTRUCTIONS": "AVX2",
+             "NPY_DISABLE_CPU_FEATURES": "X86_V4 AVX512_ICL AVX512_SPR" if tuple(
+                 int(x) for x in np.__version__.split(".")[:2]) >= (2, 4) else
+             "AVX512F AVX512CD AVX512_KNL AVX512_KNM AVX512_SKX AVX512_CLX AVX512_CNL AVX512_ICL AVX512_SPR"}
+
+
+def _unpinned_environment() -> dict:
+    import os
+    return {k: v for k, v in os.environ.items() if k not in ("MKL_CBWR", "OPENBLAS_CORETYPE", *AVX2_ONLY)}
+
+
+_ELEMENTWISE = """
+import hashlib
+from bluesky_offsets.blas import pin_kernels; pin_kernels()
+import numpy as np, torch
+x = np.linspace(-3.0, 3.0, 100_001)
+parts = [f(x) for f in (np.exp, np.arctan, np.sinh, np.cbrt)] + [np.log(x * x + 0.1), np.arctan2(x, 1.3), np.power(x * x, 0.7)]
+t = torch.from_numpy(x)
+parts += [v.numpy() for v in (torch.exp(t), torch.sin(t), torch.atan2(t, t + 4.0), torch.sqrt(t * t + 1.0))]
+print(hashlib.sha256(b"".join(p.tobytes() for p in parts)).hexdigest())
+"""
+
+
+@pytest.mark.skipif(not x86_with_avx2(), reason="the kernels are pinned on x86-64 CPUs with AVX2 (Linux)")
+def test_numpy_and_torch_functions_round_as_on_an_avx2_cpu(tmp_path):
+    """numpy's float64 exp, log, arctan, power... round otherwise in their AVX-512 loops, and the
+    designed measurement then chose other frames on an AVX-512 CPU than on an AVX2 one; pinned,
+    this CPU computes them as an AVX2-only CPU does (on an AVX2-only CPU the two are the same)."""
+    import subprocess
+    import sys
+    script = tmp_path / "elementwise.py"
+    script.write_text(_ELEMENTWISE)
+    outs = [subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=120,
+                           env={**_unpinned_environment(), **extra}).stdout for extra in ({}, AVX2_ONLY)]
+    assert outs[0] and outs[0] == outs[1]
 
 
 def test_a_parameter_the_data_do_not_see_has_no_uncertainty():
