@@ -111,6 +111,7 @@ def main() -> None:
     p.add_argument("--result", default="demo_wall_time",
                    help="the result's name (default %(default)s; another name for draws with other demo options)")
     p.add_argument("--title", default=None, help="the result's heading (default: the wall time's)")
+    p.add_argument("--note", action="append", default=[], help="a note under the result's table (repeatable)")
     p.add_argument("extra", nargs="*", help="more demo options (after --)")
     a = p.parse_args()
     root = a.out or Path(tempfile.mkdtemp(prefix="bench-demo-"))
@@ -145,12 +146,13 @@ def main() -> None:
                    "offsets' RMSE / truth RMS", "offsets within 2σ", "verdict"], rows_out, align=["r"] * 15 + ["l"])
     raw = raw_path(f"{a.result}.json")
     raw.write_text(json.dumps(rows, indent=1, default=str) + "\n")
-    summary = (f"The README's main job (`{cmd}`) over several draws, one after the other, each split at the "
+    what = "The demo" if a.extra else "The README's main job"
+    summary = (f"{what} (`{cmd}`) over several draws, one after the other, each split at the "
                f"demo's own step lines (asked: a median ≤ 180 s on 2 cores). **Median {median:.0f} s over {len(rows)} "
-               "draws** on this machine; "
+               f"draw{'s' * (len(rows) != 1)}** on this machine; "
                f"verdicts: {tally}.{_medians(rows)}")
     result = write_result(a.result, title=a.title or "The main job's wall time", tables=[table], summary=summary,
-                          data=[str(raw)])
+                          notes=a.note, data=[str(raw)])
     print(section(result))
 
 
