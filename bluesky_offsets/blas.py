@@ -39,11 +39,11 @@ def pin_kernels() -> None:
     if _cpu_flag("avx512f"):
         # numpy's float64 exp, log, arctan, power... and torch's vector kernels have AVX-512
         # variants that round otherwise than the AVX2 ones every x86-64 CPU of today runs
-        os.environ.setdefault("NPY_DISABLE_CPU_FEATURES", _numpy_avx512_targets())
+        os.environ.setdefault("NPY_DISABLE_CPU_FEATURES", numpy_avx512_targets())
         os.environ.setdefault("ATEN_CPU_CAPABILITY", "avx2")
 
 
-def _numpy_avx512_targets() -> str:
+def numpy_avx512_targets() -> str:
     """The names numpy gives its AVX-512 dispatch targets (2.4 groups them as X86_V4), read without importing it."""
     from importlib.metadata import PackageNotFoundError, version
     try:

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-from bluesky_offsets.blas import x86_with_avx2
+from bluesky_offsets.blas import numpy_avx512_targets, x86_with_avx2
 from bluesky_offsets.physics import effects as E
 from bluesky_offsets.model.fit import FRESH_SEED, RAY_DRAW_SEED, FitOptions, _Model, _Products, fit, screen
 from bluesky_offsets.model.measurement import Measurement
@@ -319,8 +319,8 @@ def test_another_cpus_arithmetic_gives_the_same_bits(defocus_case, tmp_path):
     one that computes as an AVX2-only CPU would (torch's AVX2 kernels, MKL's AVX2 instructions)
     gives the same bits, because the package pins MKL's (to its vendor-neutral branch: a named
     ISA branch holds on Intel CPUs only) and OpenBLAS's kernels
-    (:func:`bluesky_offsets.blas.pin_kernels`) and torch's own kernels round alike at any vector
-    width.  Without the pinning another CPU's analysis differs in its digits (docs/explanations/diagnosis.md,
+    (:func:`bluesky_offsets.blas.pin_kernels`), and on an AVX-512 CPU numpy's and torch's own
+    vector functions too.  Without the pinning another CPU's analysis differs in its digits (docs/explanations/diagnosis.md,
     "Another CPU's arithmetic")."""
     import subprocess
     import sys
@@ -340,11 +340,9 @@ def test_another_cpus_arithmetic_gives_the_same_bits(defocus_case, tmp_path):
 
 
 # how an AVX2-only CPU computes, on this one: torch's AVX2 kernels, MKL's AVX2 instructions, numpy's
-# AVX2 loops (its AVX-512 targets by the names numpy 2.4 and earlier give them)
+# AVX2 loops
 AVX2_ONLY = {"ATEN_CPU_CAPABILITY": "avx2", "MKL_ENABLE_INSTRUCTIONS": "AVX2",
-             "NPY_DISABLE_CPU_FEATURES": "X86_V4 AVX512_ICL AVX512_SPR" if tuple(
-                 int(x) for x in np.__version__.split(".")[:2]) >= (2, 4) else
-             "AVX512F AVX512CD AVX512_KNL AVX512_KNM AVX512_SKX AVX512_CLX AVX512_CNL AVX512_ICL AVX512_SPR"}
+             "NPY_DISABLE_CPU_FEATURES": numpy_avx512_targets()}
 
 
 def _unpinned_environment() -> dict:
@@ -366,9 +364,9 @@ print(hashlib.sha256(b"".join(p.tobytes() for p in parts)).hexdigest())
 
 @pytest.mark.skipif(not x86_with_avx2(), reason="the kernels are pinned on x86-64 CPUs with AVX2 (Linux)")
 def test_numpy_and_torch_functions_round_as_on_an_avx2_cpu(tmp_path):
-    """numpy's float64 exp, log, arctan, power... round otherwise in their AVX-512 loops, and the
-    designed measurement then chose other frames on an AVX-512 CPU than on an AVX2 one; pinned,
-    this CPU computes them as an AVX2-only CPU does (on an AVX2-only CPU the two are the same)."""
+    """numpy's float64 exp, log, arctan, power... and torch's exp, sin, atan2 round otherwise in
+    their AVX-512 loops (the designed measurement chose other frames with them); pinned, this CPU
+    computes them as an AVX2-only CPU does (on an AVX2-only CPU the two are the same)."""
     import subprocess
     import sys
     script = tmp_path / "elementwise.py"
