@@ -72,7 +72,7 @@ def _calibrate(args, design, effects, pv_map, forward_model, store) -> int:
     from bluesky.utils import RunEngineInterrupted
 
     from bluesky_offsets.model.cluster import analysis_executor
-    from bluesky_offsets.commands.session import ScanProgress, StepLines, close_channels, connect_devices
+    from bluesky_offsets.commands.session import StepLines, close_channels, connect_devices, subscribe_views
     from bluesky_offsets.physics.twin import Twin
     from plans.workflow import DarkBeamline, calibration_session
 
@@ -86,13 +86,7 @@ def _calibrate(args, design, effects, pv_map, forward_model, store) -> int:
     try:
         say(f"connecting to {pv_map.name} ({len(pv_map.motors)} motors, the camera)")
         beamline, chamber = connect_devices(pv_map, args.connect_timeout)
-        store.subscribe(RE)
-        RE.subscribe(ScanProgress())
-        from bluesky_offsets.live import LiveFitProgress, LiveFootprints, in_background
-        live = [in_background(LiveFootprints(Path(args.out) / "live")),
-                in_background(LiveFitProgress(Path(args.out) / "live"))]
-        for cb in live:
-            RE.subscribe(cb)
+        live = subscribe_views(RE, store, args.out)
 
         twin = Twin(n_rays=10_000, scheduler=args.scheduler, n_workers=args.threads)
         from bluesky_offsets.design import DesignOptions

@@ -378,9 +378,8 @@ def _devices(s: DemoSettings, ioc: SimulatedBeamline, work: Path, store, RE, out
 
     The store and the live views are subscribed.  Returns (beamline, chamber, live views).
     """
-    from bluesky_offsets.commands.session import ScanProgress, connect_devices
+    from bluesky_offsets.commands.session import connect_devices, subscribe_views
     from bluesky_offsets.epics.pvmap import PVMap
-    from bluesky_offsets.live import LiveFitProgress, LiveFootprints, in_background
 
     frames = None
     if s.detector == "camera":
@@ -394,13 +393,7 @@ def _devices(s: DemoSettings, ioc: SimulatedBeamline, work: Path, store, RE, out
     if pv_map.camera:  # an exposure that gives the frames the demo's photons
         import bluesky.plan_stubs as bps
         RE(bps.mv(chamber.driver.acquire_time, s.n_rays / pv_map.camera["photons_per_second"]))
-    store.subscribe(RE)
-    RE.subscribe(ScanProgress())
-    # windows with a GUI backend; else PNGs, written on threads of their own
-    live = [in_background(LiveFootprints(out / "live")), in_background(LiveFitProgress(out / "live"))]
-    for cb in live:
-        RE.subscribe(cb)
-    return beamline, chamber, live
+    return beamline, chamber, subscribe_views(RE, store, out)
 
 
 def _step_uids(session, beam_result, uids: Sequence[str]) -> dict[str, str]:

@@ -92,6 +92,23 @@ class ScanProgress:
             self.bar = None
 
 
+def subscribe_views(RE, store, out) -> list:
+    """Subscribe the run store, the scan progress and the live views to ``RE``; the views.
+
+    The live views are windows with a GUI backend, else PNGs under ``out/live``, written on
+    threads of their own.
+    """
+    from pathlib import Path
+
+    from bluesky_offsets.live import LiveFitProgress, LiveFootprints, in_background
+    store.subscribe(RE)
+    RE.subscribe(ScanProgress())
+    live = [in_background(LiveFootprints(Path(out) / "live")), in_background(LiveFitProgress(Path(out) / "live"))]
+    for cb in live:
+        RE.subscribe(cb)
+    return live
+
+
 def close_channels(RE) -> None:
     """Close the devices' Channel Access channels before the IOC goes.
 
