@@ -278,7 +278,8 @@ class _Model:
         self.span = torch.as_tensor(table.span, dtype=torch.float64)
         self.m = np.concatenate([meas.hist_x, meas.hist_y], 1)
         self.floor = meas.floor  # a camera's own noise per bin, None for ray counts
-        self.fm, self.vm = beam_features(meas.hist_x, meas.hist_y, meas.spec, meas.n_rays,
+        self.n_rays = float(meas.ray_budget)  # the measured photons: every comparison weighs by them
+        self.fm, self.vm = beam_features(meas.hist_x, meas.hist_y, meas.spec, self.n_rays,
                                          meas.floor_x, meas.floor_y)  # measured: fixed
         self.n_traces = 0
         self.soft = bool(options.soft_values)
@@ -448,10 +449,10 @@ class _Model:
             return r, G, float(r.size), np.repeat(np.arange(n_conf), 5)
         m, floor = self.measured(stage)
         f = pr.values
-        var = bin_variance(m, f, float(self.meas.n_rays), pr.rays, floor=floor)
+        var = bin_variance(m, f, self.n_rays, pr.rays, floor=floor)
         signal = compared(m, f, floor)
         r = np.where(signal, (m - f) / np.sqrt(var), 0.0)
-        dof = float(expected_pull2(m, f, float(self.meas.n_rays), floor).sum())
+        dof = float(expected_pull2(m, f, self.n_rays, floor).sum())
         keep = signal.reshape(-1)
         G = None
         if pr.jacobian is not None:
@@ -477,7 +478,7 @@ def _fisher(mdl: _Model, other: _Model, stage: str, z: np.ndarray, pa: _Products
         w = 1.0 / (mdl.vm + 0.5 * (pa.variance + pb.variance))
     else:
         (m, floor), f = mdl.measured(stage), 0.5 * (pa.values + pb.values)
-        var = bin_variance(m, f, float(mdl.meas.n_rays), pa.rays, floor=floor)
+        var = bin_variance(m, f, mdl.n_rays, pa.rays, floor=floor)
         w = np.where(compared(m, f, floor), 1.0 / var, 0.0)
     x = np.einsum("cbp,cb,cbq->pq", pa.jacobian, w, pb.jacobian)
     vals, vecs = np.linalg.eigh(0.5 * (x + x.T))
