@@ -113,10 +113,9 @@ def _closed(camera, n: int) -> MsgGenerator[np.ndarray]:
         yield from bps.mv(camera.shutter, "Open")
 
 
-def _with_dark(cal: CameraCalibration, dark: np.ndarray | DarkFrame) -> CameraCalibration:
-    """``cal`` with the dark level and read noise of the dark frames ``dark`` (or their :class:`DarkFrame`)."""
-    d = dark if isinstance(dark, DarkFrame) else dark_frame(dark)
-    return dataclasses.replace(cal, dark=d.level, dark_frames=float(d.frames), read_noise=d.read_noise)
+def _with_dark(cal: CameraCalibration, dark: DarkFrame) -> CameraCalibration:
+    """``cal`` with the dark level and read noise of ``dark``."""
+    return dataclasses.replace(cal, dark=dark.level, dark_frames=float(dark.frames), read_noise=dark.read_noise)
 
 
 def take_darks(camera, n: int = 4, *, md: Mapping | None = None) -> MsgGenerator[CameraCalibration]:
@@ -136,7 +135,7 @@ def take_darks(camera, n: int = 4, *, md: Mapping | None = None) -> MsgGenerator
         taken["dark"] = yield from _closed(camera, n)
 
     yield from inner()
-    cal = _with_dark(camera.calibration, taken["dark"])
+    cal = _with_dark(camera.calibration, dark_frame(taken["dark"]))
     camera.calibrate(cal)
     return cal
 
