@@ -343,7 +343,7 @@ class Twin:
 
     def close(self) -> None:
         """Close the Dask client and the LocalCluster this twin started (a copy leaves the original's running)."""
-        if getattr(self, "_borrowed", False):
+        if self._borrowed:
             self._client = None  # the twin it was made from owns the workers
             return
         if self._client is not None:

@@ -47,7 +47,7 @@ class RmlTorchEngine(TorchEngine):
 
     def __init__(self, beamline, hist: HistogramSpec | None = None, options=None):
         super().__init__(beamline.table, hist or beamline.detector.histograms, options)
-        self.described, self.rml = beamline, read_rml(beamline.rml)
+        self.described, self.rml = beamline, read_rml(beamline.rml_file())
         self.source_cache: dict = {}
 
     @property
