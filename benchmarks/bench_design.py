@@ -202,11 +202,11 @@ def main() -> None:
     for seed in a.seeds:
         for how in a.design:
             rows.append(one(seed, how, a, log))
-            if a.out:  # after every draw: an interrupted run keeps what it measured
-                a.out.parent.mkdir(parents=True, exist_ok=True)
-                a.out.write_text(json.dumps({"machine": machine(), "args": {k: v for k, v in vars(a).items()
-                                                                             if k != "out"},
-                                             "rows": rows}, indent=1, default=str))
+            # after every draw: an interrupted run keeps what it measured
+            a.out.parent.mkdir(parents=True, exist_ok=True)
+            a.out.write_text(json.dumps({"machine": machine(), "args": {k: v for k, v in vars(a).items()
+                                                                         if k != "out"},
+                                         "rows": rows}, indent=1, default=str))
     for how in a.design:
         r = [x for x in rows if x["design"] == how and not x.get("dark")]
         if not r:
@@ -268,7 +268,7 @@ def write(rows: list, a) -> None:
                     _medians(rows, pct))
     result = write_result(
         f"design_{pct:g}pct", title="The designed measurement" + (f" at ±{pct:g} %" if pct != 5 else ""),
-        tables=[table, medians], data=[relative(a.out)] if a.out else [],
+        tables=[table, medians], data=[relative(a.out)],
         summary=f"Does the designed measurement bring the fitted offsets to the truth, with hidden offsets within "
                 f"±{pct:g} %? RAYX frames at the hidden truth, {a.photons:,} photons a frame, the beam found by the "
                 f"real search, then {a.frames} frames in all designed (optimal) or the bright design's frames "

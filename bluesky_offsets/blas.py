@@ -5,6 +5,7 @@ See :func:`pin_kernels` and docs/explanations/diagnosis.md, "Another CPU's arith
 
 from __future__ import annotations
 
+import functools
 import os
 import platform
 
@@ -67,10 +68,16 @@ def x86_with_avx2() -> bool:
 
 def _cpu_flag(flag: str) -> bool:
     """Whether Linux reports ``flag`` for this x86-64 CPU (elsewhere: False)."""
+    return flag in _cpu_flags()
+
+
+@functools.cache
+def _cpu_flags() -> frozenset[str]:
+    """The words of every ``flags`` line Linux reports for this x86-64 CPU, read once (elsewhere: none)."""
     if not x86_64():
-        return False
+        return frozenset()
     try:
         with open("/proc/cpuinfo") as f:
-            return any(line.startswith("flags") and flag in line.split() for line in f)
+            return frozenset(w for line in f if line.startswith("flags") for w in line.split())
     except OSError:
-        return False
+        return frozenset()
