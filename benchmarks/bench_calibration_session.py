@@ -165,7 +165,7 @@ def main(argv=None) -> int:
 
 def write(report: dict, args, out: Path) -> None:
     """The result ``calibration_session``: this session's times and MSEs, one row."""
-    from results import Table, raw_path, relative, write_result
+    from results import Table, raw_path, write_result
     raw = raw_path("calibration_session.json")
     raw.write_text(out.read_text())  # the session's record beside the result, in the repository
     sec = report["seconds"]
@@ -186,7 +186,7 @@ def write(report: dict, args, out: Path) -> None:
                          "found offsets against the measurement, next to the twin at the hidden truth, each "
                          "averaged over independent traces. Asked: measured and fitted in < 5 min, the ratio ≤ 2.",
                  tables=[table], notes=[f"Parameter RMSE against the hidden offsets: {report['parameter_rmse']:.3f}."],
-                 data=[relative(raw)])
+                 data=[str(raw)])
 
 
 if __name__ == "__main__":

@@ -256,7 +256,7 @@ def _medians(rows: list, pct: float) -> list:
 def write(rows: list, a) -> None:
     """The result ``design_<pct>pct``: every draw and the medians."""
     from render import section
-    from results import Table, relative, write_result
+    from results import Table, write_result
     pct = round(100 * a.fraction, 6)
     table = Table("Every draw (\"global start\": an update also ran from the prior-wide search, the model being dark "
                   "where the beamline was lit):",
@@ -268,7 +268,7 @@ def write(rows: list, a) -> None:
                     _medians(rows, pct))
     result = write_result(
         f"design_{pct:g}pct", title="The designed measurement" + (f" at ±{pct:g} %" if pct != 5 else ""),
-        tables=[table, medians], data=[relative(a.out)],
+        tables=[table, medians], data=[str(a.out)],
         summary=f"Does the designed measurement bring the fitted offsets to the truth, with hidden offsets within "
                 f"±{pct:g} %? RAYX frames at the hidden truth, {a.photons:,} photons a frame, the beam found by the "
                 f"real search, then {a.frames} frames in all designed (optimal) or the bright design's frames "

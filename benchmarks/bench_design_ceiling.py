@@ -97,7 +97,7 @@ def main() -> None:
 def write(rows: list, a) -> None:
     """The result ``design_ceiling``: the offsets determined per budget (rows) and draw (columns)."""
     from render import section
-    from results import Table, relative, write_result
+    from results import Table, write_result
     seeds = list(dict.fromkeys(r["seed"] for r in rows))
     by = {(r["photons"], r["model_rays"], r["seed"]): r for r in rows}
     table = Table(f"Offsets determined, of {len(T)}:",
@@ -107,7 +107,7 @@ def write(rows: list, a) -> None:
     frames = ", ".join(f"{by[BUDGETS[0][0], BUDGETS[0][1], s]['frames_designed']} after "
                        f"{by[BUDGETS[0][0], BUDGETS[0][1], s]['search_frames']}" for s in seeds)
     result = write_result(
-        "design_ceiling", title="The designed measurement: the Fisher ceiling", tables=[table], data=[relative(a.out)],
+        "design_ceiling", title="The designed measurement: the Fisher ceiling", tables=[table], data=[str(a.out)],
         notes=[f"{a.rays:,} rays a candidate, two halves; frames designed after those of the beam search, per seed: "
                f"{frames}.",
                "Determined as judged on the rays that chose the batch (optimistic), per budget in the table's order: "

@@ -79,7 +79,7 @@ def main(argv=None) -> int:
 
 def write(rows: list[dict], args) -> None:
     """The result ``finder_twin``: one row per problem."""
-    from results import Table, raw_path, relative, write_result
+    from results import Table, raw_path, write_result
     raw = raw_path("finder_twin.json")
     raw.write_text(json.dumps(rows, indent=1) + "\n")
     table = Table(f"One problem per seed, observations traced by the twin at {args.rays:,} rays:",
@@ -89,7 +89,7 @@ def write(rows: list[dict], args) -> None:
                     f"{x['twin_mse_polished']:.3g}", f"{x['twin_repeat_mse']:.3g}", f"**{x['ratio_to_repeat']:.2f}**",
                     f"{x['parameter_rmse']:.3f}", f"{x['seconds_find']:.0f}"] for x in rows], align=["r"] * 8)
     write_result("finder_twin", title="Offset finder: against the twin's observations (issue 5)", tables=[table],
-                 data=[relative(raw)],
+                 data=[str(raw)],
                  summary=f"The finder's part of issue 5's acceptance without EPICS: a problem with observations from "
                          f"the RAYX twin, the `OffsetFinder` ({args.method} through the surrogate, "
                          f"{args.evaluations:,} evaluations, then at most {args.polish} steps of the twin polish), then "

@@ -117,7 +117,7 @@ def _effects(r: dict) -> str:
 def write(name: str, rows: list[dict], raw: Path) -> None:
     """The result ``<name>``: one row per draw and setting."""
     from render import section
-    from results import Table, relative, write_result
+    from results import Table, write_result
     title, column, summary = PAGES.get(name, (name, "run", f"The README's main job, {name}."))
     table = Table("Each draw with each setting:",
                   ["seed", column, "offsets RMSE / truth RMS", "within 2σ", "effects fitted", "focus after (µm)",
@@ -128,7 +128,7 @@ def write(name: str, rows: list[dict], raw: Path) -> None:
                     f"{r['focus_over_best'][0]:.2f}, {r['focus_over_best'][1]:.2f}",
                     "—" if r["validation_chi2"] is None else f"{r['validation_chi2']:.2f}", f"{r['seconds']:.0f}"]
                    for r in rows], align=["r", "l", "r", "r", "l", "r", "r", "r", "r"])
-    print(section(write_result(name, title=title, summary=summary, tables=[table], data=[relative(raw)])))
+    print(section(write_result(name, title=title, summary=summary, tables=[table], data=[str(raw)])))
 
 
 if __name__ == "__main__":

@@ -72,7 +72,7 @@ def main(argv=None) -> int:
         print(json.dumps(r), flush=True)
         (out / "optimize_beam.json").write_text(json.dumps(rows, indent=1))
     from render import section
-    from results import Table, raw_path, relative, write_result
+    from results import Table, raw_path, write_result
     table_rows = []
     for r in rows:
         if "error" in r:
@@ -94,7 +94,7 @@ def main(argv=None) -> int:
                                           "(after − predicted)/σ x, y", "pass"], table_rows,
                   align=["r"] + ["l"] * 9)
     result = write_result(
-        "optimize_beam", title="Beam optimization (issue 21)", tables=[table], data=[relative(raw)],
+        "optimize_beam", title="Beam optimization (issue 21)", tables=[table], data=[str(raw)],
         summary="Issue 21's first acceptance item, from a calibrated twin to a better beam. Each draw is "
                 "`bluesky-offsets demo --seed S --effect E` (hidden offsets in all 34 parameters, a hidden effect "
                 "the tests do not use), ending with `optimize_beam(\"smallest_focus\", ...)`, 3 frames before and "

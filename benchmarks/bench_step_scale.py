@@ -81,12 +81,12 @@ def main(argv=None) -> int:
 def write(rows: list, frames: int, chi2: float, state, args) -> None:
     """The result ``step_scale``: σ(s) per motor, smallest first."""
     from render import section
-    from results import Table, relative, write_result
+    from results import Table, write_result
     table = Table("σ of a step-scale error per motor, the others free:",
                   ["motor", "σ(s)", "frames' spread (of the range)"],
                   [[name, f"{100 * sig:.2f} %", f"{spread:.3g}"] for name, sig, spread in rows], align=["l", "r", "r"])
     result = write_result(
-        "step_scale", title="Step-scale errors that could hide (issue 52)", tables=[table], data=[relative(args.json)],
+        "step_scale", title="Step-scale errors that could hide (issue 52)", tables=[table], data=[str(args.json)],
         summary=f"How large a step-scale error each motor could have and still hide in a finished demo's {frames} "
                 "analysed frames: a motor moving (1 + s) times what it is told shifts each frame by s times its "
                 "distance from the others; σ(s) per motor from the twin's exact Jacobian at the calibration "

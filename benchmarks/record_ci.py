@@ -32,8 +32,9 @@ def record(total: float, pytest: float, cpu: float | None, commit: str, note: st
     rows = (rows + [[label, f"{total:.1f} min", f"{pytest:.1f} min", "—" if cpu is None else f"{cpu:.1f} min"]])[-KEEP:]
     commits = [str(r[0]).split()[0] for r in rows]
     table = Table(f"The latest {len(rows)} runs, the oldest first:", COLUMNS, rows, align=["l", "r", "r", "r"])
+    machine = machine_info()
     return Result(benchmark="ci", title="Continuous integration", command=".ci/run",
-                  machine={**machine_info(), "description": machine_info()["description"] + ", a clean clone"},
+                  machine={**machine, "description": machine["description"] + ", a clean clone"},
                   date=datetime.date.today().isoformat(), commit=commits,
                   summary="The whole suite with its IOC demos as CI runs it (`.ci/run`: a fresh virtual environment, "
                           "the README's install and test commands) on a clean clone; the budget is "

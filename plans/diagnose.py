@@ -215,6 +215,11 @@ class Analysis:
         return self.pruning.dropped if self.pruning is not None else None
 
     @property
+    def _pruned(self) -> Pruning | None:
+        """The backward step where it dropped an added effect (None: every effect kept)."""
+        return self.pruning if self.pruning is not None and self.pruning.dropped is not None else None
+
+    @property
     def retests(self) -> list[dict]:
         """The backward step's test of each added effect (empty: it did not run)."""
         return self.pruning.tests if self.pruning is not None else []
@@ -226,9 +231,8 @@ class Analysis:
         """
         if not self.refits:
             return {}
-        if self.dropped is not None:
-            assert self.pruning is not None  # an effect is dropped by the pruning only
-            state, sigma = self.pruning.state, self.pruning.sigma
+        if (pruned := self._pruned) is not None:
+            state, sigma = pruned.state, pruned.sigma
         else:
             state, sigma = self.refits[-1].state, self.refits[-1].sigma
         return {r.effect: {k: (float(v), float(sigma.get(r.effect, {}).get(k, float("nan"))))
@@ -292,12 +296,11 @@ class Analysis:
         if not found:
             return last.verdict if last else "not diagnosed"
         tail = "" if last is None or last.best is not None else f"; then {last.verdict}"
-        if self.dropped is not None:
-            assert self.pruning is not None  # an effect is dropped by the pruning only
-            t = next(t for t in self.pruning.tests if t["effect"] == self.dropped)
+        if (pruned := self._pruned) is not None:
+            t = next(t for t in pruned.tests if t["effect"] == pruned.dropped)
             why = ("without it the model is within noise" if not t["beyond_noise_without"] else
                    f"with the others in it bought Δχ² = {t['gain']:.3g}, below its price {t['price']:.3g}")
-            tail += f"; {self.dropped} was added before and dropped: {why}"
+            tail += f"; {pruned.dropped} was added before and dropped: {why}"
         if last is not None and last.best is not None and not self.final.within_noise:
             # the last diagnosis added an effect and the model still does not reach the noise: the
             # search ran out of rounds, not of effects, and the effects found may stand in for the
@@ -320,9 +323,8 @@ class Analysis:
         The covariance is the last refit's, else the offsets fit's: what
         :func:`plans.optimize.optimize_beam` optimizes on.
         """
-        if self.dropped is not None:
-            assert self.pruning is not None  # an effect is dropped by the pruning only
-            return self.pruning.calibrated
+        if (pruned := self._pruned) is not None:
+            return pruned.calibrated
         if self.refits and self.refits[-1].covariance is not None:
             return self.refits[-1].calibrated
         if self.refinement is not None and not self.refits:

@@ -356,7 +356,7 @@ def test_the_verdict_says_what_its_numbers_do_not_support():
         last = NS(diagnosis=NS(best=None if best is None else NS(name=best), rivals=[],
                                verdict="misfit beyond noise that no candidate effect explains significantly"))
         final = NS(within_noise=within, misfit=NS(chi2_reduced_total=1.21))
-        return NS(magnitudes=lambda: magnitudes, rankings=[last] * rounds, dropped=None, final=final)
+        return NS(magnitudes=lambda: magnitudes, rankings=[last] * rounds, dropped=None, _pruned=None, final=final)
 
     verdict = Analysis.verdict.fget
     found = {"chamber_z": {"z": (20.6, 1.1)}}

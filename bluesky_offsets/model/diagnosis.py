@@ -544,7 +544,7 @@ def diagnose(meas: Measurement, state: ModelState, twin=None, forward_model=None
                            executor=executor, table=table)
     out = _candidates(names, fits, base_mf, table)
     v = _verify(meas, state, out, fits, verify=verify, verifier=verifier, seed=seed, n_sigma=n_sigma,
-                fold_idx=fold_idx, folds=folds, verify_top=verify_top, executor=executor, table=table)
+                fold_idx=fold_idx, verify_top=verify_top, executor=executor, table=table)
     notes = _notes(out, fits, v, o, n_starts=n_starts, n_names=len(names))
     return Diagnosis(base_mf, v.within, out, v.observed, folds, n_traces + fits.n_traces + v.n_traces, notes,
                      v.ref_state, v.ref_mf)
@@ -659,7 +659,7 @@ class _Verified:
 
 
 def _verify(meas: Measurement, state: ModelState, out: list[Candidate], fits: _CandidateFits, *, verify, verifier,
-            seed: int, n_sigma: float, fold_idx, folds: int, verify_top: int, executor: Executor | None,
+            seed: int, n_sigma: float, fold_idx: Sequence[np.ndarray], verify_top: int, executor: Executor | None,
             table: ParameterTable) -> _Verified:
     """The best few verified with fresh rays beside the reference, and on held-out folds.
 
@@ -691,7 +691,8 @@ def _verify(meas: Measurement, state: ModelState, out: list[Candidate], fits: _C
         gain = ref_ho - _heldout(best[c.name], fold_idx)
         tol = 1e-9 * np.maximum(ref_ho, 1.0)
         c.delta_chi2_heldout = float(gain.sum())
-        c.folds_improved, c.folds_worse, c.folds_total = int((gain > tol).sum()), int((gain < -tol).sum()), folds
+        c.folds_improved, c.folds_worse = int((gain > tol).sum()), int((gain < -tol).sum())
+        c.folds_total = len(fold_idx)
         # nested models scored on the same measurement and the same fresh rays: under "no such
         # effect" the gain is ~ dispersion * chi2_p, which the BIC price p ln N covers
         c.significant = bool(not within and c.score > 0 and c.heldout_confirms)

@@ -6,10 +6,22 @@ Shared by the RAYX twin (:mod:`bluesky_offsets.physics.twin`) and the torch engi
 
 from __future__ import annotations
 
+import functools
 import os
 import tempfile
 
 _seeded_pids: set[int] = set()
+
+
+@functools.cache
+def _fix_seed_fn():
+    """``rayx::fixSeed`` from RAYX's compiled module, through ctypes (looked up once)."""
+    import ctypes
+
+    import rayx
+    fn = ctypes.CDLL(rayx.core.__file__)._ZN4rayx7fixSeedEj
+    fn.argtypes, fn.restype = [ctypes.c_uint32], None
+    return fn
 
 
 def fix_seed(seed: int) -> None:
@@ -19,16 +31,7 @@ def fix_seed(seed: int) -> None:
     starts from the same default state in every process, so without this,
     parallel workers would repeat each other's noise.
     """
-    import ctypes
-
-    import rayx
-    fn = getattr(fix_seed, "_fn", None)
-    if fn is None:
-        lib = ctypes.CDLL(rayx.core.__file__)
-        fn = lib._ZN4rayx7fixSeedEj
-        fn.argtypes, fn.restype = [ctypes.c_uint32], None
-        fix_seed._fn = fn  # type: ignore[attr-defined]  # a function attribute caches the handle
-    fn(int(seed) & 0xFFFFFFFF)
+    _fix_seed_fn()(int(seed) & 0xFFFFFFFF)
 
 
 def ensure_random_stream() -> None:
