@@ -295,9 +295,13 @@ def _git(*args: str) -> str | None:
 
 
 def current_commit() -> tuple[str | None, bool]:
-    """The checked-out commit (short hash, or None outside git) and whether tracked files differ from it."""
+    """The checked-out commit (short hash, or None outside git) and whether tracked files differ from it.
+
+    The results folder does not count: a benchmark writes its raw record there before its result.
+    """
     commit = _git("rev-parse", "--short", "HEAD")
-    dirty = bool(_git("status", "--porcelain", "--untracked-files=no"))
+    dirty = bool(_git("status", "--porcelain", "--untracked-files=no", "--", ".",
+                      f":(exclude){RESULTS.relative_to(ROOT).as_posix()}"))
     return commit, dirty
 
 
