@@ -95,6 +95,31 @@ def test_a_good_description_loads_and_a_missing_one_says_so(tmp_path):
         shipped("bessy")
 
 
+def test_a_source_rayx_cannot_trace_is_refused_in_one_line(tmp_path, capsys):
+    """RAYX 0.4.5's "Simple Undulator" (HRRIXS's, RAYX's benchmark input) emits rays with non-finite
+    positions: a description with it loads (it is the source), and a trace with either engine, or
+    ``simulate``, refuses it in one line (exit 2) where the screen would silently stay dark."""
+    from pathlib import Path
+
+    from bluesky_offsets.errors import InputError
+    from bluesky_offsets.physics.twin import Twin
+    text = shipped("energize").with_name("Energize_EN_500.rml").read_text()
+    start = text.index('<object name="Dipole"')
+    end = text.index("</object>", start) + len("</object>")
+    undulator = (Path(__file__).parent / "data" / "reference" / "simple_undulator_object.xml").read_text()
+    (tmp_path / "x.rml").write_text(text[:start] + undulator.replace('name="SU"', 'name="Dipole"').strip() + text[end:])
+    path = tmp_path / "bl.toml"
+    path.write_text(GOOD)
+    bl = load_beamline(path)
+    for engine in ("rayx", "torch"):
+        with pytest.raises(InputError, match="source 'Dipole' \\(Simple Undulator\\).*non-finite position x") as err:
+            Twin(bl.engine(engine), scheduler="inline").trace(bl.table.reference, n_rays=200, seed=1)
+        assert "\n" not in str(err.value)
+    capsys.readouterr()
+    assert main(["simulate", "--beamline", str(path), "--rays", "200"]) == 2
+    assert "none can be traced" in capsys.readouterr().err
+
+
 def test_rayx_traces_a_described_beamline_as_its_rml_says():
     """The RML engine writes Energize's file anew (world frames from the element chain) and RAYX
     traces it ray for ray as the shipped file; a mirror's pitch turns the beam by twice the angle."""

@@ -10,6 +10,10 @@ import functools
 import os
 import tempfile
 
+import numpy as np
+
+from bluesky_offsets.errors import InputError
+
 _seeded_pids: set[int] = set()
 
 
@@ -64,3 +68,17 @@ def import_rml(beamline):
         return rayx.import_beamline(name)
     finally:
         os.unlink(name)
+
+
+def check_emitted(rays, source: str = "the source") -> None:
+    """Refuse, in one line, a source whose emitted rays RAYX gives with non-finite positions or directions.
+
+    RAYX 0.4.5's "Simple Undulator" emits such rays: every ray would silently miss the beamline.
+    """
+    emitted = np.asarray(rays.object_id) == 0  # a ray's first event: emitted by source 0
+    for key in ("position_x", "position_y", "position_z", "direction_x", "direction_y", "direction_z"):
+        if not np.isfinite(np.asarray(getattr(rays, key))[emitted]).all():
+            from importlib.metadata import version
+            raise InputError(f"{source}: RAYX {version('rayx')} emits rays with a non-finite "
+                             f"{key.replace('_', ' ')}, so none can be traced (describe the beamline with "
+                             "another source type)")

@@ -27,8 +27,8 @@ MIRROR_TYPES = {"Plane Mirror", "Cylinder", "Ellipsoid", "Toroid", "Sphere", "Co
                 "Experts Optics", "Cubic"}
 GRATING_TYPES = {"Plane Grating", "Spherical Grating", "Toroidal Grating"}
 FLAT_TYPES = {"Slit", "ImagePlane", "Foil"}
-SOURCE_TYPES = {"Dipole", "Dipole Source"}
-"""Source types whose name does not say "Source" (RAY-UI's dipole); any "... Source" is one too."""
+SOURCE_TYPES = {"Dipole", "Dipole Source", "Simple Undulator"}
+"""Source types whose name does not say "Source" (RAY-UI's dipole, RAYX's undulator); any "... Source" is one too."""
 
 
 def is_source_type(type_: str) -> bool:

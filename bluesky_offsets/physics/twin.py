@@ -26,7 +26,7 @@ import numpy as np
 
 from bluesky_offsets.errors import InputError
 from bluesky_offsets.physics.parameters import METRIXS, ParameterTable
-from bluesky_offsets.physics.rayx_calls import ensure_random_stream, fix_seed, import_rml
+from bluesky_offsets.physics.rayx_calls import check_emitted, ensure_random_stream, fix_seed, import_rml
 from bluesky_offsets.physics.traces import (  # noqa: F401 - the twin's types, here where users look
     CAMERA,
     HistogramSpec,
@@ -111,6 +111,8 @@ def footprint(rays, n_objects: int, n_source_rays: int) -> tuple[np.ndarray, np.
 class RayxEngine:
     """RAYX (HZB's ray tracer) on the CPU, driving the METRIXS geometry."""
 
+    source_label = "the METRIXS source"  # names the source where RAYX cannot trace it
+
     def __init__(self, table: ParameterTable = METRIXS, hist: HistogramSpec | None = None):
         self.table = table
         self.hist = hist or HistogramSpec()
@@ -141,6 +143,7 @@ class RayxEngine:
         else:
             fix_seed(request.seed)
         rays = bl.trace()
+        check_emitted(rays, self.source_label)
         n_objects = len(bl.sources) + len(bl.elements)
         x, y, _ = footprint(rays, n_objects, n_rays)
         hx, hy = self.hist.histograms(x, y, n_rays)

@@ -21,7 +21,7 @@ from bluesky_offsets.physics.engine.sampling import Rays, given_units, rays_from
 from bluesky_offsets.physics.engine.torch_twin import TorchEngine
 from bluesky_offsets.physics.rml import read_rml
 from bluesky_offsets.physics.screen import on_image_plane
-from bluesky_offsets.physics.rayx_calls import fix_seed, import_rml
+from bluesky_offsets.physics.rayx_calls import check_emitted, fix_seed, import_rml
 from bluesky_offsets.physics.traces import HistogramSpec
 
 
@@ -119,6 +119,8 @@ def _rayx_source(eng, n_rays: int, seed):
         rb = import_rml(bl)
         fix_seed(seed)
         rays = rb.trace()
+        src = eng.rml.sources[0]
+        check_emitted(rays, f"source {src.name!r} ({src.type})")
         obj, pid = np.asarray(rays.object_id), np.asarray(rays.path_id)
         first = np.flatnonzero(obj == 0)
         first = first[np.argsort(pid[first], kind="stable")]
