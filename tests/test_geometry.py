@@ -66,6 +66,21 @@ def test_ellipsoid_frame_pitch_equals_mirror_frame_pitch():
     assert np.isclose(np.linalg.norm(d), 1.0) and np.isclose(d @ nominal.y, math.cos(tau))
 
 
+def test_an_ellipsoid_frame_is_differentiable_in_its_misalignment():
+    """A differentiable yaw in an ellipsoid's tilted frame (a float ``tau``, as a described
+    beamline's ellipsoid has) stays a tensor with its gradient, equal to the numpy frame."""
+    torch = pytest.importorskip("torch")
+    nominal = chain_frames([ChainLink(is_source=True), ChainLink(distance=10.0, theta_in=0.03, theta_out=0.03)])[1]
+    tau, yaw = 0.0317, torch.tensor(1.0, dtype=torch.float64, requires_grad=True)
+    w = misalign(nominal, Misalignment(ry=yaw, ty=0.5), tau)
+    assert torch.is_tensor(w.orientation) and torch.is_tensor(w.position)
+    ref = misalign(nominal, Misalignment(ry=1.0, ty=0.5), tau)
+    np.testing.assert_allclose(w.orientation.detach().numpy(), ref.orientation, atol=1e-15)
+    (g,) = torch.autograd.grad(w.orientation[0, 2], yaw)
+    step = misalign(nominal, Misalignment(ry=1.0 + 1e-6, ty=0.5), tau).orientation[0, 2]
+    assert float(g) == pytest.approx((step - ref.orientation[0, 2]) / 1e-6, rel=1e-4)
+
+
 def test_metrixs_ellipsoid_tangent_angles():
     # The tilt follows from the ellipse RAYX builds (half-axes + design angle); it agrees with
     # atan(tan(theta) (p - q) / (p + q)) at the design angle to the precision of the RML's numbers.

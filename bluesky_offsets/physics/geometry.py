@@ -199,8 +199,9 @@ def misalign(nominal: Frame, mis: Misalignment, tau: float = 0.0) -> Frame:
         o_w = o @ rot
         p_w = p + _apply(o_w, t)
     else:
-        e = o @ rot_x(tau)
-        o_w = e @ rot @ rot_x(-tau)
+        # a float tau gives numpy matrices: in the array type of a differentiable rotation
+        e = o @ as_array_like(rot_x(tau), o)
+        o_w = e @ rot @ as_array_like(rot_x(-tau), o)
         # RAYX's description of the ellipsoid frame translates before rotating.
         p_w = p + _apply(e, t)
     return Frame(p_w, o_w)
