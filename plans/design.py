@@ -99,6 +99,10 @@ def measure_designed(beamline, chamber, *, options: DesignOptions | Mapping | No
     loop = DesignLoop(o, beam.configuration, o.frames - beam.frames, int(photons or 10_000), table)
     log.info("designing %d frames (%s-optimal, batches of %d, %d candidates each) around the beam found in %d "
              "frames", loop.budget, o.criterion, o.batch, o.candidates, beam.frames)
+    if loop.budget < o.batch:
+        log.warning("the beam search took %d of the %d frames: %d are left to design, fewer than one batch; the "
+                    "calibration will determine little (a larger frame budget gives the design more)",
+                    beam.frames, o.frames, loop.budget)
 
     record = Record("design")
 
