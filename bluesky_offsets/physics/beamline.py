@@ -285,8 +285,7 @@ class RmlEngine(RayxEngine):
         super().__init__(beamline.table, hist or beamline.detector.histograms)
         self.beamline = beamline
         self.rml = read_rml(beamline.rml_file())
-        src = self.rml.sources[0]
-        self.source_label = f"source {src.name!r} ({src.type}) of {beamline.rml_file().name}"
+        self.source_label = self.rml.source_label
 
     def build(self, request: TraceRequest, n_rays: int):
         """A copy of the RML set to ``request`` (parameters, then overrides) with ``n_rays`` source rays."""

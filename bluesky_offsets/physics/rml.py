@@ -186,6 +186,12 @@ class RmlBeamline:
         return [o for o in self.objects if o.is_source]
 
     @property
+    def source_label(self) -> str:
+        """The source as messages name it: ``source 'SU' (Simple Undulator)``."""
+        src = self.sources[0]
+        return f"source {src.name!r} ({src.type})"
+
+    @property
     def elements(self) -> list[RmlObject]:
         """The objects that are not sources, in beam order."""
         return [o for o in self.objects if not o.is_source]

@@ -119,8 +119,7 @@ def _rayx_source(eng, n_rays: int, seed):
         rb = import_rml(bl)
         fix_seed(seed)
         rays = rb.trace()
-        src = eng.rml.sources[0]
-        check_emitted(rays, f"source {src.name!r} ({src.type})")
+        check_emitted(rays, eng.rml.source_label)
         obj, pid = np.asarray(rays.object_id), np.asarray(rays.path_id)
         first = np.flatnonzero(obj == 0)
         first = first[np.argsort(pid[first], kind="stable")]
