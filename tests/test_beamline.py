@@ -95,6 +95,20 @@ def test_a_good_description_loads_and_a_missing_one_says_so(tmp_path):
         shipped("bessy")
 
 
+def test_an_rml_rayx_cannot_import_is_refused_in_one_line_and_this_process_lives(tmp_path, capsys):
+    """RAYX ends its process on a parameter it cannot parse; a description whose RML has a source
+    without ``numberRays`` is refused in one line naming it (exit 2), and the caller goes on."""
+    text = shipped("energize").with_name("Energize_EN_500.rml").read_text()
+    start = text.index('<param id="numberRays"')
+    path = _write(tmp_path, GOOD)
+    (tmp_path / "x.rml").write_text(text[:start] + text[text.index("</param>", start) + len("</param>"):])
+    with pytest.raises(BeamlineError, match='cannot import it: parseInt failed for "numberRays"') as err:
+        load_beamline(path)
+    assert "\n" not in str(err.value) and str(path) in str(err.value)
+    assert main(["params", "--beamline", str(path)]) == 2
+    assert 'parseInt failed for "numberRays"' in capsys.readouterr().err
+
+
 def test_a_source_rayx_cannot_trace_is_refused_in_one_line(tmp_path, capsys):
     """RAYX 0.4.5's "Simple Undulator" (HRRIXS's, RAYX's benchmark input) emits rays with non-finite
     positions: a description with it loads (it is the source), and a trace with either engine, or

@@ -27,7 +27,8 @@ METRIXS's)::
     description = "M1 pitch"
 
 :func:`load_beamline` reads and checks it — unknown keys, elements the RML lacks, fields an
-element has not, effects the library does not know, each refused in one line naming the entry.
+element has not, effects the library does not know, an RML RAYX cannot import, each refused in one
+line naming the entry.
 """
 
 from __future__ import annotations
@@ -199,9 +200,10 @@ def _check_against_rml(bl: Beamline, path: Path) -> None:
     """Check that the parameters and the detector name what the RML has.
 
     Every parameter's element is an object of the RML and its field a misalignment or one of the
-    object's own parameters; the detector's image plane is an ImagePlane.
+    object's own parameters; the detector's image plane is an ImagePlane; RAYX imports the RML.
     """
     from bluesky_offsets.physics.metrixs import nominal_beamline
+    from bluesky_offsets.physics.rayx_calls import check_importable
     from bluesky_offsets.physics.rml import read_rml
     rml = nominal_beamline() if bl.builtin == "metrixs" else read_rml(bl.rml_file())
     objects = {o.name: o for o in rml.objects}
@@ -216,6 +218,11 @@ def _check_against_rml(bl: Beamline, path: Path) -> None:
     if ip is None or ip.type != "ImagePlane":
         raise BeamlineError(f"beamline {path}: detector image_plane {bl.detector.image_plane!r} is not an "
                             f"ImagePlane of the RML")
+    if bl.builtin is None:
+        try:
+            check_importable(bl.rml_file())
+        except InputError as exc:
+            raise BeamlineError(f"beamline {path}: {exc}") from None
 
 
 @functools.lru_cache(maxsize=8)

@@ -8,7 +8,11 @@ from __future__ import annotations
 
 import functools
 import os
+import re
+import subprocess
+import sys
 import tempfile
+from pathlib import Path
 
 import numpy as np
 
@@ -68,6 +72,36 @@ def import_rml(beamline):
         return rayx.import_beamline(name)
     finally:
         os.unlink(name)
+
+
+@functools.lru_cache(maxsize=16)
+def _import_error(text: bytes) -> str | None:
+    """What RAYX says on importing the RML ``text`` in a child process; None where it imports it."""
+    code = "import rayx, sys; rayx.import_beamline(sys.argv[1])"
+    with tempfile.TemporaryDirectory(prefix="bluesky-offsets-") as tmp:
+        path = Path(tmp) / "probe.rml"
+        path.write_bytes(text)
+        proc = subprocess.run([sys.executable, "-c", code, str(path)], capture_output=True, text=True, timeout=120)
+    if proc.returncode == 0:
+        return None
+    # RAYX's lines look like "\x1b[31m[   xml.cpp:435] parseInt failed for "x"": its words only
+    plain = re.sub(r"\x1b\[[0-9;]*m", "", proc.stderr + proc.stdout)
+    lines = [re.sub(r"^\s*\[[^]]*\]", "", ln).strip() for ln in plain.splitlines()]
+    said = [ln for ln in lines if ln and not ln.startswith("Terminating")]
+    return "; ".join(said[-3:]) or f"exit status {proc.returncode}"
+
+
+def check_importable(path: str | Path) -> None:
+    """Refuse, in one line, an RML that RAYX cannot import.
+
+    RAYX ends the whole process on a parameter it cannot parse (a source without ``numberRays``:
+    "parseInt failed … Terminating"), so it is tried once in a child process.
+    """
+    path = Path(path)
+    error = _import_error(path.read_bytes())
+    if error is not None:
+        from importlib.metadata import version
+        raise InputError(f"RML {path}: RAYX {version('rayx')} cannot import it: {error}")
 
 
 def check_emitted(rays, source: str = "the source") -> None:
