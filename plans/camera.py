@@ -46,7 +46,8 @@ class CameraCheck:
                     f"{self.measured_gain:.2f} ± {self.gain_sigma:.2f}, too uncertain")
         else:
             gain = f"gain {g.gain:.2f} ADU/photon kept: too little light for photon transfer"
-        return f"camera: dark from {self.dark_frames} frames, read noise {self.read_noise:.2f} ADU; {gain}"
+        return (f"camera: dark from {self.dark_frames} frames, read noise {self.read_noise:.2f} ADU, "
+                f"{stray_text(g)}; {gain}")
 
 
 def calibrate_camera(camera, *, darks: int = 4, frames: int = 8, max_gain_error: float = 0.1,
@@ -80,7 +81,7 @@ def calibrate_camera(camera, *, darks: int = 4, frames: int = 8, max_gain_error:
 
     yield from inner()
     dark, light = dark_frame(taken["dark"]), taken["light"]
-    base = _with_dark(camera.calibration, dark)
+    base = _with_dark(camera.calibration, dark, (yield from _exposure(camera)))
     measured = sigma = None
     try:
         pt = photon_transfer(light, dark)
@@ -113,9 +114,21 @@ def _closed(camera, n: int) -> MsgGenerator[np.ndarray]:
         yield from bps.mv(camera.shutter, "Open")
 
 
-def _with_dark(cal: CameraCalibration, dark: DarkFrame) -> CameraCalibration:
-    """``cal`` with the dark level and read noise of ``dark``."""
-    return dataclasses.replace(cal, dark=dark.level, dark_frames=float(dark.frames), read_noise=dark.read_noise)
+def stray_text(cal: CameraCalibration) -> str:
+    """"stray light 24 photons/s over the sensor (subtracted)", at the calibration's gain."""
+    w, h = cal.geometry.shape
+    return f"stray light {cal.stray_per_second / cal.gain * w * h:.3g} photons/s over the sensor (subtracted)"
+
+
+def _exposure(camera) -> MsgGenerator[float]:
+    """The camera's exposure (s), as its dark frames were taken."""
+    return float((yield from bps.rd(camera.driver.acquire_time)))
+
+
+def _with_dark(cal: CameraCalibration, dark: DarkFrame, exposure: float) -> CameraCalibration:
+    """``cal`` with the dark level, read noise and stray light of ``dark`` (frames of ``exposure`` s)."""
+    return dataclasses.replace(cal, dark=dark.level, dark_frames=float(dark.frames), read_noise=dark.read_noise,
+                               stray_per_second=dark.events / exposure if exposure > 0 else 0.0)
 
 
 def take_darks(camera, n: int = 4, *, md: Mapping | None = None) -> MsgGenerator[CameraCalibration]:
@@ -135,7 +148,7 @@ def take_darks(camera, n: int = 4, *, md: Mapping | None = None) -> MsgGenerator
         taken["dark"] = yield from _closed(camera, n)
 
     yield from inner()
-    cal = _with_dark(camera.calibration, dark_frame(taken["dark"]))
+    cal = _with_dark(camera.calibration, dark_frame(taken["dark"]), (yield from _exposure(camera)))
     camera.calibrate(cal)
     return cal
 
@@ -176,7 +189,7 @@ def camera_steps(chamber, beamline, *, md: Mapping | None = None, say=print):
     def darks():
         cal = yield from take_darks(chamber, md=md)
         say(f"      camera: dark from {cal.dark_frames:g} frames with the shutter closed, read noise "
-            f"{cal.read_noise:.2f} ADU; the data sheet's gain {cal.gain:g} ADU/photon until measured")
+            f"{cal.read_noise:.2f} ADU, {stray_text(cal)}; the data sheet's gain {cal.gain:g} ADU/photon until measured")
 
     def measured(m):
         return (yield from calibrate_where_bright(chamber, beamline, m, md=md,

@@ -163,35 +163,46 @@ def _groups(pixel_edges: np.ndarray, bin_edges: np.ndarray, axis: str) -> np.nda
 
 
 def profiles(frame: np.ndarray, geometry: CameraGeometry, *, dark: np.ndarray | float, gain: float,
-             read_noise: float, roi: Roi | None = None, dark_frames: float | None = None) -> Profiles:
+             read_noise: float, roi: Roi | None = None, dark_frames: float | None = None,
+             stray: float = 0.0) -> Profiles:
     """The dark-subtracted profiles of ``frame`` in photons, over the region of interest.
 
     The profiles span the whole screen window (zero outside the ROI).  A pixel holding ``n``
     photons reads ``gain * n + dark`` plus read noise, so a profile bin's variance is its photons
     (Poisson) plus the read noise of the pixels summed into it, in photons²; a dark that is the
-    mean of ``dark_frames`` frames adds its own read noise.  For the sum of ``k`` frames pass
-    ``k * dark``, ``sqrt(k) * read_noise`` and ``dark_frames / k`` (the dark's noise is in each alike).
+    mean of ``dark_frames`` frames adds its own read noise.  ``stray`` (ADU per pixel, the mean of
+    the stray photons every pixel receives, :attr:`DarkFrame.events`) is subtracted as well, and
+    its photons' Poisson noise joins the floor.  For the sum of ``k`` frames pass ``k * dark``,
+    ``sqrt(k) * read_noise``, ``dark_frames / k`` (the dark's noise is in each alike) and ``k * stray``.
     """
     if not gain > 0:
         raise InputError(f"the gain must be positive, got {gain}")
-    signal = (screen_image(geometry, np.asarray(frame, float) - dark)) / gain
+    if not stray >= 0:
+        raise InputError(f"the stray light must be >= 0, got {stray}")
+    signal = (screen_image(geometry, np.asarray(frame, float) - dark) - stray) / gain
     mask = np.zeros(signal.shape, bool)
     (roi or Roi()).cut(mask)[...] = True
     inside = np.where(mask, signal, 0.0)
     px, py = inside.sum(axis=0), inside.sum(axis=1)
-    per_pixel = (read_noise / gain) ** 2 * (1.0 + (1.0 / dark_frames if dark_frames else 0.0))
+    per_pixel = (read_noise / gain) ** 2 * (1.0 + (1.0 / dark_frames if dark_frames else 0.0)) + stray / gain
     fx, fy = per_pixel * mask.sum(axis=0), per_pixel * mask.sum(axis=1)
     return Profiles(px, py, np.clip(px, 0.0, None) + fx, np.clip(py, 0.0, None) + fy, fx, fy)
 
 
 @dataclass(frozen=True)
 class DarkFrame:
-    """The dark level of each pixel (ADU) and the read noise (ADU) from two or more dark frames."""
+    """The dark level of each pixel (ADU) and the read noise (ADU) from two or more dark frames.
+
+    Also the single-frame events left out of the level (``rejected``) and what they add to a pixel
+    of a frame on average (``events``, ADU): stray photons and cosmic rays, which every frame
+    receives alike.
+    """
 
     level: np.ndarray
     read_noise: float
     frames: int
     rejected: int
+    events: float = 0.0
 
 
 def dark_frame(darks: np.ndarray, *, threshold: float = 8.0) -> DarkFrame:
@@ -202,7 +213,9 @@ def dark_frame(darks: np.ndarray, *, threshold: float = 8.0) -> DarkFrame:
     photons.  A value more than ``threshold`` robust σ (the frame's median absolute deviation, the
     fixed pattern included) above its frame's median is such an event when another frame's value of
     the same pixel is not; it is left out of that pixel's mean and of the read noise.  A pixel
-    bright in every frame is the fixed pattern (a hot pixel) and is kept.
+    bright in every frame is the fixed pattern (a hot pixel) and is kept.  The events' excess over
+    the level, per pixel and frame, is :attr:`DarkFrame.events`: the light frames hold such events
+    too, at the same rate per second, and :func:`profiles` subtracts their mean (``stray``).
     """
     d = np.asarray(darks, float)
     if d.ndim < 2 or len(d) < 2:
@@ -218,7 +231,8 @@ def dark_frame(darks: np.ndarray, *, threshold: float = 8.0) -> DarkFrame:
     # the read noise from pixels with every frame kept: the unbiased variance over frames
     whole = n == len(d)
     var = flat[:, whole].var(axis=0, ddof=1).mean() if whole.any() else 0.0
-    return DarkFrame(level.reshape(d.shape[1:]), float(np.sqrt(var)), len(d), int(event.sum()))
+    events = float(np.where(event, flat - level, 0.0).sum() / flat.size)
+    return DarkFrame(level.reshape(d.shape[1:]), float(np.sqrt(var)), len(d), int(event.sum()), events)
 
 
 @dataclass(frozen=True)
@@ -270,8 +284,9 @@ def photon_transfer(frames: np.ndarray, darks: np.ndarray | DarkFrame, *,
 class CameraCalibration:
     """What turns a camera's frames into the twin's histograms.
 
-    Where its pixels lie, its dark frame, gain and read noise (:func:`photon_transfer`), the region
-    of interest, and the photons the source sends per second of exposure (the flux at the screen,
+    Where its pixels lie, its dark frame, gain and read noise (:func:`photon_transfer`), the stray
+    light every pixel receives (ADU per second: the dark frames' events, :class:`DarkFrame`), the
+    region of interest, and the photons the source sends per second of exposure (the flux at the screen,
     measured once: the histograms are fractions of it, as the twin's are fractions of its source
     rays).
 
@@ -290,10 +305,13 @@ class CameraCalibration:
     photons_per_second: float
     roi: Roi | None = None
     gain_sigma: float | None = None
+    stray_per_second: float = 0.0
 
     def __post_init__(self):
-        if not (self.gain > 0 and self.read_noise >= 0 and self.photons_per_second > 0):
-            raise InputError("a camera calibration needs gain > 0, read noise >= 0 and photons per second > 0")
+        if not (self.gain > 0 and self.read_noise >= 0 and self.photons_per_second > 0
+                and self.stray_per_second >= 0):
+            raise InputError("a camera calibration needs gain > 0, read noise >= 0, photons per second > 0 "
+                             "and stray light >= 0")
 
     def source_photons(self, exposure: float) -> int:
         """Photons the source sends in ``exposure`` seconds: the histograms' denominator."""
@@ -308,7 +326,7 @@ class CameraCalibration:
         ``n_source``.
         """
         p = profiles(frame, self.geometry, dark=self.dark, gain=self.gain, read_noise=self.read_noise,
-                     roi=self.roi, dark_frames=self.dark_frames)
+                     roi=self.roi, dark_frames=self.dark_frames, stray=self.stray_per_second * exposure)
         b = p.binned(self.geometry, hist)
         # profiles() computes the floors; binning keeps them
         assert p.floor_x is not None and p.floor_y is not None and b.floor_x is not None and b.floor_y is not None
