@@ -350,11 +350,12 @@ def run_demo(out: Path, settings: DemoSettings | None = None, store_location: st
         steps = _step_uids(session, beam_result, uids)
         best = None if beam_result is None else _log_beam(truth, beam_result, log)
         log(f"[{s.steps}/{s.steps}] writing the report")
-        written = _write_report(s, truth, out, session, beam_result, best, steps, store.location, t0)
+        outcome = _outcome(s, out, session, beam_result, t0)
+        report = _write_report(s, truth, out, session, beam_result, best, steps, store.location, outcome)
         from bluesky_offsets.live import flush as flush_live
         flush_live(live)
-        summary = _summary(s, truth, session, beam_result, best, written, steps=steps, uids=uids, store=store.location,
-                           ioc=ioc, live=live, seconds=time.perf_counter() - t0, load=load)
+        summary = _summary(s, truth, session, beam_result, best, outcome, report=report, steps=steps, uids=uids,
+                           store=store.location, ioc=ioc, live=live, seconds=time.perf_counter() - t0, load=load)
         (out / "summary.json").write_text(json.dumps(summary, indent=1, default=float))
         _print_summary(summary, session.analysis, store.location)
         store.close()
@@ -424,13 +425,25 @@ def _log_beam(truth: Mapping, beam_result, log):
 
 
 @dataclass(frozen=True, kw_only=True)
-class _Written:
-    """What :func:`_write_report` wrote: the report, the steps' durations, the calibration file."""
+class _Outcome:
+    """What the session gives besides its runs: the steps' durations, the posterior, the calibration file."""
 
-    report: Path
     timing: dict[str, float]
     calibration: Path | None
     posterior: Posterior | None
+
+
+def _outcome(s: DemoSettings, out: Path, session, beam_result, t0: float) -> _Outcome:
+    """The steps' durations, the offsets' posterior and, where it exists, the exported calibration."""
+    from bluesky_offsets.model.export import write_calibration
+    from bluesky_offsets.model.posterior import Posterior
+
+    analysis, validation = session.analysis, session.validation
+    posterior = Posterior.of(analysis, s.table)
+    calibration = None if posterior is None else write_calibration(
+        out / "calibration.json", analysis, table=s.table, measurement_uid=session.measured.measurement.uid,
+        validation=None if validation is None else validation.summary())
+    return _Outcome(timing=_timing(session, beam_result, t0), calibration=calibration, posterior=posterior)
 
 
 def _timing(session, beam_result, t0: float) -> dict[str, float]:
@@ -476,44 +489,35 @@ def _intro(s: DemoSettings, offsets: Mapping, session, location: str) -> list[tu
 
 
 def _write_report(s: DemoSettings, truth: Mapping, out: Path, session, beam_result, best, steps: Mapping[str, str],
-                  location: str, t0: float) -> _Written:
-    """The HTML report and, where the posterior exists, the exported calibration."""
+                  location: str, outcome: _Outcome) -> Path:
+    """The HTML report."""
     from bluesky_offsets.commands.report import (beam_section, design_section, table_, validation_section,
                                                  write_analysis_report)
-    from bluesky_offsets.model.export import write_calibration
-    from bluesky_offsets.model.posterior import Posterior
 
-    table, analysis, validation = s.table, session.analysis, session.validation
-    designed, m = session.measured.designed, session.measured.measurement
-    timing = _timing(session, beam_result, t0)
-    posterior = Posterior.of(analysis, table)
-    calibration = None
-    if posterior is not None:
-        calibration = write_calibration(out / "calibration.json", analysis, table=table, measurement_uid=m.uid,
-                                        validation=None if validation is None else validation.summary())
+    analysis, validation, designed = session.analysis, session.validation, session.measured.designed
     beam_secs = [] if beam_result is None else [
         ("The smallest focus with the calibrated twin", beam_section(beam_result, out, best=best))]
     design_secs = [] if designed is None else [("The designed measurement", design_section(designed))]
     valid_secs = [] if validation is None else [("Validation frames", validation_section(validation))]
     report = write_analysis_report(out / "report.html", analysis, analysis.measurement.spec, title="bluesky-offsets demo",
                                    intro=_intro(s, truth["offsets"], session, location) + design_secs, truth=s.hidden, uids=steps,
-                                   store_location=location, table=table,
+                                   store_location=location, table=s.table,
                                    extra=[*valid_secs, *beam_secs,
-                                          ("Timing", table_([{k: f"{v:.0f} s" for k, v in timing.items()}]))])
-    return _Written(report=Path(report), timing=timing, calibration=calibration, posterior=posterior)
+                                          ("Timing", table_([{k: f"{v:.0f} s" for k, v in outcome.timing.items()}]))])
+    return Path(report)
 
 
-def _summary(s: DemoSettings, truth: Mapping, session, beam_result, best, written: _Written, *, steps: Mapping,
-             uids: Sequence[str], store: str, ioc: SimulatedBeamline, live: Sequence, seconds: float,
+def _summary(s: DemoSettings, truth: Mapping, session, beam_result, best, outcome: _Outcome, *, report: Path,
+             steps: Mapping, uids: Sequence[str], store: str, ioc: SimulatedBeamline, live: Sequence, seconds: float,
              load: float) -> dict:
     """The demo's ``summary.json``: what was hidden, measured, fitted and concluded, with every run's uid."""
     analysis, m, n_open = session.analysis, session.measured.measurement, session.measured.n_open
     beam, designed, validation = session.measured.beam, session.measured.designed, session.validation
-    posterior, calibration = written.posterior, written.calibration
+    posterior, calibration = outcome.posterior, outcome.calibration
     return {
-        "seconds": seconds, "load_average_start": load, "threads": s.threads, "timing_s": written.timing,
+        "seconds": seconds, "load_average_start": load, "threads": s.threads, "timing_s": outcome.timing,
         "store": store,
-        "uids": dict(steps), "all_run_uids": list(uids), "report": str(written.report), "n_configurations": len(m),
+        "uids": dict(steps), "all_run_uids": list(uids), "report": str(report), "n_configurations": len(m),
         "frames": session.measured.frames, "design": s.design_kind,
         "design_steps": [] if designed is None else [{k: np.asarray(v).tolist() if np.ndim(v) else v
                                                       for k, v in row.items()} for row in designed.steps],
