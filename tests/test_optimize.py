@@ -59,6 +59,23 @@ def test_focus_is_read_from_profiles_as_a_frame_is():
     assert f.fwhm_y == pytest.approx(2.3548 * sy, rel=0.03)
 
 
+def test_a_camera_focus_width_carries_an_honest_sigma():
+    """A camera's profile holds its read noise below zero too; the width's σ from the photons
+    counted is the spread of the widths over repeated frames, not 0."""
+    rng = np.random.default_rng(5)
+    sx, n, noise = 0.03, 5000, 0.4  # mm; source photons a frame; read noise per profile bin (photons)
+    px, py = (np.exp(-0.5 * ((c - 0.2) / sx) ** 2) for c in (CAMERA.centers_x, CAMERA.centers_y))
+    px, py = 0.6 * px / px.sum(), 0.6 * py / py.sum()
+    widths, sigmas = [], []
+    for _ in range(300):
+        hx, hy = ((rng.poisson(q * n) + rng.normal(0.0, noise, q.size)) / n for q in (px, py))
+        f = focus_from_profiles(hx, hy, CAMERA, n_rays=n)
+        widths.append(f.rms_x)
+        sigmas.append(f.sigma_rms_x)
+    assert min(sigmas) > 0
+    assert np.std(widths) / np.mean(sigmas) == pytest.approx(1.0, abs=0.2), (np.std(widths), np.mean(sigmas))
+
+
 def test_smallest_focus_on_a_defocused_twin_shrinks_within_limits():
     start = METRIXS.reference.copy()
     res = optimize_settings("smallest_focus", ModelState(), start, overrides=DEFOCUSED, options=SMALL)

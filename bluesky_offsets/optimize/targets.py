@@ -163,7 +163,9 @@ def focus_from_profiles(profile_x, profile_y, spec, n_rays: int | None = None) -
         var = max(float((h * (c - m) ** 2).sum() / s), 0.0)
         sig = float("nan")
         if n_rays and var > 0:
-            kurt = float((h * (c - m) ** 4).sum() / s) / var ** 2
+            # the light's own shape: a camera's noise below zero would make the kurtosis (>= 1) fall below 1
+            lit = np.clip(h, 0.0, None)
+            kurt = float((lit * (c - m) ** 4).sum() / lit.sum()) / (float((lit * (c - m) ** 2).sum() / lit.sum())) ** 2
             sig = math.sqrt(var) * math.sqrt(max(kurt - 1.0, 0.0) / (4.0 * s * n_rays))
         out.append((float(s), m, math.sqrt(var), _fwhm(h, c), sig))
     (ix, mx, sx, fx, ex), (iy, my, sy, fy, ey) = out
