@@ -5,8 +5,8 @@ the beam stands and measures the gain by photon transfer
 (:func:`bluesky_offsets.physics.camera.photon_transfer`); the camera reduces every later frame
 with the result.  Where the beam gives too little light for a gain within ``max_gain_error``,
 the camera keeps the gain it had (its data sheet's), and the result says so.
-:func:`calibrate_where_bright` does it after a measurement, where its brightest frame was taken,
-and returns the measurement rescaled to the gain measured.
+:func:`calibrate_where_bright` does it after a measurement, where its brightest frame was taken
+(the beamline back where it stood after), and returns the measurement rescaled to the gain measured.
 """
 
 from __future__ import annotations
@@ -22,6 +22,7 @@ from bluesky.utils import MsgGenerator
 from bluesky_offsets.errors import InputError
 from bluesky_offsets.model.measurement import Measurement
 from bluesky_offsets.physics.camera import CameraCalibration, DarkFrame, dark_frame, photon_transfer
+from bluesky_offsets.physics.parameters import METRIXS, ParameterTable
 
 
 @dataclasses.dataclass(frozen=True)
@@ -154,29 +155,39 @@ def take_darks(camera, n: int = 4, *, md: Mapping | None = None) -> MsgGenerator
 
 
 def calibrate_where_bright(camera, beamline, m: Measurement, *, darks: int = 4, frames: int = 8,
-                           max_gain_error: float = 0.1, md: Mapping | None = None,
-                           report=None) -> MsgGenerator[Measurement]:
+                           max_gain_error: float = 0.1, md: Mapping | None = None, report=None,
+                           table: ParameterTable = METRIXS) -> MsgGenerator[Measurement]:
     """Calibrate ``camera`` where measurement ``m`` was brightest, and rescale ``m`` to the gain measured.
 
-    After measurement ``m`` (taken with ``camera``): back to its brightest frame's configuration
-    (and screen), :func:`calibrate_camera` there, and ``m`` rescaled from the gain it was reduced
-    with to the one measured (unchanged where the gain was kept).  ``report(check)`` sees the result.
+    After measurement ``m`` (taken with ``camera``): to its brightest frame's configuration (and
+    screen), :func:`calibrate_camera` there, the motors and the chamber's stage back where they
+    stood (what comes next starts where the measurement left the beamline, not at its brightest
+    frame's screen position), and ``m`` rescaled from the gain it was reduced with to the one
+    measured (unchanged where the gain was kept).  ``report(check)`` sees the result.
     """
     from .measure import scan_configurations
+    from .motion import read_setpoints, resolve_motors, resolve_stage, return_to, tolerances
 
+    motors = {**resolve_motors(beamline, table), **(resolve_stage(beamline) or {})}
+    here = yield from read_setpoints(motors, (yield from tolerances(motors)))
     k = int(np.argmax(m.hist_x.sum(axis=1)))
     used = camera.calibration.gain
     screen = None if m.screen is None else m.screen[k][None]
-    yield from scan_configurations(m.configurations[k][None], beamline, camera, screen=screen,
-                                   return_to_start=False, md={"purpose": "to the brightest frame, for the camera's "
-                                                              "calibration", **dict(md or {})})
-    check = yield from calibrate_camera(camera, darks=darks, frames=frames, max_gain_error=max_gain_error, md=md)
+
+    def there():
+        yield from scan_configurations(m.configurations[k][None], beamline, camera, screen=screen, table=table,
+                                       return_to_start=False, md={"purpose": "to the brightest frame, for the "
+                                                                  "camera's calibration", **dict(md or {})})
+        return (yield from calibrate_camera(camera, darks=darks, frames=frames, max_gain_error=max_gain_error,
+                                            md=md))
+
+    check = yield from bpp.finalize_wrapper(there(), return_to(motors, here))
     if report is not None:
         report(check)
     return m.scaled(used / check.calibration.gain) if check.gain_measured else m
 
 
-def camera_steps(chamber, beamline, *, md: Mapping | None = None, say=print):
+def camera_steps(chamber, beamline, *, md: Mapping | None = None, say=print, table: ParameterTable = METRIXS):
     """What a session adds for a camera chamber: ``(darks, measured)``.
 
     ``darks`` is the plan that takes its dark frames first, ``measured`` the hook that calibrates
@@ -192,6 +203,6 @@ def camera_steps(chamber, beamline, *, md: Mapping | None = None, say=print):
             f"{cal.read_noise:.2f} ADU, {stray_text(cal)}; the data sheet's gain {cal.gain:g} ADU/photon until measured")
 
     def measured(m):
-        return (yield from calibrate_where_bright(chamber, beamline, m, md=md,
+        return (yield from calibrate_where_bright(chamber, beamline, m, md=md, table=table,
                                                   report=lambda check: say("      " + check.line())))
     return darks, measured

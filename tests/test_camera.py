@@ -241,3 +241,44 @@ def test_the_camera_chamber_measures_what_the_histogram_chamber_measures(tmp_pat
         RE(bps.mv(camera.driver.acquire_time, 1.0))
         RE(bps.unstage(camera))
         ca.put(ioc.prefix + "chamber:NumRays", rays)
+
+
+def test_the_camera_is_calibrated_where_bright_and_the_beamline_left_where_it_stood(tmp_path, metrixs_ioc, ca):
+    """``calibrate_where_bright`` goes to a measurement's brightest frame (its motors and screen) for
+    the camera's gain, then brings the motors and the chamber's stage back: the beam optimization
+    after it would else work at that frame's screen position."""
+    from bluesky import RunEngine
+    from bluesky import plan_stubs as bps
+    from ophyd_async.core import init_devices
+
+    from bluesky_offsets.epics.camera import CameraChamber
+    from bluesky_offsets.epics.devices import MetrixsBeamline
+    from bluesky_offsets.physics.camera import CameraCalibration
+    from plans.camera import calibrate_where_bright
+    from plans.measure import measure_configurations
+    from plans.motion import read_positions, resolve_motors, resolve_stage
+    from sim_iocs.truth import default_start
+
+    ioc = metrixs_ioc
+    RE = RunEngine({}, call_returns_result=True)
+    noise = CameraNoise()
+    nominal = CameraCalibration(gain=noise.gain, read_noise=noise.read_noise, dark=noise.dark,
+                                photons_per_second=noise.rays_per_second)
+    with init_devices():
+        beamline = MetrixsBeamline(ioc.prefix, name="staged", stage={a: f"{ioc.prefix}chamber:{a}" for a in "xyz"})
+        camera = CameraChamber(ioc.prefix + "cam:", tmp_path / "frames", nominal, name="camera")
+    stage = resolve_stage(beamline)
+    assert stage is not None
+    motors = {**resolve_motors(beamline), **stage}
+    try:
+        before = RE(read_positions(motors)).plan_result
+        configs = np.tile(default_start(), (2, 1))
+        screen = np.array([[0.0, 0.0, 6.0], [0.5, 0.0, -4.0]])
+        m = RE(measure_configurations(configs, beamline, camera, screen=screen)).plan_result
+        scaled = RE(calibrate_where_bright(camera, beamline, m, darks=2, frames=4, max_gain_error=1.0)).plan_result
+        after = RE(read_positions(motors)).plan_result
+        assert after == pytest.approx(before, abs=1e-6), {k: (before[k], after[k]) for k in before
+                                                          if abs(before[k] - after[k]) > 1e-6}
+        assert scaled.hist_x.sum() == pytest.approx(m.hist_x.sum() * noise.gain / camera.calibration.gain, rel=0.3)
+    finally:
+        RE(bps.unstage(camera))

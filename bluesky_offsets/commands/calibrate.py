@@ -94,7 +94,7 @@ def _calibrate(args, design, effects, pv_map, forward_model, store) -> int:
         designed = isinstance(design, DesignOptions)
         fit, scan = D.fits_for(designed, args.fit_rays)
         from plans.camera import camera_steps
-        darks, measured_hook = camera_steps(chamber, beamline, md={"purpose": "calibrate"}, say=say)
+        darks, measured_hook = camera_steps(chamber, beamline, md={"purpose": "calibrate"}, say=say, table=pv_map.table)
         try:
             if darks is not None:
                 RE(darks())

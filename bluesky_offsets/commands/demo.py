@@ -265,7 +265,7 @@ def demo_plan(s: DemoSettings, beamline, chamber, twin, forward_model, log, exec
     number = itertools.count(2)
     from plans.camera import camera_steps
 
-    darks, measured = camera_steps(chamber, beamline, md={"purpose": "bluesky-offsets demo"}, say=log)
+    darks, measured = camera_steps(chamber, beamline, md={"purpose": "bluesky-offsets demo"}, say=log, table=s.table)
     if darks is not None:
         yield from darks()
     session = yield from calibration_session(
