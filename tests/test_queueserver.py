@@ -115,7 +115,9 @@ def test_the_session_runs_from_the_queue_and_every_run_loads_back(queue):
     RM.queue_start()
     RM.wait_for_idle(timeout=400)
     items = RM.history_get()["items"]
-    assert [i["name"] for i in items] == ["measure_for_offsets", "analyse", "validate", "export_calibration", "optimize"]
+    assert [i["name"] for i in items] == ["measure_for_offsets", "analyse", "validate", "export_calibration", "optimize"], \
+        [(i["name"], i["result"].get("exit_status"), i["result"].get("msg"), str(i["result"].get("traceback"))[-1500:])
+         for i in items]
     for item in items:
         r = item["result"]
         assert r["exit_status"] == "completed", (item["name"], r.get("msg"), r.get("traceback"))
