@@ -143,6 +143,16 @@ def _around_peak(h: np.ndarray, c: np.ndarray, widths: float = 5.0) -> np.ndarra
     return np.where(np.abs(c - c[i]) <= half, h, 0.0)
 
 
+def _width_sigma(h: np.ndarray, c: np.ndarray, m: float, var: float, n: float) -> float:
+    """The rms width's σ from ``n`` rays counted, ``rms·√((κ−1)/4N)``; NaN where the light has no spread.
+
+    κ is the kurtosis of the light's own shape: a camera's noise below zero could take it below 1.
+    """
+    lit = np.clip(h, 0.0, None)
+    m2, m4 = (float((lit * (c - m) ** k).sum() / lit.sum()) for k in (2, 4))
+    return math.sqrt(var) * math.sqrt(max(m4 / m2 ** 2 - 1.0, 0.0) / (4.0 * n)) if m2 > 0 else float("nan")
+
+
 def focus_from_profiles(profile_x, profile_y, spec, n_rays: int | None = None) -> Focus:
     """The :class:`Focus` of x/y profiles (fraction of source rays per bin): moments over the bin centres.
 
@@ -163,10 +173,7 @@ def focus_from_profiles(profile_x, profile_y, spec, n_rays: int | None = None) -
         var = max(float((h * (c - m) ** 2).sum() / s), 0.0)
         sig = float("nan")
         if n_rays and var > 0:
-            # the light's own shape: a camera's noise below zero would make the kurtosis (>= 1) fall below 1
-            lit = np.clip(h, 0.0, None)
-            kurt = float((lit * (c - m) ** 4).sum() / lit.sum()) / (float((lit * (c - m) ** 2).sum() / lit.sum())) ** 2
-            sig = math.sqrt(var) * math.sqrt(max(kurt - 1.0, 0.0) / (4.0 * s * n_rays))
+            sig = _width_sigma(h, c, m, var, float(s) * n_rays)
         out.append((float(s), m, math.sqrt(var), _fwhm(h, c), sig))
     (ix, mx, sx, fx, ex), (iy, my, sy, fy, ey) = out
     return Focus(0.5 * (ix + iy), mx, my, sx, sy, fx, fy, ex, ey)
