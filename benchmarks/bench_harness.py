@@ -143,9 +143,10 @@ def tables(res: dict) -> list:
 
 
 def write(res: dict, out: Path):
-    """The result ``harness`` (``harness_twin`` on RAYX's frames) of a finished run; returns it."""
+    """The result ``res["result"]`` (default ``harness``, ``harness_twin`` on RAYX's frames); returns it."""
     from results import Figure, ROOT, write_result
     twin = res.get("observe", "surrogate") == "twin"
+    name = res.get("result") or ("harness_twin" if twin else "harness")
     summary = (f"Our finders beside the authors' baselines through their own libraries (`offsets/baselines.py`), by "
                f"their protocol: repetition r draws problem r (the paper's: ±20 %, 16 bright configurations, "
                f"observations from {'RAYX at 1e5 rays' if twin else 'the shipped surrogate'}) and the method's "
@@ -158,13 +159,14 @@ def write(res: dict, out: Path):
             f"{k} p = {v:.1e}" for k, v in sorted(res["below_genetic"].items(), key=lambda kv: kv[1]) if k != "blop")
             + ".")
     figures = []
-    if not twin and (out / "loss_curves.png").exists():
+    if name == "harness" and (out / "loss_curves.png").exists():
         page_img = ROOT / "docs" / "img" / "harness_loss_curves.png"  # the page shows the plot of its result
         shutil.copyfile(out / "loss_curves.png", page_img)
         figures.append(Figure("docs/img/harness_loss_curves.png", "best MSE so far against evaluations, every "
                               "method, geometric mean over the repetitions"))
-    title = "Offset finder: the authors' protocol" + (" on RAYX's frames" if twin else "") + " (issue 53)"
-    return write_result("harness_twin" if twin else "harness", title=title, command=res["command"], summary=summary,
+    title = "Offset finder: the authors' protocol" + (" on RAYX's frames" if twin else "") + (
+        f" at {res['evaluations']:,} evaluations" if name not in ("harness", "harness_twin") else "") + " (issue 53)"
+    return write_result(name, title=title, command=res["command"], summary=summary,
                         tables=tables(res), notes=notes, figures=figures)
 
 
@@ -184,6 +186,7 @@ def main(argv=None) -> int:
     ap.add_argument("--processes", type=int, default=2)
     ap.add_argument("--observe", choices=("surrogate", "twin"), default="surrogate",
                     help="the observations: the surrogate's (the paper's) or RAYX's frames at 1e5 rays")
+    ap.add_argument("--result", default=None, help="the result's name (default: harness, or harness_twin)")
     a = ap.parse_args(argv)
     from _machine import machine
     labels = a.methods.split(",")
@@ -196,7 +199,7 @@ def main(argv=None) -> int:
     at = a.blop_evaluations if "blop" in labels else a.evaluations
     res = {"command": "python benchmarks/bench_harness.py " + " ".join(argv or sys.argv[1:]), "machine": machine(),
            "processes": a.processes, "wall_seconds": time.perf_counter() - t0, "evaluations": a.evaluations,
-           "blop_evaluations": a.blop_evaluations, "at": at, "observe": a.observe, "summary": summarize(runs, at),
+           "blop_evaluations": a.blop_evaluations, "at": at, "observe": a.observe, "result": a.result, "summary": summarize(runs, at),
            "mann_whitney": mann_whitney(runs),
            "below_genetic": below(runs, "genetic") if "genetic" in labels else {}}
     a.out.mkdir(parents=True, exist_ok=True)

@@ -22,7 +22,7 @@ from results import RESULTS, ROOT, Result, Table, load_all  # noqa: E402
 
 PAGE = ROOT / "docs" / "benchmarks.md"
 # the page's order: what a reader meets first; a result not named here goes last, by name
-ORDER = ("twin", "find_defaults", "find_defaults_seeds7-9", "harness", "harness_twin", "finder_surrogate",
+ORDER = ("twin", "find_defaults", "find_defaults_seeds7-9", "harness", "harness_500k", "harness_twin", "finder_surrogate",
          "finder_fast", "finder_gpu", "walker_start", "finder_twin", "calibration_session", "dataset_engines", "dataset_gpu",
          "surrogate_models", "surrogate_bright", "surrogate_pipeline", "surrogate_inference", "diagnosis_grid",
          "demo_wall_time", "cluster_idle", "pair_fit", "effect_identifiability", "torch_engine", "torch_engine_cuda", "ray_jacobian",

@@ -5,7 +5,8 @@
 offsets and effects), moves the motors there by differences from their readbacks, takes frames
 and records the predicted and the measured beam in one run.  A target the motors cannot reach
 within their limits is refused before anything moves.  ``closed_loop`` refits the model on the
-calibration measurement and the new frames and corrects once more.
+calibration measurement and the new frames and corrects once more; where that second move
+measures worse than the first, the motors go back to the first's settings (a third, measured step).
 """
 
 from __future__ import annotations
@@ -13,7 +14,7 @@ from __future__ import annotations
 import logging
 from collections.abc import Mapping
 from concurrent.futures import Executor
-from dataclasses import asdict, dataclass, field, is_dataclass
+from dataclasses import asdict, dataclass, field, is_dataclass, replace
 
 import numpy as np
 from bluesky.utils import MsgGenerator
@@ -27,6 +28,7 @@ from bluesky_offsets.optimize import (
     Focus,
     OptimizeOptions,
     focus_from_profiles,
+    measured_cost,
     optimize_settings,
     target_from,
 )
@@ -46,6 +48,7 @@ class BeamStep:
     optimum: BeamOptimum
     after: Focus
     uid: str | None
+    note: str = ""     # why the move was made, where it is not the optimizer's
 
 
 @dataclass
@@ -96,7 +99,7 @@ class BeamResult:
             p = o.predicted
             out.append(f"predicted{tag:5s}   {p.rms_x * 1e3:7.1f} x {p.rms_y * 1e3:6.1f} µm rms, {p.intensity:.3f} of "
                        f"the source rays{sig}{'' if o.trusted else '  NOT TRUSTED'}")
-            out.append(f"focus after{tag:4s}  {f(s.after)}")
+            out.append(f"focus after{tag:4s}  {f(s.after)}" + (f"  ({s.note})" if s.note else ""))
         return out
 
 
@@ -279,9 +282,29 @@ def optimize_beam(target, model, beamline, chamber, *, constraints: Constraints 
         result.model = cal2
         result.profiles["after 2"] = tuple(after2_profiles)
         result.profiles["predicted 2"] = opt2.profiles
+        if _worse(target, after2, after, before):
+            back = replace(opt, current=opt2.settings, moved=_moved(opt2.settings, opt.settings, table))
+            m3, read3 = yield from _move_and_measure(back, beamline, chamber, int(frames), False,
+                                                     {**base_md, "step": 3, "previous_uid": m2.uid, "back_to_step": 1,
+                                                      **_optimum_md(back, table)}, table, after2)
+            after3, *after3_profiles = read3["after"]
+            steps.append(BeamStep(back, after3, m3.uid, note="back to the first move's settings: the second "
+                                                             "measured worse"))
+            result.profiles["after 3"] = tuple(after3_profiles)
+            result.profiles["predicted 3"] = opt.profiles
     for line in result.lines():
         log.info(line)
     return result
+
+
+def _worse(target, second: Focus, first: Focus, start: Focus) -> bool:
+    """Whether the second move's measured beam meets ``target`` worse than the first's (False: no way to say)."""
+    a, b = measured_cost(target, first, start), measured_cost(target, second, start)
+    return a is not None and b is not None and b > a
+
+
+def _moved(current: np.ndarray, settings: np.ndarray, table: ParameterTable) -> list[str]:
+    return [table.names[i] for i in np.flatnonzero(~np.isclose(current, settings, rtol=0, atol=1e-12))]
 
 
 def _joined(a: Measurement, b: Measurement) -> Measurement:

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+import torch
 from bluesky import RunEngine
 from ophyd.sim import SynAxis
 
@@ -16,10 +17,14 @@ from bluesky_offsets.model.state import CalibratedState, ModelState
 from bluesky_offsets.optimize import (
     MONOCHROMATOR,
     Constraints,
+    Focus,
     FocusAt,
+    MaxTransmission,
     SmallestFocus,
+    SpotSize,
     TargetUnreachable,
     focus_from_profiles,
+    measured_cost,
     optimize_settings,
     target_from,
 )
@@ -74,6 +79,24 @@ def test_a_camera_focus_width_carries_an_honest_sigma():
         sigmas.append(f.sigma_rms_x)
     assert min(sigmas) > 0
     assert np.std(widths) / np.mean(sigmas) == pytest.approx(1.0, abs=0.2), (np.std(widths), np.mean(sigmas))
+
+
+def test_each_target_scores_a_measured_beam_as_its_residuals_score_the_rays():
+    """``cost(focus, start)``: the residuals' sum of squares for a beam of those numbers, what the
+    closed loop compares two measured moves by."""
+    from bluesky_offsets.optimize.targets import Rays
+    g = torch.Generator().manual_seed(3)
+    rays = Rays(0.1 + 0.02 * torch.randn(400, generator=g, dtype=torch.float64),
+                -0.05 + 0.01 * torch.randn(400, generator=g, dtype=torch.float64),
+                torch.rand(400, generator=g, dtype=torch.float64), 1000)
+    focus = Focus(float(rays.intensity), float(rays.centroid("x")), float(rays.centroid("y")),
+                  float(rays.rms("x")), float(rays.rms("y")))
+    start = Focus(0.6, 0.0, 0.0, 0.05, 0.03)
+    for target in (SmallestFocus(weight_y=0.5), FocusAt(0.09, -0.04), SpotSize(0.03, 0.02),
+                   MaxTransmission(0.015, 0.009)):
+        assert measured_cost(target, focus, start) == pytest.approx(
+            float((target.residuals(rays, start) ** 2).sum()), rel=1e-9), target.name
+    assert measured_cost(object(), focus, start) is None  # a target of one's own without ``cost``
 
 
 def test_smallest_focus_on_a_defocused_twin_shrinks_within_limits():

@@ -550,7 +550,7 @@ def _true_best(truth: Mapping, beam):
     from bluesky_offsets.model.state import ModelState
     from bluesky_offsets.optimize import optimize_settings
     true = ModelState(METRIXS.from_mapping(truth["offsets"], base=np.zeros(len(METRIXS))), label="hidden truth")
-    o = beam.optimum
+    o = next(st.optimum for st in reversed(beam.steps) if not st.note)  # the last computed move's start
     return optimize_settings(o.target, true, o.current, limits=beam.limits, constraints=beam.constraints,
                              options=beam.options, overrides=truth.get("overrides") or None).predicted
 
@@ -563,7 +563,8 @@ def _beam_summary(beam, best) -> dict:
             "true_best": None if best is None else best.as_dict(), "frames": beam.frames,
             "steps": [{"uid": st.uid, "predicted": st.optimum.predicted.as_dict(),
                        "predicted_sigma": dict(st.optimum.sigma), "after": st.after.as_dict(),
-                       "moved": list(st.optimum.moved)} for st in beam.steps]}
+                       "moved": list(st.optimum.moved), **({"note": st.note} if st.note else {})}
+                      for st in beam.steps]}
 
 
 def _print_summary(summary: dict, analysis, location: str) -> None:
@@ -607,7 +608,9 @@ def _print_summary(summary: dict, analysis, location: str) -> None:
               f"(± {b['predicted_sigma']['x'] * 1e3:.1f}, ± {b['predicted_sigma']['y'] * 1e3:.1f}"
               f"{'' if b['trusted'] else ', not trusted'}); the hidden truth's best {um(b['true_best'])}"
               + (f"; {len(b['steps'])} moves (closed loop), the first predicted {um(b['steps'][0]['predicted'])}, "
-                 f"measured {um(b['steps'][0]['after'])}" if len(b.get("steps", ())) > 1 else ""))
+                 f"measured {um(b['steps'][0]['after'])}" if len(b.get("steps", ())) > 1 else "")
+              + (f"; the second measured {um(b['steps'][1]['after'])}: back to the first's settings"
+                 if b.get("steps") and b["steps"][-1].get("note") else ""))
     print(f"report: {summary['report']}")
     if summary.get("live_views"):
         print(f"live views: {len(summary['live_views'])} figures in {Path(summary['live_views'][0]).parent}")

@@ -476,7 +476,7 @@ def beam_section(result, work: Path, *, best=None) -> str:
         tab.append({"beam": f"predicted{tag}", **_sizes(o.predicted),
                     "± rms x [µm]": o.sigma["x"] * 1e3, "± rms y [µm]": o.sigma["y"] * 1e3,
                     "trusted": "yes" if o.trusted else "no"})
-        tab.append({"beam": f"after{tag} (measured)", **_sizes(s.after)})
+        tab.append({"beam": f"after{tag} (measured{'; ' + s.note if s.note else ''})", **_sizes(s.after)})
     if best is not None:
         tab.append({"beam": "hidden true beamline's best (same optimizer)", **_sizes(best)})
     o = result.optimum

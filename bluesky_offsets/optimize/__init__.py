@@ -23,11 +23,12 @@ from .targets import (
     SpotSize,
     Target,
     focus_from_profiles,
+    measured_cost,
     target_from,
 )
 
 __all__ = [
     "MONOCHROMATOR", "REFOCUSING", "BeamOptimum", "Constraints", "DarkStart", "Focus", "FocusAt", "MaxTransmission",
     "OptimizeOptions", "SmallestFocus", "SpotSize", "Target", "TargetUnreachable", "bounds", "focus_from_profiles",
-    "optimize_settings", "predict", "target_from",
+    "measured_cost", "optimize_settings", "predict", "target_from",
 ]

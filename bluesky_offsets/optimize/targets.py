@@ -237,6 +237,10 @@ class SmallestFocus:
         """None: the smallest focus has no threshold, it is always met."""
         return None
 
+    def cost(self, focus: Focus, start: Focus) -> float:
+        """The residuals' sum of squares for a beam of ``focus``'s widths."""
+        return self.weight_x * (focus.rms_x / start.rms_x) ** 2 + self.weight_y * (focus.rms_y / start.rms_y) ** 2
+
 
 @dataclass(frozen=True)
 class FocusAt:
@@ -271,6 +275,11 @@ class FocusAt:
         return (f"the focus centre reaches ({focus.x:.3f}, {focus.y:.3f}) mm, {d:.3f} mm from the target "
                 f"({self.x:g}, {self.y:g}) mm (tolerance {self.tolerance:g} mm)")
 
+    def cost(self, focus: Focus, start: Focus) -> float:
+        """The residuals' sum of squares for a beam of ``focus``'s centre and widths."""
+        miss = ((focus.x - self.x) ** 2 + (focus.y - self.y) ** 2) / self.tolerance ** 2
+        return miss + self.size_weight * SmallestFocus().cost(focus, start)
+
 
 @dataclass(frozen=True)
 class SpotSize:
@@ -301,6 +310,10 @@ class SpotSize:
         return (f"the spot reaches {focus.rms_x * 1e3:.1f} x {focus.rms_y * 1e3:.1f} µm rms, target "
                 f"{self.rms_x * 1e3:.1f} x {self.rms_y * 1e3:.1f} µm (tolerance {self.tolerance:.0%})")
 
+    def cost(self, focus: Focus, start: Focus) -> float:
+        """The residuals' sum of squares for a beam of ``focus``'s widths."""
+        return ((focus.rms_x / self.rms_x - 1) ** 2 + (focus.rms_y / self.rms_y - 1) ** 2) / self.tolerance ** 2
+
 
 @dataclass(frozen=True)
 class MaxTransmission:
@@ -328,6 +341,21 @@ class MaxTransmission:
             return None
         return (f"the spot stays at {focus.rms_x * 1e3:.1f} x {focus.rms_y * 1e3:.1f} µm rms, above the "
                 f"{self.rms_x * 1e3:.1f} x {self.rms_y * 1e3:.1f} µm asked for")
+
+    def cost(self, focus: Focus, start: Focus) -> float:
+        """The residuals' sum of squares for a beam of ``focus``'s intensity and widths."""
+        light = max(5.0 - math.log(max(focus.intensity, 1e-12) / max(start.intensity, 1e-12)), 0.0)
+        over = [max(focus.rms_x / self.rms_x - 1, 0.0), max(focus.rms_y / self.rms_y - 1, 0.0)]
+        return light + 900.0 * (over[0] ** 2 + over[1] ** 2)
+
+
+def measured_cost(target: Target, focus: Focus, start: Focus) -> float | None:
+    """``target.cost(focus, start)``: how well a measured beam meets the target; None for a target without one."""
+    cost = getattr(target, "cost", None)
+    if cost is None:
+        return None
+    v = float(cost(focus, start))
+    return v if math.isfinite(v) else None
 
 
 TARGETS = {"smallest_focus": SmallestFocus, "focus_at": FocusAt, "spot_size": SpotSize,
