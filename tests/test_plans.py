@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import threading
+import time
 
 import bluesky.plan_stubs as bps
 import numpy as np
@@ -274,6 +275,14 @@ def test_abort_during_scan_closes_run_and_leaves_ioc_consistent(RE, devices, met
     configs[:, METRIXS.index("E2.translationZerror")] += np.array([0.2, -0.2, 0.2, -0.2, 0.2, -0.2])
     configs[:, METRIXS.index("E1.rotationXerror")] += np.linspace(-0.05, 0.05, 6)
     events, starts = [], []
+    z0 = before["E2.translationZerror"]
+
+    def pause_mid_move():
+        # once E2 tz has left the second configuration for the third (a timer misses the move under load)
+        deadline = time.monotonic() + 30
+        while ca.get(slow + ".RBV") < z0 - 0.2 + 0.05 and time.monotonic() < deadline:
+            time.sleep(0.02)
+        RE.request_pause(defer=False)
 
     def on_doc(name, doc):
         if name == "start":
@@ -281,7 +290,7 @@ def test_abort_during_scan_closes_run_and_leaves_ioc_consistent(RE, devices, met
         if name == "event":
             events.append(doc)
             if len(events) == 2:  # while moving to the third configuration
-                threading.Timer(0.4, RE.request_pause, kwargs={"defer": False}).start()
+                threading.Thread(target=pause_mid_move, daemon=True).start()
 
     token = store.subscribe(RE)
     try:
@@ -298,7 +307,6 @@ def test_abort_during_scan_closes_run_and_leaves_ioc_consistent(RE, devices, met
     assert run.metadata["start"]["plan_name"] == "measure_configurations"
     assert len(run["primary"].read()["chamber-hist_x"]) == 2
     # the IOC is consistent: every motor done, back where the scan started, VAL = RBV
-    z0 = before["E2.translationZerror"]
     assert z0 - 0.2 + 1e-4 < moving_when_paused < z0 + 0.2 - 1e-4  # stopped mid-move by the pause
     for p in METRIXS:
         if p.motorized:
