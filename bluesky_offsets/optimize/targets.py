@@ -132,15 +132,17 @@ def _fwhm(h: np.ndarray, centers: np.ndarray) -> float:
     return float(right - left)
 
 
-def _around_peak(h: np.ndarray, c: np.ndarray, widths: float = 5.0) -> np.ndarray:
-    """``h`` zero beyond ``widths`` FWHM (at least ten bins) of its peak.
+WINDOW_FWHM, WINDOW_BINS = 3.0, 4
+"""A focus's moments are taken within ``WINDOW_FWHM`` FWHM of its peak (at least ``WINDOW_BINS`` bins):
+beyond it a camera's profile holds read noise and stray photons, whose weight grows as the distance
+squared, and next to no light."""
 
-    A camera profile's moments are then over the beam, not over the read noise of the whole window.
-    """
+
+def _window(h: np.ndarray, c: np.ndarray) -> np.ndarray:
+    """The bins within :data:`WINDOW_FWHM` FWHM (at least :data:`WINDOW_BINS` bins) of ``h``'s peak."""
     i = int(np.argmax(h))
-    step = c[1] - c[0]
-    half = max(widths * _fwhm(np.clip(h, 0, None), c), 10 * step)
-    return np.where(np.abs(c - c[i]) <= half, h, 0.0)
+    half = max(WINDOW_FWHM * _fwhm(np.clip(h, 0, None), c), WINDOW_BINS * (c[1] - c[0]))
+    return np.abs(c - c[i]) <= half
 
 
 def _width_sigma(h: np.ndarray, c: np.ndarray, m: float, var: float, n: float) -> float:
@@ -153,28 +155,41 @@ def _width_sigma(h: np.ndarray, c: np.ndarray, m: float, var: float, n: float) -
     return math.sqrt(var) * math.sqrt(max(m4 / m2 ** 2 - 1.0, 0.0) / (4.0 * n)) if m2 > 0 else float("nan")
 
 
+def _noise_sigma(h: np.ndarray, c: np.ndarray, inside: np.ndarray, m: float, var: float, s: float) -> float:
+    """The rms width's σ from a camera profile's noise, its level read from the bins outside the window."""
+    if inside.all():
+        return 0.0
+    level = float(np.mean(h[~inside] ** 2))  # dark-subtracted: the far bins are noise about zero
+    var_var = level * float(np.sum(((c[inside] - m) ** 2 - var) ** 2)) / s ** 2
+    return math.sqrt(var_var / (4.0 * var))
+
+
 def focus_from_profiles(profile_x, profile_y, spec, n_rays: int | None = None) -> Focus:
     """The :class:`Focus` of x/y profiles (fraction of source rays per bin): moments over the bin centres.
 
     The profiles are binned as ``spec`` (a :class:`~bluesky_offsets.physics.twin.HistogramSpec`).
-    Measured frames and the model's predictions are both read with this.  ``n_rays``: the source
-    rays behind the profiles (all frames), for the widths' statistical uncertainty (an rms of N
-    rays scatters by rms·√((κ−1)/4N), κ the profile's kurtosis).
+    Measured frames and the model's predictions are both read with this, within the same window
+    about the peak (:data:`WINDOW_FWHM`).  ``n_rays``: the source rays behind the profiles (all
+    frames), for the widths' statistical uncertainty (an rms of N rays scatters by
+    rms·√((κ−1)/4N), κ the profile's kurtosis); a camera's profile (dark-subtracted: some bins below
+    zero) adds its noise's share, read from the bins outside the window.
     """
     out = []
     for h, c in ((np.asarray(profile_x, float), spec.centers_x), (np.asarray(profile_y, float), spec.centers_y)):
-        if (h < 0).any():  # a camera's dark-subtracted noise: far bins would dominate the moments
-            h = _around_peak(h, c)
-        s = h.sum()
+        inside = _window(h, c)
+        w = np.where(inside, h, 0.0)
+        s = w.sum()
         if s <= 0:
             out.append((0.0, float("nan"), float("nan"), float("nan"), float("nan")))
             continue
-        m = float((h * c).sum() / s)
-        var = max(float((h * (c - m) ** 2).sum() / s), 0.0)
+        m = float((w * c).sum() / s)
+        var = max(float((w * (c - m) ** 2).sum() / s), 0.0)
         sig = float("nan")
         if n_rays and var > 0:
-            sig = _width_sigma(h, c, m, var, float(s) * n_rays)
-        out.append((float(s), m, math.sqrt(var), _fwhm(h, c), sig))
+            sig = _width_sigma(w, c, m, var, float(s) * n_rays)
+            if (h < 0).any():
+                sig = math.hypot(sig, _noise_sigma(h, c, inside, m, var, s))
+        out.append((float(s), m, math.sqrt(var), _fwhm(w, c), sig))
     (ix, mx, sx, fx, ex), (iy, my, sy, fy, ey) = out
     return Focus(0.5 * (ix + iy), mx, my, sx, sy, fx, fy, ex, ey)
 
