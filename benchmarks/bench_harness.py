@@ -127,16 +127,19 @@ def tables(res: dict) -> list:
     from results import Table
     s, p = res["summary"], res["mann_whitney"]
     names = sorted(s, key=lambda k: s[k]["mse_median"])
+    blop = "blop" in s  # the MSE at blop's count, where blop ran
     rows = [[k, ", ".join(f"{a}={b}" for a, b in s[k]["settings"].items()), s[k]["reps"], f"{s[k]['evaluations']:,}",
-             f"{s[k]['mse_mean']:.2e} ± {s[k]['mse_std']:.1e}", f"{s[k]['mse_median']:.2e}", _at(s[k]),
+             f"{s[k]['mse_mean']:.2e} ± {s[k]['mse_std']:.1e}", f"{s[k]['mse_median']:.2e}",
+             *([_at(s[k])] if blop else []),
              f"{s[k]['rmse_mean']:.3f} ± {s[k]['rmse_std']:.3f}", f"{s[k]['seconds_mean']:.1f}"] for k in names]
     out = [Table(f"{max(v['reps'] for v in s.values())} repetitions per method, sorted by the median:",
                  ["method", "settings", "reps", "evaluations", "final MSE mean ± σ", "median",
-                  f"MSE at {res['at']} evaluations (mean / median)", "offset RMSE", "s / run"], rows,
-                 align=["l", "l"] + ["r"] * 7)]
+                  *([f"MSE at {res['at']} evaluations (mean / median)"] if blop else []), "offset RMSE", "s / run"],
+                 rows, align=["l", "l"] + ["r"] * (7 if blop else 6))]
     if len(names) > 1:
-        out.append(Table(f"Mann–Whitney U, two-sided p-values on the final MSE (blop at its {res['blop_evaluations']} "
-                         f"evaluations, every other method at {res['evaluations']:,}):", ["", *names],
+        at = f"blop at its {res['blop_evaluations']} evaluations, every other method" if blop else "every method"
+        out.append(Table(f"Mann–Whitney U, two-sided p-values on the final MSE ({at} at {res['evaluations']:,}):",
+                         ["", *names],
                          [[a, *("—" if a == b else f"{p[a][b]:.1e}" for b in names)] for a in names],
                          align=["l"] + ["r"] * len(names)))
     return out
@@ -150,9 +153,10 @@ def write(res: dict, out: Path):
     summary = (f"Our finders beside the authors' baselines through their own libraries (`offsets/baselines.py`), by "
                f"their protocol: repetition r draws problem r (the paper's: ±20 %, 16 bright configurations, "
                f"observations from {'RAYX at 1e5 rays' if twin else 'the shipped surrogate'}) and the method's "
-               f"random numbers from r; every method {res['evaluations']:,} evaluations, blop "
-               f"{res['blop_evaluations']} (its Gaussian process's cost grows with its data); {res['processes']} "
-               f"processes of one torch thread each, wall {res['wall_seconds'] / 60:.0f} min.")
+               f"random numbers from r; every method {res['evaluations']:,} evaluations"
+               + (f", blop {res['blop_evaluations']} (its Gaussian process's cost grows with its data)"
+                  if "blop" in res["summary"] else "")
+               + f"; {res['processes']} processes of one torch thread each, wall {res['wall_seconds'] / 60:.0f} min.")
     notes = []
     if res.get("below_genetic"):
         notes.append("One-sided: final MSE below the authors' GA (500 candidates) at equal evaluations: " + ", ".join(
