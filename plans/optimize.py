@@ -282,19 +282,29 @@ def optimize_beam(target, model, beamline, chamber, *, constraints: Constraints 
         result.model = cal2
         result.profiles["after 2"] = tuple(after2_profiles)
         result.profiles["predicted 2"] = opt2.profiles
-        if _worse(target, after2, after, before):
-            back = replace(opt, current=opt2.settings, moved=_moved(opt2.settings, opt.settings, table))
-            m3, read3 = yield from _move_and_measure(back, beamline, chamber, int(frames), False,
-                                                     {**base_md, "step": 3, "previous_uid": m2.uid, "back_to_step": 1,
-                                                      **_optimum_md(back, table)}, table, after2)
-            after3, *after3_profiles = read3["after"]
-            steps.append(BeamStep(back, after3, m3.uid, note="back to the first move's settings: the second "
-                                                             "measured worse"))
-            result.profiles["after 3"] = tuple(after3_profiles)
-            result.profiles["predicted 3"] = opt.profiles
+        yield from _back_if_worse(result, target, beamline, chamber, base_md, table)
     for line in result.lines():
         log.info(line)
     return result
+
+
+def _back_if_worse(result: BeamResult, target, beamline, chamber, md: dict,
+                   table: ParameterTable) -> MsgGenerator[None]:
+    """Where the second move measured worse than the first (``target``'s cost), back to the first's settings."""
+    first, second = result.steps[0], result.steps[1]
+    if not _worse(target, second.after, first.after, result.before):
+        return
+    opt = first.optimum
+    back = replace(opt, current=second.optimum.settings, moved=_moved(second.optimum.settings, opt.settings, table))
+    m, read = yield from _move_and_measure(back, beamline, chamber, result.frames, False,
+                                           {**md, "step": 3, "previous_uid": second.uid, "back_to_step": 1,
+                                            **_optimum_md(back, table)}, table, second.after)
+    after, *profiles = read["after"]
+    result.steps.append(BeamStep(back, after, m.uid, note="back to the first move's settings: the second measured "
+                                                          "worse"))
+    result.profiles["after 3"] = tuple(profiles)
+    if opt.profiles is not None:
+        result.profiles["predicted 3"] = opt.profiles
 
 
 def _worse(target, second: Focus, first: Focus, start: Focus) -> bool:
