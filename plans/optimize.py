@@ -29,6 +29,7 @@ from bluesky_offsets.optimize import (
     OptimizeOptions,
     focus_from_profiles,
     measured_cost,
+    moved_names,
     optimize_settings,
     target_from,
 )
@@ -295,7 +296,7 @@ def _back_if_worse(result: BeamResult, target, beamline, chamber, md: dict,
     if not _worse(target, second.after, first.after, result.before):
         return
     opt = first.optimum
-    back = replace(opt, current=second.optimum.settings, moved=_moved(second.optimum.settings, opt.settings, table))
+    back = replace(opt, current=second.optimum.settings, moved=moved_names(second.optimum.settings, opt.settings, table))
     m, read = yield from _move_and_measure(back, beamline, chamber, result.frames, False,
                                            {**md, "step": 3, "previous_uid": second.uid, "back_to_step": 1,
                                             **_optimum_md(back, table)}, table, second.after)
@@ -311,10 +312,6 @@ def _worse(target, second: Focus, first: Focus, start: Focus) -> bool:
     """Whether the second move's measured beam meets ``target`` worse than the first's (False: no way to say)."""
     a, b = measured_cost(target, first, start), measured_cost(target, second, start)
     return a is not None and b is not None and b > a
-
-
-def _moved(current: np.ndarray, settings: np.ndarray, table: ParameterTable) -> list[str]:
-    return [table.names[i] for i in np.flatnonzero(~np.isclose(current, settings, rtol=0, atol=1e-12))]
 
 
 def _joined(a: Measurement, b: Measurement) -> Measurement:

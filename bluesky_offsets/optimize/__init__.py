@@ -9,6 +9,7 @@ from .optimizer import (
     OptimizeOptions,
     TargetUnreachable,
     bounds,
+    moved_names,
     optimize_settings,
     predict,
 )
@@ -30,5 +31,5 @@ from .targets import (
 __all__ = [
     "MONOCHROMATOR", "REFOCUSING", "BeamOptimum", "Constraints", "DarkStart", "Focus", "FocusAt", "MaxTransmission",
     "OptimizeOptions", "SmallestFocus", "SpotSize", "Target", "TargetUnreachable", "bounds", "focus_from_profiles",
-    "measured_cost", "optimize_settings", "predict", "target_from",
+    "measured_cost", "moved_names", "optimize_settings", "predict", "target_from",
 ]

@@ -202,6 +202,13 @@ class BeamOptimum:
         return s + " — not trusted: " + "; ".join(f.text() for f in self.flags[:3])
 
 
+def moved_names(current: np.ndarray, settings: np.ndarray, table: ParameterTable = METRIXS,
+                free: np.ndarray | None = None) -> list[str]:
+    """The parameters (of ``free``, default all) whose setting differs from ``current`` beyond rounding."""
+    free = np.ones(len(table), bool) if free is None else free
+    return [table.names[i] for i in np.flatnonzero(free) if abs(settings[i] - current[i]) > 1e-9 * table.span[i]]
+
+
 # --------------------------------------------------------------------------- #
 # the model as a function of the settings
 # --------------------------------------------------------------------------- #
@@ -685,6 +692,6 @@ def optimize_settings(target, state, current, *, limits=None, constraints: Const
         sigma = {a: max(sigma[a], drawn[a]) for a in "xy"}
     rel = max(sigma[a] / getattr(predicted, f"rms_{a}") for a in "xy") if known else math.inf
     trusted = known and rel < o.trust_below
-    moved = [table.names[i] for i in np.flatnonzero(free) if abs(settings[i] - current[i]) > 1e-9 * table.span[i]]
+    moved = moved_names(current, settings, table, free)
     return BeamOptimum(target, settings, current, moved, predicted, before, sigma, flags, trusted, at_limit, cost,
                        history, starts, (px, py), len(pb.offsets))
