@@ -106,6 +106,32 @@ def test_beam_features_of_a_known_beam():
     assert dark[0] == 0 and dvar[1] > 100 and np.all(np.isfinite(dark))
 
 
+@pytest.mark.parametrize("width, kept", [(0.05, False), (2.0, True)])
+def test_a_camera_width_the_noise_swamps_is_left_out(width, kept):
+    """A camera frame's noise over the whole window (0.5 photons of 5,000 a bin, as the simulated
+    camera's): a 50 µm focus's width is not compared (its variance the window's), a 2 mm beam's is,
+    without bias and with a variance that matches its scatter."""
+    from bluesky_offsets.model.misfit import beam_features
+    from bluesky_offsets.physics.twin import CAMERA
+    rng = np.random.default_rng(5)
+    n_rays, frames, floor = 5000, 200, 1.2e-8
+    fx_floor, fy_floor = np.full(CAMERA.bins_x, floor), np.full(CAMERA.bins_y, floor)
+    feats = []
+    for _ in range(frames):
+        k = rng.binomial(n_rays, 0.3)
+        hx, hy = CAMERA.histograms(rng.normal(0.5, width, k), rng.normal(-0.2, 0.02, k), n_rays)
+        hx = hx + rng.normal(0, np.sqrt(floor), hx.shape)
+        feats.append(beam_features(hx, hy, CAMERA, n_rays, fx_floor, fy_floor))
+    f, var = np.array([a for a, _ in feats])[:, 2], np.array([v for _, v in feats])[:, 2]
+    window = (CAMERA.centers_x[-1] - CAMERA.centers_x[0]) ** 2
+    if not kept:
+        assert np.mean(var >= window) > 0.95, np.mean(var >= window)
+        return
+    assert np.all(var < 0.1), var.max()
+    assert abs(f.mean() - width) < 3 * np.sqrt(var.mean() / frames), (f.mean(), np.sqrt(var.mean()))
+    assert 0.7 < f.var() / var.mean() < 1.4, f.var() / var.mean()
+
+
 def test_histogram_specs_rebin_and_describe_themselves():
     from bluesky_offsets.physics.twin import CAMERA
     paper = HistogramSpec()

@@ -260,7 +260,7 @@ def moments(hist: np.ndarray, centers: np.ndarray) -> dict[str, np.ndarray]:
     h = np.asarray(hist, dtype=float)
     tot, mu, var = _centroid_variance(h, centers)
     safe = np.where(tot > 0, tot, 1.0)
-    sd = np.sqrt(var)
+    sd = np.sqrt(np.clip(var, 0.0, None))  # a camera's noise can make a faint frame's variance negative
     skew = np.where(sd > 0, (h * (centers - mu[..., None]) ** 3).sum(-1) / safe / np.maximum(sd, 1e-12) ** 3, 0.0)
     peak = h.argmax(-1)
     idx = np.arange(h.shape[-1])
@@ -272,6 +272,9 @@ def moments(hist: np.ndarray, centers: np.ndarray) -> dict[str, np.ndarray]:
 
 
 FEATURE_NAMES = ("intensity", "x.centroid", "x.width", "y.centroid", "y.width")
+#: a camera's width is compared where its variance's noise is below this share of the variance
+#: (its square root then biased by a twelfth of its σ at most)
+WIDTH_NOISE = 1.0 / 3.0
 
 
 def beam_features(hist_x, hist_y, spec, n_rays, floor_x=None, floor_y=None) -> tuple[np.ndarray, np.ndarray]:
@@ -284,7 +287,9 @@ def beam_features(hist_x, hist_y, spec, n_rays, floor_x=None, floor_y=None) -> t
     than a few bins makes every bin a steep step function of the spot position.
     A camera's frames carry their own noise (``floor_x``/``floor_y``, per bin): their bins are
     taken as measured (clipping the noise at zero would bias every moment) and the floor's share
-    is added to each variance, the moments' sums linearized.
+    is added to each variance, the moments' sums linearized; a width the noise swamps (the noise
+    of its variance above :data:`WIDTH_NOISE` of it: a focus a few pixels wide in a window a
+    thousand wide) is left out, its variance the window's.
     Returns ``(features, variances)``, each ``(..., 5)`` in :data:`FEATURE_NAMES` order.
     """
     n = float(n_rays)
@@ -306,7 +311,11 @@ def beam_features(hist_x, hist_y, spec, n_rays, floor_x=None, floor_y=None) -> t
             tot = np.maximum(np.abs(h.sum(-1)), 1.0 / n)[..., None]
             d2 = (c - mu[..., None]) ** 2
             vc = vc + (floor * d2).sum(-1) / tot[..., 0] ** 2
-            vw = vw + (floor * (d2 - v[..., None]) ** 2).sum(-1) / (4 * v * tot[..., 0] ** 2)
+            noise_v = (floor * (d2 - v[..., None]) ** 2).sum(-1) / tot[..., 0] ** 2
+            vw = vw + noise_v / (4 * v)
+            # a width whose variance the noise blurs by more than a third of itself: its square
+            # root is biased (clipped below, skewed above) and carries nothing, so it is left out
+            vw = np.where(noise_v > (WIDTH_NOISE * v) ** 2, big, vw)
         out += [mu, np.sqrt(v)]
         var += [np.where(dark, big, np.minimum(vc, big)), np.where(dark, big, np.minimum(vw, big))]
     return np.stack(out, -1), np.stack(var, -1)
