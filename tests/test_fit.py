@@ -11,7 +11,8 @@ import torch
 
 from bluesky_offsets.blas import numpy_avx512_targets, x86_with_avx2
 from bluesky_offsets.physics import effects as E
-from bluesky_offsets.model.fit import FRESH_SEED, RAY_DRAW_SEED, FitOptions, _Model, _Products, fit, screen
+from bluesky_offsets.model.fit import (FRESH_SEED, RAY_DRAW_SEED, FitOptions, _Model, _objective, _Products, _ridge,
+                                      fit, screen)
 from bluesky_offsets.model.measurement import Measurement
 from bluesky_offsets.model.misfit import misfit
 from bluesky_offsets.model.state import ModelState, simulate, simulate_frames
@@ -188,6 +189,23 @@ def test_screen_is_a_cheap_look_that_only_goes_down(defocus_case):
     assert feats == sorted(feats, reverse=True) and res.history[-1]["stage"] == "bins"
     assert res.chi2 == res.history[-1]["chi2"] and np.all(np.isnan(res.covariance))
     assert res.n_traces == 6 * meas.n  # one Jacobian, four steps, the bins
+
+
+def test_a_fine_stage_starts_no_worse_than_the_fit_did(defocus_case):
+    """Each stage after the first starts from the better, on its own comparison, of the fit's start
+    and where the stage before ended: a fit started near the bins' solution does not leave it for
+    the features' optimum (here moved by a faint pedestal) and end above it in the bins."""
+    meas, truth, twin = defocus_case
+    # a faint pedestal over the screen: a little in each bin, much in the widths' second moments
+    meas = Measurement(meas.configurations, meas.hist_x + 2e-5, meas.hist_y, meas.ray_budget, spec=CAMERA)
+    opts = FitOptions(rays=1500, seed=3, stages=(("features", 6), ("bins", 3)))
+    eng = TorchEngine(hist=CAMERA)
+    mdl = _Model(meas, truth, eng, opts, METRIXS)
+    z = mdl.vector(truth)
+    at_start = _objective(mdl.residuals("bins", mdl.products("bins", z, False))[0], z, _ridge(mdl, opts))
+    res = fit(meas, truth, eng, opts)
+    bins = [h["chi2"] for h in res.history if h["stage"] == "bins"]
+    assert bins[0] <= at_start and res.chi2 <= at_start, (bins, at_start)
 
 
 def test_a_fit_from_several_starts_keeps_the_one_that_ends_lowest(defocus_case):

@@ -18,8 +18,10 @@ random stream of its own for each configuration (:func:`engine_for` says why):
 3. ``bins``: the measured bins (Pearson χ², the variance from measured and model counts:
    :func:`bluesky_offsets.physics.noise.bin_variance`).
 
-Every stage compares RAYX's own counts; with ``FitOptions.soft_values`` the first two compare
-the soft beam instead (a smooth objective whose derivative the Jacobian is exactly).
+Each stage after the first starts from the better, on its own comparison, of the fit's start and
+where the stage before ended (:func:`_lower`).  Every stage compares RAYX's own counts; with
+``FitOptions.soft_values`` the first two compare the soft beam instead (a smooth objective whose
+derivative the Jacobian is exactly).
 
 Each stage is Levenberg-Marquardt within the bounds (offsets within ±``MAX_OFFSET``, effect
 parameters within their priors), on the twin's exact Jacobian (optionally its secant updates
@@ -620,10 +622,26 @@ def _stages(mdl: _Model, z: np.ndarray, ridge: np.ndarray, history: list[dict],
         d.update(tag)
         if progress:
             progress(d)
-    for stage, iterations in mdl.o.stages:
+    start = z
+    for k, (stage, iterations) in enumerate(mdl.o.stages):
+        if k:
+            z = _lower(mdl, stage, start, z, ridge)
         z, pr, exact = _stage(mdl, stage, z, mdl.products(stage, z, True), iterations, ridge, history, tagged,
                               secant=mdl.o.secant)
     return z, pr, exact
+
+
+def _lower(mdl: _Model, stage: str, start: np.ndarray, z: np.ndarray, ridge: np.ndarray) -> np.ndarray:
+    """Of the fit's start and where the stages before ended, the one ``stage`` scores lower.
+
+    The coarse stages lead into a basin from afar; from a start already near a solution (a
+    candidate effect added to fitted offsets) they can end where the finer comparison is worse
+    than at the start, and a fine stage's few iterations do not climb back.
+    """
+    if np.array_equal(start, z):
+        return z
+    scores = [_objective(mdl.residuals(stage, mdl.products(stage, x, False))[0], x, ridge) for x in (start, z)]
+    return start if scores[0] < scores[1] else z
 
 
 def _run(mdl: _Model, z: np.ndarray, ridge: np.ndarray, progress: Callable[[dict], None] | None,
