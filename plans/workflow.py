@@ -32,7 +32,7 @@ from bluesky_offsets.design import DesignOptions
 from bluesky_offsets.errors import InputError
 from bluesky_offsets.model import diagnosis as D
 from bluesky_offsets.model.measurement import Measurement
-from bluesky_offsets.physics.parameters import METRIXS
+from bluesky_offsets.physics.parameters import METRIXS, ParameterTable
 from bluesky_offsets.physics.screen import as_screen
 
 from .search import DarkBeamline, bright_beam
@@ -319,15 +319,18 @@ def calibration_session(beamline, chamber, twin, forward_model, *, design: Measu
                          f"{table.name} the measurement is designed (DesignOptions)")
     t = {"start": time.perf_counter()}
     step("finding the beam, bright configurations around it, measuring them")
-    measured = yield from measure_bright(beamline, chamber, **asdict(design), md=measurement_md)
+    bright = yield from measure_bright(beamline, chamber, **asdict(design), md=measurement_md)
+    if measured is not None:
+        bright = replace(bright, measurement=(yield from measured(bright.measurement)))
     t["measure"] = time.perf_counter()
-    m, analysed, n_open = measured.measurement, measured.analysed, measured.n_open
+    m, analysed, n_open = bright.measurement, bright.analysed, bright.n_open
     meas = m.for_analysis(resolution=resolution).subset(analysed)
 
     step("finding the offsets with the surrogate, then through the twin")
     found = yield from surrogate_offsets(m, forward_model, evaluations=evaluations, seed=design.seed)
     t["finder"] = time.perf_counter()
-    starts = [ModelState(label="twin"), ModelState(np.asarray(found.offsets, float), {}, "surrogate offsets")]
+    starts = [ModelState(np.zeros(len(METRIXS)), _flux_start(m, METRIXS), "twin"),
+              ModelState(np.asarray(found.offsets, float), _flux_start(m, METRIXS), "surrogate offsets")]
     step(f"compare → fit offsets (differentiable twin, exact Jacobians) → diagnose → add the winning effect "
          f"→ refit → diagnose again ({len(analysed) - n_open} bright + {n_open} open configurations)")
     analysis = yield from analyse_measurement(meas, twin, starts=starts, candidates=candidates, rounds=rounds,
@@ -336,7 +339,20 @@ def calibration_session(beamline, chamber, twin, forward_model, *, design: Measu
                                               md={**dict(analysis_md or {}),
                                                   "analysed_configurations": [int(i) for i in analysed]})
     t["analysis"] = time.perf_counter()
-    return Session(measured, found, analysis, t)
+    return Session(bright, found, analysis, t)
+
+
+def _flux_start(m, table: ParameterTable) -> dict:
+    """The effects a calibration starts with: the flux scale where the frames' flux is not known.
+
+    A camera's counts carry its gain and the flux reading, each known to a few %, and a described
+    beamline's source says nothing of the flux the real one delivers: one scale, fitted.
+    """
+    from bluesky_offsets.physics.beamline import of_table
+    described = of_table(table)
+    unknown = m.floor_x is not None or (described is not None and described.builtin is None
+                                        and "intensity_scale" in described.effects)
+    return {"intensity_scale": {"delta": 0.0}} if unknown else {}
 
 
 def _designed_session(beamline, chamber, twin, *, design: DesignOptions, candidates, rounds, fit, scan, fit_top,
@@ -357,17 +373,8 @@ def _designed_session(beamline, chamber, twin, *, design: DesignOptions, candida
         m = d.measurement
     measured = Measured(d.beam, m, 0, np.arange(m.n), d)
     t["measure"] = t["finder"] = time.perf_counter()
-    # a camera's counts carry its gain and the flux reading, each known to a few %, and a described
-    # beamline's source says nothing of the flux the real one delivers: one scale, fitted
-    from bluesky_offsets.physics.beamline import of_table
-    described = of_table(table)
-    flux_unknown = m.floor_x is not None or (described is not None and described.builtin is None
-                                             and "intensity_scale" in described.effects)
-
-    def scale():
-        return {"intensity_scale": {"delta": 0.0}} if flux_unknown else {}
-    starts = [ModelState(np.zeros(len(table)), scale(), "twin"),
-              ModelState(np.asarray(d.offsets, float), scale(), "design estimate")]
+    starts = [ModelState(np.zeros(len(table)), _flux_start(m, table), "twin"),
+              ModelState(np.asarray(d.offsets, float), _flux_start(m, table), "design estimate")]
     step(f"compare → fit offsets (differentiable twin, exact Jacobians) → diagnose → add the winning effect "
          f"→ refit → diagnose again ({m.n} designed frames)")
     analysis = yield from analyse_measurement(m.for_analysis(resolution=resolution, table=table), twin, starts=starts,

@@ -77,9 +77,9 @@ class DemoSettings:
     move_time: float = 0.1
     # "perfect" axes, or "realistic" ones: encoder noise, backlash, retries (sim_iocs.metrixs.motor_profile)
     motors: str = "perfect"
-    # the focus chamber read as "histograms" (the simulator's ray-count PVs) or as a "camera" (its
-    # areaDetector: frames reduced with a dark, a gain by photon transfer, the flux at the screen)
-    detector: str = "histograms"
+    # the focus chamber read as a "camera" (its areaDetector: frames reduced with a dark, a gain by
+    # photon transfer, the flux at the screen) or as "histograms" (the simulator's ray-count PVs)
+    detector: str = "camera"
     # what is measured: frames designed for the offsets ("optimal": ``optimal``'s budget, batches,
     # criterion) or the bright design ("bright": ``measurement``'s 16 bright configurations, 4 of
     # them again with the slits open, 14 fitted); their seeds are the demo's ``seed``
@@ -663,9 +663,9 @@ def add_cli(sub) -> None:
     p.add_argument("--motors", choices=("perfect", "realistic"), default="perfect",
                    help="the simulated motors: perfect (default), or every axis with encoder noise, backlash "
                         "and retries at typical values (sim_iocs.metrixs.motor_profile)")
-    p.add_argument("--detector", choices=("histograms", "camera"), default="histograms",
-                   help="read the focus chamber's ray-count histograms (default) or its camera (an areaDetector: "
-                        "dark frames, the gain by photon transfer, frames reduced to the same histograms)")
+    p.add_argument("--detector", choices=("camera", "histograms"), default="camera",
+                   help="read the focus chamber's camera (default; an areaDetector: dark frames, the gain by photon "
+                        "transfer, frames reduced to histograms) or the simulator's ray-count histogram PVs")
     p.add_argument("--no-optimize", action="store_true",
                    help="end after the diagnosis, without the last step (the smallest focus with the calibrated "
                         "twin: computed, moved there, measured)")
