@@ -58,8 +58,8 @@ def _demo(tmp_path: Path, effect: str, *extra: str) -> tuple[dict, subprocess.Co
     return json.loads((tmp_path / "out" / "summary.json").read_text()), proc
 
 
-# the main job's designed measurement with a smaller budget than the demo's 60 frames (the suite's
-# time: 246 s alone at 32 frames; every check here held at 32, the focus 1.07 x 1.01 of the truth's best)
+# the main job (the camera, the designed measurement) with a smaller budget than the demo's 60 frames:
+# the suite's time
 MAIN_JOB = ("--frames", "32")
 
 
