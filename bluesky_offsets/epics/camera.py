@@ -134,7 +134,11 @@ class CameraChamber(StandardReadable):
         state = await self.driver.detector_state.get_value()
         if state != ADState.IDLE:
             raise ChamberError(f"{self.name}: acquisition ended {state.value}")
-        await wait_for_value(self.hdf.num_captured, before + 1, timeout=10.0)
+        try:  # the file plugin may lag the frame on a loaded camera server
+            await wait_for_value(self.hdf.num_captured, before + 1, timeout=self.acquire_timeout)
+        except TimeoutError as exc:
+            raise ChamberError(f"{self.name}: the HDF5 plugin wrote no frame within {self.acquire_timeout:g} s "
+                               f"of the acquisition") from exc
         path, exposure, counter = await asyncio.gather(self.hdf.full_file_name.get_value(),
                                                        self.driver.acquire_time.get_value(),
                                                        self.driver.array_counter.get_value())
