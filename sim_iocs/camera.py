@@ -281,7 +281,8 @@ def c_format(template: str, path: str, name: str, number: int) -> str:
 
 def _append(path: Path, frame: np.ndarray, uid: int, ts: float) -> None:
     import h5py
-    with h5py.File(path, "a") as f:
+    # no file lock: a reader (the client, the run store) holding the file open must not stop the capture
+    with h5py.File(path, "a", locking=False) as f:
         if "entry/data/data" not in f:
             f.create_dataset("entry/data/data", shape=(0, *frame.shape), maxshape=(None, *frame.shape),
                              dtype=frame.dtype, chunks=(1, *frame.shape))

@@ -105,6 +105,29 @@ def test_stray_photons_are_events_of_the_dark_and_their_mean_is_subtracted_from_
             np.abs(z).max(), np.mean(z**2), z.mean())
 
 
+def test_the_camera_appends_while_another_process_reads_its_file(tmp_path):
+    """A reader holding the frames' file open (the run store, a client) does not stop the capture:
+    with HDF5's file lock the camera's next append failed and every later frame was lost."""
+    import subprocess
+    import sys
+
+    from sim_iocs.camera import _append
+
+    path = tmp_path / "frames.h5"
+    frame = np.arange(12, dtype=np.uint16).reshape(3, 4)
+    _append(path, frame, 1, 0.0)
+    code = ("import sys, h5py; f = h5py.File(sys.argv[1], 'r'); print('open', flush=True); sys.stdin.read()")
+    reader = subprocess.Popen([sys.executable, "-c", code, str(path)], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                              text=True)
+    try:
+        assert reader.stdout.readline().strip() == "open"
+        _append(path, frame + 1, 2, 1.0)
+    finally:
+        reader.communicate("")
+    from bluesky_offsets.epics.camera import _read_frame
+    assert np.array_equal(_read_frame(str(path), 1), frame + 1)
+
+
 def test_file_names_follow_the_c_template():
     assert c_format("%s%s.h5", "/d/", "f", 3) == "/d/f.h5"
     assert c_format("%s%s_%3.3d.h5", "/d/", "f", 3) == "/d/f_003.h5"

@@ -39,7 +39,7 @@ _FLOAT_ARRAYS = ("hist_x", "hist_y", "profile_x", "profile_y", "floor_hx", "floo
 
 def _read_frame(path: str, index: int) -> np.ndarray:
     import h5py
-    with h5py.File(path, "r") as f:
+    with h5py.File(path, "r", locking=False) as f:  # the camera appends while readers hold the file
         return np.asarray(f["entry/data/data"][index])
 
 
