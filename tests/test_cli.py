@@ -71,3 +71,21 @@ def test_console_script_entry_point():
     out = subprocess.run([sys.executable, "-m", "bluesky_offsets.commands.cli", "params", "--json"],
                          capture_output=True, text=True, check=True).stdout
     assert len(json.loads(out)["parameters"]) == 34
+
+
+def test_a_beamline_error_inside_a_failed_status_is_found():
+    """A chamber's error raised inside a status a plan waited on reaches the command wrapped (bluesky's
+    ``FailedStatus`` from it): the command line finds it for its one line; anything else is not one."""
+    from bluesky.utils import FailedStatus
+
+    from bluesky_offsets.commands.cli import _beamline_error
+    from bluesky_offsets.epics.pvs import ChamberError
+
+    try:
+        try:
+            raise ChamberError("chamber: the HDF5 plugin wrote no frame within 120 s of the acquisition")
+        except ChamberError as exc:
+            raise FailedStatus("status") from exc
+    except FailedStatus as wrapped:
+        assert str(_beamline_error(wrapped)).startswith("chamber: the HDF5 plugin")
+    assert _beamline_error(RuntimeError("a bug")) is None

@@ -297,6 +297,15 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _beamline_error(exc: BaseException | None) -> BaseException | None:
+    """The motion or chamber error ``exc`` is or was raised from (a failed status wraps it), else None."""
+    while exc is not None:
+        if isinstance(exc, (MotionError, ChamberError)):
+            return exc
+        exc = exc.__cause__
+    return None
+
+
 def main(argv: list[str] | None = None) -> int:
     """Run ``bluesky-offsets`` on ``argv``; return the exit status (2: a user error, 3: a beamline error)."""
     parser = build_parser()
@@ -320,11 +329,13 @@ def main(argv: list[str] | None = None) -> int:
             raise
         print(f"bluesky-offsets {args.command}: error: {exc}", file=sys.stderr)
         return 2
-    except (MotionError, ChamberError) as exc:
-        # the beamline did not do what it was told (a stalled motor, a failed frame): say which
-        if args.verbose:
+    except Exception as exc:
+        # the beamline did not do what it was told (a stalled motor, a failed frame), maybe inside
+        # the status a plan waited on: say which
+        cause = _beamline_error(exc)
+        if cause is None or args.verbose:
             raise
-        print(f"bluesky-offsets {args.command}: beamline error: {exc}", file=sys.stderr)
+        print(f"bluesky-offsets {args.command}: beamline error: {cause}", file=sys.stderr)
         return 3
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
