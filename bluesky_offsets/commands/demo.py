@@ -663,9 +663,10 @@ def add_cli(sub) -> None:
     p.add_argument("--motors", choices=("perfect", "realistic"), default="perfect",
                    help="the simulated motors: perfect (default), or every axis with encoder noise, backlash "
                         "and retries at typical values (sim_iocs.metrixs.motor_profile)")
-    p.add_argument("--detector", choices=("camera", "histograms"), default="camera",
-                   help="read the focus chamber's camera (default; an areaDetector: dark frames, the gain by photon "
-                        "transfer, frames reduced to histograms) or the simulator's ray-count histogram PVs")
+    p.add_argument("--detector", choices=("camera", "histograms"), default=None,
+                   help="read the focus chamber's camera (METRIXS's default; an areaDetector: dark frames, the gain "
+                        "by photon transfer, frames reduced to histograms) or the simulator's ray-count histogram "
+                        "PVs (a described beamline's default)")
     p.add_argument("--no-optimize", action="store_true",
                    help="end after the diagnosis, without the last step (the smallest focus with the calibrated "
                         "twin: computed, moved there, measured)")
@@ -772,7 +773,8 @@ def _cmd_demo(args) -> int:
                      offsets_fraction=args.offsets_fraction, rounds=args.rounds, seed=args.seed,
                      fit_top=args.fit_top or None, fit=fit, scan=scan,
                      resolution=args.resolution, optimize=optimize, closed_loop=not args.open_loop,
-                     threads=args.threads, motors=args.motors, detector=args.detector,
+                     threads=args.threads, motors=args.motors,
+                     detector=args.detector or ("camera" if args.beamline is None else "histograms"),
                      candidates_effects=[c.strip() for c in args.candidates.split(",")] if args.candidates else None,
                      beamline=args.beamline)
     for n in s.candidates_effects or ():
