@@ -329,7 +329,13 @@ def main(argv: list[str] | None = None) -> int:
             raise
         print(f"bluesky-offsets {args.command}: error: {exc}", file=sys.stderr)
         return 2
-    except Exception as exc:
+    except KeyboardInterrupt:
+        print("interrupted", file=sys.stderr)
+        return 130
+    except BrokenPipeError:  # the reader left (``| head``): nothing more to say, and nowhere to say it
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 0
+    except Exception as exc:  # last: a broken pipe above is an exception too
         # the beamline did not do what it was told (a stalled motor, a failed frame), maybe inside
         # the status a plan waited on: say which
         cause = _beamline_error(exc)
@@ -337,12 +343,6 @@ def main(argv: list[str] | None = None) -> int:
             raise
         print(f"bluesky-offsets {args.command}: beamline error: {cause}", file=sys.stderr)
         return 3
-    except KeyboardInterrupt:
-        print("interrupted", file=sys.stderr)
-        return 130
-    except BrokenPipeError:  # the reader left (``| head``): nothing more to say, and nowhere to say it
-        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
-        return 0
 
 
 if __name__ == "__main__":  # pragma: no cover
