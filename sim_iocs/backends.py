@@ -164,10 +164,14 @@ def _worker_loop(conn) -> None:
             conn.send(("error", f"{type(exc).__name__}: {exc}"))
 
 
+class WorkerDied(RuntimeError):
+    """The frame's worker process ended during the trace (RAYX crashed)."""
+
+
 class _Worker:
     """One frame-worker process; :meth:`kill` stops a trace at once."""
 
-    def __init__(self, ctx):
+    def __init__(self, ctx, warm_job=None):
         self.conn, child = ctx.Pipe()
         self.proc = ctx.Process(target=_worker_loop, args=(child,), daemon=True,
                                 name="metrixs-frame-worker")
@@ -175,18 +179,24 @@ class _Worker:
         child.close()
         self.lock = threading.Lock()
         self.killed = False
+        self._warming = warm_job is not None
+        if warm_job is not None:  # imports and a first trace start now; the first job collects them
+            self.conn.send(warm_job)
 
     def run(self, job):
         with self.lock:
             if self.killed:
                 raise FrameAborted()
             try:
+                if self._warming:
+                    self._warming = False
+                    self.conn.recv()
                 self.conn.send(job)
                 return self.conn.recv()
             except (EOFError, OSError, BrokenPipeError):
                 if self.killed:
                     raise FrameAborted() from None
-                raise RuntimeError("the frame worker died") from None
+                raise WorkerDied("the frame worker died") from None
 
     def alive(self) -> bool:
         return not self.killed and self.proc.is_alive()
@@ -199,11 +209,18 @@ class _Worker:
         self.conn.close()
 
 
+_TRACE_TRIES = 5  # a frame whose worker died is traced again, on a fresh worker, up to this often in all
+_WARM_RAYS = 20_000  # a worker's first trace: rayx 0.4.5 can overrun its buffers when a later trace outgrows the first
+
+
 class TwinBackend:
     """The RAYX digital twin in a worker process, a fresh seed for every frame.
 
     An abort stops the worker at once and the next frame goes to a spare worker that is
-    already warm; a worker that died is replaced before the next frame.  RAYX's input files
+    already warm; a worker that died is replaced before the next frame.  A frame whose worker
+    died or failed (rayx 0.4.5 overruns its event buffer on rays caught inside a toroid, which
+    hit it more often than its event limit) is traced again on a fresh worker with its noise
+    drawn anew, up to five times in all; the operator's log says so.  RAYX's input files
     live only for their import (:func:`bluesky_offsets.physics.rayx_calls.import_rml`).
 
     Parameters
@@ -237,12 +254,8 @@ class TwinBackend:
         self._frames = cf.ThreadPoolExecutor(max_workers=1, thread_name_prefix="frames")
         self.notes: list[str] = []  # for the operator's log only (they name true values)
 
-    def _new_worker(self, warm: bool) -> _Worker:
-        w = _Worker(self._ctx)
-        if warm:  # imports and a first trace, in the background, so that it takes over at once
-            job = (self._warm_state(), self.overrides, 100, 0, self.hist, self.beamline)
-            threading.Thread(target=self._try, args=(w, job), daemon=True).start()
-        return w
+    def _new_worker(self) -> _Worker:
+        return _Worker(self._ctx, (self._warm_state(), self.overrides, _WARM_RAYS, 0, self.hist, self.beamline))
 
     def _warm_state(self) -> np.ndarray:
         from bluesky_offsets.physics.parameters import METRIXS
@@ -251,22 +264,15 @@ class TwinBackend:
         from bluesky_offsets.physics.beamline import load_beamline
         return load_beamline(self.beamline).table.reference.copy()
 
-    @staticmethod
-    def _try(worker: _Worker, job) -> None:
-        try:
-            worker.run(job)
-        except Exception:
-            pass
-
     def _worker(self) -> _Worker:
         with self._swap:
             if self._active is None or not self._active.alive():
                 if self._active is not None:
                     self._active.kill()
                 spare, self._spare = self._spare, None
-                self._active = spare if spare is not None and spare.alive() else self._new_worker(False)
+                self._active = spare if spare is not None and spare.alive() else self._new_worker()
             if self._spare is None or not self._spare.alive():
-                self._spare = self._new_worker(True)
+                self._spare = self._new_worker()
             return self._active
 
     def _frame(self, values: np.ndarray, n_rays: int, seed: int, screen=None) -> Frame:
@@ -277,10 +283,23 @@ class TwinBackend:
             frames = per_frame_overrides(overrides, np.asarray(screen, float)[None], 1)
             assert isinstance(frames, Sequence)  # the stage moved: one mapping per frame
             overrides = frames[0]
-        status, payload = worker.run((np.asarray(values, float), overrides, int(n_rays), seed, self.hist,
-                                      self.beamline))
-        if status != "ok":
-            raise RuntimeError(payload)
+        job = [np.asarray(values, float), overrides, int(n_rays), seed, self.hist, self.beamline]
+        for attempt in range(1, _TRACE_TRIES + 1):
+            try:
+                status, payload = worker.run(tuple(job))
+            except WorkerDied:
+                if attempt == _TRACE_TRIES:
+                    raise
+                status, payload = "died", "the frame worker died"
+            if status == "ok":
+                break
+            if attempt == _TRACE_TRIES:
+                raise RuntimeError(payload)
+            # rayx 0.4.5 overruns its event buffer on rays caught inside a toroid: anew, fresh worker and noise
+            self.notes.append(f"rayx failed tracing a frame (seed {job[3]}, {n_rays} rays: {payload}); traced again")
+            job[3] = int(np.random.SeedSequence([job[3], attempt]).generate_state(1)[0])
+            worker.kill()
+            worker = self._worker()
         frame, note = payload
         if note:
             self.notes.append(note)

@@ -390,6 +390,7 @@ class CamDriver(NDArrayBase):
                     take.cancel()
                     state = "Aborted"
                     break
+                take.result()  # a frame that failed ends the acquisition in Error, not as taken
                 k += 1
                 await self.num_images_counter_rbv.write(k)
                 rest = float(self.acquire_period.value) - (time.monotonic() - t0)

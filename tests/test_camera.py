@@ -305,3 +305,22 @@ def test_the_camera_is_calibrated_where_bright_and_the_beamline_left_where_it_st
         assert scaled.hist_x.sum() == pytest.approx(m.hist_x.sum() * noise.gain / camera.calibration.gain, rel=0.3)
     finally:
         RE(bps.unstage(camera))
+
+
+def test_a_frame_that_fails_ends_the_acquisition_in_error():
+    """A frame the beamline model could not make ends the acquisition ``Error`` at once: counted as
+    taken, it left the client waiting for a file plugin that never got it."""
+    import asyncio
+
+    from sim_iocs.camera import CamDriver
+
+    async def take(exposure, shutter_open):
+        raise RuntimeError("the frame worker died")
+
+    async def acquire():
+        cam = CamDriver(prefix="T:", take=take, shape=(4, 5), name="cam")
+        await cam._acquire()
+        return cam.detector_state_rbv.value, cam.num_images_counter_rbv.value, cam.status_message.value
+
+    state, taken, message = asyncio.run(acquire())
+    assert (state, taken) == ("Error", 0) and "frame failed" in message
