@@ -283,27 +283,31 @@ class TwinBackend:
             frames = per_frame_overrides(overrides, np.asarray(screen, float)[None], 1)
             assert isinstance(frames, Sequence)  # the stage moved: one mapping per frame
             overrides = frames[0]
-        job = [np.asarray(values, float), overrides, int(n_rays), seed, self.hist, self.beamline]
-        for attempt in range(1, _TRACE_TRIES + 1):
-            try:
-                status, payload = worker.run(tuple(job))
-            except WorkerDied:
-                if attempt == _TRACE_TRIES:
-                    raise
-                status, payload = "died", "the frame worker died"
-            if status == "ok":
-                break
-            if attempt == _TRACE_TRIES:
-                raise RuntimeError(payload)
-            # rayx 0.4.5 overruns its event buffer on rays caught inside a toroid: anew, fresh worker and noise
-            self.notes.append(f"rayx failed tracing a frame (seed {job[3]}, {n_rays} rays: {payload}); traced again")
-            job[3] = int(np.random.SeedSequence([job[3], attempt]).generate_state(1)[0])
-            worker.kill()
-            worker = self._worker()
-        frame, note = payload
+        frame, note = self._trace(worker, np.asarray(values, float), overrides, int(n_rays), seed)
         if note:
             self.notes.append(note)
         return frame
+
+    def _trace(self, worker: _Worker, values: np.ndarray, overrides: Mapping, n_rays: int, seed: int):
+        """``(frame, note)`` from ``worker``; where it dies or fails, from a fresh one with other noise."""
+        for attempt in range(1, _TRACE_TRIES + 1):
+            last = attempt == _TRACE_TRIES
+            try:
+                status, payload = worker.run((values, overrides, n_rays, seed, self.hist, self.beamline))
+            except WorkerDied:
+                if last:
+                    raise
+                status, payload = "died", "the frame worker died"
+            if status == "ok" or last:
+                break
+            # rayx 0.4.5 overruns its event buffer on rays caught inside a toroid
+            self.notes.append(f"rayx failed tracing a frame (seed {seed}, {n_rays} rays: {payload}); traced again")
+            seed = int(np.random.SeedSequence([seed, attempt]).generate_state(1)[0])
+            worker.kill()
+            worker = self._worker()
+        if status != "ok":
+            raise RuntimeError(payload)
+        return payload
 
     def submit(self, values: np.ndarray, n_rays: int, screen=None) -> cf.Future:
         """One frame at the true ``values``, the chamber's stage at ``screen`` (x, y, z mm; None: 0)."""
