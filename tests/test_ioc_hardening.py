@@ -340,7 +340,6 @@ def test_a_refused_beacon_is_one_line_once():
     assert f.filter(other)
 
 
-
 def test_a_frame_whose_worker_dies_is_traced_again():
     """Where rays are caught inside a toroid rayx 0.4.5 overruns its event buffer and its process
     often dies (Energize's demo on the camera lost its 36th frame so): the simulated beamline
