@@ -28,7 +28,7 @@ from bluesky_offsets.design.choose import (
     select,
 )
 from bluesky_offsets.design.information import frame_information, positive_part
-from bluesky_offsets.physics.parameters import METRIXS, ParameterTable
+from bluesky_offsets.physics.parameters import MAX_OFFSET, METRIXS, ParameterTable
 from bluesky_offsets.physics.screen import STAGE
 
 STEP_SEED = 7_919
@@ -173,7 +173,6 @@ def global_starts(meas, offsets: np.ndarray, *, photons: int, seed: int, keep: i
     are done.
     """
     from bluesky_offsets.model.state import ModelState, simulate_raw_many
-    from bluesky_offsets.physics.parameters import MAX_OFFSET
     from bluesky_offsets.physics.beamline import torch_engine
     from bluesky_offsets.physics.twin import Twin
     rng = np.random.default_rng([seed, GLOBAL_SEED])
@@ -215,6 +214,7 @@ class DesignLoop:
         self.o, self.budget, self.photons, self.table = options, int(budget), int(photons), table
         self.engine = torch_engine(table, options={"common_rays": False})
         self.acceptance = acceptance(Twin(torch_engine(table)), here, open_slits=False, table=table)
+        self._acceptance_lit = False  # whether the model lit the screen where the acceptance was taken
         self.here = np.asarray(here, float)
         self.offsets = np.zeros(len(table))
         self.precision: np.ndarray | None = None
@@ -228,6 +228,23 @@ class DesignLoop:
         """
         lit = np.minimum(meas.hist_x.sum(1), meas.hist_y.sum(1)) >= 2 * self.o.floor
         return meas.configurations[lit] if lit.any() else self.here[None]
+
+    def _update_acceptance(self, lit: float, k: int) -> None:
+        """Take the motors' acceptance anew at the estimate once the model lights where the beam was found.
+
+        ``lit``: the model's share on the screen there at the estimate.  Where the model with no
+        offsets is dark there (the beam had to be searched for), the acceptance taken at no offsets
+        gives every motor the narrowest width, and the candidates barely move the motors.
+        """
+        if self._acceptance_lit or lit < self.o.floor:
+            return
+        if k > 0:  # at step 0 the estimate is no offsets: the acceptance taken then stands
+            from bluesky_offsets.offsets.beam_search import acceptance
+            from bluesky_offsets.physics.beamline import torch_engine
+            from bluesky_offsets.physics.twin import Twin
+            start = self.here + self.table.offsets_to_physical(np.clip(self.offsets, -MAX_OFFSET, MAX_OFFSET))
+            self.acceptance = acceptance(Twin(torch_engine(self.table)), start, open_slits=False, table=self.table)
+        self._acceptance_lit = True
 
     def step(self, meas, progress=None) -> tuple[DesignStep, dict] | None:
         """Refit to the frames so far (two or more), then choose the next batch.
@@ -259,6 +276,7 @@ class DesignLoop:
                 info = measured_information(self.engine, a, self.offsets, options=self.o, photons=self.photons,
                                             table=self.table)
             self.global_starts.append(k)
+        self._update_acceptance(info.intensity[0], k)
         self.precision = posterior_precision(info, self.table)
         sigma = predicted_sigma(self.precision)
         if self.o.target is not None and np.all(sigma / PRIOR_SIGMA < self.o.target):
