@@ -189,6 +189,11 @@ class Validation:
                 f"MSE/noise = {self.mse_over_noise:.2f}, {how}")
 
 
+def stated_verdict(analysis, validation: Validation | None) -> str:
+    """The analysis's verdict, and the validation's line where it failed: what a command states."""
+    return analysis.verdict + ("" if validation is None or validation.passed else "; " + validation.line())
+
+
 def validation_settings(model, fitted: Measurement, n: int, *, options: DesignOptions,
                         table: ParameterTable = METRIXS) -> tuple[np.ndarray, np.ndarray]:
     """``n`` settings (configurations, screen) far from the ``fitted`` frames' and from each other.

@@ -145,7 +145,7 @@ def _results(args, session, pv_map, store, designed: bool, live, t0: float) -> N
         intro=[("What this is", paragraph(
             f"The calibration session on {pv_map.name}: the beam found in {measured.beam.frames} frames, {how}, "
             f"fitted through the differentiable twin, the missing effects diagnosed, added and refitted."))],
-        uids=uids, store_location=store.location, extra=extra)
+        uids=uids, store_location=store.location, extra=extra, validation=validation)
     from bluesky_offsets.model.export import write_calibration
     from bluesky_offsets.model.posterior import Posterior
     calibration = None
@@ -153,7 +153,8 @@ def _results(args, session, pv_map, store, designed: bool, live, t0: float) -> N
         calibration = write_calibration(out / "calibration.json", analysis, measurement_uid=measured.uid,
                                         validation=None if validation is None else validation.summary())
     print()
-    print(f"verdict: {analysis.verdict}")
+    from plans.design import stated_verdict
+    print(f"verdict: {stated_verdict(analysis, validation)}")
     if validation is not None:
         print(validation.line())
     if analysis.could_hide:

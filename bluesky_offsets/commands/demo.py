@@ -501,7 +501,7 @@ def _write_report(s: DemoSettings, truth: Mapping, out: Path, session, beam_resu
     valid_secs = [] if validation is None else [("Validation frames", validation_section(validation))]
     report = write_analysis_report(out / "report.html", analysis, analysis.measurement.spec, title="bluesky-offsets demo",
                                    intro=_intro(s, truth["offsets"], session, location) + design_secs, truth=s.hidden, uids=steps,
-                                   store_location=location, table=s.table,
+                                   store_location=location, table=s.table, validation=validation,
                                    extra=[*valid_secs, *beam_secs,
                                           ("Timing", table_([{k: f"{v:.0f} s" for k, v in outcome.timing.items()}]))])
     return Path(report)
@@ -511,6 +511,7 @@ def _summary(s: DemoSettings, truth: Mapping, session, beam_result, best, outcom
              steps: Mapping, uids: Sequence[str], store: str, ioc: SimulatedBeamline, live: Sequence, seconds: float,
              load: float) -> dict:
     """The demo's ``summary.json``: what was hidden, measured, fitted and concluded, with every run's uid."""
+    from plans.design import stated_verdict
     analysis, m, n_open = session.analysis, session.measured.measurement, session.measured.n_open
     beam, designed, validation = session.measured.beam, session.measured.designed, session.validation
     posterior, calibration = outcome.posterior, outcome.calibration
@@ -529,7 +530,7 @@ def _summary(s: DemoSettings, truth: Mapping, session, beam_result, best, outcom
         "calibration": None if calibration is None else str(calibration),
         "beamline": s.display, "n_rays": s.n_rays, "hidden_offsets": truth["offsets"],
         "offsets_fraction": s.offsets_fraction, "hidden_effects": s.hidden,
-        "verdict": analysis.verdict + ("" if validation is None or validation.passed else "; " + validation.line()),
+        "verdict": stated_verdict(analysis, validation),
         # a within-noise verdict: how large each candidate could be and still hide
         "could_hide": analysis.could_hide_json,
         "rankings": [[c.name for c in r.diagnosis.candidates] for r in analysis.rankings],

@@ -124,17 +124,18 @@ def _plot_progress(runs: Sequence[tuple[str, Sequence[Mapping]]], path: Path) ->
 
 
 def analysis_sections(analysis, spec, work: Path, *, truth: Mapping | None = None,
-                      table=None) -> list[tuple[str, str]]:
+                      table=None, validation=None) -> list[tuple[str, str]]:
     """Report sections of a model-vs-measurement analysis (:class:`plans.diagnose.Analysis`).
 
-    ``truth`` (simulations only) adds the hidden effect beside the fitted one.
+    ``truth`` (simulations only) adds the hidden effect beside the fitted one; ``validation``
+    (:class:`plans.design.Validation`) joins the verdict where it failed.
     """
     from bluesky_offsets.physics.parameters import METRIXS
     table = table or METRIXS
     work = Path(work)
     work.mkdir(parents=True, exist_ok=True)
     # verdict and the error history first: what people come for
-    secs = [("Error history across model versions", _history_section(analysis, work))]
+    secs = [("Error history across model versions", _history_section(analysis, work, validation))]
     if analysis.refits:
         secs.append(("Fitted effect magnitudes", _effects_section(analysis, truth)))
     secs += _ranking_sections(analysis, work)
@@ -146,14 +147,17 @@ def analysis_sections(analysis, spec, work: Path, *, truth: Mapping | None = Non
     return secs
 
 
-def _history_section(analysis, work: Path) -> str:
-    """The verdict, and χ²/dof and MSE of each model version against the noise."""
+def _history_section(analysis, work: Path, validation=None) -> str:
+    """The verdict (the validation's failure joined), and χ²/dof and MSE of each model version against the noise."""
     from bluesky_offsets.model.diagnosis import plot_error_history
+    from plans.design import stated_verdict
     meas, comps = analysis.measurement, analysis.comparisons
     last = analysis.rankings[-1].diagnosis if analysis.rankings else None
     head = []
     if last is not None:
-        head.append(verdict(analysis.verdict, warn=not analysis.refits and last.best is None and not last.within_noise))
+        failed = validation is not None and not validation.passed
+        head.append(verdict(stated_verdict(analysis, validation),
+                            warn=failed or (not analysis.refits and last.best is None and not last.within_noise)))
     rows = []
     for i, c in enumerate(comps):
         r = c.total_row()
@@ -385,15 +389,17 @@ def uid_section(uids: Mapping[str, str], store_location: str | None = None) -> s
 def write_analysis_report(path: str | Path, analysis, spec, *, title: str = "model vs. measurement",
                           intro: Sequence[tuple[str, str]] = (), truth: Mapping | None = None,
                           uids: Mapping[str, str] | None = None, store_location: str | None = None,
-                          extra: Sequence[tuple[str, str]] = (), table=None) -> Path:
+                          extra: Sequence[tuple[str, str]] = (), table=None, validation=None) -> Path:
     """Write one self-contained HTML report of an analysis; it opens offline.
 
     The analysis is of the beamline ``table`` names (default METRIXS); the report has its figures
-    inlined (base64 PNG), tables, ranking, error history and run uids.
+    inlined (base64 PNG), tables, ranking, error history and run uids; ``validation`` joins the
+    verdict where it failed.
     """
     import tempfile
     with tempfile.TemporaryDirectory(prefix="bluesky-offsets-report-") as tmp:
-        secs = [*intro, *analysis_sections(analysis, spec, Path(tmp), truth=truth, table=table), *extra]
+        secs = [*intro, *analysis_sections(analysis, spec, Path(tmp), truth=truth, table=table,
+                                           validation=validation), *extra]
         secs.append(("Runs in the store", uid_section(uids if uids is not None else analysis.uids, store_location)))
         return write_report(path, title=title, sections=secs)
 
