@@ -223,14 +223,14 @@ def test_the_motors_acceptance_is_taken_again_where_the_estimate_lights_the_beam
     loop = DesignLoop(DesignOptions(), here, 40, 5000)
     motors = T.motorized
     assert np.all(loop.acceptance[motors] == SWEEP[0])   # dark at no offsets: the narrowest everywhere
-    loop._update_acceptance(0.0, 1)                        # the estimate still dark there: nothing to take
+    loop._update_acceptance(0.0)                           # the estimate still dark there: nothing to take
     assert np.all(loop.acceptance[motors] == SWEEP[0])
     loop.offsets = truth
-    loop._update_acceptance(0.3, 1)
+    loop._update_acceptance(0.3)
     assert np.median(loop.acceptance[motors]) >= 100 * SWEEP[0]
     lit = DesignLoop(DesignOptions(), T.reference, 40, 5000)
     before = lit.acceptance.copy()
-    lit._update_acceptance(0.3, 0)
+    lit._update_acceptance(0.3)
     lit.offsets = truth
-    lit._update_acceptance(0.3, 1)
+    lit._update_acceptance(0.3)
     assert np.array_equal(lit.acceptance, before, equal_nan=True)

@@ -208,15 +208,13 @@ class DesignLoop:
 
     def __init__(self, options: DesignOptions, here: np.ndarray, budget: int, photons: int,
                  table: ParameterTable = METRIXS):
-        from bluesky_offsets.offsets.beam_search import acceptance
         from bluesky_offsets.physics.beamline import torch_engine
-        from bluesky_offsets.physics.twin import Twin
         self.o, self.budget, self.photons, self.table = options, int(budget), int(photons), table
         self.engine = torch_engine(table, options={"common_rays": False})
-        self.acceptance = acceptance(Twin(torch_engine(table)), here, open_slits=False, table=table)
-        self._acceptance_lit = False  # whether the model lit the screen where the acceptance was taken
         self.here = np.asarray(here, float)
         self.offsets = np.zeros(len(table))
+        self.acceptance = self._acceptance_at(self.offsets)
+        self._acceptance_lit = False  # whether the model lit the screen where the acceptance was taken
         self.precision: np.ndarray | None = None
         self.steps: list[dict] = []
         self.global_starts: list[int] = []  # the steps whose update also started from :func:`global_starts`
@@ -229,7 +227,15 @@ class DesignLoop:
         lit = np.minimum(meas.hist_x.sum(1), meas.hist_y.sum(1)) >= 2 * self.o.floor
         return meas.configurations[lit] if lit.any() else self.here[None]
 
-    def _update_acceptance(self, lit: float, k: int) -> None:
+    def _acceptance_at(self, offsets: np.ndarray) -> np.ndarray:
+        """The motors' acceptance where the beam was found, the model's offsets ``offsets`` (normalized)."""
+        from bluesky_offsets.offsets.beam_search import acceptance
+        from bluesky_offsets.physics.beamline import torch_engine
+        from bluesky_offsets.physics.twin import Twin
+        start = self.here + self.table.offsets_to_physical(np.clip(offsets, -MAX_OFFSET, MAX_OFFSET))
+        return acceptance(Twin(torch_engine(self.table)), start, open_slits=False, table=self.table)
+
+    def _update_acceptance(self, lit: float) -> None:
         """Take the motors' acceptance anew at the estimate once the model lights where the beam was found.
 
         ``lit``: the model's share on the screen there at the estimate.  Where the model with no
@@ -238,12 +244,8 @@ class DesignLoop:
         """
         if self._acceptance_lit or lit < self.o.floor:
             return
-        if k > 0:  # at step 0 the estimate is no offsets: the acceptance taken then stands
-            from bluesky_offsets.offsets.beam_search import acceptance
-            from bluesky_offsets.physics.beamline import torch_engine
-            from bluesky_offsets.physics.twin import Twin
-            start = self.here + self.table.offsets_to_physical(np.clip(self.offsets, -MAX_OFFSET, MAX_OFFSET))
-            self.acceptance = acceptance(Twin(torch_engine(self.table)), start, open_slits=False, table=self.table)
+        if np.any(self.offsets):  # at no offsets the acceptance taken at the start stands
+            self.acceptance = self._acceptance_at(self.offsets)
         self._acceptance_lit = True
 
     def step(self, meas, progress=None) -> tuple[DesignStep, dict] | None:
@@ -276,7 +278,7 @@ class DesignLoop:
                 info = measured_information(self.engine, a, self.offsets, options=self.o, photons=self.photons,
                                             table=self.table)
             self.global_starts.append(k)
-        self._update_acceptance(info.intensity[0], k)
+        self._update_acceptance(info.intensity[0])
         self.precision = posterior_precision(info, self.table)
         sigma = predicted_sigma(self.precision)
         if self.o.target is not None and np.all(sigma / PRIOR_SIGMA < self.o.target):
