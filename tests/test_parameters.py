@@ -59,6 +59,16 @@ def test_offsets():
         METRIXS.offsets_to_physical(too_big)
 
 
+def test_a_model_stands_at_its_configuration_plus_its_offsets_held_within_bounds():
+    here = METRIXS.denormalize(np.full(34, 0.5))
+    past = np.zeros(34)
+    past[METRIXS.index("E1.rotationXerror")] = MAX_OFFSET + 1e-9  # a fit's rounding past the bound
+    vals = METRIXS.model_values(np.stack([here, here]), np.stack([past, -past]))
+    i = METRIXS.index("E1.rotationXerror")
+    np.testing.assert_allclose(vals[:, i] - here[i], [MAX_OFFSET * METRIXS.span[i], -MAX_OFFSET * METRIXS.span[i]])
+    np.testing.assert_array_equal(np.delete(vals, i, axis=1), np.delete(np.stack([here, here]), i, axis=1))
+
+
 @pytest.mark.parametrize("bad, match", [
     (np.zeros(33), "34 parameters"),
     (np.zeros((2, 35)), "34 parameters"),

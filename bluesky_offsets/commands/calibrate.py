@@ -155,7 +155,7 @@ def _results(args, session, pv_map, store, designed: bool, live, t0: float) -> N
     print()
     from plans.design import stated_verdict
     print(f"verdict: {stated_verdict(analysis, validation)}")
-    if validation is not None:
+    if validation is not None and validation.passed:  # a failed one is in the verdict
         print(validation.line())
     if analysis.could_hide:
         print(analysis.could_hide_line)

@@ -232,7 +232,7 @@ class DesignLoop:
         from bluesky_offsets.offsets.beam_search import acceptance
         from bluesky_offsets.physics.beamline import torch_engine
         from bluesky_offsets.physics.twin import Twin
-        start = self.here + self.table.offsets_to_physical(np.clip(offsets, -MAX_OFFSET, MAX_OFFSET))
+        start = self.table.model_values(self.here, offsets)
         return acceptance(Twin(torch_engine(self.table)), start, open_slits=False, table=self.table)
 
     def _update_acceptance(self, lit: float) -> None:

@@ -20,7 +20,7 @@ from bluesky_offsets.model.fit import FitOptions, FitResult, engine_for, fit
 from bluesky_offsets.model.measurement import Measurement
 from bluesky_offsets.model.values import CalibratedState, ModelState  # noqa: F401 - the model's value types
 from bluesky_offsets.physics import effects as E
-from bluesky_offsets.physics.parameters import MAX_OFFSET, METRIXS, ParameterTable
+from bluesky_offsets.physics.parameters import METRIXS, ParameterTable
 from bluesky_offsets.physics.screen import per_frame_overrides
 
 
@@ -36,10 +36,6 @@ def solve_normal(a: np.ndarray, b: np.ndarray) -> np.ndarray:
         return np.linalg.lstsq(a, b, rcond=None)[0]
 
 
-def _true_values(configurations, state: ModelState, table: ParameterTable) -> np.ndarray:
-    return np.asarray(configurations) + table.offsets_to_physical(np.clip(state.offsets, -MAX_OFFSET, MAX_OFFSET))
-
-
 def _twin_overrides(state: ModelState) -> dict:
     """RML overrides of the state's twin-level effects (detector-level ones act on histograms)."""
     return E.twin_overrides({n: v for n, v in state.effects.items() if E.get(n).level == "twin"})
@@ -52,7 +48,7 @@ def simulate_raw(twin, configurations: np.ndarray, state: ModelState, n_rays: in
     The chamber's stage is at ``screen`` ((n, 3) mm, :mod:`bluesky_offsets.physics.screen`; None: at 0).
     """
     n = len(np.atleast_2d(configurations))
-    res = twin.trace_batch(_true_values(configurations, state, table),
+    res = twin.trace_batch(table.model_values(configurations, state.offsets),
                            overrides=per_frame_overrides(_twin_overrides(state), screen, n),
                            n_rays=n_rays, seed=seed, progress=False, raise_on_error=True)
     return res.hist_x, res.hist_y
@@ -67,7 +63,7 @@ def simulate_raw_many(twin, configurations: np.ndarray, states: Sequence[ModelSt
     n = len(configurations)
     if not states:
         return []
-    vals = np.concatenate([_true_values(configurations, st, table) for st in states])
+    vals = np.concatenate([table.model_values(configurations, st.offsets) for st in states])
     ovs = [ov for st in states for ov in _frames_overrides(_twin_overrides(st), screen, n)]
     res = twin.trace_batch(vals, overrides=ovs, n_rays=n_rays, seed=list(seeds) * len(states), progress=False,
                            raise_on_error=True)

@@ -501,8 +501,7 @@ def predict_many(states, configuration, *, rays: int = 100_000, seed: int = 12_3
     vals, ovs = [], []
     for st in states:
         ovs.append(_rml_overrides(st, overrides))
-        vals.append(np.asarray(configuration, float)
-                    + table.offsets_to_physical(np.clip(st.offsets, -MAX_OFFSET, MAX_OFFSET)))
+        vals.append(table.model_values(configuration, st.offsets))
     shared = all(o == ovs[0] for o in ovs)
     with torch.no_grad():
         beam = engine.beam(np.stack(vals), (ovs[0] or None) if shared else ovs, n_rays=rays, seed=seed)

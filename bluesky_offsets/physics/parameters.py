@@ -203,6 +203,14 @@ class ParameterTable:
         self.check_offsets(off)
         return off * self.span
 
+    def model_values(self, configurations, offsets) -> np.ndarray:
+        """Where a model with normalized ``offsets`` puts the parameters at ``configurations``.
+
+        The configurations (one vector or a stack) plus the physical offsets, the offsets first
+        held within the model's ±``MAX_OFFSET`` bound (an estimate may step past it by rounding).
+        """
+        return np.asarray(configurations, float) + self.offsets_to_physical(np.clip(offsets, -MAX_OFFSET, MAX_OFFSET))
+
     def offsets_to_normalized(self, offsets) -> np.ndarray:
         """Physical offsets -> normalized offsets (fractions of each range)."""
         off = self.validate(offsets, "offset vector") / self.span
