@@ -11,8 +11,8 @@ import torch
 
 from bluesky_offsets.blas import numpy_avx512_targets, x86_with_avx2
 from bluesky_offsets.physics import effects as E
-from bluesky_offsets.model.fit import (FRESH_SEED, RAY_DRAW_SEED, FitOptions, _Model, _objective, _Products, _ridge,
-                                      fit, screen)
+from bluesky_offsets.model.fit import (FRESH_SEED, RAY_DRAW_SEED, SETTLE_FRACTIONS, FitOptions, _Model, _objective,
+                                      _Products, _ridge, fit, screen)
 from bluesky_offsets.model.measurement import Measurement
 from bluesky_offsets.model.misfit import misfit
 from bluesky_offsets.model.state import ModelState, simulate, simulate_frames
@@ -213,7 +213,7 @@ def test_a_fit_from_several_starts_keeps_the_one_that_ends_lowest(defocus_case):
     (seed + FRESH_SEED) is kept, its iterations last, each tagged with its start; the same as fitting from
     that start alone.  The jackknife widens an uncertainty, never narrows it."""
     meas, truth, twin = defocus_case
-    opts = FitOptions(rays=1500, seed=3, stages=(("bins", 3),))
+    opts = FitOptions(rays=1500, seed=3, stages=(("bins", 3),), settle=False)
     eng = TorchEngine(hist=CAMERA)
     near = ModelState(truth.offsets * 0.8, {"chamber_z": {"z": 12.0}})
     far = ModelState(np.clip(-truth.offsets * 4, -0.2, 0.2), {"chamber_z": {"z": -5.0}})
@@ -236,7 +236,7 @@ def test_ray_draws_average_the_fit_over_the_models_rays(defocus_case):
     the Gauss-Newton one there plus the draws' scatter (one draw's, not over their number: the
     later draws start where the first ended and are not independent estimates)."""
     meas, truth, twin = defocus_case
-    opts = FitOptions(rays=1500, seed=3, stages=(("features", 3), ("bins", 3)))
+    opts = FitOptions(rays=1500, seed=3, stages=(("features", 3), ("bins", 3)), settle=False)
     eng = TorchEngine(hist=CAMERA)
     start = ModelState(truth.offsets * 0.5, {"chamber_z": {"z": 8.0}})
     one = fit(meas, start, eng, opts)
@@ -254,6 +254,29 @@ def test_ray_draws_average_the_fit_over_the_models_rays(defocus_case):
     assert res.history[-1]["ray_draw"] == "mean" and res.history[-1]["chi2"] == pytest.approx(at_mean.history[-1]["chi2"])
     with pytest.raises(ValueError, match="ray_draws"):
         FitOptions(ray_draws=0)
+
+
+def test_a_fit_settles_what_the_data_barely_see_where_the_prior_puts_it(defocus_case):
+    """The damped steps stop once they gain less than the tolerance; the fit then takes one
+    undamped Gauss-Newton step (a part of it where the model bends), kept where it lowers the
+    objective.  The offsets the data barely see come nearer the prior's mean."""
+    meas, truth, twin = defocus_case
+    opts = FitOptions(rays=1500, seed=3, stages=(("features", 3), ("bins", 3)))
+    eng = TorchEngine(hist=CAMERA)
+    start = ModelState(truth.offsets * 0.5, {"chamber_z": {"z": 8.0}})
+    damped, settled = fit(meas, start, eng, opts.replace(settle=False)), fit(meas, start, eng, opts)
+    last = settled.history[-1]
+    assert last["settle"] in SETTLE_FRACTIONS and "settle" not in damped.history[-1]
+    ridge = settled.ridge
+    ends = [np.r_[f.state.offsets, f.state.effect_vector()] for f in (damped, settled)]
+    before, after = (_objective(f.residuals, z, ridge) for f, z in zip((damped, settled), ends))
+    assert after <= before and last["chi2"] == pytest.approx(after)
+    barely = damped.sigma[:len(METRIXS)] > 0.5 * opts.prior_sigma
+    assert barely.sum() >= 5
+    assert np.sum(ends[1][:len(METRIXS)][barely] ** 2) < np.sum(ends[0][:len(METRIXS)][barely] ** 2)
+    # no iterations: a look at the start, which settles nothing
+    look = fit(meas, start, eng, opts.replace(stages=(("bins", 0),)))
+    assert np.array_equal(look.state.offsets, start.offsets) and "settle" not in look.history[-1]
 
 
 @contextlib.contextmanager

@@ -132,6 +132,10 @@ class FitOptions:
         curvature says; the mean over draws, and their spread in the σ, cover that
         (the scenario grid: docs/benchmarks.md, "Diagnosis on the differentiable twin").
         1: one draw.
+    settle : bool
+        end with one undamped Gauss-Newton step (:func:`_settle`), kept where it lowers the
+        objective: the offsets the data barely see go where the prior and the data put them, not
+        where the damped steps left them.
     engine : mapping, optional
         options of the torch engine (:class:`~bluesky_offsets.physics.engine.TorchOptions`).
     """
@@ -149,6 +153,7 @@ class FitOptions:
     offset_bound: float = MAX_OFFSET
     secant: bool = False
     ray_draws: int = 1
+    settle: bool = True
     engine: Mapping | None = None
 
     def __post_init__(self):
@@ -756,6 +761,9 @@ def fit(meas, state, engine, options: FitOptions | Mapping | None = None, *,
                         "ray_draw": "mean", **({"start": kept[1]} if len(starts) > 1 else {})})
         if progress:
             progress(history[-1])
+    if o.settle and any(n for _, n in o.stages):  # a fit with no iterations is a look at its start
+        z, pr = _settle(mdl, o.stages[-1][0], z, pr, ridge, history, progress)
+        r, G, dof, rows = mdl.residuals(o.stages[-1][0], pr)
     # the covariance of the last stage: its information at the solution (two independent ray
     # sets' Jacobians); a bound that holds a parameter does not shrink its uncertainty below
     # what the data say
@@ -785,6 +793,39 @@ def fit(meas, state, engine, options: FitOptions | Mapping | None = None, *,
     return FitResult(mdl.state(z), history, cov, mdl.names, chi2, dof, inflation, mdl.n_traces, G, r,
                      rows, o.stages[-1][0], ridge, widen, None if spread is None else np.asarray(draws),
                      np.asarray(others) if others else None)
+
+
+SETTLE_FRACTIONS = (1.0, 0.5, 0.25)
+"""The parts of the settling step tried in turn (:func:`_settle`)."""
+
+
+def _settle(mdl: _Model, stage: str, z: np.ndarray, pr: _Products, ridge: np.ndarray, history: list[dict],
+            progress: Callable[[dict], None] | None) -> tuple[np.ndarray, _Products]:
+    """One undamped Gauss-Newton step from where the iterations stopped, kept where it lowers the objective.
+
+    A stage stops once its steps gain less than the tolerance, before the prior has brought back
+    the offsets the data barely see: their pull is far below that.  The undamped step finishes
+    them (the posterior mean of the linearized model); half or a quarter of it where the whole
+    step raises the objective (the model bends), none where every part does.  ``pr``: the products
+    at ``z`` with the twin's Jacobian.
+    """
+    lo, hi = mdl.bounds()
+    r, G, dof, _ = mdl.residuals(stage, pr)
+    step, before = _lm_step(G, r, z, 0.0, ridge), _objective(r, z, ridge)
+    kept, c2 = 0.0, before
+    for frac in SETTLE_FRACTIONS:  # the whole step, else part of it where the model bends
+        zc = np.clip(z + frac * step, lo, hi)
+        rc, _, dof_c, _ = mdl.residuals(stage, mdl.products(stage, zc, False))
+        after = _objective(rc, zc, ridge)
+        if after <= before:
+            kept, c2, dof = frac, after, dof_c
+            break
+    history.append({"stage": stage, "iteration": 0, "accepted": bool(kept), "chi2": c2, "dof": dof,
+                    "chi2_reduced": c2 / max(dof, 1.0), "damping": 0.0, "exact": True, "settle": kept,
+                    **{k: history[-1][k] for k in ("start", "ray_draw") if k in history[-1]}})
+    if progress:
+        progress(history[-1])
+    return (zc, mdl.products(stage, zc, True)) if kept else (z, pr)
 
 
 def _posterior_covariance(F: np.ndarray, ridge: np.ndarray) -> np.ndarray:
