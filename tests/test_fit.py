@@ -213,7 +213,7 @@ def test_a_fit_from_several_starts_keeps_the_one_that_ends_lowest(defocus_case):
     (seed + FRESH_SEED) is kept, its iterations last, each tagged with its start; the same as fitting from
     that start alone.  The jackknife widens an uncertainty, never narrows it."""
     meas, truth, twin = defocus_case
-    opts = FitOptions(rays=1500, seed=3, stages=(("bins", 3),), settle=False)
+    opts = FitOptions(rays=1500, seed=3, stages=(("bins", 3),))
     eng = TorchEngine(hist=CAMERA)
     near = ModelState(truth.offsets * 0.8, {"chamber_z": {"z": 12.0}})
     far = ModelState(np.clip(-truth.offsets * 4, -0.2, 0.2), {"chamber_z": {"z": -5.0}})
@@ -236,7 +236,7 @@ def test_ray_draws_average_the_fit_over_the_models_rays(defocus_case):
     the Gauss-Newton one there plus the draws' scatter (one draw's, not over their number: the
     later draws start where the first ended and are not independent estimates)."""
     meas, truth, twin = defocus_case
-    opts = FitOptions(rays=1500, seed=3, stages=(("features", 3), ("bins", 3)), settle=False)
+    opts = FitOptions(rays=1500, seed=3, stages=(("features", 3), ("bins", 3)))
     eng = TorchEngine(hist=CAMERA)
     start = ModelState(truth.offsets * 0.5, {"chamber_z": {"z": 8.0}})
     one = fit(meas, start, eng, opts)
@@ -257,11 +257,12 @@ def test_ray_draws_average_the_fit_over_the_models_rays(defocus_case):
 
 
 def test_a_fit_settles_what_the_data_barely_see_where_the_prior_puts_it(defocus_case):
-    """The damped steps stop once they gain less than the tolerance; the fit then takes one
-    undamped Gauss-Newton step (a part of it where the model bends), kept where it lowers the
-    objective.  The offsets the data barely see come nearer the prior's mean."""
+    """``settle`` (an option): the damped steps stop once they gain less than the tolerance; the fit
+    then takes one undamped Gauss-Newton step (a part of it where the model bends or the step leaves
+    the bounds), kept where it lowers the objective.  The offsets the data barely see come nearer
+    the prior's mean."""
     meas, truth, twin = defocus_case
-    opts = FitOptions(rays=1500, seed=3, stages=(("features", 3), ("bins", 3)))
+    opts = FitOptions(rays=1500, seed=3, stages=(("features", 3), ("bins", 3)), settle=True)
     eng = TorchEngine(hist=CAMERA)
     start = ModelState(truth.offsets * 0.5, {"chamber_z": {"z": 8.0}})
     damped, settled = fit(meas, start, eng, opts.replace(settle=False)), fit(meas, start, eng, opts)
