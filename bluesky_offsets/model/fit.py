@@ -135,9 +135,8 @@ class FitOptions:
     settle : bool
         end with one undamped Gauss-Newton step (:func:`_settle`), kept where it lowers the
         objective: the offsets the data barely see go where the prior and the data put them, not
-        where the damped steps left them.  Off by default: on the designed measurement it brought
-        the offsets nearer the truth at ±5 % but left one draw's final fit at ±20 % above its
-        frames (docs/explanations/diagnosis.md, "Settling").
+        where the damped steps left them.  Off by default: it cost a ±20 % draw its fit
+        (docs/explanations/diagnosis.md, "Settling", has the numbers).
     engine : mapping, optional
         options of the torch engine (:class:`~bluesky_offsets.physics.engine.TorchOptions`).
     """
