@@ -69,7 +69,7 @@ class Beamline:
 
     def measure(self, cfg, screen=None) -> Measurement:
         cfg = np.atleast_2d(cfg)
-        vals = cfg + np.clip(self.offsets, -MAX_OFFSET, MAX_OFFSET) * T.span
+        vals = T.model_values(cfg, self.offsets)
         ov = per_frame_overrides(self.overrides or None, screen, len(cfg))
         seeds = [int(s) for s in self.rng.integers(2 ** 31, size=len(cfg))]
         r = self.twin.trace_batch(vals, overrides=ov, n_rays=self.photons, seed=seeds, progress=False)
