@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 from collections.abc import Mapping, Sequence
 from concurrent.futures import Executor
 from dataclasses import asdict, dataclass, field
@@ -121,7 +122,7 @@ class Refinement:
     def calibrated(self) -> CalibratedState:
         """The fitted state with the fit's covariance."""
         f = self.result.fit
-        return CalibratedState(self.state, f.covariance, tuple(f.names), self.uid)
+        return CalibratedState(self.state, f.covariance, tuple(f.names), self.uid, f.prior_sigma)
 
 
 @dataclass
@@ -148,12 +149,13 @@ class Refit:
     # within noise after the refit: how large each other candidate could be and still hide
     # (diagnosis.detection_limits at the refitted state); empty when beyond noise
     limits: dict[str, dict[str, float]] = field(default_factory=dict)
+    prior_sigma: float | None = None         # the offsets' prior σ of the covariance (None: the table's)
 
     @property
     def calibrated(self) -> CalibratedState:
         """The refitted state with the refit's covariance (None when its run did not store one)."""
         names = None if self.fit_names is None else tuple(self.fit_names)
-        return CalibratedState(self.state, self.covariance, names, self.uid)
+        return CalibratedState(self.state, self.covariance, names, self.uid, self.prior_sigma)
 
     def magnitude(self) -> dict[str, tuple[float, float]]:
         """``{parameter: (value, sigma)}`` of the added effect."""
@@ -178,12 +180,13 @@ class Pruning:
     uid: str | None = None
     covariance: np.ndarray | None = None
     fit_names: list[str] | None = None
+    prior_sigma: float | None = None
 
     @property
     def calibrated(self) -> CalibratedState:
         """The model after the step with its refit's covariance (None when the run stored none)."""
         names = None if self.fit_names is None else tuple(self.fit_names)
-        return CalibratedState(self.state, self.covariance, names, self.uid)
+        return CalibratedState(self.state, self.covariance, names, self.uid, self.prior_sigma)
 
 
 @dataclass
@@ -534,7 +537,7 @@ def refine_offsets(measurement, state: ModelState, twin, forward_model=None, *, 
                    history_json=_json(res.history),
                    # the fit's end, for an analysis that resumes after this step (restore_refinement)
                    covariance=np.asarray(res.fit.covariance, float), fit_names_json=_json(res.fit.names),
-                   fit_chi2=float(res.fit.chi2), fit_dof=float(res.fit.dof), fit_inflation=float(res.fit.inflation),
+                   prior_sigma=_prior_row(res.fit.prior_sigma), fit_chi2=float(res.fit.chi2), fit_dof=float(res.fit.dof), fit_inflation=float(res.fit.inflation),
                    fit_stage=str(res.fit.stage), fit_traces=int(res.fit.n_traces))
         yield from emit_rows("offsets", [row])
         c = yield from compare_model(meas, st, twin, label=label, effect_sigma=res.effect_sigma, open_run=False,
@@ -690,7 +693,8 @@ def add_effect_and_refit(measurement, state: ModelState, effect: str, twin, forw
         row = {"effect": effect, "values_json": _json(st.effects[effect]), "sigma_json": _json(sig.get(effect, {})),
                "units_json": _json({p.name: p.unit for p in eff.parameters}),
                # the fit's covariance: what an optimization on this model propagates (restore_refit)
-               "covariance": np.asarray(fit.covariance, float), "fit_names_json": _json(fit.names)}
+               "covariance": np.asarray(fit.covariance, float), "fit_names_json": _json(fit.names),
+               "prior_sigma": _prior_row(fit.prior_sigma)}
         for p in eff.parameters:
             row[p.name] = float(st.effects[effect][p.name])
             row[f"{p.name}_sigma"] = float(sig.get(effect, {}).get(p.name, float("nan")))
@@ -714,7 +718,7 @@ def add_effect_and_refit(measurement, state: ModelState, effect: str, twin, forw
         # the fit's own record (its ray draws in order; the progress events came as they ran)
         return Refit(effect, st, sig, c, [dict(h) for h in fit.history], versions,
                      covariance=np.asarray(fit.covariance, float),
-                     fit_names=list(fit.names), limits=limits)
+                     fit_names=list(fit.names), limits=limits, prior_sigma=fit.prior_sigma)
 
     r, uid = yield from in_run(body, _md, open_run)
     r.uid = r.comparison.uid = uid
@@ -756,13 +760,14 @@ def retest_effects(measurement, state: ModelState, twin, *, store=None, names: S
         sig = f.effect_sigma()
         st = ModelState(f.state.offsets, f.state.effects, f"- {w.effect}")
         yield from emit_rows("effect", [{"effect": w.effect, "covariance": np.asarray(f.covariance, float),
-                                         "fit_names_json": _json(f.names), **_offsets_row(st, table)}])
+                                         "fit_names_json": _json(f.names), "prior_sigma": _prior_row(f.prior_sigma),
+                                         **_offsets_row(st, table)}])
         c = yield from compare_model(meas, st, twin, label=st.label, effect_sigma=sig, open_run=False, show=show,
                                      table=table)
         versions = [*history, c.version()]
         yield from record_error_history(versions)
         return Pruning([t.as_dict() for t in tests], w.effect, st, sig, c, versions,
-                       covariance=np.asarray(f.covariance, float), fit_names=list(f.names))
+                       covariance=np.asarray(f.covariance, float), fit_names=list(f.names), prior_sigma=f.prior_sigma)
 
     r, uid = yield from in_run(body, _md, open_run)
     r.uid = uid
@@ -774,6 +779,17 @@ def retest_effects(measurement, state: ModelState, twin, *, store=None, names: S
 # --------------------------------------------------------------------------- #
 # results back from their runs: what an interrupted analysis resumes from
 # --------------------------------------------------------------------------- #
+def _prior_row(sigma: float | None) -> float:
+    """A fit's offsets' prior σ as a row's number (NaN: none)."""
+    return math.nan if sigma is None else float(sigma)
+
+
+def _prior_from(row: Mapping) -> float | None:
+    """The offsets' prior σ a row stored (None: the table's, or a run from before it was stored)."""
+    v = row.get("prior_sigma")
+    return None if v is None or not math.isfinite(float(v)) else float(v)
+
+
 def _arr(rows: Sequence[Mapping], key: str) -> np.ndarray:
     return np.asarray([r[key] for r in rows], dtype=float)
 
@@ -799,7 +815,7 @@ def restore_refinement(res: Mapping, uid: str | None = None) -> Refinement:
     c = restore_comparison(res, uid)
     fit = FitResult(c.state, list(row["history"]), np.asarray(row["covariance"], float), list(row["fit_names"]),
                     float(row["fit_chi2"]), float(row["fit_dof"]), float(row["fit_inflation"]),
-                    int(row["fit_traces"]), stage=str(row["fit_stage"]))
+                    int(row["fit_traces"]), stage=str(row["fit_stage"]), prior_sigma=_prior_from(row))
     return Refinement(RefineResult(c.state, dict(row["effect_sigma"]), list(row["history"]), fit), c, uid)
 
 
@@ -819,7 +835,7 @@ def restore_refit(res: Mapping, history: Sequence[Version], uid: str | None = No
     for r in res.get("limits", []):
         limits.setdefault(str(r["effect"]), {})[str(r["parameter"])] = float(r["limit"])
     return Refit(str(res["start"]["effect"]), c.state, dict(c.effect_sigma), c, steps, [*history, c.version()], uid,
-                 None if cov is None else np.asarray(cov, float), row.get("fit_names"), limits)
+                 None if cov is None else np.asarray(cov, float), row.get("fit_names"), limits, _prior_from(row))
 
 
 def restore_pruning(res: Mapping, history: Sequence[Version], uid: str | None = None) -> Pruning:
@@ -833,7 +849,7 @@ def restore_pruning(res: Mapping, history: Sequence[Version], uid: str | None = 
     c = restore_comparison(res, uid)
     row = res["effect"][0]
     return Pruning(tests, dropped, c.state, dict(c.effect_sigma), c, [*history, c.version()], uid,
-                   np.asarray(row["covariance"], float), row.get("fit_names"))
+                   np.asarray(row["covariance"], float), row.get("fit_names"), _prior_from(row))
 
 
 def analysis_key(meas: Measurement, settings: Mapping) -> str:

@@ -273,7 +273,7 @@ def optimize_beam(target, model, beamline, chamber, *, constraints: Constraints 
                                                                progress=progress, executor=executor,
                                                                table=table),
                                        stream=None, desc="refit the model with the frames after the move")
-        cal2 = CalibratedState(res.state, res.fit.covariance, tuple(res.fit.names), m.uid)
+        cal2 = CalibratedState(res.state, res.fit.covariance, tuple(res.fit.names), m.uid, res.fit.prior_sigma)
         opt2 = yield from compute(cal2, opt.settings)
         m2, read2 = yield from _move_and_measure(opt2, beamline, chamber, int(frames), False,
                                                  {**base_md, "step": 2, "previous_uid": m.uid,

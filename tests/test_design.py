@@ -19,7 +19,7 @@ from bluesky_offsets.design import (
     select,
 )
 from bluesky_offsets.model.export import CalibrationFileError, load_calibration, write_calibration
-from bluesky_offsets.model.posterior import Posterior
+from bluesky_offsets.model.posterior import Posterior, evidence_spread, with_prior
 from bluesky_offsets.model.state import CalibratedState, ModelState
 from bluesky_offsets.physics.parameters import METRIXS as T
 from bluesky_offsets.physics.screen import STAGE
@@ -144,6 +144,59 @@ def test_the_calibration_file_round_trips_and_refuses_what_it_cannot_use(tmp_pat
         with pytest.raises(CalibrationFileError, match=why) as err:
             load_calibration(tmp_path / name)
         assert len(str(err.value).splitlines()) == 1 and name in str(err.value)
+
+
+def _linear_posterior(spread: float, seed: int, prior: float = PRIOR_SIGMA):
+    """A linear-Gaussian calibration: offsets drawn with ``spread``, frames that determine a third of
+    the directions well, a third weakly and a third not at all; the posterior under the prior σ ``prior``."""
+    rng = np.random.default_rng(seed)
+    n = len(T)
+    truth = rng.normal(0.0, spread, n)
+    basis = np.linalg.qr(rng.normal(size=(n, n)))[0]
+    strength = np.r_[np.full(12, 1e-3), np.full(11, 3e-2), np.full(11, 10.0)]  # σ of each direction
+    information = basis @ np.diag(strength ** -2.0) @ basis.T
+    data = basis.T @ truth + rng.normal(0.0, strength)  # each direction measured with its σ
+    cov = np.linalg.inv(information + np.eye(n) / prior ** 2)
+    mean = cov @ (basis @ (data / strength ** 2))
+    return truth, mean, cov
+
+
+@pytest.mark.parametrize("spread", [0.02, 0.04])
+def test_the_offsets_spread_is_estimated_from_the_data(spread):
+    """The evidence's maximum over the prior's σ finds the offsets' true spread, within the sampling of
+    a few determined directions; offsets as wide as the table's prior keep the table's."""
+    est = [evidence_spread(m, c, len(T), PRIOR_SIGMA) for m, c in (_linear_posterior(spread, s)[1:] for s in range(8))]
+    assert 0.6 < np.median(est) / spread < 1.5, est
+    wide = [evidence_spread(m, c, len(T), PRIOR_SIGMA) for m, c in (_linear_posterior(0.2, s)[1:] for s in range(4))]
+    assert all(w == pytest.approx(PRIOR_SIGMA) for w in wide)
+    # frames that see nothing keep the table's prior; offsets far below it get a tenth of it, no less
+    blind = np.eye(len(T)) * PRIOR_SIGMA ** 2
+    assert evidence_spread(np.full(len(T), 1e-9), blind, len(T), PRIOR_SIGMA) == pytest.approx(PRIOR_SIGMA)
+    assert evidence_spread(*_linear_posterior(1e-4, 0)[1:], len(T), PRIOR_SIGMA) == pytest.approx(0.1 * PRIOR_SIGMA)
+
+
+def test_a_posterior_under_the_estimated_spread_keeps_the_classes_of_the_table_s_prior(tmp_path):
+    """The values and σ under the spread the data prefer; the classes, the σ / prior and the determined
+    combinations read against the table's prior, as without the estimate; the file keeps the prior."""
+    truth, mean, cov = _linear_posterior(0.03, 3)
+    tau = evidence_spread(mean, cov, len(T), PRIOR_SIGMA)
+    narrow = with_prior(cov, len(T), PRIOR_SIGMA, tau)
+    assert np.allclose(with_prior(narrow, len(T), tau, PRIOR_SIGMA), cov, rtol=1e-6, atol=1e-12)
+    narrow_mean = narrow @ np.linalg.solve(cov, mean)
+    names = tuple(T.names)
+    wide = Posterior.of(CalibratedState(ModelState(mean), cov, names))
+    post = Posterior.of(CalibratedState(ModelState(narrow_mean), narrow, names, prior_sigma=tau))
+    assert [e.cls for e in post.offsets] == [e.cls for e in wide.offsets]
+    assert [e.determination for e in post.offsets] == pytest.approx([e.determination for e in wide.offsets])
+    assert len(post.combinations) == len(wide.combinations)
+    assert all(p.normalized_sigma <= w.normalized_sigma * (1 + 1e-9) for p, w in zip(post.offsets, wide.offsets))
+    # nearer the truth than the wide prior's mean: the offsets the frames do not see shrink to the spread
+    assert np.sqrt(np.mean((narrow_mean - truth) ** 2)) < np.sqrt(np.mean((mean - truth) ** 2))
+    assert any("estimated from the data" in line for line in post.lines())
+    back = load_calibration(write_calibration(tmp_path / "c.json", CalibratedState(
+        ModelState(np.clip(narrow_mean, -0.2, 0.2)), narrow, names, prior_sigma=tau)))
+    assert back.prior_sigma == pytest.approx(tau) and load_calibration(
+        write_calibration(tmp_path / "w.json", CalibratedState(ModelState(mean), cov, names))).prior_sigma is None
 
 
 def test_a_prior_wide_posterior_still_gets_frames_where_the_estimate_sees_light():

@@ -280,6 +280,26 @@ def test_a_fit_settles_what_the_data_barely_see_where_the_prior_puts_it(defocus_
     assert np.array_equal(look.state.offsets, start.offsets) and "settle" not in look.history[-1]
 
 
+def test_a_fit_ends_under_the_offsets_spread_the_data_prefer(defocus_case):
+    """``estimate_spread``: offsets drawn within ±3 % of each range, the table's prior ±20 %: the fit
+    refits its last stage under the narrower spread its posterior's evidence prefers, and the
+    offsets end nearer the truth, with a covariance under that prior."""
+    meas, truth, twin = defocus_case
+    opts = FitOptions(rays=1500, seed=3, stages=(("features", 3), ("bins", 3)))
+    eng = TorchEngine(hist=CAMERA)
+    start = ModelState(np.zeros(len(METRIXS)), {"chamber_z": {"z": 15.0}})
+    wide, narrow = fit(meas, start, eng, opts), fit(meas, start, eng, opts.replace(estimate_spread=True))
+    assert wide.prior_sigma == pytest.approx(opts.prior_sigma)
+    assert narrow.prior_sigma < 0.95 * opts.prior_sigma
+    assert narrow.ridge[0] == pytest.approx(narrow.prior_sigma ** -2.0)
+    assert {h.get("spread") for h in narrow.history} >= {narrow.prior_sigma}
+    err = [np.sqrt(np.mean((f.state.offsets - truth.offsets) ** 2)) for f in (wide, narrow)]
+    print(f"spread {narrow.prior_sigma:.4f} (drawn: RMS {np.sqrt(np.mean(truth.offsets ** 2)):.4f}); "
+          f"RMSE {err[0]:.4f} -> {err[1]:.4f}")
+    assert err[1] < err[0]
+    assert np.all(narrow.offset_sigma <= wide.offset_sigma * 1.5)
+
+
 @contextlib.contextmanager
 def _side_by_side(where: str):
     """Two threads of this process, or the two worker processes of a twin's Dask cluster."""

@@ -323,8 +323,10 @@ def _folds(n: int, k: int, seed: int) -> list[np.ndarray]:
 # let the offsets give back what they had absorbed, then the bins.  All fits of one diagnosis
 # share their rays (one seed), so their χ² compare without sampling noise.  The fits with
 # effects run on four draws of the model's rays (FitOptions.ray_draws): one draw's fixed rays
-# end on a step of a staircase χ².
-FIT = FitOptions(rays=5000, stages=(("features", 15), ("profiles", 8), ("bins", 10)), ray_draws=4)
+# end on a step of a staircase χ².  Their offsets end under the spread the data prefer
+# (FitOptions.estimate_spread): the table's ±20 % prior lets the offsets the frames barely see wander.
+FIT = FitOptions(rays=5000, stages=(("features", 15), ("profiles", 8), ("bins", 10)), ray_draws=4,
+                 estimate_spread=True)
 SCAN = FitOptions(rays=3000, stages=(("features", 5), ("bins", 5)))
 DESIGNED_FIT = FIT.replace(rays=2000, feature_rays=1500)
 DESIGNED_SCAN = SCAN.replace(rays=1500)

@@ -48,6 +48,8 @@ def calibration_record(model, *, table: ParameterTable = METRIXS, measurement_ui
             "offsets": {e.name: e.as_dict() for e in post.offsets},
             "effects": {eff: {q: e.as_dict() for q, e in d.items()} for eff, d in post.effects.items()},
             "counts": post.counts(), "combinations": list(post.combinations),
+            # the offsets' prior the values and the covariance hold; the classes are against the table's
+            "prior": {"sigma_normalized": post.prior_sigma, "estimated_from_data": cal.prior_sigma is not None},
             "covariance": {"units": "normalized offsets (fractions of each range), then effect parameters",
                            "names": list(post.names), "matrix": cov},
             "validation": dict(validation) if validation else None}
@@ -96,6 +98,8 @@ def load_calibration(path: str | os.PathLike, *, table: ParameterTable = METRIXS
                    for eff, d in rec["effects"].items()}
         names = tuple(rec["covariance"]["names"])
         cov = np.array([[math.nan if v is None else float(v) for v in row] for row in rec["covariance"]["matrix"]])
+        prior = rec.get("prior") or {}
+        spread = float(prior["sigma_normalized"]) if prior.get("estimated_from_data") else None
     except (KeyError, TypeError, ValueError) as exc:
         raise CalibrationFileError(f"calibration {path}: incomplete or malformed ({type(exc).__name__}: {exc})") \
             from None
@@ -103,5 +107,7 @@ def load_calibration(path: str | os.PathLike, *, table: ParameterTable = METRIXS
         raise CalibrationFileError(f"calibration {path}: the covariance does not match its parameters")
     if not np.isfinite(offsets).all() or np.abs(offsets).max() > 0.2 + 1e-9:
         raise CalibrationFileError(f"calibration {path}: offsets outside ±0.2 of their ranges")
+    if spread is not None and not 0.0 < spread <= 0.2:
+        raise CalibrationFileError(f"calibration {path}: the offsets' prior σ {spread!r} is not within (0, 0.2]")
     state = ModelState(offsets, effects, str(rec.get("label") or "calibration"))
-    return CalibratedState(state, cov, names, rec.get("model_uid"))
+    return CalibratedState(state, cov, names, rec.get("model_uid"), spread)

@@ -57,6 +57,7 @@ from scipy.stats import chi2 as chi2_dist
 from bluesky_offsets.errors import InputError
 from bluesky_offsets.options import refuse_unknown
 from bluesky_offsets.physics import effects as E
+from bluesky_offsets.model.posterior import evidence_spread
 from bluesky_offsets.model.misfit import beam_features, compared, expected_pull2, feature_values
 from bluesky_offsets.model.values import ModelState
 from bluesky_offsets.physics.noise import bin_variance
@@ -137,6 +138,13 @@ class FitOptions:
         objective: the offsets the data barely see go where the prior and the data put them, not
         where the damped steps left them.  Off by default: it cost a ±20 % draw its fit
         (docs/explanations/diagnosis.md, "Settling", has the numbers).
+    estimate_spread : bool
+        after the fit, estimate the offsets' spread from the data (:func:`~bluesky_offsets.model.posterior.evidence_spread`:
+        the prior σ the evidence prefers, at most ``prior_sigma``) and, where it is narrower, refit
+        the last stage from the solution under it (ending with :func:`_settle`): the offsets the
+        frames do not determine go to where offsets of that spread are, not where the steps left
+        them within the wider prior.  Off by default; the analysis's fits (:data:`bluesky_offsets.model.diagnosis.FIT`)
+        turn it on.
     engine : mapping, optional
         options of the torch engine (:class:`~bluesky_offsets.physics.engine.TorchOptions`).
     """
@@ -155,6 +163,7 @@ class FitOptions:
     secant: bool = False
     ray_draws: int = 1
     settle: bool = False
+    estimate_spread: bool = False
     engine: Mapping | None = None
 
     def __post_init__(self):
@@ -222,6 +231,8 @@ class FitResult:
     draws: np.ndarray | None = field(default=None, repr=False)      # where each ray draw ended (ray_draws > 1)
     # the other starts' ends within the joint 95 % region of the kept one (their spread is in the covariance)
     alternatives: np.ndarray | None = field(default=None, repr=False)
+    # the offsets' prior σ the covariance holds (FitOptions.prior_sigma, or the spread estimated from the data)
+    prior_sigma: float | None = None
 
     @property
     def chi2_reduced(self) -> float:
@@ -764,10 +775,32 @@ def fit(meas, state, engine, options: FitOptions | Mapping | None = None, *,
             progress(history[-1])
     if o.settle and any(n for _, n in o.stages):  # a fit with no iterations is a look at its start
         z, pr = _settle(mdl, o.stages[-1][0], z, pr, ridge, history, progress)
-        r, G, dof, rows = mdl.residuals(o.stages[-1][0], pr)
-    # the covariance of the last stage: its information at the solution (two independent ray
-    # sets' Jacobians); a bound that holds a parameter does not shrink its uncertainty below
-    # what the data say
+    ends = _Ends(spread, None if spread is None else draws, others)
+    result = _result(mdl, meas, state, engine, o, table, z, pr, ridge, history, ends)
+    if o.estimate_spread and o.prior_sigma is not None and any(n for _, n in o.stages):
+        result = _with_spread(mdl, meas, state, engine, o, table, result, pr, ends, progress)
+    return result
+
+
+@dataclass(frozen=True)
+class _Ends:
+    """What widens a fit's covariance beyond its curvature: the ray draws' spread and ends, the other starts' ends."""
+
+    spread: np.ndarray | None
+    draws: np.ndarray | None
+    others: list
+
+
+def _result(mdl: _Model, meas, state, engine, o: FitOptions, table: ParameterTable, z: np.ndarray, pr: _Products,
+            ridge: np.ndarray, history: list[dict], ends: _Ends) -> FitResult:
+    """The fit's result at ``z`` (``pr``: the last stage's products there, with the twin's Jacobian).
+
+    The covariance of the last stage: its information at the solution (two independent ray sets'
+    Jacobians); a bound that holds a parameter does not shrink its uncertainty below what the data
+    say.  Then inflated, widened by the jackknife, the ray draws' spread and the other starts' ends.
+    """
+    spread, others = ends.spread, ends.others
+    r, G, dof, rows = mdl.residuals(o.stages[-1][0], pr)
     cross = _Model(meas, state, engine, o.replace(seed=o.seed + CROSS_SEED), table)
     cov = _posterior_covariance(_fisher(mdl, cross, o.stages[-1][0], z, pr), ridge)
     mdl.n_traces += cross.n_traces
@@ -791,9 +824,40 @@ def fit(meas, state, engine, options: FitOptions | Mapping | None = None, *,
         # each other end at two standard deviations from the solution, along its own direction
         d = np.asarray(others) - z
         cov = cov + np.where(np.isnan(cov), 0.0, d.T @ d / 4.0)
+    prior = None if not ridge[:mdl.P].any() else float(ridge[0] ** -0.5)
     return FitResult(mdl.state(z), history, cov, mdl.names, chi2, dof, inflation, mdl.n_traces, G, r,
-                     rows, o.stages[-1][0], ridge, widen, None if spread is None else np.asarray(draws),
-                     np.asarray(others) if others else None)
+                     rows, o.stages[-1][0], ridge, widen, ends.draws, np.asarray(others) if others else None, prior)
+
+
+SPREAD_REFIT = 0.95
+"""An estimated spread below this share of the prior's refits the offsets under it (:func:`_with_spread`)."""
+
+
+def _with_spread(mdl: _Model, meas, state, engine, o: FitOptions, table: ParameterTable, res: FitResult,
+                 pr: _Products, ends: _Ends, progress: Callable[[dict], None] | None) -> FitResult:
+    """``res`` refitted under the offsets' spread its posterior's evidence prefers, where that is narrower.
+
+    The last stage from ``res``'s solution with the offsets' prior σ set to the estimate, then the
+    settling step (:func:`_settle`); the covariance there under the same prior.  ``pr``: the last
+    stage's products at the solution, with the twin's Jacobian.
+    """
+    tau = evidence_spread(mdl.vector(res.state), res.covariance, mdl.P, o.prior_sigma)
+    if not tau < SPREAD_REFIT * o.prior_sigma:
+        return res
+    ridge = _ridge(mdl, o.replace(prior_sigma=tau))
+    history = res.history
+
+    def tagged(d):
+        d["spread"] = tau
+        if progress:
+            progress(d)
+    stage, iterations = o.stages[-1]
+    z = np.clip(mdl.vector(res.state), *mdl.bounds())
+    z, pr, exact = _stage(mdl, stage, z, pr, iterations, ridge, history, tagged, secant=False)
+    if not exact:
+        pr = mdl.products(stage, z, True)
+    z, pr = _settle(mdl, stage, z, pr, ridge, history, tagged)
+    return _result(mdl, meas, state, engine, o, table, z, pr, ridge, history, ends)
 
 
 SETTLE_FRACTIONS = (1.0, 0.5, 0.25)

@@ -9,6 +9,10 @@ its physical unit, after compensation by all others:
 * ``undetermined``: σ above half the prior's (the data barely beat the prior);
 * ``weak`` in between.
 
+The values and σ are under the offsets' prior the fit held: the table's, or the spread the data
+prefer (:func:`evidence_spread`); the classes always read the σ under the table's prior
+(:func:`with_prior`), so that they say what the frames determine, not what the spread does.
+
 Each offset's strongest compensating partners are the largest correlations of the posterior;
 the determined combinations are the posterior's directions with σ below a tenth of the prior's
 that are not one offset alone (two mirrors tilted against each other move the focus back:
@@ -31,6 +35,72 @@ PRIOR_SIGMA = MAX_OFFSET / math.sqrt(3.0)
 DETERMINED, UNDETERMINED = 0.1, 0.5
 PARTNER_CORRELATION = 0.5
 """A partner is an offset correlated with this one beyond this (in absolute value)."""
+
+
+def _inverse(a: np.ndarray) -> np.ndarray:
+    """The inverse of a symmetric positive matrix whose entries' scales differ by orders of magnitude."""
+    d = np.sqrt(np.clip(np.abs(np.diag(a)), 1e-300, None))
+    return np.linalg.pinv(a / np.outer(d, d), rcond=1e-12, hermitian=True) / np.outer(d, d)
+
+
+def _information(covariance: np.ndarray, n_offsets: int, prior_sigma: float) -> np.ndarray:
+    """What the data alone say: the precision of ``covariance`` less its offsets' prior (negative parts dropped)."""
+    q = _inverse(covariance)
+    q[np.arange(n_offsets), np.arange(n_offsets)] -= prior_sigma ** -2.0
+    w, v = np.linalg.eigh(0.5 * (q + q.T))
+    return (v * np.clip(w, 0.0, None)) @ v.T
+
+
+def with_prior(covariance: np.ndarray, n_offsets: int, prior_sigma: float, to_sigma: float) -> np.ndarray:
+    """``covariance`` (offsets first, their Gaussian prior σ ``prior_sigma``) under the prior σ ``to_sigma`` instead.
+
+    The same information from the data, another prior: what the class of an offset is read from
+    when the fit's prior was the spread estimated from the data.  Rows the data do not see (NaN) stay NaN.
+    """
+    cov = np.asarray(covariance, float)
+    ok = np.isfinite(np.diag(cov))
+    k = int(ok[:n_offsets].sum())
+    f = _information(cov[np.ix_(ok, ok)], k, prior_sigma)
+    f[np.arange(k), np.arange(k)] += to_sigma ** -2.0
+    out = np.full_like(cov, np.nan)
+    out[np.ix_(ok, ok)] = _inverse(f)
+    return out
+
+
+def evidence_spread(vector: np.ndarray, covariance: np.ndarray, n_offsets: int, prior_sigma: float,
+                    iterations: int = 200) -> float:
+    """The offsets' prior σ the data prefer, within [a tenth, all] of ``prior_sigma``: where the evidence is largest.
+
+    ``vector``: a fit's solution, its ``n_offsets`` normalized offsets first, then effect
+    parameters; ``covariance``: its posterior under the offsets' Gaussian prior σ ``prior_sigma``.
+    In the Gaussian approximation the posterior under a prior σ τ has the mean
+    m(τ) = (F + τ⁻²)⁻¹ b (F the data's information, b the posterior's precision times its mean);
+    the evidence is largest where τ² = |m(τ)'s offsets|² / γ, γ = n − τ⁻² tr Σ(τ)'s offsets the
+    number the data determine (MacKay's fixed point).  Why: the table's prior spans ±20 % of
+    each range, a beamline's offsets may be far smaller, and the offsets the frames barely see
+    then wander within the wider prior (docs/explanations/offsets.md, "The offsets' spread").
+    Not below a tenth of ``prior_sigma`` (the σ that counts as determined): few determined
+    directions estimate a spread coarsely, and one too narrow would claim every offset known.
+    """
+    cov = np.asarray(covariance, float)
+    ok = np.isfinite(np.diag(cov))
+    k = int(ok[:n_offsets].sum())
+    z = np.asarray(vector, float)[ok]
+    f = _information(cov[np.ix_(ok, ok)], k, prior_sigma)
+    b = _inverse(cov[np.ix_(ok, ok)]) @ z
+    lam, floor, ceiling = prior_sigma ** -2.0, prior_sigma ** -2.0, (DETERMINED * prior_sigma) ** -2.0
+    idx = np.arange(k)
+    for _ in range(iterations):
+        a = f.copy()
+        a[idx, idx] += lam
+        sigma = _inverse(a)
+        m = sigma @ b
+        gamma = k - lam * float(np.trace(sigma[:k, :k]))
+        new = min(max(gamma / max(float(m[:k] @ m[:k]), 1e-300), floor), ceiling)
+        if abs(new / lam - 1.0) < 1e-9:
+            break
+        lam = new
+    return float(lam ** -0.5)
 
 
 def classify(ratio: float) -> str:
@@ -57,6 +127,8 @@ class Estimate:
     cls: str
     partners: tuple[tuple[str, float], ...] = ()
     at_bound: bool = False
+    determination: float = math.nan
+    """σ over the prior's σ, both under the table's prior: what the class is read from."""
 
     def text(self) -> str:
         """``-1.49 ± 0.30 mrad``; an undetermined one says so first."""
@@ -68,7 +140,8 @@ class Estimate:
         """The estimate as plain JSON values (value, σ, unit, class, normalized, partners, at_bound)."""
         return {"value": self.value, "sigma": self.sigma, "unit": self.unit, "class": self.cls,
                 "normalized": self.normalized, "normalized_sigma": self.normalized_sigma,
-                "partners": [[n, c] for n, c in self.partners], "at_bound": self.at_bound}
+                "partners": [[n, c] for n, c in self.partners], "at_bound": self.at_bound,
+                "sigma_over_prior": self.determination if math.isfinite(self.determination) else None}
 
 
 @dataclass(frozen=True)
@@ -80,6 +153,8 @@ class Posterior:
     combinations: tuple[dict, ...]
     covariance: np.ndarray
     names: tuple[str, ...]
+    prior_sigma: float = PRIOR_SIGMA
+    """The offsets' prior σ (normalized) of the values and σ: the table's, or the spread estimated from the data."""
 
     @classmethod
     def of(cls, model, table: ParameterTable = METRIXS) -> Posterior | None:
@@ -96,14 +171,19 @@ class Posterior:
         st = cal.state
         n = len(table)
         sig = np.sqrt(np.clip(np.nan_to_num(np.diag(cov), nan=np.inf), 0.0, None))
+        spread = PRIOR_SIGMA if cal.prior_sigma is None else float(cal.prior_sigma)
+        # the class says what the data determine, against the table's prior whatever prior the fit held
+        ref_cov = cov if spread == PRIOR_SIGMA else with_prior(cov, n, spread, PRIOR_SIGMA)
+        ref = np.sqrt(np.clip(np.nan_to_num(np.diag(ref_cov), nan=np.inf), 0.0, None))
         d = np.where(np.isfinite(sig) & (sig > 0), sig, np.nan)
         with np.errstate(invalid="ignore", divide="ignore"):
             corr = cov / np.outer(d, d)
         offs = []
         for i, p in enumerate(table):
             z, s = float(st.offsets[i]), float(sig[i])
-            offs.append(Estimate(p.name, p.unit, z * p.span, s * p.span, z, s, classify(s / PRIOR_SIGMA),
-                                 _partners(corr, i, names[:n]), bool(abs(abs(z) - MAX_OFFSET) < 1e-6)))
+            ratio = float(ref[i]) / PRIOR_SIGMA
+            offs.append(Estimate(p.name, p.unit, z * p.span, s * p.span, z, s, classify(ratio),
+                                 _partners(corr, i, names[:n]), bool(abs(abs(z) - MAX_OFFSET) < 1e-6), ratio))
         effects: dict[str, dict[str, Estimate]] = {}
         k = n
         for eff in st.effects:
@@ -112,9 +192,10 @@ class Posterior:
                 prior = q.span / math.sqrt(12.0)
                 effects.setdefault(eff, {})[q.name] = Estimate(
                     f"{eff}.{q.name}", q.unit, v, s, v, s, classify(s / prior),
-                    _partners(corr, k, names), bool(min(abs(v - q.low), abs(v - q.high)) < 1e-9 * max(q.span, 1)))
+                    _partners(corr, k, names), bool(min(abs(v - q.low), abs(v - q.high)) < 1e-9 * max(q.span, 1)),
+                    s / prior)
                 k += 1
-        return cls(tuple(offs), effects, _combinations(cov[:n, :n], names[:n]), cov, names)
+        return cls(tuple(offs), effects, _combinations(ref_cov[:n, :n], names[:n]), cov, names, spread)
 
     def counts(self) -> dict[str, int]:
         """How many offsets are determined, weak and undetermined."""
@@ -131,12 +212,13 @@ class Posterior:
         return {"offsets": {e.name: e.as_dict() for e in self.offsets},
                 "effects": {eff: {q: e.as_dict() for q, e in d.items()} for eff, d in self.effects.items()},
                 "counts": self.counts(), "combinations": list(self.combinations),
-                "prior_sigma_normalized": PRIOR_SIGMA, "thresholds": [DETERMINED, UNDETERMINED]}
+                "prior_sigma_normalized": PRIOR_SIGMA, "spread_normalized": self.prior_sigma,
+                "spread_estimated": self.prior_sigma != PRIOR_SIGMA, "thresholds": [DETERMINED, UNDETERMINED]}
 
     def rows(self) -> list[dict]:
         """One row per offset for a report's table."""
         return [{"parameter": e.name, "offset": e.text(), "class": e.cls,
-                 "σ / prior": f"{e.normalized_sigma / PRIOR_SIGMA:.2f}",
+                 "σ / prior": f"{e.determination:.2f}",
                  "trades with": ", ".join(f"{n} ({c:+.2f})" for n, c in e.partners) or "-",
                  **({"note": "at the ±20 % bound"} if e.at_bound else {})} for e in self.offsets]
 
@@ -145,6 +227,10 @@ class Posterior:
         c = self.counts()
         out = [f"offsets: {c['determined']} determined, {c['weak']} weak, {c['undetermined']} undetermined "
                f"(σ below 0.1 / above 0.5 of the prior's)"]
+        if self.prior_sigma != PRIOR_SIGMA:
+            out.append(f"  the offsets' spread, estimated from the data: σ {self.prior_sigma:.3g} of each range "
+                       f"(the table's prior {PRIOR_SIGMA:.3g}); the values and ± below are under it, the classes "
+                       "against the table's")
         for e in self.offsets:
             partners = "; trades with " + ", ".join(f"{n} {v:+.2f}" for n, v in e.partners) if e.partners else ""
             out.append(f"  {e.name:32s} {e.text():36s} {e.cls}{partners}")

@@ -150,7 +150,7 @@ class RefineResult:
     @property
     def calibrated(self) -> CalibratedState:
         """The fitted state with the fit's covariance (what the posterior and the calibration file read)."""
-        return CalibratedState(self.state, self.fit.covariance, tuple(self.fit.names))
+        return CalibratedState(self.state, self.fit.covariance, tuple(self.fit.names), prior_sigma=self.fit.prior_sigma)
 
 
 def refine(meas: Measurement, state: ModelState, twin=None, forward_model=None, *,

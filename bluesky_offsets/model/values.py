@@ -58,12 +58,15 @@ class CalibratedState:
 
     The covariance is over the normalized offsets, then the state's effect parameters,
     ``names`` in that order (None: no uncertainty known).  ``uid``: the run the state comes from.
+    ``prior_sigma``: the offsets' Gaussian prior σ the covariance holds, where the fit estimated it
+    from the data (:func:`~bluesky_offsets.model.posterior.evidence_spread`); None: the table's.
     """
 
     state: ModelState
     covariance: np.ndarray | None = None
     names: tuple[str, ...] | None = None
     uid: str | None = None
+    prior_sigma: float | None = None
 
     @classmethod
     def of(cls, model) -> CalibratedState:
