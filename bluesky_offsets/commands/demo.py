@@ -588,7 +588,9 @@ def _print_summary(summary: dict, analysis, location: str) -> None:
     if summary.get("offsets"):
         c = summary["offsets"]["counts"]
         print(f"offsets ({summary['frames']} frames in all): {c['determined']} determined, {c['weak']} weak, "
-              f"{c['undetermined']} undetermined; each as value ± sigma in {summary.get('calibration')}")
+              f"{c['undetermined']} undetermined; each as value ± sigma in {summary.get('calibration')}"
+              + (f" (their spread estimated from the data: sigma {summary['offsets']['spread_normalized']:.3g} of each "
+                 "range)" if summary["offsets"].get("spread_estimated") else ""))
     if summary.get("validation") and summary["validation"]["passed"]:  # a failed one is in the verdict
         v = summary["validation"]
         print(f"validation on {v['configurations']} frames no fit used: chi2/dof = {v['chi2_reduced']:.2f}, "

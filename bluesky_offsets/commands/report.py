@@ -336,7 +336,7 @@ def offsets_section(model, table) -> str:
 
     The numbers are the model's :class:`bluesky_offsets.model.posterior.Posterior`.
     """
-    from bluesky_offsets.model.posterior import Posterior
+    from bluesky_offsets.model.posterior import PRIOR_SIGMA, Posterior
     post = Posterior.of(model, table)
     if post is None:
         return paragraph("The final model has no covariance: its offsets are not reported without their "
@@ -345,7 +345,10 @@ def offsets_section(model, table) -> str:
     head = paragraph(f"{c['determined']} offsets determined (σ below a tenth of the prior's, the prior uniform "
                      f"within ±20 % of each range), {c['weak']} weak, {c['undetermined']} undetermined (σ above half "
                      "the prior's: the data barely beat it). σ after compensation by all other offsets; "
-                     "'trades with': the offsets most correlated with it in the posterior.")
+                     "'trades with': the offsets most correlated with it in the posterior."
+                     + (f" The values and σ are under the offsets' spread the data prefer, σ {post.prior_sigma:.3g} of "
+                        f"each range (the table's prior: {PRIOR_SIGMA:.3g}); the classes against the table's prior."
+                        if post.prior_sigma != PRIOR_SIGMA else ""))
     combos = ""
     if post.combinations:
         combos = paragraph("Combinations the data determine though their parts may not be:") + table_(

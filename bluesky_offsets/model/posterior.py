@@ -75,7 +75,7 @@ def evidence_spread(vector: np.ndarray, covariance: np.ndarray, n_offsets: int, 
     parameters; ``covariance``: its posterior under the offsets' Gaussian prior σ ``prior_sigma``.
     In the Gaussian approximation the posterior under a prior σ τ has the mean
     m(τ) = (F + τ⁻²)⁻¹ b (F the data's information, b the posterior's precision times its mean);
-    the evidence is largest where τ² = |m(τ)'s offsets|² / γ, γ = n − τ⁻² tr Σ(τ)'s offsets the
+    the evidence is largest where τ² = ‖m(τ)'s offsets‖² / γ, γ = n − τ⁻² tr Σ(τ)'s offsets the
     number the data determine (MacKay's fixed point).  Why: the table's prior spans ±20 % of
     each range, a beamline's offsets may be far smaller, and the offsets the frames barely see
     then wander within the wider prior (docs/explanations/offsets.md, "The offsets' spread").
