@@ -537,7 +537,8 @@ def refine_offsets(measurement, state: ModelState, twin, forward_model=None, *, 
                    history_json=_json(res.history),
                    # the fit's end, for an analysis that resumes after this step (restore_refinement)
                    covariance=np.asarray(res.fit.covariance, float), fit_names_json=_json(res.fit.names),
-                   prior_sigma=_prior_row(res.fit.prior_sigma), fit_chi2=float(res.fit.chi2), fit_dof=float(res.fit.dof), fit_inflation=float(res.fit.inflation),
+                   prior_sigma=_prior_row(res.fit.prior_sigma),
+                   fit_chi2=float(res.fit.chi2), fit_dof=float(res.fit.dof), fit_inflation=float(res.fit.inflation),
                    fit_stage=str(res.fit.stage), fit_traces=int(res.fit.n_traces))
         yield from emit_rows("offsets", [row])
         c = yield from compare_model(meas, st, twin, label=label, effect_sigma=res.effect_sigma, open_run=False,
@@ -581,7 +582,8 @@ def diagnose_effects(measurement, state: ModelState, twin, forward_model=None, *
                      candidates: Sequence[str] | None = None, folds: int = 4, seed: int = 0,
                      options: FitOptions | Mapping | None = None, fit_top: int | None = D.FIT_TOP,
                      executor: Executor | None = None, open_run: bool = True, md: Mapping | None = None,
-                     show: bool = True, table: ParameterTable = METRIXS) -> MsgGenerator[Ranking]:
+                     show: bool = True, table: ParameterTable = METRIXS,
+                     spread: float | None = None) -> MsgGenerator[Ranking]:
     """Which effect is missing: :func:`bluesky_offsets.model.diagnosis.diagnose` as a run.
 
     Every candidate fitted with the offsets from each of its starts (``fit_top``: screen every
@@ -589,7 +591,8 @@ def diagnose_effects(measurement, state: ModelState, twin, forward_model=None, *
     :data:`bluesky_offsets.model.diagnosis.SCAN`; ``executor``: runs them side by side, the same
     result on any number of threads).  Streams ``progress`` (every fit's iterations),
     ``ranking`` (one event per candidate, best first) and ``diagnosis`` (verdict, base misfit
-    and its noise expectation, observed signature).
+    and its noise expectation, observed signature).  ``spread``: the offsets' spread the offsets
+    fit estimated, the prior of the detection limits of a base model within noise.
     """
     meas, link = resolve_measurement(measurement, store, table=table)
     twin = twin.with_hist(meas.spec)  # the twin bins as the measurement does
@@ -599,12 +602,14 @@ def diagnose_effects(measurement, state: ModelState, twin, forward_model=None, *
     opts = FitOptions.resolve(options, D.SCAN)
     _md = {"plan_name": "diagnose_effects", "purpose": "which physical effect is missing", **link,
            **_state_md(state, table), "candidates": names, "folds": folds, "n_configurations": meas.n,
-           "fit_options": _jsonable(asdict(opts)), "fit_top": fit_top or 0, **dict(md or {})}
+           "fit_options": _jsonable(asdict(opts)), "fit_top": fit_top or 0, "spread": spread,
+           **dict(md or {})}
 
     def body():
         d: Diagnosis = yield from run_in_thread(
             lambda progress: diagnose(meas, state, twin, candidates=names, folds=folds, seed=seed, options=opts,
-                                      fit_top=fit_top, progress=progress, executor=executor, table=table),
+                                      fit_top=fit_top, progress=progress, executor=executor, table=table,
+                                      spread=spread),
             desc=f"rank {len(names)} candidate effects", show=show)
         yield from emit_rows("ranking", ranking_rows(d))
         mf = d.base_misfit
@@ -709,6 +714,8 @@ def add_effect_and_refit(measurement, state: ModelState, effect: str, twin, forw
             # what could still hide: a model within noise can still miss an effect the offsets absorb
             names = [n for n in (candidates or E.EFFECTS) if n not in st.effects]
             lo = FitOptions.resolve(limits_options, D.SCAN)
+            if fit.prior_sigma is not None:  # offsets of the spread the refit found hide less
+                lo = lo.replace(prior_sigma=fit.prior_sigma)
             limits = yield from run_in_thread(
                 lambda progress: D.detection_limits(meas, st, D.engine_for(meas, lo, table), lo, names,
                                                     c.misfit.noise_margin(), executor=executor, table=table),
@@ -1003,11 +1010,12 @@ def analyse_measurement(measurement, twin, forward_model=None, *, store=None,
         out.refinement = r
         out.comparisons.append(r.comparison)
         current = r.state
+    spread = out.refinement.result.fit.prior_sigma if out.refinement is not None else None
     for round_ in range(max(1, rounds)):
         suffix = "" if round_ == 0 else f"_{round_ + 1}"
         rk = yield from step("diagnose" + suffix, lambda m: diagnose_effects(
             meas, current, twin, candidates=candidates, folds=folds, seed=seed + round_, options=sopts,
-            fit_top=fit_top, md=m, show=show, executor=executor, table=table), restore_ranking)
+            fit_top=fit_top, md=m, show=show, executor=executor, table=table, spread=spread), restore_ranking)
         out.rankings.append(rk)
         out.uids["diagnose" + suffix] = rk.uid
         best = rk.diagnosis.best

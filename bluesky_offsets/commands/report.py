@@ -346,9 +346,9 @@ def offsets_section(model, table) -> str:
                      f"within ±20 % of each range), {c['weak']} weak, {c['undetermined']} undetermined (σ above half "
                      "the prior's: the data barely beat it). σ after compensation by all other offsets; "
                      "'trades with': the offsets most correlated with it in the posterior."
-                     + (f" The values and σ are under the offsets' spread the data prefer, σ {post.prior_sigma:.3g} of "
-                        f"each range (the table's prior: {PRIOR_SIGMA:.3g}); the classes against the table's prior."
-                        if post.prior_sigma != PRIOR_SIGMA else ""))
+                     + (f" The values and σ are under the offsets' spread the data prefer, σ "
+                        f"{post.prior_sigma:.3g} of each range (the table's prior: {PRIOR_SIGMA:.3g}); the classes "
+                        "against the table's prior." if post.prior_sigma != PRIOR_SIGMA else ""))
     combos = ""
     if post.combinations:
         combos = paragraph("Combinations the data determine though their parts may not be:") + table_(

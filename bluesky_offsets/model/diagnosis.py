@@ -491,7 +491,7 @@ def diagnose(meas: Measurement, state: ModelState, twin=None, forward_model=None
              candidates: Sequence[str] | None = None, folds: int = 4, seed: int = 0, n_sigma: float = 3.0,
              options: FitOptions | Mapping | None = None, verify_rays: int | None = None, verify_top: int = 3,
              fit_top: int | None = FIT_TOP, progress=None, executor: Executor | None = None,
-             table: ParameterTable = METRIXS) -> Diagnosis:
+             table: ParameterTable = METRIXS, spread: float | None = None) -> Diagnosis:
     """Rank candidate effects for the misfit of ``state`` against ``meas`` (see the module text).
 
     ``state`` should already carry fitted offsets (:func:`bluesky_offsets.model.state.refine`).
@@ -505,7 +505,9 @@ def diagnose(meas: Measurement, state: ModelState, twin=None, forward_model=None
     screened (:func:`bluesky_offsets.model.fit.screen`: the twin's Jacobian there and a few steps
     on its secant updates, a fifth of a fit) and only the best ``fit_top`` candidates are fitted;
     None fits every start.  ``twin`` names the parameter table and ``forward_model`` is not used
-    (both kept for symmetry with the other steps).
+    (both kept for symmetry with the other steps).  ``spread``: the offsets' spread the offsets fit
+    estimated (:attr:`~bluesky_offsets.model.fit.FitResult.prior_sigma`), the offsets' prior of the
+    detection limits where the base model is within noise (offsets that narrow hide less).
     """
     names = [n_ for n_ in (candidates or list(E.EFFECTS)) if n_ not in state.effects]
     for n_ in names:
@@ -527,7 +529,8 @@ def diagnose(meas: Measurement, state: ModelState, twin=None, forward_model=None
     if not base_mf.total_beyond_noise(n_sigma):
         # nothing to explain: no candidate is fitted.  What the verdict cannot exclude is said:
         # an effect the offsets absorb leaves a model within noise
-        limits = detection_limits(meas, state, engine, o, names, base_mf.noise_margin(n_sigma), executor=executor,
+        lo = o if spread is None else o.replace(prior_sigma=spread)
+        limits = detection_limits(meas, state, engine, lo, names, base_mf.noise_margin(n_sigma), executor=executor,
                                   table=table)
         n_traces += n * n_starts  # one Jacobian at each start
         return Diagnosis(base_mf, True, [], _signature(meas.histograms, base_view, spec), folds, n_traces,

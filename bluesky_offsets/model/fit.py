@@ -139,12 +139,12 @@ class FitOptions:
         where the damped steps left them.  Off by default: it cost a ±20 % draw its fit
         (docs/explanations/diagnosis.md, "Settling", has the numbers).
     estimate_spread : bool
-        after the fit, estimate the offsets' spread from the data (:func:`~bluesky_offsets.model.posterior.evidence_spread`:
-        the prior σ the evidence prefers, at most ``prior_sigma``) and, where it is narrower, refit
-        the last stage from the solution under it (ending with :func:`_settle`): the offsets the
-        frames do not determine go to where offsets of that spread are, not where the steps left
-        them within the wider prior.  Off by default; the analysis's fits (:data:`bluesky_offsets.model.diagnosis.FIT`)
-        turn it on.
+        after the fit, estimate the offsets' spread from the data
+        (:func:`~bluesky_offsets.model.posterior.evidence_spread`: the prior σ the evidence
+        prefers, at most ``prior_sigma``) and, where it is narrower, refit the last stage from the
+        solution under it (ending with :func:`_settle`): the offsets the frames do not determine go
+        to where offsets of that spread are, not where the steps left them within the wider prior.
+        Off by default; the analysis's fits (:data:`bluesky_offsets.model.diagnosis.FIT`) turn it on.
     engine : mapping, optional
         options of the torch engine (:class:`~bluesky_offsets.physics.engine.TorchOptions`).
     """
