@@ -47,7 +47,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Mapping, Sequence
 from concurrent.futures import Executor
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field, fields, replace
 from typing import TypeVar
 
 import numpy as np
@@ -57,7 +57,7 @@ from scipy.stats import chi2 as chi2_dist
 from bluesky_offsets.errors import InputError
 from bluesky_offsets.options import refuse_unknown
 from bluesky_offsets.physics import effects as E
-from bluesky_offsets.model.posterior import evidence_spread
+from bluesky_offsets.model.posterior import evidence_spread, shrunk_mean
 from bluesky_offsets.model.misfit import beam_features, compared, expected_pull2, feature_values
 from bluesky_offsets.model.values import ModelState
 from bluesky_offsets.physics.noise import bin_variance
@@ -778,7 +778,7 @@ def fit(meas, state, engine, options: FitOptions | Mapping | None = None, *,
     ends = _Ends(spread, None if spread is None else draws, others)
     result = _result(mdl, meas, state, engine, o, table, z, pr, ridge, history, ends)
     if o.estimate_spread and o.prior_sigma is not None and any(n for _, n in o.stages):
-        result = _with_spread(mdl, meas, state, engine, o, table, result, pr, ends, progress)
+        result = _with_spread(mdl, meas, state, engine, o, table, result, ends, progress)
     return result
 
 
@@ -834,30 +834,36 @@ SPREAD_REFIT = 0.95
 
 
 def _with_spread(mdl: _Model, meas, state, engine, o: FitOptions, table: ParameterTable, res: FitResult,
-                 pr: _Products, ends: _Ends, progress: Callable[[dict], None] | None) -> FitResult:
+                 ends: _Ends, progress: Callable[[dict], None] | None) -> FitResult:
     """``res`` refitted under the offsets' spread its posterior's evidence prefers, where that is narrower.
 
-    The last stage from ``res``'s solution with the offsets' prior σ set to the estimate, then the
-    settling step (:func:`_settle`); the covariance there under the same prior.  ``pr``: the last
-    stage's products at the solution, with the twin's Jacobian.
+    The last stage under the offsets' prior σ set to the estimate, settled (:func:`_settle`), from
+    ``res``'s solution and from the Gaussian posterior's mean under it
+    (:func:`~bluesky_offsets.model.posterior.shrunk_mean`: on RAYX's hard counts a fit ends near
+    where it starts), the end lowest on fresh rays kept as
+    :func:`fit` keeps it; the covariance there, under the same prior, widened as ``res``'s was by
+    its ray draws and other starts.
     """
-    tau = evidence_spread(mdl.vector(res.state), res.covariance, mdl.P, o.prior_sigma)
+    z = mdl.vector(res.state)
+    tau = evidence_spread(z, res.covariance, mdl.P, o.prior_sigma)
     if not tau < SPREAD_REFIT * o.prior_sigma:
         return res
-    ridge = _ridge(mdl, o.replace(prior_sigma=tau))
-    history = res.history
 
     def tagged(d):
         d["spread"] = tau
         if progress:
             progress(d)
-    stage, iterations = o.stages[-1]
-    z = np.clip(mdl.vector(res.state), *mdl.bounds())
-    z, pr, exact = _stage(mdl, stage, z, pr, iterations, ridge, history, tagged, secant=False)
-    if not exact:
-        pr = mdl.products(stage, z, True)
-    z, pr = _settle(mdl, stage, z, pr, ridge, history, tagged)
-    return _result(mdl, meas, state, engine, o, table, z, pr, ridge, history, ends)
+    sub = o.replace(prior_sigma=tau, stages=o.stages[-1:], settle=True, estimate_spread=False, ray_draws=1)
+    mean = np.clip(shrunk_mean(z, res.covariance, mdl.P, o.prior_sigma, tau), *mdl.bounds())
+    out = fit(meas, mdl.state(z), engine, sub, progress=tagged, table=table, also_from=[mdl.state(mean)])
+    cov = out.covariance
+    if ends.spread is not None:
+        cov = cov + np.where(np.isnan(cov), 0.0, ends.spread)
+    if ends.others:
+        d = np.asarray(ends.others) - mdl.vector(out.state)
+        cov = cov + np.where(np.isnan(cov), 0.0, d.T @ d / 4.0)
+    return replace(out, covariance=cov, history=res.history + out.history, n_traces=res.n_traces + out.n_traces,
+                   draws=ends.draws)
 
 
 SETTLE_FRACTIONS = (1.0, 0.5, 0.25)

@@ -103,6 +103,24 @@ def evidence_spread(vector: np.ndarray, covariance: np.ndarray, n_offsets: int, 
     return float(lam ** -0.5)
 
 
+def shrunk_mean(vector: np.ndarray, covariance: np.ndarray, n_offsets: int, prior_sigma: float,
+                to_sigma: float) -> np.ndarray:
+    """The Gaussian posterior's mean of a fit's ``vector`` (offsets first) under the offsets' prior σ ``to_sigma``.
+
+    ``covariance`` holds the offsets' prior σ ``prior_sigma``: m = (F + to_sigma⁻²)⁻¹ b, as in
+    :func:`evidence_spread`.  Rows the data do not see keep their values.
+    """
+    cov = np.asarray(covariance, float)
+    ok = np.isfinite(np.diag(cov))
+    k = int(ok[:n_offsets].sum())
+    z = np.asarray(vector, float)
+    f = _information(cov[np.ix_(ok, ok)], k, prior_sigma)
+    f[np.arange(k), np.arange(k)] += to_sigma ** -2.0
+    out = z.copy()
+    out[ok] = _inverse(f) @ (_inverse(cov[np.ix_(ok, ok)]) @ z[ok])
+    return out
+
+
 def classify(ratio: float) -> str:
     """``determined`` / ``weak`` / ``undetermined`` for a posterior σ over the prior's σ."""
     if not math.isfinite(ratio):
