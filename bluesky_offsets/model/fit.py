@@ -775,10 +775,10 @@ def fit(meas, state, engine, options: FitOptions | Mapping | None = None, *,
             progress(history[-1])
     if o.settle and any(n for _, n in o.stages):  # a fit with no iterations is a look at its start
         z, pr = _settle(mdl, o.stages[-1][0], z, pr, ridge, history, progress)
-    ends = _Ends(spread, None if spread is None else draws, others)
-    result = _result(mdl, meas, state, engine, o, table, z, pr, ridge, history, ends)
+    wider = _Ends(spread, None if spread is None else draws, others)
+    result = _result(mdl, meas, state, engine, o, table, z, pr, ridge, history, wider)
     if o.estimate_spread and o.prior_sigma is not None and any(n for _, n in o.stages):
-        result = _with_spread(mdl, meas, state, engine, o, table, result, ends, progress)
+        result = _with_spread(mdl, meas, state, engine, o, table, result, wider, progress)
     return result
 
 
@@ -844,9 +844,10 @@ def _with_spread(mdl: _Model, meas, state, engine, o: FitOptions, table: Paramet
     :func:`fit` keeps it; the covariance there, under the same prior, widened as ``res``'s was by
     its ray draws and other starts.
     """
-    z = mdl.vector(res.state)
-    tau = evidence_spread(z, res.covariance, mdl.P, o.prior_sigma)
-    if not tau < SPREAD_REFIT * o.prior_sigma:
+    z, prior = mdl.vector(res.state), o.prior_sigma
+    assert prior is not None  # fit() asks only with a prior
+    tau = evidence_spread(z, res.covariance, mdl.P, prior)
+    if not tau < SPREAD_REFIT * prior:
         return res
 
     def tagged(d):
@@ -854,7 +855,7 @@ def _with_spread(mdl: _Model, meas, state, engine, o: FitOptions, table: Paramet
         if progress:
             progress(d)
     sub = o.replace(prior_sigma=tau, stages=o.stages[-1:], settle=True, estimate_spread=False, ray_draws=1)
-    mean = np.clip(shrunk_mean(z, res.covariance, mdl.P, o.prior_sigma, tau), *mdl.bounds())
+    mean = np.clip(shrunk_mean(z, res.covariance, mdl.P, prior, tau), *mdl.bounds())
     out = fit(meas, mdl.state(z), engine, sub, progress=tagged, table=table, also_from=[mdl.state(mean)])
     cov = out.covariance
     if ends.spread is not None:
