@@ -51,6 +51,15 @@ def _information(covariance: np.ndarray, n_offsets: int, prior_sigma: float) -> 
     return (v * np.clip(w, 0.0, None)) @ v.T
 
 
+def _under(information: np.ndarray, b: np.ndarray, n_offsets: int,
+           precision: float) -> tuple[np.ndarray, np.ndarray]:
+    """The Gaussian posterior's mean and covariance: the data's ``information``, ``b``, the offsets' prior precision."""
+    a = information.copy()
+    a[np.arange(n_offsets), np.arange(n_offsets)] += precision
+    cov = _inverse(a)
+    return cov @ b, cov
+
+
 def with_prior(covariance: np.ndarray, n_offsets: int, prior_sigma: float, to_sigma: float) -> np.ndarray:
     """``covariance`` (offsets first, their Gaussian prior σ ``prior_sigma``) under the prior σ ``to_sigma`` instead.
 
@@ -61,9 +70,8 @@ def with_prior(covariance: np.ndarray, n_offsets: int, prior_sigma: float, to_si
     ok = np.isfinite(np.diag(cov))
     k = int(ok[:n_offsets].sum())
     f = _information(cov[np.ix_(ok, ok)], k, prior_sigma)
-    f[np.arange(k), np.arange(k)] += to_sigma ** -2.0
     out = np.full_like(cov, np.nan)
-    out[np.ix_(ok, ok)] = _inverse(f)
+    out[np.ix_(ok, ok)] = _under(f, np.zeros(len(f)), k, to_sigma ** -2.0)[1]
     return out
 
 
@@ -88,15 +96,12 @@ def evidence_spread(vector: np.ndarray, covariance: np.ndarray, n_offsets: int, 
     z = np.asarray(vector, float)[ok]
     f = _information(cov[np.ix_(ok, ok)], k, prior_sigma)
     b = _inverse(cov[np.ix_(ok, ok)]) @ z
-    lam, floor, ceiling = prior_sigma ** -2.0, prior_sigma ** -2.0, (DETERMINED * prior_sigma) ** -2.0
-    idx = np.arange(k)
+    # λ = τ⁻², between the table's prior's and a tenth of its σ's
+    lam, lowest, highest = prior_sigma ** -2.0, prior_sigma ** -2.0, (DETERMINED * prior_sigma) ** -2.0
     for _ in range(iterations):
-        a = f.copy()
-        a[idx, idx] += lam
-        sigma = _inverse(a)
-        m = sigma @ b
-        gamma = k - lam * float(np.trace(sigma[:k, :k]))
-        new = min(max(gamma / max(float(m[:k] @ m[:k]), 1e-300), floor), ceiling)
+        m, c = _under(f, b, k, lam)
+        gamma = k - lam * float(np.trace(c[:k, :k]))
+        new = min(max(gamma / max(float(m[:k] @ m[:k]), 1e-300), lowest), highest)
         if abs(new / lam - 1.0) < 1e-9:
             break
         lam = new
@@ -115,9 +120,8 @@ def shrunk_mean(vector: np.ndarray, covariance: np.ndarray, n_offsets: int, prio
     k = int(ok[:n_offsets].sum())
     z = np.asarray(vector, float)
     f = _information(cov[np.ix_(ok, ok)], k, prior_sigma)
-    f[np.arange(k), np.arange(k)] += to_sigma ** -2.0
     out = z.copy()
-    out[ok] = _inverse(f) @ (_inverse(cov[np.ix_(ok, ok)]) @ z[ok])
+    out[ok] = _under(f, _inverse(cov[np.ix_(ok, ok)]) @ z[ok], k, to_sigma ** -2.0)[0]
     return out
 
 
