@@ -80,7 +80,7 @@ def test_refine_finds_the_offsets_through_the_twin(twin):
     assert all(lim > 0 for v in d.limits.values() for lim in v.values()), d.limits
     assert "how large each could be and still hide" in d.notes[-1]
     # offsets of a narrower spread (estimated by the offsets fit) absorb less: less can hide
-    narrow = diagnose(meas, fit.state, twin, candidates=CANDIDATES, options=SCAN, spread=0.25 * SCAN.prior_sigma)
+    narrow = diagnose(meas, fit.state, twin, candidates=CANDIDATES, options=SCAN, spread=0.25 * SCAN["prior_sigma"])
     assert all(narrow.limits[n][q] <= d.limits[n][q] * (1 + 1e-9) for n in d.limits for q in d.limits[n])
     assert any(narrow.limits[n][q] < 0.9 * d.limits[n][q] for n in d.limits for q in d.limits[n])
 
