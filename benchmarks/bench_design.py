@@ -136,7 +136,7 @@ def metrics(truth, fitres) -> dict:
             "determined_within_2sigma": float(within[det].mean()) if det.any() else float("nan"),
             "determined_rmse_over_rms": float(np.sqrt(np.mean(err[det] ** 2)) / rms) if det.any() else float("nan"),
             "at_bound": int(at_bound.sum()), "at_bound_truth_far": int((at_bound & ~within).sum()),
-            "chi2_reduced": float(fitres.chi2_reduced), "spread": fitres.prior_sigma}
+            "chi2_reduced": float(fitres.chi2_reduced), "spread": fitres.prior_sigma or PRIOR}
 
 
 def one(seed: int, how: str, a, log) -> dict:

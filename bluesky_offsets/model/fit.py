@@ -231,7 +231,8 @@ class FitResult:
     draws: np.ndarray | None = field(default=None, repr=False)      # where each ray draw ended (ray_draws > 1)
     # the other starts' ends within the joint 95 % region of the kept one (their spread is in the covariance)
     alternatives: np.ndarray | None = field(default=None, repr=False)
-    # the offsets' prior σ the covariance holds (FitOptions.prior_sigma, or the spread estimated from the data)
+    # the offsets' spread estimated from the data, where the solution and the covariance hold it as
+    # the offsets' prior in place of FitOptions.prior_sigma (FitOptions.estimate_spread); None: not
     prior_sigma: float | None = None
 
     @property
@@ -824,9 +825,8 @@ def _result(mdl: _Model, meas, state, engine, o: FitOptions, table: ParameterTab
         # each other end at two standard deviations from the solution, along its own direction
         d = np.asarray(others) - z
         cov = cov + np.where(np.isnan(cov), 0.0, d.T @ d / 4.0)
-    prior = None if not ridge[:mdl.P].any() else float(ridge[0] ** -0.5)
     return FitResult(mdl.state(z), history, cov, mdl.names, chi2, dof, inflation, mdl.n_traces, G, r,
-                     rows, o.stages[-1][0], ridge, widen, ends.draws, np.asarray(others) if others else None, prior)
+                     rows, o.stages[-1][0], ridge, widen, ends.draws, np.asarray(others) if others else None)
 
 
 SPREAD_REFIT = 0.95
@@ -864,7 +864,7 @@ def _with_spread(mdl: _Model, meas, state, engine, o: FitOptions, table: Paramet
         d = np.asarray(ends.others) - mdl.vector(out.state)
         cov = cov + np.where(np.isnan(cov), 0.0, d.T @ d / 4.0)
     return replace(out, covariance=cov, history=res.history + out.history, n_traces=res.n_traces + out.n_traces,
-                   draws=ends.draws)
+                   draws=ends.draws, prior_sigma=tau)
 
 
 SETTLE_FRACTIONS = (1.0, 0.5, 0.25)
