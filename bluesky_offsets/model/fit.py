@@ -57,7 +57,7 @@ from scipy.stats import chi2 as chi2_dist
 from bluesky_offsets.errors import InputError
 from bluesky_offsets.options import refuse_unknown
 from bluesky_offsets.physics import effects as E
-from bluesky_offsets.model.posterior import evidence_spread, shrunk_mean
+from bluesky_offsets.model.posterior import evidence_spread, scaled_inverse, shrunk_mean
 from bluesky_offsets.model.misfit import beam_features, compared, expected_pull2, feature_values
 from bluesky_offsets.model.values import ModelState
 from bluesky_offsets.physics.noise import bin_variance
@@ -750,7 +750,6 @@ def fit(meas, state, engine, options: FitOptions | Mapping | None = None, *,
     draws = np.asarray([z] + [run[0] for run in later])
     history += [h for run in later for h in run[3]]
     mdl.n_traces += sum(m.n_traces for m in models[1:] + dms)
-    spread = None
     if len(draws) > 1:
         z, exact = np.clip(draws.mean(0), *mdl.bounds()), False
         # what the rays leave in the mean: one draw's variance, not a quarter of it.  The later
@@ -760,13 +759,13 @@ def fit(meas, state, engine, options: FitOptions | Mapping | None = None, *,
         # error, and their scatter shows only the part they moved: draws that move a fraction a
         # of the way (S: one draw's variance at its own minimum) scatter by a^2 S while their
         # mean varies by S((1 - 3a/4)^2 + 3a^2/16): the scatter is four times that at a = 1
-        # (conservative), equal to it at a = 0.6, and short of it below: so the larger is kept.
-        spread = np.cov(draws.T, ddof=1)
+        # (conservative), equal to it at a = 0.6, and short of it below: so the larger is kept
+        # (_Ends.widen adds their sample covariance).
     if not exact:
         # the uncertainty (and everything read from the Jacobian) at the twin's own Jacobian
         pr = mdl.products(o.stages[-1][0], z, True)
     r, G, dof, rows = mdl.residuals(o.stages[-1][0], pr)
-    if spread is not None:
+    if len(draws) > 1:
         # the mean's χ² on the first draw's rays: where the history ends, as the result
         c2 = _objective(r, z, ridge)
         history.append({"stage": o.stages[-1][0], "iteration": 0, "accepted": True, "chi2": c2, "dof": dof,
@@ -776,7 +775,7 @@ def fit(meas, state, engine, options: FitOptions | Mapping | None = None, *,
             progress(history[-1])
     if o.settle and any(n for _, n in o.stages):  # a fit with no iterations is a look at its start
         z, pr = _settle(mdl, o.stages[-1][0], z, pr, ridge, history, progress)
-    wider = _Ends(spread, None if spread is None else draws, others)
+    wider = _Ends(draws if len(draws) > 1 else None, others)
     result = _result(mdl, meas, state, engine, o, table, z, pr, ridge, history, wider)
     if o.estimate_spread and o.prior_sigma is not None and any(n for _, n in o.stages):
         result = _with_spread(mdl, meas, state, engine, o, table, result, wider, progress)
@@ -785,11 +784,21 @@ def fit(meas, state, engine, options: FitOptions | Mapping | None = None, *,
 
 @dataclass(frozen=True)
 class _Ends:
-    """What widens a fit's covariance beyond its curvature: the ray draws' spread and ends, the other starts' ends."""
+    """What widens a fit's covariance beyond its curvature: the ray draws' ends, the other starts' ends."""
 
-    spread: np.ndarray | None
-    draws: np.ndarray | None
+    draws: np.ndarray | None  # two or more; None: one draw
     others: list
+
+    def widen(self, cov: np.ndarray, z: np.ndarray) -> np.ndarray:
+        """``cov`` widened by the ray draws' spread and by the other starts' ends around the solution ``z``."""
+        if self.draws is not None:
+            # where the rays decided the end: what another draw would have moved it by
+            cov = cov + np.where(np.isnan(cov), 0.0, np.cov(self.draws.T, ddof=1))
+        if self.others:
+            # each other end at two standard deviations from the solution, along its own direction
+            d = np.asarray(self.others) - z
+            cov = cov + np.where(np.isnan(cov), 0.0, d.T @ d / 4.0)
+        return cov
 
 
 def _result(mdl: _Model, meas, state, engine, o: FitOptions, table: ParameterTable, z: np.ndarray, pr: _Products,
@@ -800,7 +809,6 @@ def _result(mdl: _Model, meas, state, engine, o: FitOptions, table: ParameterTab
     Jacobians); a bound that holds a parameter does not shrink its uncertainty below what the data
     say.  Then inflated, widened by the jackknife, the ray draws' spread and the other starts' ends.
     """
-    spread, others = ends.spread, ends.others
     r, G, dof, rows = mdl.residuals(o.stages[-1][0], pr)
     cross = _Model(meas, state, engine, o.replace(seed=o.seed + CROSS_SEED), table)
     cov = _posterior_covariance(_fisher(mdl, cross, o.stages[-1][0], z, pr), ridge)
@@ -818,15 +826,9 @@ def _result(mdl: _Model, meas, state, engine, o: FitOptions, table: ParameterTab
         ok = np.isfinite(v) & (v > 0) & np.isfinite(np.diag(jk))
         widen[ok] = np.sqrt(np.maximum(1.0, np.diag(jk)[ok] / v[ok]))
         cov = cov * np.outer(widen, widen)  # the variances widened, the correlations kept
-    if spread is not None:
-        # where the rays decided the end: what another draw would have moved it by
-        cov = cov + np.where(np.isnan(cov), 0.0, spread)
-    if others:
-        # each other end at two standard deviations from the solution, along its own direction
-        d = np.asarray(others) - z
-        cov = cov + np.where(np.isnan(cov), 0.0, d.T @ d / 4.0)
-    return FitResult(mdl.state(z), history, cov, mdl.names, chi2, dof, inflation, mdl.n_traces, G, r,
-                     rows, o.stages[-1][0], ridge, widen, ends.draws, np.asarray(others) if others else None)
+    return FitResult(mdl.state(z), history, ends.widen(cov, z), mdl.names, chi2, dof, inflation, mdl.n_traces, G,
+                     r, rows, o.stages[-1][0], ridge, widen, ends.draws,
+                     np.asarray(ends.others) if ends.others else None)
 
 
 SPREAD_REFIT = 0.95
@@ -857,13 +859,7 @@ def _with_spread(mdl: _Model, meas, state, engine, o: FitOptions, table: Paramet
     sub = o.replace(prior_sigma=tau, stages=o.stages[-1:], settle=True, estimate_spread=False, ray_draws=1)
     mean = np.clip(shrunk_mean(z, res.covariance, mdl.P, prior, tau), *mdl.bounds())
     out = fit(meas, mdl.state(z), engine, sub, progress=tagged, table=table, also_from=[mdl.state(mean)])
-    cov = out.covariance
-    if ends.spread is not None:
-        cov = cov + np.where(np.isnan(cov), 0.0, ends.spread)
-    if ends.others:
-        d = np.asarray(ends.others) - mdl.vector(out.state)
-        cov = cov + np.where(np.isnan(cov), 0.0, d.T @ d / 4.0)
-    return replace(out, covariance=cov, history=res.history + out.history, n_traces=res.n_traces + out.n_traces,
+    return replace(out, covariance=ends.widen(out.covariance, mdl.vector(out.state)), history=res.history + out.history, n_traces=res.n_traces + out.n_traces,
                    draws=ends.draws, prior_sigma=tau)
 
 
@@ -903,15 +899,13 @@ def _settle(mdl: _Model, stage: str, z: np.ndarray, pr: _Products, ridge: np.nda
 
 
 def _posterior_covariance(F: np.ndarray, ridge: np.ndarray) -> np.ndarray:
-    """(F + prior)⁻¹ for the information ``F``, scaled to unit diagonal first.
+    """(F + prior)⁻¹ for the information ``F`` (:func:`~bluesky_offsets.model.posterior.scaled_inverse`).
 
-    The diagonal is scaled because the columns' units differ by orders of magnitude.  A parameter
-    the data do not see at all (a thermal bump below its threshold: no bump, a zero column) has no
+    A parameter the data do not see at all (a thermal bump below its threshold: no bump, a zero column) has no
     uncertainty to give: NaN, not the pseudo-inverse's "± 0".
     """
     A = F + np.diag(ridge)
-    d = np.sqrt(np.clip(np.diag(A), 1e-300, None))
-    cov = np.linalg.pinv(A / np.outer(d, d), rcond=1e-12) / np.outer(d, d)
+    cov = scaled_inverse(A)
     blind = np.diag(A) <= 0
     cov[blind, blind] = np.nan
     return cov

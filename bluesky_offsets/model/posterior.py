@@ -37,15 +37,15 @@ PARTNER_CORRELATION = 0.5
 """A partner is an offset correlated with this one beyond this (in absolute value)."""
 
 
-def _inverse(a: np.ndarray) -> np.ndarray:
-    """The inverse of a symmetric positive matrix whose entries' scales differ by orders of magnitude."""
-    d = np.sqrt(np.clip(np.abs(np.diag(a)), 1e-300, None))
-    return np.linalg.pinv(a / np.outer(d, d), rcond=1e-12, hermitian=True) / np.outer(d, d)
+def scaled_inverse(a: np.ndarray) -> np.ndarray:
+    """The pseudo-inverse of a symmetric matrix, scaled to unit diagonal first: the parameters' units differ by orders of magnitude."""
+    d = np.sqrt(np.clip(np.diag(a), 1e-300, None))
+    return np.linalg.pinv(a / np.outer(d, d), rcond=1e-12) / np.outer(d, d)
 
 
 def _information(covariance: np.ndarray, n_offsets: int, prior_sigma: float) -> np.ndarray:
     """What the data alone say: the precision of ``covariance`` less its offsets' prior (negative parts dropped)."""
-    q = _inverse(covariance)
+    q = scaled_inverse(covariance)
     q[np.arange(n_offsets), np.arange(n_offsets)] -= prior_sigma ** -2.0
     w, v = np.linalg.eigh(0.5 * (q + q.T))
     return (v * np.clip(w, 0.0, None)) @ v.T
@@ -56,7 +56,7 @@ def _under(information: np.ndarray, b: np.ndarray, n_offsets: int,
     """The Gaussian posterior's mean and covariance: the data's ``information``, ``b``, the offsets' prior precision."""
     a = information.copy()
     a[np.arange(n_offsets), np.arange(n_offsets)] += precision
-    cov = _inverse(a)
+    cov = scaled_inverse(a)
     return cov @ b, cov
 
 
@@ -95,7 +95,7 @@ def evidence_spread(vector: np.ndarray, covariance: np.ndarray, n_offsets: int, 
     k = int(ok[:n_offsets].sum())
     z = np.asarray(vector, float)[ok]
     f = _information(cov[np.ix_(ok, ok)], k, prior_sigma)
-    b = _inverse(cov[np.ix_(ok, ok)]) @ z
+    b = scaled_inverse(cov[np.ix_(ok, ok)]) @ z
     # λ = τ⁻², between the table's prior's and a tenth of its σ's
     lam, lowest, highest = prior_sigma ** -2.0, prior_sigma ** -2.0, (DETERMINED * prior_sigma) ** -2.0
     for _ in range(iterations):
@@ -121,7 +121,7 @@ def shrunk_mean(vector: np.ndarray, covariance: np.ndarray, n_offsets: int, prio
     z = np.asarray(vector, float)
     f = _information(cov[np.ix_(ok, ok)], k, prior_sigma)
     out = z.copy()
-    out[ok] = _under(f, _inverse(cov[np.ix_(ok, ok)]) @ z[ok], k, to_sigma ** -2.0)[0]
+    out[ok] = _under(f, scaled_inverse(cov[np.ix_(ok, ok)]) @ z[ok], k, to_sigma ** -2.0)[0]
     return out
 
 
