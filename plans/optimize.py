@@ -210,7 +210,8 @@ def optimize_beam(target, model, beamline, chamber, *, constraints: Constraints 
     frames : frames taken before and after the move (their profiles averaged).
     closed_loop : refit the model on ``measurement`` (the calibration's, as analysed) and the
         frames after the move (``refit``: FitOptions for it, default ``diagnosis.FIT`` on one draw
-        of the model's rays), optimize and move once more.
+        of the model's rays; under the calibration's offsets' spread where it estimated one),
+        optimize and move once more.
     executor : runs the optimizer's starts and the refit's side by side (the same result).
 
     Returns
@@ -261,6 +262,7 @@ def optimize_beam(target, model, beamline, chamber, *, constraints: Constraints 
     result = BeamResult(before, steps, m, cal, int(frames), profiles, limits, cons, o)
     if closed_loop:
         from bluesky_offsets.model.diagnosis import FIT
+        from bluesky_offsets.model.fit import FitOptions
         from bluesky_offsets.model.state import refine
 
         assert measurement is not None  # refused above without one
@@ -269,11 +271,15 @@ def optimize_beam(target, model, beamline, chamber, *, constraints: Constraints 
         both = _joined(measurement, new)
         # one draw of the model's rays (FitOptions.ray_draws): this refit sets the next move, where
         # frames are measured and the prediction is checked, and each further draw costs a whole fit
-        res = yield from run_in_thread(lambda progress: refine(both, cal.state, options=refit or FIT.replace(ray_draws=1),
-                                                               progress=progress, executor=executor,
-                                                               table=table),
+        ro, spread = (FIT.replace(ray_draws=1) if refit is None else FitOptions.resolve(refit)), None
+        if ro.estimate_spread and cal.prior_sigma is not None:
+            # the calibration's spread: the frames after the move barely change it, estimating it costs two fits
+            ro, spread = ro.replace(prior_sigma=cal.prior_sigma, estimate_spread=False), cal.prior_sigma
+        res = yield from run_in_thread(lambda progress: refine(both, cal.state, options=ro, progress=progress,
+                                                               executor=executor, table=table),
                                        stream=None, desc="refit the model with the frames after the move")
-        cal2 = CalibratedState(res.state, res.fit.covariance, tuple(res.fit.names), m.uid, res.fit.prior_sigma)
+        cal2 = CalibratedState(res.state, res.fit.covariance, tuple(res.fit.names), m.uid,
+                               res.fit.prior_sigma if spread is None else spread)
         opt2 = yield from compute(cal2, opt.settings)
         m2, read2 = yield from _move_and_measure(opt2, beamline, chamber, int(frames), False,
                                                  {**base_md, "step": 2, "previous_uid": m.uid,
