@@ -261,25 +261,8 @@ def optimize_beam(target, model, beamline, chamber, *, constraints: Constraints 
     steps = [BeamStep(opt, after, m.uid)]
     result = BeamResult(before, steps, m, cal, int(frames), profiles, limits, cons, o)
     if closed_loop:
-        from bluesky_offsets.model.diagnosis import FIT
-        from bluesky_offsets.model.fit import FitOptions
-        from bluesky_offsets.model.state import refine
-
         assert measurement is not None  # refused above without one
-        new = m.for_analysis(measurement.n_rays, table, resolution="camera" if measurement.spec.bins_x > 50
-                             else "paper").subset(slice(frames, None))
-        both = _joined(measurement, new)
-        # one draw of the model's rays (FitOptions.ray_draws): this refit sets the next move, where
-        # frames are measured and the prediction is checked, and each further draw costs a whole fit
-        ro, spread = (FIT.replace(ray_draws=1) if refit is None else FitOptions.resolve(refit)), None
-        if ro.estimate_spread and cal.prior_sigma is not None:
-            # the calibration's spread: the frames after the move barely change it, estimating it costs two fits
-            ro, spread = ro.replace(prior_sigma=cal.prior_sigma, estimate_spread=False), cal.prior_sigma
-        res = yield from run_in_thread(lambda progress: refine(both, cal.state, options=ro, progress=progress,
-                                                               executor=executor, table=table),
-                                       stream=None, desc="refit the model with the frames after the move")
-        cal2 = CalibratedState(res.state, res.fit.covariance, tuple(res.fit.names), m.uid,
-                               res.fit.prior_sigma if spread is None else spread)
+        cal2 = yield from _refit(cal, measurement, m, int(frames), refit, executor, table)
         opt2 = yield from compute(cal2, opt.settings)
         m2, read2 = yield from _move_and_measure(opt2, beamline, chamber, int(frames), False,
                                                  {**base_md, "step": 2, "previous_uid": m.uid,
@@ -293,6 +276,29 @@ def optimize_beam(target, model, beamline, chamber, *, constraints: Constraints 
     for line in result.lines():
         log.info(line)
     return result
+
+
+def _refit(cal: CalibratedState, measurement: Measurement, m: Measurement, frames: int, refit,
+           executor: Executor | None, table: ParameterTable) -> MsgGenerator[CalibratedState]:
+    """The calibration refitted on its ``measurement`` and the frames after the move (``m``'s last ``frames``)."""
+    from bluesky_offsets.model.diagnosis import FIT
+    from bluesky_offsets.model.fit import FitOptions
+    from bluesky_offsets.model.state import refine
+
+    new = m.for_analysis(measurement.n_rays, table, resolution="camera" if measurement.spec.bins_x > 50
+                         else "paper").subset(slice(frames, None))
+    both = _joined(measurement, new)
+    # one draw of the model's rays (FitOptions.ray_draws): this refit sets the next move, where
+    # frames are measured and the prediction is checked, and each further draw costs a whole fit
+    ro, spread = (FIT.replace(ray_draws=1) if refit is None else FitOptions.resolve(refit)), None
+    if ro.estimate_spread and cal.prior_sigma is not None:
+        # the calibration's spread: the frames after the move barely change it, estimating it costs two fits
+        ro, spread = ro.replace(prior_sigma=cal.prior_sigma, estimate_spread=False), cal.prior_sigma
+    res = yield from run_in_thread(lambda progress: refine(both, cal.state, options=ro, progress=progress,
+                                                           executor=executor, table=table),
+                                   stream=None, desc="refit the model with the frames after the move")
+    return CalibratedState(res.state, res.fit.covariance, tuple(res.fit.names), m.uid,
+                           res.fit.prior_sigma if spread is None else spread)
 
 
 def _back_if_worse(result: BeamResult, target, beamline, chamber, md: dict,
