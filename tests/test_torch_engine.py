@@ -254,6 +254,32 @@ def test_histograms_agree_with_rayx_in_distribution():
     assert abs(ratio - 1) < 4 * math.sqrt(2 / dof), f"chi2/dof {ratio:.3f} over {dof:.0f} dof"
 
 
+def test_the_slit_kicks_drawn_in_blocks_are_those_drawn_one_try_at_a_time():
+    """RAYX's rejection sampler of a slit's kick, written as RAYX loops (one try per ray at a
+    time), gives the accepted draws and the counters after them that the blocked sampler gives:
+    slits of microns to millimetres, closed ones (no draws) among them, batches of any shape."""
+    def one_at_a_time(ctr, dim, wl):
+        u, ctr = torch.full(ctr.shape, 0.5, dtype=torch.float64), ctr.clone()
+        for i in np.flatnonzero(dim.numpy() != 0):
+            while True:
+                u1, u2 = rnd.squares_uniform(ctr[i:i + 1]), rnd.squares_uniform(ctr[i:i + 1] + 1)
+                ctr[i] += 2
+                b = float(dim[i]) * 1e6
+                v = math.pi * b * torch.sin((u1 - 0.5) * (10.0 * wl / b)) / wl
+                if float((torch.sin(v) / v) ** 2 if float(v) != 0 else 1.0) >= float(u2):  # RAYX's test
+                    u[i] = u1[0]
+                    break
+        return u, ctr
+
+    rng = np.random.default_rng(5)
+    for n, wl in ((300, 2.0), (200, 0.5)):
+        ctr = rnd.rayx_counters(n, rng.uniform())
+        dim = torch.as_tensor(10.0 ** rng.uniform(-3, 0.5, n)) * torch.as_tensor(rng.uniform(size=n) > 0.1)
+        want = one_at_a_time(ctr, dim, wl)
+        got = rnd.fraunhofer_uniform_rayx(ctr.reshape(4, -1), dim.reshape(4, -1), wl)
+        assert torch.equal(got[0].reshape(-1), want[0]) and torch.equal(got[1].reshape(-1), want[1])
+
+
 @pytest.mark.parametrize("sampling", ["fast", "rayx"])
 def test_compacting_trace_is_the_dense_trace_bit_for_bit(sampling):
     """Dropping the rays an element stopped (``compact``) changes no surviving ray: whole-box

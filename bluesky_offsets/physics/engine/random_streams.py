@@ -84,12 +84,18 @@ def _as_i64(v: int) -> int:
     return v - (1 << 64) if v >= 1 << 63 else v
 
 
+FRAUNHOFER_BLOCK = 8
+"""Tries of :func:`fraunhofer_uniform_rayx` drawn at once per ray (about ten are needed on average)."""
+
+
 def fraunhofer_uniform_rayx(ctr: torch.Tensor, dim_mm, wavelength_nm) -> tuple[torch.Tensor, torch.Tensor]:
     """RAYX's rejection sampler of a rectangular slit's Fraunhofer kick (one dimension).
 
     Returns the accepted first uniform ``u`` (the kick is ``(u - 0.5) * 10 λ / b``) and the
     counters after the draws.  Every try takes two draws; rays with ``dim_mm == 0`` take none
-    and get ``u = 0.5`` (no kick).  No gradients flow through the choice of ``u``.
+    and get ``u = 0.5`` (no kick).  No gradients flow through the choice of ``u``.  The tries are
+    drawn :data:`FRAUNHOFER_BLOCK` at a time and the first accepted one kept: the same draws and
+    the same choice as one at a time, in a tenth of the loop's passes.
     """
     with torch.no_grad():
         dim = torch.as_tensor(dim_mm, dtype=torch.float64, device=ctr.device)
@@ -102,17 +108,20 @@ def fraunhofer_uniform_rayx(ctr: torch.Tensor, dim_mm, wavelength_nm) -> tuple[t
         b_all = dim.reshape(-1) * 1e06
         wl_all = wl.reshape(-1)
         idx = pending.nonzero().squeeze(1)
+        tries = 2 * torch.arange(FRAUNHOFER_BLOCK, dtype=torch.int64, device=ctr.device)
         while idx.numel():
-            c = flat_ctr[idx]
+            c = flat_ctr[idx][:, None] + tries  # (rays, block): each try's first counter
             u1, u2 = squares_uniform(c), squares_uniform(c + 1)
-            flat_ctr[idx] = c + 2
-            b, w = b_all[idx], wl_all[idx]
+            b, w = b_all[idx][:, None], wl_all[idx][:, None]
             angle = (u1 - 0.5) * (10.0 * w / b)
             v = math.pi * b * torch.sin(angle) / w
             wd = torch.where(v != 0, (torch.sin(v) / torch.where(v != 0, v, 1.0)) ** 2, 1.0)
             ok = wd - u2 >= 0
-            flat_u[idx[ok]] = u1[ok]
-            idx = idx[~ok]
+            hit, first = ok.any(1), ok.to(torch.uint8).argmax(1)  # argmax: the first accepted try
+            rows = torch.arange(len(idx), device=ctr.device)
+            flat_u[idx[hit]] = u1[rows[hit], first[hit]]
+            flat_ctr[idx] = torch.where(hit, c[rows, first], c[:, -1]) + 2
+            idx = idx[~hit]
         return flat_u.reshape(ctr.shape), flat_ctr.reshape(ctr.shape)
 
 
