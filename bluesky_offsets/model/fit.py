@@ -859,8 +859,9 @@ def _with_spread(mdl: _Model, meas, state, engine, o: FitOptions, table: Paramet
     sub = o.replace(prior_sigma=tau, stages=o.stages[-1:], settle=True, estimate_spread=False, ray_draws=1)
     mean = np.clip(shrunk_mean(z, res.covariance, mdl.P, prior, tau), *mdl.bounds())
     out = fit(meas, mdl.state(z), engine, sub, progress=tagged, table=table, also_from=[mdl.state(mean)])
-    return replace(out, covariance=ends.widen(out.covariance, mdl.vector(out.state)), history=res.history + out.history, n_traces=res.n_traces + out.n_traces,
-                   draws=ends.draws, prior_sigma=tau)
+    return replace(out, covariance=ends.widen(out.covariance, mdl.vector(out.state)),
+                   history=res.history + out.history, n_traces=res.n_traces + out.n_traces, draws=ends.draws,
+                   prior_sigma=tau)
 
 
 SETTLE_FRACTIONS = (1.0, 0.5, 0.25)
@@ -901,8 +902,8 @@ def _settle(mdl: _Model, stage: str, z: np.ndarray, pr: _Products, ridge: np.nda
 def _posterior_covariance(F: np.ndarray, ridge: np.ndarray) -> np.ndarray:
     """(F + prior)⁻¹ for the information ``F`` (:func:`~bluesky_offsets.model.posterior.scaled_inverse`).
 
-    A parameter the data do not see at all (a thermal bump below its threshold: no bump, a zero column) has no
-    uncertainty to give: NaN, not the pseudo-inverse's "± 0".
+    A parameter the data do not see at all (a thermal bump below its threshold: no bump, a zero
+    column) has no uncertainty to give: NaN, not the pseudo-inverse's "± 0".
     """
     A = F + np.diag(ridge)
     cov = scaled_inverse(A)

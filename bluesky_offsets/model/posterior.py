@@ -38,7 +38,10 @@ PARTNER_CORRELATION = 0.5
 
 
 def scaled_inverse(a: np.ndarray) -> np.ndarray:
-    """The pseudo-inverse of a symmetric matrix, scaled to unit diagonal first: the parameters' units differ by orders of magnitude."""
+    """The pseudo-inverse of a symmetric matrix, scaled to unit diagonal first.
+
+    Scaled because the parameters' units differ by orders of magnitude.
+    """
     d = np.sqrt(np.clip(np.diag(a), 1e-300, None))
     return np.linalg.pinv(a / np.outer(d, d), rcond=1e-12) / np.outer(d, d)
 
