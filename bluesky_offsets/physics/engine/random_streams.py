@@ -84,8 +84,8 @@ def _as_i64(v: int) -> int:
     return v - (1 << 64) if v >= 1 << 63 else v
 
 
-FRAUNHOFER_PASS = 1 << 15
-"""Draws of one pass of :func:`fraunhofer_uniform_rayx`: few pending rays take up to 16 tries a pass."""
+FRAUNHOFER_PASS, FRAUNHOFER_TRIES = 1 << 15, 16
+"""Draws of one pass of :func:`fraunhofer_uniform_rayx`, and the most tries a pending ray takes in one."""
 
 
 def fraunhofer_uniform_rayx(ctr: torch.Tensor, dim_mm, wavelength_nm) -> tuple[torch.Tensor, torch.Tensor]:
@@ -110,7 +110,7 @@ def fraunhofer_uniform_rayx(ctr: torch.Tensor, dim_mm, wavelength_nm) -> tuple[t
         wl_all = wl.reshape(-1)
         idx = pending.nonzero().squeeze(1)
         while idx.numel():
-            block = max(1, min(16, FRAUNHOFER_PASS // idx.numel()))
+            block = max(1, min(FRAUNHOFER_TRIES, FRAUNHOFER_PASS // idx.numel()))
             tries = 2 * torch.arange(block, dtype=torch.int64, device=ctr.device)
             c = flat_ctr[idx][:, None] + tries  # (rays, block): each try's first counter
             u1, u2 = squares_uniform(c), squares_uniform(c + 1)
