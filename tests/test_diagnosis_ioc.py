@@ -10,10 +10,9 @@ than the demo's default, for the suite's time) ranking all 15 candidates, read b
 store by uid.  The scenario with no hidden effect measures as the bright design does
 (``--design bright``: 16 bright configurations and 4 of them again with the slits open, the
 surrogate finder on the 16; its fits at 2,000 model rays, the designed measurement's) and ranks
-all 15 candidates.  Other effects (a thermal bump on M1
-and the source's divergence among them) through the IOC, and the whole grid over all 15, are
-``benchmarks/bench_diagnosis_grid.py``; in-process, ``tests/test_diagnosis.py``.  The checks
-read ``summary.json``.
+all 15 candidates.  Other effects (a thermal bump on M1 and the source's divergence among them)
+through the IOC, and the whole grid over all 15, are ``benchmarks/bench_diagnosis_grid.py``;
+in-process, ``tests/test_diagnosis.py``.  The checks read ``summary.json``.
 
 About 2-4 minutes per scenario on two cores (docs/explanations/diagnosis.md).
 ``BLUESKY_OFFSETS_SKIP_ACCEPTANCE=1`` skips them for a quick local run.
