@@ -750,7 +750,8 @@ def fit(meas, state, engine, options: FitOptions | Mapping | None = None, *,
     draws = np.asarray([z] + [run[0] for run in later])
     history += [h for run in later for h in run[3]]
     mdl.n_traces += sum(m.n_traces for m in models[1:] + dms)
-    if len(draws) > 1:
+    averaged = len(draws) > 1
+    if averaged:
         z, exact = np.clip(draws.mean(0), *mdl.bounds()), False
         # what the rays leave in the mean: one draw's variance, not a quarter of it.  The later
         # draws start where the first ended, and a fit on RAYX's hard counts ends near where it
@@ -765,7 +766,7 @@ def fit(meas, state, engine, options: FitOptions | Mapping | None = None, *,
         # the uncertainty (and everything read from the Jacobian) at the twin's own Jacobian
         pr = mdl.products(o.stages[-1][0], z, True)
     r, G, dof, rows = mdl.residuals(o.stages[-1][0], pr)
-    if len(draws) > 1:
+    if averaged:
         # the mean's χ² on the first draw's rays: where the history ends, as the result
         c2 = _objective(r, z, ridge)
         history.append({"stage": o.stages[-1][0], "iteration": 0, "accepted": True, "chi2": c2, "dof": dof,
@@ -775,7 +776,7 @@ def fit(meas, state, engine, options: FitOptions | Mapping | None = None, *,
             progress(history[-1])
     if o.settle and any(n for _, n in o.stages):  # a fit with no iterations is a look at its start
         z, pr = _settle(mdl, o.stages[-1][0], z, pr, ridge, history, progress)
-    wider = _Ends(draws if len(draws) > 1 else None, others)
+    wider = _Ends(draws if averaged else None, others)
     result = _result(mdl, meas, state, engine, o, table, z, pr, ridge, history, wider)
     if o.estimate_spread and o.prior_sigma is not None and any(n for _, n in o.stages):
         result = _with_spread(mdl, meas, state, engine, o, table, result, wider, progress)
