@@ -58,7 +58,7 @@ from bluesky_offsets.model.state import (
     ModelState,
     RefineResult,
     refine,
-    simulate,
+    simulate_with_noise,
 )
 from bluesky_offsets.physics.parameters import METRIXS, ParameterTable
 
@@ -395,10 +395,10 @@ def _sig_key(prefix: str, key: str) -> str:
 # --------------------------------------------------------------------------- #
 def _compare(meas: Measurement, state: ModelState, twin, label: str, model_rays: int, seed: int,
              effect_sigma: Mapping | None, table: ParameterTable) -> Comparison:
-    hx, hy = simulate(twin, meas.configurations, state, model_rays, [seed + i for i in range(meas.n)], table,
-                      meas.screen)
+    hx, hy, noise = simulate_with_noise(twin, meas.configurations, state, model_rays,
+                                        [seed + i for i in range(meas.n)], table, meas.screen)
     mf = misfit(meas.hist_x, meas.hist_y, hx, hy, meas.ray_budget, model_rays=model_rays, floor_x=meas.floor_x,
-                floor_y=meas.floor_y)
+                floor_y=meas.floor_y, model_noise=noise)
     sig = residual_signature(meas.hist_x, meas.hist_y, hx, hy, twin.hist)
     corr = correlate_with_parameters(sig, meas.configurations, table.names)
     return Comparison(label, state, mf, hx, hy, sig.delta, corr, failing_regions(mf, twin.hist), model_rays,

@@ -81,6 +81,38 @@ def test_detector_effects():
     assert gx[25] == pytest.approx(0.45 + 1e-3) and gx[0] == pytest.approx(1e-3)
 
 
+@pytest.mark.parametrize("sigma", [0.1, 0.05])
+def test_a_blurred_histograms_counting_noise_is_carried_through_the_kernel_squared(sigma):
+    """The variance of a blurred counted histogram's bin, over repeated draws, is what
+    ``detector_noise`` gives it (``Σ k² p − (Σ k p)²`` per source ray), not its value's; a gain
+    after it keeps about that share, and alone a gain and a background change nothing."""
+    from bluesky_offsets.physics.noise import bin_variance
+    spec = HistogramSpec(100, (-1.0, 1.0), 100, (-1.0, 1.0))
+    p = np.exp(-0.5 * (np.linspace(-1, 1, 100) / 0.1) ** 2)
+    p *= 0.4 / p.sum()  # 40 % of the source's rays on the screen
+    blur = {"detector_blur": {"sigma": sigma}}
+    rng = np.random.default_rng(7)
+    n = 2000
+    draws = np.array([E.apply_detector_effects(rng.multinomial(n, np.r_[p, 0.6])[None, :100] / n, p[None], blur,
+                                               spec)[0][0] for _ in range(3000)])
+    f, _ = E.apply_detector_effects(p[None], p[None], blur, spec)
+    noise, _ = E.detector_noise(p[None], p[None], blur, spec)
+    predicted = bin_variance(f, f, np.inf, n, model_noise=noise)[0]
+    bins = [50, 55, 60]
+    np.testing.assert_allclose(draws[:, bins].var(0), predicted[bins], rtol=0.1)
+    assert np.all(bin_variance(f, f, np.inf, n)[0][bins] > 2 * predicted[bins])
+    more = {**blur, "intensity_scale": {"delta": 0.2}}
+    g, _ = E.apply_detector_effects(p[None], p[None], more, spec)
+    shared, _ = E.detector_noise(p[None], p[None], more, spec)
+    ratio = bin_variance(g, g, np.inf, n, model_noise=shared)[0] / bin_variance(g, g, np.inf, n)[0]
+    np.testing.assert_allclose(ratio[bins], (predicted / bin_variance(f, f, np.inf, n)[0])[bins], rtol=0.15)
+    alone = {"intensity_scale": {"delta": 0.2}, "background": {"level": 1e-3}}
+    h, _ = E.apply_detector_effects(p[None], p[None], alone, spec)
+    np.testing.assert_allclose(bin_variance(h, h, np.inf, n, model_noise=E.detector_noise(p[None], p[None], alone,
+                                                                                          spec)[0]),
+                               bin_variance(h, h, np.inf, n))
+
+
 def test_bad_effect_input():
     with pytest.raises(ValueError, match="unknown effect 'warp'"):
         E.twin_overrides({"warp": {}})

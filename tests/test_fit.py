@@ -15,7 +15,7 @@ from bluesky_offsets.model.fit import (FRESH_SEED, RAY_DRAW_SEED, SETTLE_FRACTIO
                                       _Products, _ridge, fit, screen)
 from bluesky_offsets.model.measurement import Measurement
 from bluesky_offsets.model.misfit import misfit
-from bluesky_offsets.model.state import ModelState, simulate, simulate_frames
+from bluesky_offsets.model.state import ModelState, simulate, simulate_frames, simulate_with_noise
 from bluesky_offsets.physics.parameters import METRIXS
 from bluesky_offsets.physics.engine import TorchEngine
 from bluesky_offsets.physics.twin import CAMERA, HistogramSpec, Twin
@@ -101,12 +101,12 @@ def test_detector_effect_columns_are_exact():
     st = st.with_effect("background", {"level": 1e-4})
     mdl = _Model(meas, st, TorchEngine(), FitOptions(rays=800, seed=2), METRIXS)
     z = mdl.vector(st)
-    h, J = mdl.histograms(z, True)
+    h, J, _ = mdl.histograms(z, True)
     for k in range(len(METRIXS), len(z)):
         dz = np.zeros_like(z)
         dz[k] = 1e-6 * max(abs(z[k]), 1e-3)
-        hp, _ = mdl.histograms(z + dz, False)
-        hm, _ = mdl.histograms(z - dz, False)
+        hp, _, _ = mdl.histograms(z + dz, False)
+        hm, _, _ = mdl.histograms(z - dz, False)
         fd = (hp - hm) / (2 * dz[k])
         assert torch.allclose(J[..., k], fd, rtol=1e-5, atol=1e-9 * float(fd.abs().max() + 1e-30)), mdl.names[k]
 
@@ -450,6 +450,26 @@ def test_a_parameter_the_data_do_not_see_has_no_uncertainty():
               FitOptions(rays=800, seed=2, stages=(("bins", 1),)))
     assert np.isnan(res.effect_sigma()["thermal_bump_m1"]["height"])
     assert np.all(np.isfinite(res.offset_sigma)) and np.all(res.offset_sigma > 0)
+
+
+def test_a_blur_gains_nothing_by_smoothing_the_models_ray_noise():
+    """A model traced with few rays and then blurred carries a fraction of the noise its counts
+    imply: weighed as counts, a blur the beamline does not have lowers χ² at the truth (the twin's
+    rays' noise smoothed away), so a diagnosis would name it.  With the model's noise carried
+    through the blur (``model_noise``) it does not; without a blur nothing changes."""
+    cfg = _configurations(2)
+    twin = Twin(TorchEngine(hist=CAMERA))
+    n, k = 20_000, 1_000
+    m = simulate_frames(twin, cfg, ModelState(np.zeros(len(METRIXS))), n, [1, 2])
+
+    def chi2(effects, carried=True):
+        hx, hy, noise = simulate_with_noise(twin, cfg, ModelState(np.zeros(len(METRIXS)), effects), k, [5, 6])
+        return misfit(m[0], m[1], hx, hy, n, model_rays=k, model_noise=noise if carried else None).chi2_total
+
+    bare, blurred = chi2({}), {"detector_blur": {"sigma": 0.01}}  # two of the camera's bins in y
+    assert chi2(blurred, carried=False) < 0.6 * bare  # the smoothing's false gain
+    assert chi2(blurred) > bare
+    assert simulate_with_noise(twin, cfg, ModelState(np.zeros(len(METRIXS))), k, [5, 6])[2] is None
 
 
 def test_blurred_frames_keep_their_counting_noise():

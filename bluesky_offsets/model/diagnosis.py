@@ -44,7 +44,7 @@ from bluesky_offsets.physics import effects as E
 from bluesky_offsets.model.misfit import Misfit, misfit, moments
 from bluesky_offsets.model.fit import FitOptions, FitResult, engine_for, fit, gather, information, screen
 from bluesky_offsets.model.measurement import Measurement
-from bluesky_offsets.model.state import ModelState, refine, simulate, solve_normal
+from bluesky_offsets.model.state import ModelState, refine, simulate_with_noise, solve_normal
 from bluesky_offsets.physics.parameters import METRIXS, ParameterTable
 from bluesky_offsets.physics.twin import Twin
 from bluesky_offsets.streams import MODEL_SEED, stream
@@ -463,9 +463,9 @@ def _fresh_misfit(verifier: Twin, meas: Measurement, st: ModelState, rays: int, 
     The rays are draw ``draw`` of streams none of the fits traced.
     """
     seeds = [stream(seed, "diagnosis.fresh_rays", draw=draw) + i for i in range(meas.n)]
-    hx, hy = simulate(verifier, meas.configurations, st, rays, seeds, table, meas.screen)
+    hx, hy, noise = simulate_with_noise(verifier, meas.configurations, st, rays, seeds, table, meas.screen)
     return misfit(meas.hist_x, meas.hist_y, hx, hy, meas.ray_budget, model_rays=rays, floor_x=meas.floor_x,
-                  floor_y=meas.floor_y), np.c_[hx, hy]
+                  floor_y=meas.floor_y, model_noise=noise), np.c_[hx, hy]
 
 
 def _heldout(fit: FitResult, folds: Sequence[np.ndarray]) -> np.ndarray:
@@ -839,10 +839,10 @@ def evaluate(meas: Measurement, state: ModelState, twin, *, model_rays: int | No
              table: ParameterTable = METRIXS) -> Misfit:
     """The twin at the model's compensated configurations vs. the measurement (fresh rays)."""
     model_rays = model_rays or 4 * meas.ray_budget  # a sharper model than the measurement
-    hx, hy = simulate(twin, meas.configurations, state, model_rays, [seed + i for i in range(meas.n)], table,
-                      meas.screen)
+    hx, hy, noise = simulate_with_noise(twin, meas.configurations, state, model_rays,
+                                        [seed + i for i in range(meas.n)], table, meas.screen)
     return misfit(meas.hist_x, meas.hist_y, hx, hy, meas.ray_budget, model_rays=model_rays, floor_x=meas.floor_x,
-                  floor_y=meas.floor_y)
+                  floor_y=meas.floor_y, model_noise=noise)
 
 
 def add_effect(meas: Measurement, state: ModelState, name: str, twin=None, forward_model=None, *,

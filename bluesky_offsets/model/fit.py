@@ -327,9 +327,12 @@ class _Model:
         return min(o.rays, o.feature_rays) if stage == "features" and o.feature_rays else o.rays
 
     def histograms(self, z, jacobian: bool, rays: int | None = None, soft: bool = False):
-        """Model histograms (C, B) at the measurement's bins, and their Jacobian (C, B, P + p) in z.
+        """Model histograms (C, B) at the measurement's bins, their Jacobian (C, B, P + p) in z, their noise.
 
-        ``soft``: the soft beam's values, smooth in z, else RAYX's hard counts.
+        ``soft``: the soft beam's values, smooth in z, else RAYX's hard counts.  The noise: per bin
+        the fraction whose multinomial variance the model's counts carry through its detector-level
+        effects (:func:`bluesky_offsets.physics.effects.detector_noise`); None where they leave
+        each bin its own counts.
         """
         rays = int(rays or self.o.rays)
         st = self.state(z)
@@ -362,7 +365,18 @@ class _Model:
             from bluesky_offsets.physics.engine import histograms
             hx, hy = histograms(beam, spec, soft=soft, kernel=self.o.kernel)
             h, J = torch.cat([hx, hy], 1), None
-        return self._detector(st, h, J)
+        out, J = self._detector(st, h, J)
+        return out, J, self._noise(st, h)
+
+    def _noise(self, st, h) -> np.ndarray | None:
+        """The counting noise of the traced histograms ``h`` through the state's detector-level effects."""
+        if not self.det_effects:
+            return None
+        nx = self.meas.spec.bins_x
+        hn = h.detach().numpy()
+        fx, fy = E.detector_noise(hn[:, :nx], hn[:, nx:], {e: st.effects[e] for e in self.det_effects},
+                                  self.meas.spec)
+        return np.concatenate([fx, fy], 1)
 
     def _detector(self, st, h, J):
         """Detector-level effects on the histograms (affine in them) with their own columns.
@@ -418,7 +432,7 @@ class _Model:
         (C, K, P + p) when asked.
         """
         rays = self.rays(stage)
-        h, J = self.histograms(z, jacobian, rays, soft=stage != "bins" and self.soft)
+        h, J, noise = self.histograms(z, jacobian, rays, soft=stage != "bins" and self.soft)
         spec, nx = self.meas.spec, self.meas.spec.bins_x
         if stage == "features":
             hd = h.detach().requires_grad_(jacobian)
@@ -432,9 +446,10 @@ class _Model:
                 Jf = torch.einsum("cfb,cbp->cfp", d, J).numpy()
             return _Products(f.detach().numpy(), Jf, rays, vf)
         if stage == "profiles":
-            h = self._rebin(h)
+            # summed bins share a blur's rays: their noise is not the sum of the bins', taken as their values'
+            h, noise = self._rebin(h), None
             J = None if J is None else self._rebin(J)
-        return _Products(h.detach().numpy(), None if J is None else J.numpy(), rays)
+        return _Products(h.detach().numpy(), None if J is None else J.numpy(), rays, noise=noise)
 
     def _rebin(self, t: torch.Tensor) -> torch.Tensor:
         """Camera bins (C, B, ...) summed into profile bins (C, B', ...)."""
@@ -469,7 +484,7 @@ class _Model:
             return r, G, float(r.size), np.repeat(np.arange(n_conf), 5)
         m, floor = self.measured(stage)
         f = pr.values
-        var = bin_variance(m, f, self.n_rays, pr.rays, floor=floor)
+        var = bin_variance(m, f, self.n_rays, pr.rays, floor=floor, model_noise=pr.noise)
         signal = compared(m, f, floor)
         r = np.where(signal, (m - f) / np.sqrt(var), 0.0)
         dof = float(expected_pull2(m, f, self.n_rays, floor).sum())
@@ -498,7 +513,8 @@ def _fisher(mdl: _Model, other: _Model, stage: str, z: np.ndarray, pa: _Products
         w = 1.0 / (mdl.vm + 0.5 * (pa.variance + pb.variance))
     else:
         (m, floor), f = mdl.measured(stage), 0.5 * (pa.values + pb.values)
-        var = bin_variance(m, f, mdl.n_rays, pa.rays, floor=floor)
+        noise = None if pa.noise is None or pb.noise is None else 0.5 * (pa.noise + pb.noise)
+        var = bin_variance(m, f, mdl.n_rays, pa.rays, floor=floor, model_noise=noise)
         w = np.where(compared(m, f, floor), 1.0 / var, 0.0)
     x = np.einsum("cbp,cb,cbq->pq", pa.jacobian, w, pb.jacobian)
     vals, vecs = np.linalg.eigh(0.5 * (x + x.T))
@@ -509,14 +525,16 @@ def _fisher(mdl: _Model, other: _Model, stage: str, z: np.ndarray, pa: _Products
 class _Products:
     """A stage's model values (C, K) and what goes with them.
 
-    Their Jacobian in z (C, K, P + p) or None, the rays they were traced with and (features) the
-    values' own ray-noise variance.
+    Their Jacobian in z (C, K, P + p) or None, the rays they were traced with, (features) the
+    values' own ray-noise variance and (bins) the fraction whose multinomial variance each bin
+    carries through the detector-level effects (None: its value's).
     """
 
     values: np.ndarray
     jacobian: np.ndarray | None
     rays: int
     variance: np.ndarray | None = None
+    noise: np.ndarray | None = None
 
     def secant(self, new: _Products, step: np.ndarray) -> _Products:
         """``new`` with this Jacobian updated along ``step`` (Broyden's rank-one update).
@@ -528,7 +546,7 @@ class _Products:
         J = self.jacobian.reshape(c * k, p)
         miss = (new.values - self.values).reshape(-1) - J @ step
         J = J + np.outer(miss, step) / float(step @ step)
-        return _Products(new.values, J.reshape(c, k, p), new.rays, new.variance)
+        return _Products(new.values, J.reshape(c, k, p), new.rays, new.variance, new.noise)
 
 
 # --------------------------------------------------------------------------- #

@@ -163,7 +163,8 @@ def compared(meas: np.ndarray, model: np.ndarray, floor=None) -> np.ndarray:
 
 
 def misfit(meas_x, meas_y, model_x, model_y, n_rays: int | Sequence[int], *,
-           model_rays: int | None = None, model_var: float = 0.0, floor_x=None, floor_y=None) -> Misfit:
+           model_rays: int | None = None, model_var: float = 0.0, floor_x=None, floor_y=None,
+           model_noise=None) -> Misfit:
     """Chi-square and MSE of model histograms against measured ones.
 
     Parameters
@@ -178,6 +179,9 @@ def misfit(meas_x, meas_y, model_x, model_y, n_rays: int | Sequence[int], *,
         Extra per-bin variance of the model (e.g. a surrogate's test MSE).
     floor_x, floor_y : array_like (n, bins), optional
         A camera's own noise per measured bin (:attr:`Measurement.floor_x`).
+    model_noise : tuple of array_like (n, bins), optional
+        A twin-traced model's counting noise through its detector-level effects, x and y
+        (:func:`bluesky_offsets.model.state.simulate_with_noise`); None: each bin's own counts.
     """
     mx, my = check_histograms(meas_x, meas_y, None, None, floors=(floor_x, floor_y))
     fx, fy = check_histograms(model_x, model_y, None, None, what="model")
@@ -191,11 +195,13 @@ def misfit(meas_x, meas_y, model_x, model_y, n_rays: int | Sequence[int], *,
     if (n <= 0).any():
         raise MeasurementError("ray budgets must be positive")
 
-    def _pulls(m, f, floor):
-        var = bin_variance(m, f, n, model_rays, model_var, floor)
+    nz_x, nz_y = (None, None) if model_noise is None else model_noise
+
+    def _pulls(m, f, floor, noise):
+        var = bin_variance(m, f, n, model_rays, model_var, floor, noise)
         return np.where(compared(m, f, floor), (m - f) / np.sqrt(var), 0.0)
 
-    px, py = _pulls(mx, fx, floor_x), _pulls(my, fy, floor_y)
+    px, py = _pulls(mx, fx, floor_x, nz_x), _pulls(my, fy, floor_y, nz_y)
     chi2 = (px ** 2).sum(1) + (py ** 2).sum(1)
     wx, wy = expected_pull2(mx, fx, n, floor_x), expected_pull2(my, fy, n, floor_y)
     dof = wx.sum(1) + wy.sum(1)
@@ -204,8 +210,8 @@ def misfit(meas_x, meas_y, model_x, model_y, n_rays: int | Sequence[int], *,
     # nearly empty bins)
     if floor_x is not None:  # every bin's residual enters the MSE: its whole variance, the camera's too
         wx, wy = np.ones_like(wx), np.ones_like(wy)
-    counting = np.concatenate([(bin_variance(mx, fx, n, model_rays, floor=floor_x) * wx),
-                               (bin_variance(my, fy, n, model_rays, floor=floor_y) * wy)], axis=1)
+    counting = np.concatenate([(bin_variance(mx, fx, n, model_rays, floor=floor_x, model_noise=nz_x) * wx),
+                               (bin_variance(my, fy, n, model_rays, floor=floor_y, model_noise=nz_y) * wy)], axis=1)
     exp_mse = (counting + model_var).mean(1)
     return Misfit(chi2, dof, mse, exp_mse, px, py)
 

@@ -92,6 +92,22 @@ def simulate(twin, configurations: np.ndarray, state: ModelState, n_rays: int, s
     return detector_view(hx, hy, state, twin.hist)
 
 
+def simulate_with_noise(twin, configurations: np.ndarray, state: ModelState, n_rays: int, seed=None,
+                        table: ParameterTable = METRIXS, screen=None):
+    """:func:`simulate`'s histograms and their counting noise through the detector-level effects.
+
+    Returns ``(hx, hy, noise)``: ``noise`` the ``(x, y)`` fractions whose multinomial variance the
+    bins carry (:func:`bluesky_offsets.physics.effects.detector_noise`; a blurred model's bins
+    share their rays), None where the state has no detector-level effect.  What a misfit of a
+    traced model takes as ``model_noise``.
+    """
+    hx, hy = simulate_raw(twin, configurations, state, n_rays, seed, table, screen)
+    det = {n: v for n, v in state.effects.items() if E.get(n).level == "detector"}
+    if not det:
+        return hx, hy, None
+    return (*E.apply_detector_effects(hx, hy, det, twin.hist), E.detector_noise(hx, hy, det, twin.hist))
+
+
 def simulate_frames(twin, configurations: np.ndarray, state: ModelState, n_rays: int, seed=None,
                     table: ParameterTable = METRIXS, *, oversample: int = 16,
                     screen=None) -> tuple[np.ndarray, np.ndarray]:

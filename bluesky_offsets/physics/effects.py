@@ -106,6 +106,15 @@ class Effect:
         """Transform histograms (..., bins) (detector-level effects)."""
         return hist_x, hist_y
 
+    def apply_noise(self, noise_x, noise_y, hist_x, hist_y, values: Mapping[str, float], spec):
+        """How the effect carries a traced histogram's counting noise (detector-level effects).
+
+        ``noise``: per bin the second moment ``n`` whose ``(n − h²) / K`` is the bin's variance for
+        ``K`` traced rays (a traced histogram's own values ``h``, before any effect); ``hist``: the
+        histograms the effect acts on.  Returns the noise of the effect's output.
+        """
+        raise NotImplementedError(f"effect {self.name!r} does not say what it makes of the counting noise")
+
     def __repr__(self) -> str:
         return f"<Effect {self.name}: {', '.join(f'{p.name} [{p.unit}]' for p in self.parameters)}>"
 
@@ -167,16 +176,37 @@ def twin_overrides(effects: Mapping[str, Mapping[str, float]]) -> dict[str, dict
     return merged
 
 
+def _detector_effects(effects: Mapping[str, Mapping[str, float]]) -> list[tuple[Effect, Mapping[str, float]]]:
+    """The detector-level effects among ``effects`` in physical order, with their values."""
+    chosen = sorted(((get(n), v) for n, v in effects.items()), key=lambda ev: ev[0].order)
+    return [(eff, eff.values(v)) for eff, v in chosen if eff.level == "detector"]
+
+
 def apply_detector_effects(hist_x, hist_y, effects: Mapping[str, Mapping[str, float]], spec):
     """Apply the detector-level effects among ``effects`` to histograms, in physical order.
 
     Blur and gain act on the signal, background adds to it.
     """
-    chosen = sorted(((get(n), v) for n, v in effects.items()), key=lambda ev: ev[0].order)
-    for eff, values in chosen:
-        if eff.level == "detector":
-            hist_x, hist_y = eff.apply_histograms(hist_x, hist_y, eff.values(values), spec)
+    for eff, values in _detector_effects(effects):
+        hist_x, hist_y = eff.apply_histograms(hist_x, hist_y, values, spec)
     return hist_x, hist_y
+
+
+def detector_noise(hist_x, hist_y, effects: Mapping[str, Mapping[str, float]], spec):
+    """The counting noise of traced histograms ``hist_x``, ``hist_y`` through the detector-level effects.
+
+    Per bin of the effects' output, the second moment ``n`` whose ``(n − f²) / K`` is the bin's
+    variance for ``K`` traced rays, ``f`` its value (:meth:`Effect.apply_noise`; the traced
+    histograms' own values where no effect changes them): a blurred histogram's bins share their
+    rays with their neighbours and each carries a fraction of the noise its value implies.  A gain
+    and a background mix no bins and keep the noise model's weighing of a bin by its value (the
+    counts' exact variance would scale with the gain's square and take none from a background).
+    """
+    noise_x, noise_y = hist_x, hist_y
+    for eff, values in _detector_effects(effects):
+        noise_x, noise_y = eff.apply_noise(noise_x, noise_y, hist_x, hist_y, values, spec)
+        hist_x, hist_y = eff.apply_histograms(hist_x, hist_y, values, spec)
+    return noise_x, noise_y
 
 
 # --------------------------------------------------------------------------- #
@@ -372,10 +402,11 @@ class LineDensityError(Effect):
 # --------------------------------------------------------------------------- #
 # detector-level effects (histograms; twin and surrogate alike)
 # --------------------------------------------------------------------------- #
-def _gauss_blur(h, sigma_bins):
+def _gauss_blur(h, sigma_bins, power: int = 1):
     """Gaussian blur of histograms (..., bins) by ``sigma_bins``; numpy or torch alike.
 
-    A torch ``sigma_bins`` keeps its gradient.
+    A torch ``sigma_bins`` keeps its gradient.  ``power`` 2: through the kernel's weights squared,
+    what the blur makes of the bins' independent counting variances.
     """
     if is_tensor(h) or is_tensor(sigma_bins):
         import torch
@@ -385,14 +416,14 @@ def _gauss_blur(h, sigma_bins):
         idx = torch.arange(h.shape[-1], dtype=torch.float64)
         kernel = torch.exp(-0.5 * ((idx[:, None] - idx[None, :]) / torch.clamp(s, min=1e-6)) ** 2)
         kernel = kernel / kernel.sum(0, keepdim=True)
-        return h @ kernel
+        return h @ kernel ** power
     if sigma_bins <= 0:
         return h
     n = h.shape[-1]
     idx = np.arange(n)
     kernel = np.exp(-0.5 * ((idx[:, None] - idx[None, :]) / sigma_bins) ** 2)
     kernel /= kernel.sum(axis=0, keepdims=True)  # keeps the total inside the window
-    return h @ kernel
+    return h @ kernel ** power
 
 
 def _array(h):
@@ -413,6 +444,15 @@ class DetectorBlur(Effect):
         wy = (spec.range_y[1] - spec.range_y[0]) / spec.bins_y
         return _gauss_blur(_array(hx), v["sigma"] / wx), _gauss_blur(_array(hy), v["sigma"] / wy)
 
+    def apply_noise(self, noise_x, noise_y, hist_x, hist_y, v, spec):
+        """Through the kernel's weights squared: a blur spreads each ray over its neighbours.
+
+        Exact on a traced histogram's counts (``noise`` their values): the blur applies first.
+        """
+        wx = (spec.range_x[1] - spec.range_x[0]) / spec.bins_x
+        wy = (spec.range_y[1] - spec.range_y[0]) / spec.bins_y
+        return _gauss_blur(_array(noise_x), v["sigma"] / wx, 2), _gauss_blur(_array(noise_y), v["sigma"] / wy, 2)
+
 
 class Background(Effect):
     """A uniform background on the screen (stray light, dark signal)."""
@@ -427,6 +467,10 @@ class Background(Effect):
         """``level`` (fraction per bin) added to every bin of both histograms."""
         return _array(hx) + v["level"], _array(hy) + v["level"]
 
+    def apply_noise(self, noise_x, noise_y, hist_x, hist_y, v, spec):
+        """Weighed as counts of its own, as the noise model weighs every bin's value (no bins mixed)."""
+        return _array(noise_x) + v["level"], _array(noise_y) + v["level"]
+
 
 class IntensityScale(Effect):
     """The detector gain or beam current differs: a relative change of all counts."""
@@ -440,6 +484,10 @@ class IntensityScale(Effect):
     def apply_histograms(self, hx, hy, v, spec):
         """Both histograms scaled by ``1 + delta``."""
         return _array(hx) * (1 + v["delta"]), _array(hy) * (1 + v["delta"])
+
+    def apply_noise(self, noise_x, noise_y, hist_x, hist_y, v, spec):
+        """Scaled with the values, as the noise model weighs every bin's value (no bins mixed)."""
+        return _array(noise_x) * (1 + v["delta"]), _array(noise_y) * (1 + v["delta"])
 
 
 for _eff in (ChamberShift("x"), ChamberShift("y"), ChamberTranslationZ(), ChamberRotation(), SourceScale("size"),

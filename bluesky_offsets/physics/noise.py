@@ -32,13 +32,16 @@ def multinomial_variance(p, n_rays):
 
 
 def bin_variance(meas, model, n_rays, model_rays: int | None = None, model_var: float = 0.0,
-                 floor=None) -> np.ndarray:
+                 floor=None, model_noise=None) -> np.ndarray:
     """The variance of a bin's measured − model fraction: the one noise model of every misfit and fit.
 
     It is ``p (1 - p) / N`` for the measurement and ``p (1 - p) / N_model`` for a traced model
     (a mean model, e.g. a surrogate: its error variance ``model_var`` instead), ``p`` the mean of
     both floored at one ray in ``N``; with a camera's own noise ``floor`` (read noise; fraction²)
-    that floor instead, added.
+    that floor instead, added.  ``model_noise``: where the model's bins carry less noise than
+    their values imply (a blurred model, :func:`bluesky_offsets.physics.effects.detector_noise`):
+    per bin the kernel-squared sum of the fractions it gathers, whose multinomial variance
+    ``Σ k² f − (Σ k f)²`` replaces the model's ``f (1 − f)`` in its term.
     """
     n = np.asarray(n_rays, dtype=float)
     # counts: at least one ray's worth in a bin; a camera's floor is the variance an empty bin has
@@ -47,7 +50,13 @@ def bin_variance(meas, model, n_rays, model_rays: int | None = None, model_var: 
     if floor is not None:
         var = var + floor
     if model_rays:
-        var = var + multinomial_variance(p, model_rays)
+        share = 1.0
+        if model_noise is not None:  # the model's multinomial variance, Σ k² f − (Σ k f)², over f (1 − f)
+            f = np.asarray(model, float)
+            inside = (f > 0) & (f < 1)
+            g = np.where(inside, f, 0.5)
+            share = np.where(inside, np.clip(np.asarray(model_noise, float) - g * g, 0.0, None) / (g * (1 - g)), 1.0)
+        var = var + multinomial_variance(p, model_rays) * share
     return var
 
 
