@@ -330,9 +330,8 @@ class _Model:
         """Model histograms (C, B) at the measurement's bins, their Jacobian (C, B, P + p) in z, their noise.
 
         ``soft``: the soft beam's values, smooth in z, else RAYX's hard counts.  The noise: per bin
-        the fraction whose multinomial variance the model's counts carry through its detector-level
-        effects (:func:`bluesky_offsets.physics.effects.detector_noise`); None where they leave
-        each bin its own counts.
+        the second moment of the model's counts through its detector-level effects
+        (:func:`bluesky_offsets.physics.effects.detector_noise`); None without such effects.
         """
         rays = int(rays or self.o.rays)
         st = self.state(z)
@@ -526,8 +525,8 @@ class _Products:
     """A stage's model values (C, K) and what goes with them.
 
     Their Jacobian in z (C, K, P + p) or None, the rays they were traced with, (features) the
-    values' own ray-noise variance and (bins) the fraction whose multinomial variance each bin
-    carries through the detector-level effects (None: its value's).
+    values' own ray-noise variance and (camera bins) the second moment of the model's counts
+    through the detector-level effects (None: each bin weighed by its value).
     """
 
     values: np.ndarray

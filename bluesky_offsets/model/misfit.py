@@ -181,7 +181,7 @@ def misfit(meas_x, meas_y, model_x, model_y, n_rays: int | Sequence[int], *,
         A camera's own noise per measured bin (:attr:`Measurement.floor_x`).
     model_noise : tuple of array_like (n, bins), optional
         A twin-traced model's counting noise through its detector-level effects, x and y
-        (:func:`bluesky_offsets.model.state.simulate_with_noise`); None: each bin's own counts.
+        (:func:`bluesky_offsets.model.state.simulate_with_noise`); None: each bin weighed by its value.
     """
     mx, my = check_histograms(meas_x, meas_y, None, None, floors=(floor_x, floor_y))
     fx, fy = check_histograms(model_x, model_y, None, None, what="model")

@@ -96,10 +96,10 @@ def simulate_with_noise(twin, configurations: np.ndarray, state: ModelState, n_r
                         table: ParameterTable = METRIXS, screen=None):
     """:func:`simulate`'s histograms and their counting noise through the detector-level effects.
 
-    Returns ``(hx, hy, noise)``: ``noise`` the ``(x, y)`` fractions whose multinomial variance the
-    bins carry (:func:`bluesky_offsets.physics.effects.detector_noise`; a blurred model's bins
-    share their rays), None where the state has no detector-level effect.  What a misfit of a
-    traced model takes as ``model_noise``.
+    Returns ``(hx, hy, noise)``: ``noise`` the ``(x, y)`` second moments of the bins' counts
+    (:func:`bluesky_offsets.physics.effects.detector_noise`; a blurred model's bins share their
+    rays), None where the state has no detector-level effect.  What a misfit of a traced model
+    takes as ``model_noise``.
     """
     hx, hy = simulate_raw(twin, configurations, state, n_rays, seed, table, screen)
     det = {n: v for n, v in state.effects.items() if E.get(n).level == "detector"}
