@@ -419,11 +419,10 @@ def _gauss_blur(h, sigma_bins, power: int = 1):
         return h @ kernel ** power
     if sigma_bins <= 0:
         return h
-    n = h.shape[-1]
-    idx = np.arange(n)
-    kernel = np.exp(-0.5 * ((idx[:, None] - idx[None, :]) / sigma_bins) ** 2)
-    kernel /= kernel.sum(axis=0, keepdims=True)  # keeps the total inside the window
-    return h @ kernel ** power
+    at = np.arange(h.shape[-1])
+    weights = np.exp(-0.5 * ((at[:, None] - at[None, :]) / sigma_bins) ** 2)
+    weights /= weights.sum(axis=0, keepdims=True)  # keeps the total inside the window
+    return h @ weights ** power
 
 
 def _array(h):

@@ -50,7 +50,7 @@ def bin_variance(meas, model, n_rays, model_rays: int | None = None, model_var: 
     if floor is not None:
         var = var + floor
     if model_rays:
-        share = 1.0
+        share: float | np.ndarray = 1.0
         if model_noise is not None:  # the model's multinomial variance, Σ k² f − (Σ k f)², over f (1 − f)
             f = np.asarray(model, float)
             inside = (f > 0) & (f < 1)
