@@ -45,7 +45,7 @@ from bluesky_offsets.model.misfit import Misfit, misfit, moments
 from bluesky_offsets.model.fit import FitOptions, FitResult, engine_for, fit, gather, information, screen
 from bluesky_offsets.model.measurement import Measurement
 from bluesky_offsets.model.state import ModelState, refine, simulate_with_noise, solve_normal
-from bluesky_offsets.physics.parameters import METRIXS, ParameterTable
+from bluesky_offsets.physics.parameters import MAX_OFFSET, METRIXS, ParameterTable
 from bluesky_offsets.physics.twin import Twin
 from bluesky_offsets.streams import MODEL_SEED, stream
 
@@ -599,6 +599,7 @@ def _fit_candidates(meas: Measurement, state: ModelState, engine, o: FitOptions,
         if name not in fitted or f.chi2 < best[name].chi2:
             best[name] = f
         fitted.add(name)
+    n_traces += _from_the_twin(meas, ref, best, fitted, engine, o, verify_top, report, executor, table)
     # the reference as well fitted as the candidates: the offsets alone, refitted in the last
     # stage from where the best candidate fits left the offsets (their effect removed).  A
     # candidate's gain that was the offsets' (its fit went on where the reference's stopped)
@@ -623,6 +624,27 @@ def _fit_candidates(meas: Measurement, state: ModelState, engine, o: FitOptions,
         if alt.chi2 < ref.chi2:
             ref = alt
     return _CandidateFits(ref=ref, best=best, fitted=fitted, screened=screened, n_traces=n_traces)
+
+
+def _from_the_twin(meas: Measurement, ref: FitResult, best: dict[str, FitResult], fitted: set[str], engine,
+                   o: FitOptions, top: int, report, executor: Executor | None, table: ParameterTable) -> int:
+    """The best ``top`` candidates fitted again from the twin's offsets where ``ref`` left offsets at their bounds.
+
+    Each from zero offsets with the effects as its fit left them; ``best`` keeps the lower χ².
+    Returns the traces it took.  Offsets at a bound have absorbed what the prior let them (a
+    defocus, on a screen that barely tells it from them); a candidate started among them can stay
+    where it starts.
+    """
+    if not np.any(np.abs(ref.state.offsets) >= MAX_OFFSET * (1 - 1e-9)):
+        return 0
+    names = sorted(fitted, key=lambda n_: best[n_].chi2)[:top]
+    again = gather([lambda st=ModelState(np.zeros(len(best[n_].state.offsets)), best[n_].state.effects), n_=n_:
+                    fit(meas, st, engine, o, progress=report(f"{n_}, from the twin's offsets"), table=table)
+                    for n_ in names], executor)
+    for name, f in zip(names, again):
+        if f.chi2 < best[name].chi2:
+            best[name] = f
+    return sum(f.n_traces for f in again)
 
 
 def _candidates(names: Sequence[str], fits: _CandidateFits, base_mf: Misfit, table: ParameterTable) -> list[Candidate]:
