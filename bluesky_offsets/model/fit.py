@@ -326,11 +326,11 @@ class _Model:
         o = self.o
         return min(o.rays, o.feature_rays) if stage == "features" and o.feature_rays else o.rays
 
-    def histograms(self, z, jacobian: bool, rays: int | None = None, soft: bool = False):
+    def histograms(self, z, jacobian: bool, rays: int | None = None, soft: bool = False, noise: bool = False):
         """Model histograms (C, B) at the measurement's bins, their Jacobian (C, B, P + p) in z, their noise.
 
-        ``soft``: the soft beam's values, smooth in z, else RAYX's hard counts.  The noise: per bin
-        the second moment of the model's counts through its detector-level effects
+        ``soft``: the soft beam's values, smooth in z, else RAYX's hard counts.  The noise, where
+        asked: per bin the second moment of the model's counts through its detector-level effects
         (:func:`bluesky_offsets.physics.effects.detector_noise`); None without such effects.
         """
         rays = int(rays or self.o.rays)
@@ -365,7 +365,7 @@ class _Model:
             hx, hy = histograms(beam, spec, soft=soft, kernel=self.o.kernel)
             h, J = torch.cat([hx, hy], 1), None
         out, J = self._detector(st, h, J)
-        return out, J, self._noise(st, h)
+        return out, J, self._noise(st, h) if noise else None
 
     def _noise(self, st, h) -> np.ndarray | None:
         """The counting noise of the traced histograms ``h`` through the state's detector-level effects."""
@@ -431,7 +431,8 @@ class _Model:
         (C, K, P + p) when asked.
         """
         rays = self.rays(stage)
-        h, J, noise = self.histograms(z, jacobian, rays, soft=stage != "bins" and self.soft)
+        # the camera bins' noise: summed profile bins share a blur's rays, and are weighed by their values
+        h, J, noise = self.histograms(z, jacobian, rays, soft=stage != "bins" and self.soft, noise=stage == "bins")
         spec, nx = self.meas.spec, self.meas.spec.bins_x
         if stage == "features":
             hd = h.detach().requires_grad_(jacobian)
@@ -445,8 +446,7 @@ class _Model:
                 Jf = torch.einsum("cfb,cbp->cfp", d, J).numpy()
             return _Products(f.detach().numpy(), Jf, rays, vf)
         if stage == "profiles":
-            # summed bins share a blur's rays: their noise is not the sum of the bins', taken as their values'
-            h, noise = self._rebin(h), None
+            h = self._rebin(h)
             J = None if J is None else self._rebin(J)
         return _Products(h.detach().numpy(), None if J is None else J.numpy(), rays, noise=noise)
 

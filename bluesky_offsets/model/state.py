@@ -76,9 +76,14 @@ def _frames_overrides(overrides: dict, screen, n: int) -> list[Mapping]:
     return list(ov) if isinstance(ov, list) else [overrides] * n  # the stage never moved: ``ov`` is ``overrides``
 
 
+def _detector_effects(state: ModelState) -> dict:
+    """``state``'s detector-level effects with their values."""
+    return {n: v for n, v in state.effects.items() if E.get(n).level == "detector"}
+
+
 def detector_view(hx, hy, state: ModelState, spec):
     """Histograms ``hx``, ``hy`` through ``state``'s detector-level effects (unchanged where it has none)."""
-    det = {n: v for n, v in state.effects.items() if E.get(n).level == "detector"}
+    det = _detector_effects(state)
     return E.apply_detector_effects(hx, hy, det, spec) if det else (hx, hy)
 
 
@@ -102,10 +107,8 @@ def simulate_with_noise(twin, configurations: np.ndarray, state: ModelState, n_r
     takes as ``model_noise``.
     """
     hx, hy = simulate_raw(twin, configurations, state, n_rays, seed, table, screen)
-    det = {n: v for n, v in state.effects.items() if E.get(n).level == "detector"}
-    if not det:
-        return hx, hy, None
-    return (*E.apply_detector_effects(hx, hy, det, twin.hist), E.detector_noise(hx, hy, det, twin.hist))
+    det = _detector_effects(state)
+    return (*detector_view(hx, hy, state, twin.hist), E.detector_noise(hx, hy, det, twin.hist) if det else None)
 
 
 def simulate_frames(twin, configurations: np.ndarray, state: ModelState, n_rays: int, seed=None,
@@ -125,7 +128,7 @@ def simulate_frames(twin, configurations: np.ndarray, state: ModelState, n_rays:
     :func:`simulate`'s.  ``seed``: the configurations' seeds (as :func:`simulate`), which also
     seed the draw (None: unseeded).
     """
-    if not any(E.get(n).level == "detector" for n in state.effects):
+    if not _detector_effects(state):
         return simulate(twin, configurations, state, n_rays, seed, table, screen)
     hx, hy = simulate(twin, configurations, state, n_rays * oversample, seed, table, screen)
     rng = np.random.default_rng(None if seed is None else [int(s) for s in np.atleast_1d(seed)])
