@@ -45,7 +45,7 @@ from bluesky_offsets.model.misfit import Misfit, misfit, moments
 from bluesky_offsets.model.fit import FitOptions, FitResult, engine_for, fit, gather, information, screen
 from bluesky_offsets.model.measurement import Measurement
 from bluesky_offsets.model.state import ModelState, refine, simulate_with_noise, solve_normal
-from bluesky_offsets.physics.parameters import MAX_OFFSET, METRIXS, ParameterTable
+from bluesky_offsets.physics.parameters import METRIXS, ParameterTable, at_offset_bound
 from bluesky_offsets.physics.twin import Twin
 from bluesky_offsets.streams import MODEL_SEED, stream
 
@@ -635,7 +635,7 @@ def _from_the_twin(meas: Measurement, ref: FitResult, best: dict[str, FitResult]
     defocus, on a screen that barely tells it from them); a candidate started among them can stay
     where it starts.
     """
-    if not np.any(np.abs(ref.state.offsets) >= MAX_OFFSET * (1 - 1e-9)):
+    if not at_offset_bound(ref.state.offsets, o.offset_bound).any():
         return 0
     names = sorted(fitted, key=lambda n_: best[n_].chi2)[:top]
     again = gather([lambda st=ModelState(np.zeros(len(best[n_].state.offsets)), best[n_].state.effects), n_=n_:

@@ -29,7 +29,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from bluesky_offsets.physics import effects as E
-from bluesky_offsets.physics.parameters import MAX_OFFSET, METRIXS, ParameterTable
+from bluesky_offsets.physics.parameters import MAX_OFFSET, METRIXS, ParameterTable, at_offset_bound
 
 PRIOR_SIGMA = MAX_OFFSET / math.sqrt(3.0)
 DETERMINED, UNDETERMINED = 0.1, 0.5
@@ -208,7 +208,7 @@ class Posterior:
             z, s = float(st.offsets[i]), float(sig[i])
             ratio = float(ref[i]) / PRIOR_SIGMA
             offs.append(Estimate(p.name, p.unit, z * p.span, s * p.span, z, s, classify(ratio),
-                                 _partners(corr, i, names[:n]), bool(abs(abs(z) - MAX_OFFSET) < 1e-6), ratio))
+                                 _partners(corr, i, names[:n]), bool(at_offset_bound(z)), ratio))
         effects: dict[str, dict[str, Estimate]] = {}
         k = n
         for eff in st.effects:

@@ -31,6 +31,11 @@ MAX_OFFSET = 0.2
 """Largest offset magnitude, in normalized units (20 % of each range)."""
 
 
+def at_offset_bound(offsets, bound: float = MAX_OFFSET) -> np.ndarray:
+    """Which normalized offsets sit at the ±``bound`` a fit held them within (within rounding)."""
+    return np.abs(np.abs(np.asarray(offsets, float)) - bound) < 1e-6
+
+
 class ParameterError(InputError):
     """Malformed parameter input; the message names the offending parameter."""
 
