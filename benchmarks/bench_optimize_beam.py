@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import subprocess
 import sys
 import time
@@ -84,8 +85,12 @@ def main(argv=None) -> int:
 
 
 def _cost(r: dict, which: str) -> float:
-    """The smallest-focus target's own cost of a beam (its default weights): both widths over where they started."""
-    return sum((r[f"{which}_{a}"] / r[f"before_{a}"]) ** 2 for a in "xy")
+    """The smallest-focus target's own cost of the row's ``which`` beam, against where it started."""
+    from bluesky_offsets.optimize.targets import Focus, SmallestFocus
+
+    def focus(k: str) -> Focus:
+        return Focus(math.nan, math.nan, math.nan, r[f"{k}_x"], r[f"{k}_y"])
+    return SmallestFocus().cost(focus(which), focus("before"))
 
 
 def write(rows: list[dict]) -> None:
