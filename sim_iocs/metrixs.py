@@ -761,7 +761,7 @@ def _cmd_ioc(args) -> int:
 
 def add_cli(subparsers) -> None:
     """``bluesky-offsets ioc ...``: the simulated beamline."""
-    p = subparsers.add_parser("ioc", help="serve the simulated METRIXS beamline (caproto IOC)",
+    p = subparsers.add_parser("ioc", help="serve the simulated beamline, METRIXS or a described one (caproto IOC)",
                               description=__doc__.split("\n\n")[0])
     add_arguments(p)
     p.set_defaults(func=_cmd_ioc)

@@ -76,7 +76,8 @@ motor = "m1.rx"
     (("rml = \"x.rml\"", "rml = \"x.rml\"\nbuiltin = \"metrixs\""), "exactly one of rml"),
     (("rml = \"x.rml\"", "builtin = \"bessy\""), "builtin 'bessy'; known"),
     (("[beamline]", "[beamline]\ncolour = 1"), "unknown keys \\['colour'\\]"),
-    (("unit = \"mrad\"", "unit = \"deg\""), "unit 'deg'"),
+    (("unit = \"mrad\"", "unit = \"deg\""), "unit 'deg'; a rotationXerror is in 'mrad'"),
+    (("unit = \"mrad\"", "unit = \"mm\""), "unit 'mm'; a rotationXerror is in 'mrad'"),
     (("[[parameter]]", "[detector]\nimage_plane = \"Slit\"\n[[parameter]]"), "not an ImagePlane"),
     (("name = \"t\"", "name = \"t\n"), "not TOML"),
 ])
@@ -89,6 +90,10 @@ def test_a_description_is_refused_in_one_line_naming_what_is_wrong(tmp_path, cha
 
 def test_a_good_description_loads_and_a_missing_one_says_so(tmp_path):
     assert load_beamline(_write(tmp_path, GOOD)).table.names == ("M1.rotationXerror",)
+    density = GOOD.replace('element = "Toroid"', 'element = "Plane Grating"').replace(
+        'field = "rotationXerror"', 'field = "lineDensity"').replace('unit = "mrad"', 'unit = "lines/mm"')
+    assert load_beamline(_write(tmp_path, density.replace("[-0.25, 0.25]", "[1198.0, 1202.0]").replace(
+        "reference = 0.0", "reference = 1200.0"), "d.toml")).table.parameters[0].unit == "lines/mm"
     with pytest.raises(BeamlineError, match="No such file"):
         load_beamline(tmp_path / "none.toml")
     with pytest.raises(BeamlineError, match="shipped: \\['energize', 'metrixs'\\]"):
@@ -107,6 +112,33 @@ def test_an_rml_rayx_cannot_import_is_refused_in_one_line_and_this_process_lives
     assert "\n" not in str(err.value) and str(path) in str(err.value)
     assert main(["params", "--beamline", str(path)]) == 2
     assert 'parseInt failed for "numberRays"' in capsys.readouterr().err
+
+
+def _moved(text: str, at: int) -> str:
+    """``text`` with the world vector at ``at`` moved by 1 mm along y."""
+    y = text.index("<y>", at) + len("<y>")
+    end = text.index("</y>", y)
+    return text[:y] + repr(float(text[y:end]) + 1.0) + text[end:]
+
+
+@pytest.mark.parametrize("edit, why", [
+    (lambda t, at: t[:at] + t[at:].replace('type="Cylinder"', 'type="Crystal"', 1),
+     "object 'Cylinder': element type 'Crystal' is not supported"),
+    (lambda t, at: _moved(t, t.index('id="worldPosition"', at)),
+     "object 'Cylinder': element type 'Cylinder' is not supported: .* its position lies 1 from"),
+], ids=["crystal", "moved"])
+def test_an_element_the_chain_cannot_place_as_its_rml_does_is_refused_by_name(tmp_path, capsys, edit, why):
+    """RAYX places an element by the RML's world vectors and every edit writes them anew from the
+    element chain: an element type the chain cannot place (a crystal), or places elsewhere than the
+    RML says (a paraboloid; here a world vector moved by hand), is refused at load, exit 2."""
+    text = shipped("energize").with_name("Energize_EN_500.rml").read_text()
+    path = _write(tmp_path, GOOD)
+    (tmp_path / "x.rml").write_text(edit(text, text.index('<object name="Cylinder"')))
+    with pytest.raises(BeamlineError, match=why) as err:
+        load_beamline(path)
+    assert "\n" not in str(err.value) and str(path) in str(err.value)
+    assert main(["params", "--beamline", str(path)]) == 2
+    assert "is not supported" in capsys.readouterr().err
 
 
 def test_a_source_rayx_cannot_trace_is_refused_in_one_line(tmp_path, capsys):

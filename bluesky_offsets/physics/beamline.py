@@ -200,11 +200,13 @@ def _check_against_rml(bl: Beamline, path: Path) -> None:
     """Check that the parameters and the detector name what the RML has.
 
     Every parameter's element is an object of the RML and its field a misalignment or one of the
-    object's own parameters; the detector's image plane is an ImagePlane; RAYX imports the RML.
+    object's own parameters; the detector's image plane is an ImagePlane; the element chain
+    places every object where the RML does (:func:`~bluesky_offsets.physics.rml.check_frames`);
+    RAYX imports the RML.
     """
     from bluesky_offsets.physics.metrixs import nominal_beamline
     from bluesky_offsets.physics.rayx_calls import check_importable
-    from bluesky_offsets.physics.rml import read_rml
+    from bluesky_offsets.physics.rml import check_frames, read_rml
     rml = nominal_beamline() if bl.builtin == "metrixs" else read_rml(bl.rml_file())
     objects = {o.name: o for o in rml.objects}
     for p in bl.table:
@@ -220,6 +222,7 @@ def _check_against_rml(bl: Beamline, path: Path) -> None:
                             f"ImagePlane of the RML")
     if bl.builtin is None:
         try:
+            check_frames(bl.rml_file())
             check_importable(bl.rml_file())
         except InputError as exc:
             raise BeamlineError(f"beamline {path}: {exc}") from None

@@ -54,7 +54,8 @@ class Parameter:
         RML field it sets: a misalignment (``translationXerror`` ...) or an
         element property (``openingWidth``, ``radius`` ...).
     unit : str
-        ``"mm"`` or ``"mrad"``.
+        ``"mm"`` for a translation, ``"mrad"`` for a rotation; an element property's own RML unit
+        (a radius in mm, a line density in lines/mm), a label.
     low, high : float
         Uniform sampling box of the surrogate (paper Table 1).
     motorized : bool
@@ -297,6 +298,16 @@ class ParameterTable:
 PARAMETER_KEYS = ("name", "element", "field", "unit", "range", "reference", "motor", "fixed", "travel", "description")
 """The keys of a ``[[parameter]]`` entry of a beamline description."""
 UNITS = ("mm", "mrad")
+"""The units of the misalignments: translations in mm, rotations in mrad."""
+
+
+def misalignment_unit(field: str) -> str | None:
+    """The unit RAYX reads a misalignment ``field`` in; None for an element's own property (its RML unit)."""
+    if field.startswith("translation") and field.endswith("error"):
+        return UNITS[0]
+    if field.startswith("rotation") and field.endswith("error"):
+        return UNITS[1]
+    return None
 
 
 def parameter_from_record(rec: Mapping, where: str = "parameter") -> Parameter:
@@ -323,8 +334,9 @@ def parameter_from_record(rec: Mapping, where: str = "parameter") -> Parameter:
     for key in ("name", "element", "field", "unit", "description", "motor", "fixed"):
         if key in rec and not (isinstance(rec[key], str) and rec[key].strip()):
             raise ParameterError(f"{where}: {key} must be a non-empty string")
-    if rec["unit"] not in UNITS:
-        raise ParameterError(f"{where}: unit {rec['unit']!r}; known: {list(UNITS)}")
+    need = misalignment_unit(rec["field"])
+    if need is not None and rec["unit"] != need:
+        raise ParameterError(f"{where}: unit {rec['unit']!r}; a {rec['field']} is in {need!r} (RAYX's unit)")
 
     def pair(key):
         v = rec[key]

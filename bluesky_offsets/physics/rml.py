@@ -312,6 +312,34 @@ def read_world_vectors(path: str | Path) -> dict[str, dict[str, np.ndarray]]:
     return out
 
 
+FRAME_TOLERANCE = (1e-3, 1e-6)
+"""How far (mm, and in a direction's components) a chained world frame may lie from the RML's own."""
+
+
+def check_frames(path: str | Path) -> None:
+    """Refuse an RML whose world frames the element chain does not reproduce, naming the object.
+
+    RAYX places each element by the world vectors the RML stores; every edit of an element
+    (a parameter set, a misalignment) writes them anew from the chain (:meth:`RmlBeamline.to_xml`).
+    An element type whose placement the chain does not know (a paraboloid's) or cannot chain at all
+    (a crystal) would be traced somewhere else than the RML says.  Objects without stored world
+    vectors are not compared.
+    """
+    bl = read_rml(path)
+    stored = read_world_vectors(path)
+    for obj, frame in zip(bl.objects, bl.frames()):
+        ref = stored.get(obj.name, {})
+        if obj.is_source or len(ref) < len(WORLD_KEYS):
+            continue
+        off = [("position", float(np.abs(frame.position - ref["worldPosition"]).max()), FRAME_TOLERANCE[0])]
+        off += [(key, float(np.abs(vec - ref[key]).max()), FRAME_TOLERANCE[1])
+                for key, vec in zip(WORLD_KEYS[1:], (frame.x, frame.y, frame.z))]
+        for what, d, tol in off:
+            if d > tol:
+                raise RmlError(f"object {obj.name!r}: element type {obj.type!r} is not supported: chained from "
+                               f"the RML's distances and angles its {what} lies {d:.3g} from the RML's own")
+
+
 def make_object(name: str, type_: str, params: Iterable[tuple]) -> RmlObject:
     """Build an object from ``(id, value)`` or ``(id, value, comment)`` tuples."""
     obj = RmlObject(name, type_)
