@@ -230,6 +230,25 @@ def test_a_fit_from_several_starts_keeps_the_one_that_ends_lowest(defocus_case):
         fit(meas, far, eng, opts, also_from=[ModelState(truth.offsets)])
 
 
+def test_starts_drawn_from_the_posterior_are_fitted_and_judged_as_the_others(defocus_case):
+    """``posterior_starts``: after the given start, that many drawn from the Gaussian posterior at its
+    end (a named stream: the same draws every time), each fitted in full; the end lowest on fresh
+    rays is kept, its iterations last, the same as fitting from its start alone."""
+    meas, truth, twin = defocus_case
+    opts = FitOptions(rays=1500, seed=3, stages=(("bins", 3),))
+    eng = TorchEngine(hist=CAMERA)
+    start = ModelState(truth.offsets * 0.5, {"chamber_z": {"z": 8.0}})
+    res = fit(meas, start, eng, opts.replace(posterior_starts=2))
+    assert {h["start"] for h in res.history} == {0, 1, 2}
+    again = fit(meas, start, eng, opts.replace(posterior_starts=2))
+    assert np.array_equal(again.state.offsets, res.state.offsets)
+    fresh = opts.replace(seed=3 + FRESH_SEED, stages=(("bins", 0),))
+    one = fit(meas, start, eng, opts)
+    assert fit(meas, res.state, eng, fresh).history[-1]["chi2"] <= fit(meas, one.state, eng, fresh).history[-1]["chi2"]
+    with pytest.raises(ValueError, match="posterior_starts"):
+        FitOptions(posterior_starts=-1)
+
+
 def test_ray_draws_average_the_fit_over_the_models_rays(defocus_case):
     """``ray_draws``: the first draw is the one-draw fit; each later draw is the same fit on
     other rays from where the first ended; the solution is their mean, and the covariance is

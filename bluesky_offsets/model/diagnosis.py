@@ -326,7 +326,7 @@ def _folds(n: int, k: int, seed: int) -> list[np.ndarray]:
 # end on a step of a staircase χ².  Their offsets end under the spread the data prefer
 # (FitOptions.estimate_spread): the table's ±20 % prior lets the offsets the frames barely see wander.
 FIT = FitOptions(rays=5000, stages=(("features", 15), ("profiles", 8), ("bins", 10)), ray_draws=4,
-                 estimate_spread=True)
+                 estimate_spread=True, posterior_starts=4)
 SCAN = FitOptions(rays=3000, stages=(("features", 5), ("bins", 5)))
 DESIGNED_FIT = FIT.replace(rays=2000, feature_rays=1500)
 DESIGNED_SCAN = SCAN.replace(rays=1500)
