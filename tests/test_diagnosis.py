@@ -23,10 +23,11 @@ HIDDEN = {"E1.rotationXerror": 0.012, "E2.rotationXerror": -0.01, "M1_Cylinder.r
 # combinations fit the rays of the fit, and fresh rays see a worse fit)
 # In the paper's bins the focus fills a bin or two and the features do most of the work: they get
 # all the fit's rays here (with 2000, the default for camera bins, this fit ends above the noise)
-# one draw of the model's rays: FitOptions.ray_draws is tested in tests/test_fit.py and, at the
-# analysis's default of four, by the IOC demos (tests/test_diagnosis_ioc.py)
+# one draw of the model's rays and no starts drawn from the posterior: FitOptions.ray_draws and
+# posterior_starts are tested in tests/test_fit.py and, at the analysis's defaults, by the IOC
+# demos (tests/test_diagnosis_ioc.py)
 FIT = {"rays": 2 * N_RAYS, "feature_rays": None, "stages": [["features", 10], ["bins", 6]], "prior_sigma": 0.03,
-       "ray_draws": 1}
+       "ray_draws": 1, "posterior_starts": 0}
 SCAN = {"rays": N_RAYS, "stages": [["features", 4], ["bins", 4]], "prior_sigma": 0.03}
 CANDIDATES = ["intensity_scale", "background", "detector_blur", "chamber_z"]
 

@@ -17,6 +17,7 @@ import pytest
 from bluesky import RunEngine
 
 from bluesky_offsets.commands import cli
+from bluesky_offsets.model import diagnosis as D
 from bluesky_offsets.model.misfit import MeasurementError
 from bluesky_offsets.model.state import ModelState
 from bluesky_offsets.physics.parameters import METRIXS
@@ -158,8 +159,9 @@ def test_add_effect_and_refit_stores_magnitude_and_error_history(RE, twin, measu
     assert matplotlib.image.imread(png).shape[2] in (3, 4)
     res = load_results(run_store, rf.uid)
     assert res["start"]["effect"] == "intensity_scale" and res["start"]["measurement_uid"] == m.uid
-    # the fit ran from both starts, each with the effect, and kept one
-    assert res["start"]["also_from"] == ["nudged"] and {h.get("start") for h in rf.history} == {0, 1}
+    # the fit ran from both starts and from the draws of its posterior, each with the effect, and kept one
+    drawn = set(range(2, 2 + D.FIT.posterior_starts))
+    assert res["start"]["also_from"] == ["nudged"] and {h.get("start") for h in rf.history} == {0, 1} | drawn
     (eff,) = res["effect"]
     value, sigma = rf.magnitude()["delta"]
     assert eff["delta"] == pytest.approx(value) and eff["delta_sigma"] == pytest.approx(sigma) and sigma > 0
