@@ -762,14 +762,8 @@ def fit(meas, state, engine, options: FitOptions | Mapping | None = None, *,
         fresh = _Model(meas, state, engine, o.replace(seed=o.seed + FRESH_SEED), table)
         ends = _judged(fresh, ends, ridge)
         if extra:
-            best = min(ends, key=lambda e: (e[0], e[1]))
-            xs = _posterior_draws(mdl, best[2], best[3], ridge, extra, stream(o.seed, "fit.posterior_starts"))
-            more = [_Model(meas, state, engine, o, table) for _ in xs]
-            runs = _runs([(m, x, {"start": len(ends) + i}) for i, (m, x) in enumerate(zip(more, xs))], ridge,
-                         progress, executor)
-            ends += _judged(fresh, [(part[-1]["chi2"], len(ends) + i, z, pr, exact, part)
-                                    for i, (z, pr, exact, part) in enumerate(runs)], ridge)
-            models += more
+            more, drawn = _from_the_posterior(mdl, ends, fresh, ridge, extra, progress, executor)
+            ends, models = ends + drawn, models + more
         mdl.n_traces += fresh.n_traces
     kept = min(ends, key=lambda e: (e[0], e[1]))
     _, _, z, pr, exact, _ = kept
@@ -825,6 +819,21 @@ def _judged(fresh: _Model, ends: list[tuple], ridge: np.ndarray) -> list[tuple]:
     last = fresh.o.stages[-1][0]
     return [(_objective(fresh.residuals(last, fresh.products(last, z, False))[0], z, ridge), k, z, *rest)
             for _, k, z, *rest in ends]
+
+
+def _from_the_posterior(mdl: _Model, ends: list[tuple], fresh: _Model, ridge: np.ndarray, n: int,
+                        progress: Callable[[dict], None] | None, executor: Executor | None) -> tuple[list, list]:
+    """The fit run from ``n`` draws of the posterior at the best of ``ends``, numbered after them.
+
+    Returns the runs' models (each counts its traces) and their ends, judged on ``fresh``'s rays.
+    """
+    best = min(ends, key=lambda e: (e[0], e[1]))
+    xs = _posterior_draws(mdl, best[2], best[3], ridge, n, stream(mdl.o.seed, "fit.posterior_starts"))
+    more = [_Model(mdl.meas, mdl.base, mdl.engine, mdl.o, mdl.table) for _ in xs]
+    runs = _runs([(m, x, {"start": len(ends) + i}) for i, (m, x) in enumerate(zip(more, xs))], ridge, progress,
+                 executor)
+    return more, _judged(fresh, [(part[-1]["chi2"], len(ends) + i, z, pr, exact, part)
+                                 for i, (z, pr, exact, part) in enumerate(runs)], ridge)
 
 
 def _posterior_draws(mdl: _Model, z: np.ndarray, pr: _Products, ridge: np.ndarray, n: int, seed: int) -> np.ndarray:
