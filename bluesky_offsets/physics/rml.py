@@ -336,8 +336,8 @@ def check_frames(path: str | Path) -> None:
                 for key, vec in zip(WORLD_KEYS[1:], (frame.x, frame.y, frame.z))]
         for what, d, tol in off:
             if d > tol:
-                raise RmlError(f"object {obj.name!r}: element type {obj.type!r} is not supported: chained from "
-                               f"the RML's distances and angles its {what} lies {d:.3g} from the RML's own")
+                raise RmlError(f"object {obj.name!r} ({obj.type}): the element chain places it elsewhere than the "
+                               f"RML's world vectors (its {what} {d:.3g} off): it cannot be traced as the RML says")
 
 
 def make_object(name: str, type_: str, params: Iterable[tuple]) -> RmlObject:
