@@ -49,7 +49,7 @@ from bluesky_offsets.model.posterior import Posterior  # noqa: E402
 from bluesky_offsets.model.state import CalibratedState, ModelState  # noqa: E402
 from bluesky_offsets.offsets.beam_search import acceptance, intensity, search  # noqa: E402
 from bluesky_offsets.physics import effects as E  # noqa: E402
-from bluesky_offsets.physics.parameters import MAX_OFFSET, METRIXS as T  # noqa: E402
+from bluesky_offsets.physics.parameters import MAX_OFFSET, METRIXS as T, at_offset_bound  # noqa: E402
 from bluesky_offsets.physics.screen import per_frame_overrides  # noqa: E402
 from bluesky_offsets.physics.engine import TorchEngine  # noqa: E402
 from bluesky_offsets.physics.twin import CAMERA, HistogramSpec, RayxEngine, Twin  # noqa: E402
@@ -130,7 +130,7 @@ def metrics(truth, fitres) -> dict:
     cls = [e.cls for e in post.offsets]
     det = np.array([c == "determined" for c in cls])
     within = np.abs(err) <= 2 * sig
-    at_bound = np.abs(np.abs(est) - MAX_OFFSET) < 1e-6
+    at_bound = at_offset_bound(est)
     return {"rmse_over_rms": float(np.sqrt(np.mean(err ** 2)) / rms), "within_2sigma": float(within.mean()),
             "determined": int(det.sum()), "weak": cls.count("weak"), "undetermined": cls.count("undetermined"),
             "determined_within_2sigma": float(within[det].mean()) if det.any() else float("nan"),

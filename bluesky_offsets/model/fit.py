@@ -849,9 +849,7 @@ def _posterior_draws(mdl: _Model, z: np.ndarray, pr: _Products, ridge: np.ndarra
     steps = np.random.default_rng(seed).standard_normal((n, len(z))) @ root.T
     lo, hi = mdl.bounds()
     # folded back into the box, not clipped: a start on a bound tends to end there
-    w = np.where(np.isfinite(hi - lo), hi - lo, np.inf)
-    x = np.where(np.isfinite(w), np.abs(np.mod(z + steps - lo, 2 * w) - w), z + steps - lo)
-    return np.where(np.isfinite(w), hi - x, z + steps)
+    return hi - np.abs(np.mod(z + steps - lo, 2 * (hi - lo)) - (hi - lo))
 
 
 @dataclass(frozen=True)

@@ -222,7 +222,7 @@ def _check_against_rml(bl: Beamline, path: Path) -> None:
                             f"ImagePlane of the RML")
     if bl.builtin is None:
         try:
-            check_frames(bl.rml_file())
+            check_frames(rml, bl.rml_file())
             check_importable(bl.rml_file())
         except InputError as exc:
             raise BeamlineError(f"beamline {path}: {exc}") from None

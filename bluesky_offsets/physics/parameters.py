@@ -26,6 +26,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 
 from bluesky_offsets.errors import InputError
+from bluesky_offsets.physics.geometry import MISALIGNMENT_KEYS
 
 MAX_OFFSET = 0.2
 """Largest offset magnitude, in normalized units (20 % of each range)."""
@@ -303,11 +304,9 @@ UNITS = ("mm", "mrad")
 
 def misalignment_unit(field: str) -> str | None:
     """The unit RAYX reads a misalignment ``field`` in; None for an element's own property (its RML unit)."""
-    if field.startswith("translation") and field.endswith("error"):
-        return UNITS[0]
-    if field.startswith("rotation") and field.endswith("error"):
-        return UNITS[1]
-    return None
+    if field not in MISALIGNMENT_KEYS:
+        return None
+    return UNITS[0] if field.startswith("translation") else UNITS[1]
 
 
 def parameter_from_record(rec: Mapping, where: str = "parameter") -> Parameter:

@@ -316,16 +316,15 @@ FRAME_TOLERANCE = (1e-3, 1e-6)
 """How far (mm, and in a direction's components) a chained world frame may lie from the RML's own."""
 
 
-def check_frames(path: str | Path) -> None:
-    """Refuse an RML whose world frames the element chain does not reproduce, naming the object.
+def check_frames(bl: RmlBeamline, path: str | Path) -> None:
+    """Refuse the RML ``bl`` (read from ``path``) where the element chain does not reproduce its world frames.
 
     RAYX places each element by the world vectors the RML stores; every edit of an element
     (a parameter set, a misalignment) writes them anew from the chain (:meth:`RmlBeamline.to_xml`).
     An element type whose placement the chain does not know (a paraboloid's) or cannot chain at all
     (a crystal) would be traced somewhere else than the RML says.  Objects without stored world
-    vectors are not compared.
+    vectors are not compared; the message names the object.
     """
-    bl = read_rml(path)
     stored = read_world_vectors(path)
     for obj, frame in zip(bl.objects, bl.frames()):
         ref = stored.get(obj.name, {})
