@@ -21,6 +21,7 @@ OFFSETS: dict[str, int] = {
     "diagnosis.fits": 7919,            # the diagnosis's fits and detection limits, apart from the offsets fit
     "diagnosis.fresh_rays": 104729,    # fresh rays no fit traced, one block per draw (times 1 + draw)
     "fit.posterior_starts": 15_485_863,  # the fit's starts drawn from its posterior
+    "grid.photons": 31,                # which of a grid source's rays a trace's photons are
     "noise_floor.second_trace": 10_000_019,  # the second of two independent traces of each configuration
     "optimizer.posterior_draws": 1,    # the focus's spread over draws of the posterior
     "training.epoch_order": 1,         # the surrogate's training order, apart from its initial weights

@@ -52,6 +52,17 @@ def test_faint_model_background_does_not_inflate_the_degrees_of_freedom(data):
     assert bg.chi2_reduced_total > 5 and bg.mse_total > 5 * bg.expected_mse_total
 
 
+def test_a_spot_within_one_bin_has_a_finite_misfit():
+    """Every ray in one bin in both the frame and the model: the bin's counting variance p (1 - p)
+    is kept one ray from 0 (it was 0 there, and the misfit NaN)."""
+    one = np.zeros((1, 50))
+    one[0, 20] = 1.0
+    near = one.copy()
+    near[0, 20], near[0, 21] = 0.999, 0.001
+    mf = misfit(one, one, near, one, 5000, model_rays=2000)
+    assert np.isfinite(mf.chi2).all() and 0 < mf.chi2_total < 10
+
+
 def test_missing_effect_is_beyond_noise_with_its_signature(data, tmp_path):
     (mx, my), (fx, fy) = data["meas"], data["wrong"]
     m = misfit(mx, my, fx, fy, N_MEAS, model_rays=N_MODEL)

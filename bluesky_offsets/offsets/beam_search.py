@@ -35,9 +35,9 @@ class ScanStep:
 
 
 def intensity(hist_x, hist_y) -> np.ndarray:
-    """The beam's share of the source rays on the screen.
+    """The beam's intensity on the screen: the x and y histograms summed, as the paper's threshold counts them.
 
-    The x and y histograms summed, as the paper's threshold counts them.
+    Each histogram sums to the share of the source rays on the screen, so this is twice that share.
     """
     return np.nansum(np.atleast_2d(hist_x), axis=1) + np.nansum(np.atleast_2d(hist_y), axis=1)
 
@@ -138,7 +138,7 @@ def search(start, open_widths: np.ndarray, closed_widths: np.ndarray, *, thresho
     inten = (yield start[None])[0]
     frames += 1
     note(start, inten)
-    log.append(f"start: {inten:.3g} of the source rays on the screen")
+    log.append(f"start: {inten / 2:.3g} of the source rays on the screen")
     if inten > threshold:
         return SearchResult(start, float(inten), True, frames, log)
     skip = set(open_settings(table))  # the openings the search sets, never scanned

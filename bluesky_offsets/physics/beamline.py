@@ -39,10 +39,14 @@ from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from bluesky_offsets.errors import InputError
 from bluesky_offsets.physics.geometry import MISALIGNMENT_KEYS
 from bluesky_offsets.physics.parameters import BEAMLINES, ParameterError, ParameterTable, parameter_from_record
 from bluesky_offsets.physics.screen import on_image_plane
+from bluesky_offsets.physics.rayx_calls import grid_draw, grid_rays, source_varies
+from bluesky_offsets.physics.traces import TraceResult
 from bluesky_offsets.physics.twin import HistogramSpec, RayxEngine, TraceRequest
 
 BUILTIN = ("metrixs",)
@@ -107,6 +111,16 @@ class Beamline:
         from bluesky_offsets.physics.engine import RmlTorchEngine
         return RmlTorchEngine(self)
 
+    @property
+    def source_varies(self) -> bool:
+        """Whether RAYX's source draws other rays for another seed: a matrix source's grid does not.
+
+        Where it does not, both twins draw each trace's photons from the grid (:meth:`RmlEngine.trace`).
+        """
+        if self.builtin == "metrixs":
+            return True
+        return _source_varies(self.rml_file())
+
     def rml_objects(self) -> dict[str, str]:
         """Object name -> RML type, from the RML file or the built-in geometry."""
         if self.builtin == "metrixs":
@@ -120,6 +134,12 @@ class Beamline:
         if self.rml is None:
             raise BeamlineError(f"beamline {self.name}: neither an RML file nor a built-in geometry")
         return self.rml
+
+
+@functools.cache
+def _source_varies(rml: Path) -> bool:
+    from bluesky_offsets.physics.rml import read_rml
+    return source_varies(read_rml(rml))
 
 
 def _keys(section: dict, allowed, where: str) -> None:
@@ -296,6 +316,22 @@ class RmlEngine(RayxEngine):
         self.beamline = beamline
         self.rml = read_rml(beamline.rml_file())
         self.source_label = self.rml.source_label
+
+    def trace(self, request: TraceRequest, n_rays: int, keep_rays: bool = False) -> TraceResult:
+        """RAYX's trace; from a grid source (:attr:`Beamline.source_varies`), ``n_rays`` photons drawn from its grid.
+
+        A grid source emits the same rays for every seed, so a trace of it would carry no counting
+        noise: RAYX traces the grid (:func:`~.rayx_calls.grid_rays`) and each photon is one of its
+        rays (:func:`~.rayx_calls.grid_draw`), as the torch engine draws them.
+        """
+        if self.beamline.source_varies:
+            return super().trace(request, n_rays, keep_rays)
+        grid = grid_rays(self.rml)
+        values, x, y, pid = self.hits(request, grid)
+        counts = np.bincount(grid_draw(grid, n_rays, request.seed), minlength=grid)[pid]
+        x, y = np.repeat(x, counts), np.repeat(y, counts)
+        hx, hy = self.hist.histograms(x, y, n_rays)
+        return TraceResult(hx, hy, int(x.size), int(n_rays), values, np.column_stack([x, y]) if keep_rays else None)
 
     def build(self, request: TraceRequest, n_rays: int):
         """A copy of the RML set to ``request`` (parameters, then overrides) with ``n_rays`` source rays."""

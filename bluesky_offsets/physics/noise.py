@@ -37,15 +37,16 @@ def bin_variance(meas, model, n_rays, model_rays: int | None = None, model_var: 
 
     It is ``p (1 - p) / N`` for the measurement and ``p (1 - p) / N_model`` for a traced model
     (a mean model, e.g. a surrogate: its error variance ``model_var`` instead), ``p`` the mean of
-    both floored at one ray in ``N``; with a camera's own noise ``floor`` (read noise; fraction²)
+    both kept one ray in ``N`` from 0 and from 1 (a spot within one bin); with a camera's own noise ``floor`` (read noise; fraction²)
     that floor instead, added.  ``model_noise``: where the model's bins carry less noise than
     their values imply (a blurred model, :func:`bluesky_offsets.physics.effects.detector_noise`):
     per bin the kernel-squared sum of the fractions it gathers, whose multinomial variance
     ``Σ k² f − (Σ k f)²`` replaces the model's ``f (1 − f)`` in its term.
     """
     n = np.asarray(n_rays, dtype=float)
-    # counts: at least one ray's worth in a bin; a camera's floor is the variance an empty bin has
-    p = np.maximum(0.5 * (np.asarray(meas, float) + np.asarray(model, float)), 0.0 if floor is not None else 1.0 / n)
+    # counts: at least one ray's worth in a bin and out of it; a camera's floor is the variance an empty bin has
+    p = 0.5 * (np.asarray(meas, float) + np.asarray(model, float))
+    p = np.maximum(p, 0.0) if floor is not None else np.clip(p, 1.0 / n, 1.0 - 1.0 / n)
     var = multinomial_variance(p, n) + model_var
     if floor is not None:
         var = var + floor

@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from bluesky_offsets.errors import InputError
+from bluesky_offsets.streams import stream
 
 _seeded_pids: set[int] = set()
 
@@ -89,6 +90,54 @@ def _import_error(text: bytes) -> str | None:
     lines = [re.sub(r"^\s*\[[^]]*\]", "", ln).strip() for ln in plain.splitlines()]
     said = [ln for ln in lines if ln and not ln.startswith("Terminating")]
     return "; ".join(said[-3:]) or f"exit status {proc.returncode}"
+
+
+SOURCE_COLUMNS = ("position_x", "position_y", "position_z", "direction_x", "direction_y", "direction_z", "energy")
+"""The columns of an emitted ray that :func:`source_rays` returns."""
+
+
+def source_rays(rml, n_rays: int, seed: int) -> dict[str, np.ndarray]:
+    """RAYX's draw of ``n_rays`` from the first source of ``rml`` (an ``RmlBeamline``), in its local frame.
+
+    The source alone: RAYX draws its rays before any element, and tracing the rest costs ~40x more.
+    Returns :data:`SOURCE_COLUMNS`, each ordered by the rays' path index.
+    """
+    from bluesky_offsets.physics.rml import RmlBeamline
+    bl = RmlBeamline(rml.sources[:1], rml.version).copy()
+    bl.sources[0].set("numberRays", int(n_rays))
+    rb = import_rml(bl)
+    fix_seed(seed)
+    rays = rb.trace()
+    check_emitted(rays, rml.source_label)
+    obj, pid = np.asarray(rays.object_id), np.asarray(rays.path_id)
+    first = np.flatnonzero(obj == 0)
+    first = first[np.argsort(pid[first], kind="stable")]
+    if len(first) != n_rays:
+        raise RuntimeError(f"RAYX emitted {len(first)} source rays for {n_rays}")
+    return {k: np.asarray(getattr(rays, k))[first] for k in SOURCE_COLUMNS}
+
+
+GRID_RAYS = 10_000
+"""The fewest rays of a grid source's grid (a matrix source: its RML's count where that is more)."""
+
+
+def grid_rays(rml) -> int:
+    """The rays of the grid that the frames of ``rml``'s grid source draw their photons from."""
+    return max(int(rml.sources[0].get_float("numberRays")), GRID_RAYS)
+
+
+def grid_draw(grid: int, n_rays: int, seed: int | None) -> np.ndarray:
+    """Which of a grid's ``grid`` rays ``n_rays`` photons are: drawn with replacement, the same for a seed."""
+    rng = np.random.default_rng(None if seed is None else stream(int(seed), "grid.photons"))
+    return rng.integers(0, grid, int(n_rays))
+
+
+def source_varies(rml) -> bool:
+    """Whether the first source of ``rml`` emits other rays for another seed (a matrix source's grid does not)."""
+    a, b = (source_rays(rml, 64, s) for s in (1, 2))
+    if os.getpid() in _seeded_pids:  # the probe's seeds must not become this process's stream
+        fix_seed(int.from_bytes(os.urandom(4), "little"))
+    return any(not np.array_equal(a[k], b[k]) for k in SOURCE_COLUMNS)
 
 
 def check_importable(path: str | Path) -> None:

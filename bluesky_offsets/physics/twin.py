@@ -134,6 +134,13 @@ class RayxEngine:
 
     def trace(self, request: TraceRequest, n_rays: int, keep_rays: bool = False) -> TraceResult:
         """Trace one beamline state with ``n_rays`` source rays in RAYX (the rays kept with ``keep_rays``)."""
+        values, x, y, _ = self.hits(request, n_rays)
+        hx, hy = self.hist.histograms(x, y, n_rays)
+        return TraceResult(hx, hy, int(x.size), int(n_rays), values,
+                           np.column_stack([x, y]) if keep_rays else None)
+
+    def hits(self, request: TraceRequest, n_rays: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """RAYX's trace of ``request``: the validated values, the screen's hits ``x``, ``y`` and their source rays' numbers."""
         values = self.table.validate(request.values)
         if n_rays < 1:
             raise InputError(f"n_rays must be positive, got {n_rays}")
@@ -144,11 +151,7 @@ class RayxEngine:
             fix_seed(request.seed)
         rays = bl.trace()
         check_emitted(rays, self.source_label)
-        n_objects = len(bl.sources) + len(bl.elements)
-        x, y, _ = footprint(rays, n_objects, n_rays)
-        hx, hy = self.hist.histograms(x, y, n_rays)
-        return TraceResult(hx, hy, int(x.size), int(n_rays), values,
-                           np.column_stack([x, y]) if keep_rays else None)
+        return values, *footprint(rays, len(bl.sources) + len(bl.elements), n_rays)
 
 
 # --------------------------------------------------------------------------- #

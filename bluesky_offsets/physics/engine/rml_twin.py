@@ -19,9 +19,9 @@ from bluesky_offsets.physics.engine import random_streams as rnd
 from bluesky_offsets.physics.engine.compiling import _MIS_KEYS, compile_beamline
 from bluesky_offsets.physics.engine.sampling import Rays, given_units, rays_from_arrays
 from bluesky_offsets.physics.engine.torch_twin import TorchEngine
-from bluesky_offsets.physics.rml import RmlBeamline, read_rml
+from bluesky_offsets.physics.rml import read_rml
 from bluesky_offsets.physics.screen import on_image_plane
-from bluesky_offsets.physics.rayx_calls import check_emitted, fix_seed, import_rml
+from bluesky_offsets.physics.rayx_calls import grid_draw, grid_rays, source_rays
 from bluesky_offsets.physics.traces import HistogramSpec
 
 
@@ -110,30 +110,27 @@ class RmlTorchEngine(TorchEngine):
 
 
 def _rayx_source(eng, n_rays: int, seed):
-    """RAYX's source rays for ``seed`` (its local frame), with the counters its slits draw from."""
+    """RAYX's source rays for ``seed`` (its local frame), with the counters its slits draw from.
+
+    From a grid source (:attr:`.Beamline.source_varies`) the photons are rays of its grid, drawn
+    as :class:`~bluesky_offsets.physics.beamline.RmlEngine` draws them.
+    """
     seed = int(seed) if seed is not None else int.from_bytes(os.urandom(4), "little")
     key = (int(n_rays), seed)
     if key not in eng.source_cache:
-        # the source alone: RAYX draws its rays before any element, and tracing the rest costs ~40x more
-        bl = RmlBeamline(eng.rml.sources[:1], eng.rml.version).copy()
-        bl.sources[0].set("numberRays", int(n_rays))
-        rb = import_rml(bl)
-        fix_seed(seed)
-        rays = rb.trace()
-        check_emitted(rays, eng.rml.source_label)
-        obj, pid = np.asarray(rays.object_id), np.asarray(rays.path_id)
-        first = np.flatnonzero(obj == 0)
-        first = first[np.argsort(pid[first], kind="stable")]
-        col = {k: np.asarray(getattr(rays, k))[first] for k in ("position_x", "position_y", "position_z",
-                                                                "direction_x", "direction_y", "direction_z",
-                                                                "energy")}
-        if len(first) != n_rays:
-            raise RuntimeError(f"RAYX emitted {len(first)} source rays for {n_rays}")
+        if eng.described.source_varies:
+            col, ctr = source_rays(eng.rml, n_rays, seed), rnd.rayx_counters(n_rays, rnd.rayx_trace_seed(seed))
+        else:
+            grid = grid_rays(eng.rml)
+            if ("grid", grid) not in eng.source_cache:
+                eng.source_cache[("grid", grid)] = source_rays(eng.rml, grid, 0)
+            pick = grid_draw(grid, n_rays, seed)
+            col = {k: v[pick] for k, v in eng.source_cache[("grid", grid)].items()}
+            ctr = rnd.rayx_counters(grid, rnd.rayx_trace_seed(seed))[torch.as_tensor(pick)]
         if len(eng.source_cache) >= SOURCE_CACHE:
             eng.source_cache.pop(next(iter(eng.source_cache)))
         eng.source_cache[key] = rays_from_arrays(
             np.column_stack([col["position_x"], col["position_y"], col["position_z"]]),
             np.column_stack([col["direction_x"], col["direction_y"], col["direction_z"]]), col["energy"],
-            dtype=eng.options.torch_dtype, device=eng.options.device,
-            counters=rnd.rayx_counters(n_rays, rnd.rayx_trace_seed(seed)))
+            dtype=eng.options.torch_dtype, device=eng.options.device, counters=ctr)
     return eng.source_cache[key]
