@@ -374,8 +374,10 @@ class RunStore:
                                   f"{_first_line(exc)}")
 
             # queued: a catalog answers each request in 20-100 ms of Python, a run's end takes two
-            # dozen (1.0 s for each beam-search run); written while the motors move instead
-            self._writer = QueuedCallback(TiledWriter(self._client), name="run-store-writer", error=failed)
+            # dozen (1.0 s for each beam-search run); written while the motors move instead.
+            # max_array_size 0: every array as an array (up to 16 values went into the table as text, 8 digits)
+            self._writer = QueuedCallback(TiledWriter(self._client, max_array_size=0), name="run-store-writer",
+                                          error=failed)
             _WRITERS.setdefault(self._catalog, weakref.WeakSet()).add(self._writer)
         return self._writer
 

@@ -65,7 +65,7 @@ class CommandedConfiguration:
         """The held index, configuration vector (and screen position) as a Bluesky reading."""
         out = {"config_index": {"value": self._index, "timestamp": self._time},
                "configuration": {"value": self._vector, "timestamp": self._time}}
-        if self._screen is not None:  # three numbers: short arrays do not keep their type in the store
+        if self._screen is not None:  # the stage's x, y, z: three numbers of their own
             out.update({f"screen_{a}": {"value": float(v), "timestamp": self._time}
                         for a, v in zip("xyz", self._screen)})
         return out

@@ -413,11 +413,12 @@ motor = "ell.ty"
 """
 
 
-def test_a_grid_source_s_frames_count_photons_from_its_grid_in_both_engines(tmp_path):
+def test_a_grid_source_s_frames_count_photons_from_its_grid_in_both_engines(tmp_path, capsys):
     """RAY-UI's matrix source emits the same grid for every seed: traced as it is, frames would carry
     no counting noise and no misfit could be judged.  Each photon is a ray of its grid, drawn by the
-    seed: RAYX and the torch engine land the same photons, another seed draws others, and two traces
-    of one configuration differ by the counting noise the misfit expects."""
+    seed: RAYX and the torch engine land the same photons (``simulate --engine both`` with no seed
+    too), another seed draws others, and two traces of one configuration differ by the counting
+    noise the misfit expects."""
     from pathlib import Path
 
     from bluesky_offsets.model.misfit import misfit
@@ -437,3 +438,7 @@ def test_a_grid_source_s_frames_count_photons_from_its_grid_in_both_engines(tmp_
     (m, f) = ([np.array([getattr(r, h) for r in run]) for h in ("hist_x", "hist_y")] for run in runs)
     chi2 = misfit(*m, *f, 3000, model_rays=3000).chi2_reduced_total
     assert 0.7 < chi2 < 1.4, chi2
+    capsys.readouterr()
+    assert main(["simulate", "--beamline", str(tmp_path / "bl.toml"), "--engine", "both", "--rays", "2000",
+                 "--json"]) == 0
+    assert __import__("json").loads(capsys.readouterr().out)["comparison"]["chi2_per_dof"] < 1e-9

@@ -255,6 +255,33 @@ def test_writes_are_queued_and_every_read_sees_them(RE, chamber, tmp_path):
         store.close()
 
 
+def test_a_short_configuration_vector_comes_back_as_the_numbers_it_was(RE, tmp_path):
+    """A described beamline of a few parameters: each frame's configuration (7 values) is read back
+    bit for bit (the writer put arrays of up to 16 values into its table as text, 8 digits)."""
+    from plans.measure import CommandedConfiguration
+    store = open_store(tmp_path / "runs")
+    try:
+        token = store.subscribe(RE)
+        dev = CommandedConfiguration(7, name="commanded")
+        vectors = np.random.default_rng(3).normal(size=(2, 7)) * [1, 1, 1, 1, 1, 1825.0, 1000.0]
+        names = [f"p{i}" for i in range(7)]
+
+        def plan():
+            yield from bps.open_run({"plan_name": "measure_configurations", "configurations": vectors.tolist(),
+                                     "parameter_names": names})
+            for i, v in enumerate(vectors):
+                dev.update(i, v)
+                yield from bps.trigger_and_read([dev])
+            yield from bps.close_run()
+
+        (uid,) = RE(plan()).run_start_uids
+        RE.unsubscribe(token)
+        ds = store[uid]["primary"].read()
+        np.testing.assert_array_equal(np.asarray(ds["configuration"]), vectors)
+    finally:
+        store.close()
+
+
 def test_a_queued_callback_keeps_the_order_and_reports_failures(caplog):
     from bluesky_offsets.queued import QueuedCallback
     seen = []

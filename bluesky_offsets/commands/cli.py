@@ -189,11 +189,16 @@ def _cmd_simulate(args) -> int:
         overrides["ImagePlane"] = {"translationXerror": tx, "translationYerror": ty, "translationZerror": tz}
     outside = table.outside_box(values)
     names = ("rayx", "torch") if args.engine == "both" else (args.engine,)
+    # a described beamline's torch engine carries RAYX's own source rays, as --sampling rayx does
+    same = bl.builtin is None or args.sampling == "rayx"
+    seed = args.seed
+    if seed is None and len(names) == 2 and same:  # one draw for both, or they would not share their rays
+        seed = int(np.random.default_rng().integers(2**31))
     runs = []
     for name in names:
         twin = Twin(_engine(name, args.sampling, bl), scheduler="inline", n_rays=args.rays)
         try:
-            runs.append((twin, twin.trace(values, overrides=overrides, keep_rays=True, seed=args.seed)))
+            runs.append((twin, twin.trace(values, overrides=overrides, keep_rays=True, seed=seed)))
         except ValueError as exc:
             raise CliError(str(exc)) from None
     hist = runs[0][0].hist
@@ -203,7 +208,7 @@ def _cmd_simulate(args) -> int:
         for twin, result in runs:
             outs.append({"engine": twin.engine.version, "beamline": table.name, "parameters": table.to_mapping(values),
                          "chamber_translation": list(args.chamber) if args.chamber else [0.0, 0.0, 0.0],
-                         "outside_sampling_box": outside, "seed": args.seed, **result.summary(),
+                         "outside_sampling_box": outside, "seed": seed, **result.summary(),
                          "hist_x": result.hist_x.tolist(), "hist_y": result.hist_y.tolist(),
                          "edges_x": hist.edges_x.tolist(), "edges_y": hist.edges_y.tolist()})
         print(json.dumps(outs[0] if len(outs) == 1 else {"runs": outs, "comparison": comparison}, indent=2))
@@ -224,8 +229,6 @@ def _cmd_simulate(args) -> int:
             print(f"  y histogram [{hist.range_y[0]:g}, {hist.range_y[1]:g}] mm, sum {result.hist_y.sum():.4f}:")
             print(f"    |{_sparkline(result.hist_y)}|")
         if comparison:
-            # a described beamline's torch engine carries RAYX's own source rays, as --sampling rayx does
-            same = bl.builtin is None or args.sampling == "rayx"
             agree = ("the same source rays: 0 when they agree ray for ray" if same else
                      f"1 ± {comparison['sigma']:.2f} when they agree within counting noise")
             print(f"rayx vs torch: histogram chi2/dof {comparison['chi2_per_dof']:.2f} over {comparison['dof']} "
@@ -285,8 +288,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="rayx: the reference (default); torch: the differentiable twin; both: trace with "
                         "each and compare their histograms within counting noise")
     p.add_argument("--seed", type=int, default=None,
-                   help="random seed (the same seed gives the same trace; with --engine both each engine "
-                        "draws its own rays unless --sampling rayx)")
+                   help="random seed (the same seed gives the same trace; with --engine both on METRIXS each "
+                        "engine draws its own rays unless --sampling rayx; on a described beamline both trace "
+                        "RAYX's rays, one seed drawn for both where none is given)")
     p.add_argument("--sampling", choices=("fast", "rayx"), default="fast",
                    help="torch engine's random stream: fast, or rayx (RAYX's own rays for the same seed)")
     p.add_argument("--json", action="store_true", help="machine-readable output")
