@@ -442,3 +442,13 @@ def test_a_grid_source_s_frames_count_photons_from_its_grid_in_both_engines(tmp_
     assert main(["simulate", "--beamline", str(tmp_path / "bl.toml"), "--engine", "both", "--rays", "2000",
                  "--json"]) == 0
     assert __import__("json").loads(capsys.readouterr().out)["comparison"]["chi2_per_dof"] < 1e-9
+
+
+@pytest.mark.parametrize("name", ["pm_ell", "sphgr"])
+def test_the_documented_example_descriptions_load(name, capsys):
+    """The examples docs/reference/beamlines.md names (RAYX's test inputs, described from it) stay valid."""
+    from pathlib import Path
+    path = Path(__file__).parent / "data" / "beamlines" / f"{name}.toml"
+    assert main(["params", "--beamline", str(path)]) == 0
+    assert capsys.readouterr().out.startswith(f"{name} parameter table")
+    assert not load_beamline(path).source_varies  # both a matrix source's grid
