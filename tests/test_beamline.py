@@ -382,38 +382,7 @@ def test_the_demo_calibrates_a_described_beamline_end_to_end(tmp_path):
     assert (out / "report.html").stat().st_size > 10_000
 
 
-GRID = """
-[beamline]
-name = "pm_ell"
-rml = "pm_ell.rml"
-effects = ["chamber_z"]
-
-[detector]
-histogram_bins = [50, 50]
-histogram_x = [-6.0, 1.5]
-histogram_y = [-1.5, 4.5]
-
-[[parameter]]
-name = "PM.rotationXerror"
-element = "Plane Mirror"
-field = "rotationXerror"
-unit = "mrad"
-range = [3.75, 4.25]
-reference = 4.0
-motor = "pm.rx"
-
-[[parameter]]
-name = "ELL.translationYerror"
-element = "Ellipsoid"
-field = "translationYerror"
-unit = "mm"
-range = [1.0, 3.0]
-reference = 2.0
-motor = "ell.ty"
-"""
-
-
-def test_a_grid_source_s_frames_count_photons_from_its_grid_in_both_engines(tmp_path, capsys):
+def test_a_grid_source_s_frames_count_photons_from_its_grid_in_both_engines(capsys):
     """RAY-UI's matrix source emits the same grid for every seed: traced as it is, frames would carry
     no counting noise and no misfit could be judged.  Each photon is a ray of its grid, drawn by the
     seed: RAYX and the torch engine land the same photons (``simulate --engine both`` with no seed
@@ -423,13 +392,11 @@ def test_a_grid_source_s_frames_count_photons_from_its_grid_in_both_engines(tmp_
 
     from bluesky_offsets.model.misfit import misfit
     from bluesky_offsets.physics.twin import Twin
-    rml = Path(__file__).parent / "data" / "reference" / "rayui-misalignment" / "pm_ell_ip_200mirrormis.rml"
-    (tmp_path / "pm_ell.rml").write_text(rml.read_text())
-    (tmp_path / "bl.toml").write_text(GRID)
-    bl = load_beamline(tmp_path / "bl.toml")
+    path = Path(__file__).parent / "data" / "beamlines" / "pm_ell.toml"
+    bl = load_beamline(path)
     assert not bl.source_varies and load_beamline(shipped("energize")).source_varies
     rayx, torch = Twin(bl.engine(), scheduler="inline"), Twin(bl.engine("torch"), scheduler="inline")
-    vals = bl.table.reference + np.array([0.1, -0.2]) * bl.table.span
+    vals = bl.table.reference + np.array([0.1, -0.2, 0.1, -0.1, 0.2, 0.05]) * bl.table.span
     a, b = (t.trace(vals, n_rays=3000, seed=5, keep_rays=True) for t in (rayx, torch))
     assert a.n_hits == b.n_hits > 2500
     np.testing.assert_allclose(np.sort(a.rays, 0), np.sort(b.rays, 0), rtol=0, atol=1e-6)
@@ -439,7 +406,7 @@ def test_a_grid_source_s_frames_count_photons_from_its_grid_in_both_engines(tmp_
     chi2 = misfit(*m, *f, 3000, model_rays=3000).chi2_reduced_total
     assert 0.7 < chi2 < 1.4, chi2
     capsys.readouterr()
-    assert main(["simulate", "--beamline", str(tmp_path / "bl.toml"), "--engine", "both", "--rays", "2000",
+    assert main(["simulate", "--beamline", str(path), "--engine", "both", "--rays", "2000",
                  "--json"]) == 0
     assert __import__("json").loads(capsys.readouterr().out)["comparison"]["chi2_per_dof"] < 1e-9
 
