@@ -37,11 +37,12 @@ def bin_variance(meas, model, n_rays, model_rays: int | None = None, model_var: 
 
     It is ``p (1 - p) / N`` for the measurement and ``p (1 - p) / N_model`` for a traced model
     (a mean model, e.g. a surrogate: its error variance ``model_var`` instead), ``p`` the mean of
-    both kept one ray in ``N`` from 0 and from 1 (a spot within one bin); with a camera's own noise ``floor`` (read noise; fraction²)
-    that floor instead, added.  ``model_noise``: where the model's bins carry less noise than
-    their values imply (a blurred model, :func:`bluesky_offsets.physics.effects.detector_noise`):
-    per bin the kernel-squared sum of the fractions it gathers, whose multinomial variance
-    ``Σ k² f − (Σ k f)²`` replaces the model's ``f (1 − f)`` in its term.
+    both kept one ray in ``N`` from 0 and from 1 (a spot within one bin); with a camera's own
+    noise ``floor`` (read noise; fraction²) that floor instead, added.  ``model_noise``: where the
+    model's bins carry less noise than their values imply (a blurred model,
+    :func:`bluesky_offsets.physics.effects.detector_noise`): per bin the kernel-squared sum of
+    the fractions it gathers, whose multinomial variance ``Σ k² f − (Σ k f)²`` replaces the
+    model's ``f (1 − f)`` in its term.
     """
     n = np.asarray(n_rays, dtype=float)
     # counts: at least one ray's worth in a bin and out of it; a camera's floor is the variance an empty bin has

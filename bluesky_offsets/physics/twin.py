@@ -140,7 +140,7 @@ class RayxEngine:
                            np.column_stack([x, y]) if keep_rays else None)
 
     def hits(self, request: TraceRequest, n_rays: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """RAYX's trace of ``request``: the validated values, the screen's hits ``x``, ``y`` and their source rays' numbers."""
+        """RAYX's trace of ``request``: the validated values, the screen's hits ``x``, ``y`` and their rays' numbers."""
         values = self.table.validate(request.values)
         if n_rays < 1:
             raise InputError(f"n_rays must be positive, got {n_rays}")
