@@ -36,6 +36,7 @@ from plans.diagnose import (
 )
 from plans._stubs import emit_rows
 from sim_iocs.truth import default_start
+from conftest import start_metrixs_ioc
 
 pytestmark = pytest.mark.slow  # over a minute: scheduled first (conftest)
 
@@ -70,13 +71,21 @@ def live(tmp_path_factory):
 
 
 @pytest.fixture(scope="module")
-def measured(RE, metrixs_ioc, run_store, live):
+def ioc(tmp_path_factory):
+    """This module's own IOC (the mild truth): its frames do not depend on what other tests left the session's in."""
+    ioc = start_metrixs_ioc(tmp_path_factory.mktemp("diagnosis_ioc"))
+    yield ioc
+    ioc.stop()
+
+
+@pytest.fixture(scope="module")
+def measured(RE, ioc, run_store, live):
     from ophyd_async.core import init_devices
 
     from bluesky_offsets.epics.devices import FocusChamber, MetrixsBeamline
     with init_devices():
-        beamline = MetrixsBeamline(metrixs_ioc.prefix, name="metrixs")
-        chamber = FocusChamber(metrixs_ioc.prefix + "chamber:", name="chamber")
+        beamline = MetrixsBeamline(ioc.prefix, name="metrixs")
+        chamber = FocusChamber(ioc.prefix + "chamber:", name="chamber")
     tokens = [run_store.subscribe(RE), RE.subscribe(live[0])]
     try:
         m = RE(measure_configurations(_configs(4), beamline, chamber)).plan_result
