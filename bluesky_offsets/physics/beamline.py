@@ -46,7 +46,6 @@ from bluesky_offsets.physics.geometry import MISALIGNMENT_KEYS
 from bluesky_offsets.physics.parameters import BEAMLINES, ParameterError, ParameterTable, parameter_from_record
 from bluesky_offsets.physics.screen import on_image_plane
 from bluesky_offsets.physics.rayx_calls import grid_draw, grid_rays, source_varies
-from bluesky_offsets.physics.traces import TraceResult
 from bluesky_offsets.physics.twin import HistogramSpec, RayxEngine, TraceRequest
 
 BUILTIN = ("metrixs",)
@@ -317,21 +316,19 @@ class RmlEngine(RayxEngine):
         self.rml = read_rml(beamline.rml_file())
         self.source_label = self.rml.source_label
 
-    def trace(self, request: TraceRequest, n_rays: int, keep_rays: bool = False) -> TraceResult:
-        """RAYX's trace; from a grid source (:attr:`Beamline.source_varies`), ``n_rays`` photons drawn from its grid.
+    def hits(self, request: TraceRequest, n_rays: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """RAYX's hits; from a grid source (:attr:`Beamline.source_varies`), ``n_rays`` photons drawn from its grid.
 
         A grid source emits the same rays for every seed, so a trace of it would carry no counting
         noise: RAYX traces the grid (:func:`~.rayx_calls.grid_rays`) and each photon is one of its
         rays (:func:`~.rayx_calls.grid_draw`), as the torch engine draws them.
         """
         if self.beamline.source_varies:
-            return super().trace(request, n_rays, keep_rays)
+            return super().hits(request, n_rays)
         grid = grid_rays(self.rml)
-        values, x, y, pid = self.hits(request, grid)
+        values, x, y, pid = super().hits(request, grid)
         counts = np.bincount(grid_draw(grid, n_rays, request.seed), minlength=grid)[pid]
-        x, y = np.repeat(x, counts), np.repeat(y, counts)
-        hx, hy = self.hist.histograms(x, y, n_rays)
-        return TraceResult(hx, hy, int(x.size), int(n_rays), values, np.column_stack([x, y]) if keep_rays else None)
+        return values, np.repeat(x, counts), np.repeat(y, counts), np.repeat(pid, counts)
 
     def build(self, request: TraceRequest, n_rays: int):
         """A copy of the RML set to ``request`` (parameters, then overrides) with ``n_rays`` source rays."""
