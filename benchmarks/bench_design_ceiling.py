@@ -13,6 +13,11 @@ and judged on another (its frames' unbiased matrices summed, then made positive 
 judged on the rays it was chosen on, a batch is credited with the noise it was chosen for
 (``determined_as_chosen`` gives that count beside the honest one).
 
+Beside the count, the least RMSE any estimator of the offsets can expect from those frames: the
+linear-Gaussian posterior whose prior is the hidden offsets' own spread (σ_t, the uniform draw's),
+``sqrt(tr((F + I / σ_t²)⁻¹) / P) / σ_t``, for the D-optimal batch and for a greedy A-optimal one
+chosen under that prior (the batch that minimizes this very number), each judged on other rays.
+
     python benchmarks/bench_design_ceiling.py --seeds 0 1 2 [--frames 60] [--pool 400] [--out FILE]
 
 The rows go to ``--out`` (default ``benchmarks/results/raw/design_ceiling.json``), the result to
@@ -53,6 +58,7 @@ def main() -> None:
     p.add_argument("--pool", type=int, default=400)
     p.add_argument("--rays", type=int, default=4000, help="model rays per candidate's Jacobian (two halves)")
     p.add_argument("--out", type=Path, default=None)
+    p.add_argument("--result", default="design_ceiling", help="the result's name under benchmarks/results/")
     a = p.parse_args()
     sys.path.insert(0, str(Path(__file__).resolve().parent))
     from bench_design import Beamline, find_beam
@@ -72,26 +78,39 @@ def main() -> None:
                                   screen=screen, seed=seed + 1_000_003, psd=False)
         bright = unit.intensity >= opts.floor
         k = a.frames - beam.frames
+        spread = a.fraction / np.sqrt(3.0)  # the uniform draw's σ, normalized as the offsets are
+        truth_prior = prior_precision(len(T), spread)
         for n, m in BUDGETS:
             scale = 1.0 / (1.0 / n + 1.0 / m) / 1e12  # the pool's information was for 1e12 photons a frame
             ch = select(unit.fisher * scale, prior_precision(len(T)), k, allowed=bright)
-            sig = predicted_sigma(prior_precision(len(T)) + positive_part(judge.fisher[ch.indices].sum(0) * scale))
+            judged = positive_part(judge.fisher[ch.indices].sum(0) * scale)
+            sig = predicted_sigma(prior_precision(len(T)) + judged)
+            best = select(unit.fisher * scale, truth_prior, k, criterion="A", allowed=bright)
             rows.append({"seed": seed, "photons": n, "model_rays": m, "frames_designed": len(ch.indices),
                          "search_frames": beam.frames, "determined": classes(sig).count("determined"),
                          "undetermined": classes(sig).count("undetermined"),
-                         "determined_as_chosen": classes(predicted_sigma(ch.precision)).count("determined")})
+                         "determined_as_chosen": classes(predicted_sigma(ch.precision)).count("determined"),
+                         "rmse_bound_d": rmse_bound(truth_prior + judged, spread),
+                         "rmse_bound_a": rmse_bound(truth_prior + positive_part(
+                             judge.fisher[best.indices].sum(0) * scale), spread)})
             print(f"seed {seed}: N={n:>9,} K={m:>9,}: {rows[-1]['determined']:2d} determined, "
                   f"{rows[-1]['undetermined']:2d} undetermined of 34 with {len(ch.indices)} designed frames "
                   f"(+{beam.frames} search; {rows[-1]['determined_as_chosen']} judged on the rays that chose "
-                  f"them)", flush=True)
+                  f"them); least RMSE / truth RMS {rows[-1]['rmse_bound_d']:.2f} (D), "
+                  f"{rows[-1]['rmse_bound_a']:.2f} (A)", flush=True)
         print(f"seed {seed}: {time.perf_counter() - t0:.0f} s", flush=True)
     if a.out is None:  # the rows' record beside the result
         from results import raw_path
-        a.out = raw_path("design_ceiling.json")
+        a.out = raw_path(f"{a.result}.json")
     a.out.parent.mkdir(parents=True, exist_ok=True)
     a.out.write_text(json.dumps({"machine": machine(), "args": {k: v for k, v in vars(a).items() if k != "out"},
                                  "rows": rows}, indent=1, default=str))
     write(rows, a)
+
+
+def rmse_bound(precision: np.ndarray, spread: float) -> float:
+    """The linear-Gaussian posterior's expected RMSE over the offsets, in units of their spread ``spread``."""
+    return float(np.sqrt(np.trace(np.linalg.inv(precision)) / len(precision)) / spread)
 
 
 def write(rows: list, a) -> None:
@@ -104,10 +123,16 @@ def write(rows: list, a) -> None:
                   ["photons N / model rays K a frame", *(f"seed {s}" for s in seeds)],
                   [[f"{n:,} / {m:,}", *(by[n, m, s]["determined"] for s in seeds)] for n, m in BUDGETS],
                   align=["l"] + ["r"] * len(seeds))
+    least = Table("The least RMSE / truth RMS an estimator can expect from the batch (the linear-Gaussian posterior "
+                  "under the truth's own spread): the D-optimal batch / the A-optimal one:",
+                  ["photons N / model rays K a frame", *(f"seed {s}" for s in seeds)],
+                  [[f"{n:,} / {m:,}", *(f"{by[n, m, s]['rmse_bound_d']:.2f} / {by[n, m, s]['rmse_bound_a']:.2f}"
+                                        for s in seeds)] for n, m in BUDGETS],
+                  align=["l"] + ["r"] * len(seeds))
     frames = ", ".join(f"{by[BUDGETS[0][0], BUDGETS[0][1], s]['frames_designed']} after "
                        f"{by[BUDGETS[0][0], BUDGETS[0][1], s]['search_frames']}" for s in seeds)
     result = write_result(
-        "design_ceiling", title="The designed measurement: the Fisher ceiling", tables=[table], data=[str(a.out)],
+        a.result, title="The designed measurement: the Fisher ceiling", tables=[table, least], data=[str(a.out)],
         notes=[f"{a.rays:,} rays a candidate, two halves; frames designed after those of the beam search, per seed: "
                f"{frames}.",
                "Determined as judged on the rays that chose the batch (optimistic), per budget in the table's order: "
