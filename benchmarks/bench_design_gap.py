@@ -52,6 +52,7 @@ def frames_fisher(run: Path, rays: int, photons: int, model_rays: int) -> tuple[
 
 
 def summary(run: Path) -> dict:
+    """The run's ``summary.json``."""
     return json.loads((run / "out" / "summary.json").read_text())
 
 
@@ -61,9 +62,9 @@ def least_rmse(fisher: np.ndarray, fraction: float) -> float:
     The posterior whose prior is the hidden offsets' own spread (uniform within ±``fraction``)
     knows more than any calibration is told; its expected RMSE is the floor.
     """
+    from bench_design_ceiling import rmse_bound
     spread = fraction / np.sqrt(3.0)
-    cov = np.linalg.inv(prior_precision(len(fisher), spread) + fisher)
-    return float(np.sqrt(np.trace(cov) / len(fisher)) / spread)
+    return rmse_bound(prior_precision(len(fisher), spread) + fisher, spread)
 
 
 def row(run: Path, a) -> dict:
