@@ -66,12 +66,11 @@ def one(seed: int, fraction: float) -> list[dict]:
     cfg, screen = candidate_settings(beam.configuration[None], POOL, np.random.default_rng([seed, 5]),
                                      acceptance=acc, options=opts)
     engine = TorchEngine(options={"common_rays": False})
-    scale = 1.0 / (1.0 / PHOTONS + 1.0 / MODEL_RAYS) / 1e12
 
     def info(rays: int, s: int, psd: bool):
-        f = frame_information(engine, cfg, truth, photons=10 ** 12, model_rays=10 ** 12, rays=rays, screen=screen,
+        f = frame_information(engine, cfg, truth, photons=PHOTONS, model_rays=MODEL_RAYS, rays=rays, screen=screen,
                               seed=s, psd=psd)
-        return f.fisher * scale, f
+        return f.fisher, f
 
     judge, judged_info = info(JUDGE_RAYS, seed + 1_000_003, False)
     bright = judged_info.intensity >= opts.floor
