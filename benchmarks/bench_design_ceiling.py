@@ -79,8 +79,7 @@ def main() -> None:
                                          acceptance=acc, options=opts)
         engine = TorchEngine(options={"common_rays": False})
         k = a.frames - beam.frames
-        spread = a.fraction / np.sqrt(3.0)  # the uniform draw's σ, normalized as the offsets are
-        truth_prior = prior_precision(len(T), spread)
+        truth_prior = prior_precision(len(T), a.fraction / np.sqrt(3.0))  # the uniform draw's σ
         for n, m in a.budgets:
             unit = frame_information(engine, cfg, truth, photons=n, model_rays=m, rays=a.rays, screen=screen,
                                      seed=seed)
@@ -95,9 +94,8 @@ def main() -> None:
                          "search_frames": beam.frames, "determined": classes(sig).count("determined"),
                          "undetermined": classes(sig).count("undetermined"),
                          "determined_as_chosen": classes(predicted_sigma(ch.precision)).count("determined"),
-                         "rmse_bound_d": rmse_bound(truth_prior + judged, spread),
-                         "rmse_bound_a": rmse_bound(truth_prior + positive_part(
-                             judge.fisher[best.indices].sum(0)), spread)})
+                         "rmse_bound_d": least_rmse(judged, a.fraction),
+                         "rmse_bound_a": least_rmse(positive_part(judge.fisher[best.indices].sum(0)), a.fraction)})
             print(f"seed {seed}: N={n:>9,} K={m:>9,}: {rows[-1]['determined']:2d} determined, "
                   f"{rows[-1]['undetermined']:2d} undetermined of 34 with {len(ch.indices)} designed frames "
                   f"(+{beam.frames} search; {rows[-1]['determined_as_chosen']} judged on the rays that chose "
@@ -113,9 +111,15 @@ def main() -> None:
     write(rows, a)
 
 
-def rmse_bound(precision: np.ndarray, spread: float) -> float:
-    """The linear-Gaussian posterior's expected RMSE over the offsets, in units of their spread ``spread``."""
-    return float(np.sqrt(np.trace(np.linalg.inv(precision)) / len(precision)) / spread)
+def least_rmse(fisher: np.ndarray, fraction: float) -> float:
+    """The least RMSE / truth RMS an estimator can expect from frames of information ``fisher``.
+
+    The linear-Gaussian posterior whose prior is the hidden offsets' own spread (uniform within
+    ±``fraction``, normalized): it knows more than any calibration is told.
+    """
+    spread = fraction / np.sqrt(3.0)
+    cov = np.linalg.inv(prior_precision(len(fisher), spread) + fisher)
+    return float(np.sqrt(np.trace(cov) / len(fisher)) / spread)
 
 
 def write(rows: list, a) -> None:

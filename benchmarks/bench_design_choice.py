@@ -9,9 +9,9 @@ rays a candidate (the design's own: :class:`~bluesky_offsets.design.DesignOption
 and ``rays``); greedy D-optimal on the unbiased matrices (only the running sum clipped); a random
 choice among the 120; and D-optimal among the 400 whose beam stays on the screen under a spread of
 the offsets (intensity less ``confidence`` times its linearized σ above the design's floor, as the
-design keeps the beam on the screen under its posterior) for the truth's spread and the table's prior.  Each batch: the offsets it determines and the least RMSE / truth
-RMS (:func:`bench_design_ceiling.rmse_bound`), at the demo's 5,000 photons and 2,000 model rays a
-frame.
+design keeps the beam on the screen under its posterior) for the truth's spread and the table's
+prior.  Each batch: the offsets it determines and the least RMSE / truth RMS
+(:func:`bench_design_ceiling.least_rmse`), at the demo's 5,000 photons and 2,000 model rays a frame.
 
     python benchmarks/bench_design_choice.py --seeds 0 [--fraction 0.05]
 """
@@ -58,7 +58,7 @@ def unbiased_greedy(fisher: np.ndarray, precision: np.ndarray, k: int, allowed: 
 
 def one(seed: int, fraction: float) -> list[dict]:
     from bench_design import Beamline, find_beam
-    from bench_design_ceiling import rmse_bound
+    from bench_design_ceiling import least_rmse
     truth = np.random.default_rng([seed, 17]).uniform(-fraction, fraction, len(T))
     beam = find_beam(Beamline(truth, {}, 5000, seed), default_start())
     acc = acceptance(Twin(TorchEngine()), beam.configuration, open_slits=False)
@@ -68,16 +68,16 @@ def one(seed: int, fraction: float) -> list[dict]:
     engine = TorchEngine(options={"common_rays": False})
 
     def info(rays: int, s: int, psd: bool):
-        f = frame_information(engine, cfg, truth, photons=PHOTONS, model_rays=MODEL_RAYS, rays=rays, screen=screen,
-                              seed=s, psd=psd)
-        return f.fisher, f
+        return frame_information(engine, cfg, truth, photons=PHOTONS, model_rays=MODEL_RAYS, rays=rays,
+                                 screen=screen, seed=s, psd=psd)
 
-    judge, judged_info = info(JUDGE_RAYS, seed + 1_000_003, False)
-    bright = judged_info.intensity >= opts.floor
+    judged_info = info(JUDGE_RAYS, seed + 1_000_003, False)
+    judge, bright = judged_info.fisher, judged_info.intensity >= opts.floor
     subset = np.zeros(POOL, bool)
     subset[np.random.default_rng(seed).choice(POOL, SUBSET, replace=False)] = True
     k = 60 - beam.frames
     box, spread = prior_precision(len(T)), fraction / np.sqrt(3.0)
+    chooser = {rays: info(rays, seed, True) for rays in (JUDGE_RAYS, opts.rays)}
     rows = []
 
     def judged(indices, how: str, allowed: np.ndarray) -> None:
@@ -85,27 +85,26 @@ def one(seed: int, fraction: float) -> list[dict]:
         rows.append({"seed": seed, "how": how, "frames": len(indices), "search_frames": beam.frames,
                      "candidates": int(allowed.sum()),
                      "determined": classes(predicted_sigma(box + F)).count("determined"),
-                     "least_rmse": rmse_bound(prior_precision(len(T), spread) + F, spread)})
+                     "least_rmse": least_rmse(F, fraction)})
         print(f"seed {seed}, {how} ({len(indices)} frames of {int(allowed.sum())} allowed): "
               f"{rows[-1]['determined']} determined, least RMSE / truth RMS "
               f"{rows[-1]['least_rmse']:.3f}", flush=True)
 
     for rays in (JUDGE_RAYS, opts.rays):
-        clipped, _ = info(rays, seed, True)
+        clipped = chooser[rays].fisher
         allowed = bright
         judged(select(clipped, box, k, allowed=allowed).indices, f"D-optimal, {POOL} candidates, {rays:,} rays",
                allowed)
         allowed = bright & subset
         judged(select(clipped, box, k, allowed=allowed).indices, f"D-optimal, {SUBSET} candidates, {rays:,} rays",
                allowed)
-        raw, _ = info(rays, seed, False)
-        judged(unbiased_greedy(raw, box, k, allowed), f"D-optimal unclipped, {SUBSET} candidates, {rays:,} rays",
+        judged(unbiased_greedy(info(rays, seed, False).fisher, box, k, allowed), f"D-optimal unclipped, {SUBSET} candidates, {rays:,} rays",
                allowed)
-    clipped, chooser = info(opts.rays, seed, True)
+    design = chooser[opts.rays]  # the design's own rays a candidate
     for name, sigma in (("the truth's spread", spread), ("the table's prior", PRIOR_SIGMA)):
-        allowed = chooser.intensity - opts.confidence * chooser.intensity_sigma(np.eye(len(T)) * sigma ** 2) \
+        allowed = design.intensity - opts.confidence * design.intensity_sigma(np.eye(len(T)) * sigma ** 2) \
             >= opts.floor
-        judged(select(clipped, box, k, allowed=allowed).indices,
+        judged(select(design.fisher, box, k, allowed=allowed).indices,
                f"D-optimal, {POOL} candidates, {opts.rays:,} rays, lit within {opts.confidence:g}σ of {name}", allowed)
     allowed = bright & subset
     pick = np.random.default_rng(seed + 9).choice(np.flatnonzero(allowed), k, replace=False)

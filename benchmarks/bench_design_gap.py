@@ -29,6 +29,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from bluesky_offsets.design import classes, frame_information, predicted_sigma, prior_precision  # noqa: E402
+from bench_design_ceiling import least_rmse  # noqa: E402
 from bluesky_offsets.model.posterior import PRIOR_SIGMA  # noqa: E402
 from bluesky_offsets.design.information import HALF_SEED, positive_part  # noqa: E402
 from bluesky_offsets.physics.engine import TorchEngine  # noqa: E402
@@ -54,17 +55,6 @@ def frames_fisher(run: Path, rays: int, photons: int, model_rays: int) -> tuple[
 def summary(run: Path) -> dict:
     """The run's ``summary.json``."""
     return json.loads((run / "out" / "summary.json").read_text())
-
-
-def least_rmse(fisher: np.ndarray, fraction: float) -> float:
-    """The least RMSE / truth RMS any estimator can expect from these frames (linear-Gaussian, prior: the draw's spread).
-
-    The posterior whose prior is the hidden offsets' own spread (uniform within ±``fraction``)
-    knows more than any calibration is told; its expected RMSE is the floor.
-    """
-    from bench_design_ceiling import rmse_bound
-    spread = fraction / np.sqrt(3.0)
-    return rmse_bound(prior_precision(len(fisher), spread) + fisher, spread)
 
 
 def row(run: Path, a) -> dict:
