@@ -11,8 +11,8 @@ import torch
 
 from bluesky_offsets.blas import numpy_avx512_targets, x86_with_avx2
 from bluesky_offsets.physics import effects as E
-from bluesky_offsets.model.fit import (FRESH_SEED, RAY_DRAW_SEED, SETTLE_FRACTIONS, FitOptions, _Model, _objective,
-                                      _Products, _ridge, fit, screen)
+from bluesky_offsets.model.fit import (FRESH_SEED, POSTERIOR_ROUNDS, RAY_DRAW_SEED, SETTLE_FRACTIONS, FitOptions,
+                                      _Model, _objective, _Products, _ridge, fit, screen)
 from bluesky_offsets.model.measurement import Measurement
 from bluesky_offsets.model.misfit import misfit
 from bluesky_offsets.model.state import ModelState, simulate, simulate_frames, simulate_with_noise
@@ -232,14 +232,16 @@ def test_a_fit_from_several_starts_keeps_the_one_that_ends_lowest(defocus_case):
 
 def test_starts_drawn_from_the_posterior_are_fitted_and_judged_as_the_others(defocus_case):
     """``posterior_starts``: after the given start, that many drawn from the Gaussian posterior at its
-    end (a named stream: the same draws every time), each fitted in full; the end lowest on fresh
-    rays is kept, its iterations last, the same as fitting from its start alone."""
+    end (a named stream: the same draws every time), each fitted in full, in rounds; the end lowest
+    on fresh rays is kept, its iterations last, the same as fitting from its start alone."""
     meas, truth, twin = defocus_case
     opts = FitOptions(rays=1500, seed=3, stages=(("bins", 3),))
     eng = TorchEngine(hist=CAMERA)
     start = ModelState(truth.offsets * 0.5, {"chamber_z": {"z": 8.0}})
     res = fit(meas, start, eng, opts.replace(posterior_starts=2))
-    assert {h["start"] for h in res.history} == {0, 1, 2}
+    starts = {h["start"] for h in res.history}
+    rounds = (len(starts) - 1) // 2  # another round only while one gains beyond the 95 % region
+    assert starts == set(range(1 + 2 * rounds)) and 1 <= rounds <= POSTERIOR_ROUNDS
     again = fit(meas, start, eng, opts.replace(posterior_starts=2))
     assert np.array_equal(again.state.offsets, res.state.offsets)
     fresh = opts.replace(seed=3 + FRESH_SEED, stages=(("bins", 0),))

@@ -75,6 +75,13 @@ FRESH_SEED = 1_000_003
 RAY_DRAW_SEED = 3_000_017
 #: added to a fit's seed for the second, independent Jacobian of its uncertainty (:meth:`_Model.fisher`)
 CROSS_SEED = 5_000_011
+WIDE_DRAWS = 2.0
+"""σ of the later half of a round's posterior starts over the posterior's: the end a fit stalls at
+can lie beyond the reach of draws at its own curvature (the valleys of a ±20 % draw)."""
+POSTERIOR_ROUNDS = 6
+"""Rounds of :attr:`FitOptions.posterior_starts` at most: another round, drawn at the new best end,
+follows while a round's best ends lower than the best before it by more than the fitted
+parameters' joint 95 % region (each round's end is a start of the next: it stalls again)."""
 
 
 @dataclass(frozen=True)
@@ -753,6 +760,7 @@ def fit(meas, state, engine, options: FitOptions | Mapping | None = None, *,
         raise InputError("the starts of one fit must hold the same effects")
     extra = o.posterior_starts if any(n for _, n in o.stages) else 0  # no iterations: a look at the start
     tagged = len(starts) > 1 or extra > 0
+    region = float(chi2_dist.ppf(0.95, len(mdl.vector(state))))
     # each start on a model of its own, which counts its traces (the rays are the same)
     models = [mdl] + [_Model(meas, state, engine, o, table) for _ in starts[1:]]
     runs = _runs([(m, np.clip(mdl.vector(st), *mdl.bounds()), {"start": k} if tagged else {})
@@ -761,16 +769,18 @@ def fit(meas, state, engine, options: FitOptions | Mapping | None = None, *,
     if tagged:
         fresh = _Model(meas, state, engine, o.replace(seed=o.seed + FRESH_SEED), table)
         ends = _judged(fresh, ends, ridge)
-        if extra:
-            more, drawn = _from_the_posterior(mdl, ends, fresh, ridge, extra, progress, executor)
+        for round_ in range(POSTERIOR_ROUNDS if extra else 0):
+            before = min(e[0] for e in ends)
+            more, drawn = _from_the_posterior(mdl, ends, fresh, ridge, extra, progress, executor, round_)
             ends, models = ends + drawn, models + more
+            if before - min(e[0] for e in drawn) <= region:
+                break
         mdl.n_traces += fresh.n_traces
     kept = min(ends, key=lambda e: (e[0], e[1]))
     _, _, z, pr, exact, _ = kept
     # the other starts' ends that the frames do not tell from the kept one (their χ² on fresh rays
     # within the fitted parameters' joint 95 % region of it): the posterior is at least that wide
     # where the χ² has several valleys, which no curvature at one of them shows
-    region = float(chi2_dist.ppf(0.95, len(z)))
     others = [e[2] for e in ends if e is not kept and e[0] - kept[0] <= region]
     for e in sorted(ends, key=lambda e: e is kept):  # the kept run's iterations last
         history += e[5]
@@ -822,13 +832,15 @@ def _judged(fresh: _Model, ends: list[tuple], ridge: np.ndarray) -> list[tuple]:
 
 
 def _from_the_posterior(mdl: _Model, ends: list[tuple], fresh: _Model, ridge: np.ndarray, n: int,
-                        progress: Callable[[dict], None] | None, executor: Executor | None) -> tuple[list, list]:
+                        progress: Callable[[dict], None] | None, executor: Executor | None,
+                        round_: int = 0) -> tuple[list, list]:
     """The fit run from ``n`` draws of the posterior at the best of ``ends``, numbered after them.
 
     Returns the runs' models (each counts its traces) and their ends, judged on ``fresh``'s rays.
+    ``round_``: which block of the draws' stream.
     """
     best = min(ends, key=lambda e: (e[0], e[1]))
-    xs = _posterior_draws(mdl, best[2], best[3], ridge, n, stream(mdl.o.seed, "fit.posterior_starts"))
+    xs = _posterior_draws(mdl, best[2], best[3], ridge, n, stream(mdl.o.seed, "fit.posterior_starts", draw=round_))
     more = [_Model(mdl.meas, mdl.base, mdl.engine, mdl.o, mdl.table) for _ in xs]
     runs = _runs([(m, x, {"start": len(ends) + i}) for i, (m, x) in enumerate(zip(more, xs))], ridge, progress,
                  executor)
@@ -839,14 +851,16 @@ def _from_the_posterior(mdl: _Model, ends: list[tuple], fresh: _Model, ridge: np
 def _posterior_draws(mdl: _Model, z: np.ndarray, pr: _Products, ridge: np.ndarray, n: int, seed: int) -> np.ndarray:
     """``n`` draws of the Gaussian posterior at ``z`` (its products ``pr``), folded into the bounds.
 
-    The Gauss-Newton covariance of the last stage, inflated by its χ²/dof where above 1; a
-    parameter the frames do not see (NaN) is not moved.
+    The Gauss-Newton covariance of the last stage, inflated by its χ²/dof where above 1, and the
+    later half of the draws at twice its σ (:data:`WIDE_DRAWS`); a parameter the frames do not see
+    (NaN) is not moved.
     """
     r, G, dof, _ = mdl.residuals(mdl.o.stages[-1][0], pr)
     cov = _posterior_covariance(G.T @ G, ridge) * max(1.0, float(r @ r) / max(dof, 1.0))
     vals, vecs = np.linalg.eigh(np.nan_to_num(0.5 * (cov + cov.T)))
     root = vecs * np.sqrt(np.clip(vals, 0.0, None))
     steps = np.random.default_rng(seed).standard_normal((n, len(z))) @ root.T
+    steps[n - n // 2:] *= WIDE_DRAWS
     lo, hi = mdl.bounds()
     # folded back into the box, not clipped: a start on a bound tends to end there
     return hi - np.abs(np.mod(z + steps - lo, 2 * (hi - lo)) - (hi - lo))
