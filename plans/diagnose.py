@@ -198,7 +198,7 @@ class Analysis:
     rankings: list[Ranking] = field(default_factory=list)
     refinement: Refinement | None = None
     refits: list[Refit] = field(default_factory=list)
-    pruning: Pruning | None = None          # the backward step, when two or more effects were added
+    pruning: Pruning | None = None          # the backward step (two effects added, or one within 2σ of none)
     uids: dict[str, str | None] = field(default_factory=dict)  # None: a step that recorded no run
     resumed: dict[str, str] = field(default_factory=dict)   # steps taken from earlier runs: step -> uid
 
@@ -287,23 +287,26 @@ class Analysis:
     @property
     def verdict(self) -> str:
         """What the diagnoses found, in order: the effects added (and kept), or why none was."""
-        def none_within(m):  # every parameter within 2σ of the effect's absence (all zeros)
-            return all(np.isfinite(s) and abs(v) <= 2 * s for v, s in m.values())
-
         # the diagnosis that added each effect: the candidates it did not tell from it
         rivals = {rk.diagnosis.best.name: rk.diagnosis.rivals for rk in self.rankings if rk.diagnosis.best is not None}
         found = [f"{e} ({', '.join(f'{k} = {v:.4g} ± {s:.2g}' for k, (v, s) in m.items())}"
                  + (", within 2 sigma of none)" if none_within(m) else ")") + D.rivals_text(rivals.get(e, ()))
                  for e, m in self.magnitudes().items()]
         last = self.rankings[-1].diagnosis if self.rankings else None
-        if not found:
+        pruned = self._pruned
+        if not found and pruned is None:
             return last.verdict if last else "not diagnosed"
         tail = "" if last is None or last.best is not None else f"; then {last.verdict}"
-        if (pruned := self._pruned) is not None:
+        if pruned is not None:
             t = next(t for t in pruned.tests if t["effect"] == pruned.dropped)
             why = ("without it the model is within noise" if not t["beyond_noise_without"] else
                    f"with the others in it bought Δχ² = {t['gain']:.3g}, below its price {t['price']:.3g}")
             tail += f"; {pruned.dropped} was added before and dropped: {why}"
+        if not found:  # the one effect added was dropped again
+            head = ("no significant missing effect" if self.final.within_noise else
+                    f"misfit beyond noise (chi2/dof = {self.final.misfit.chi2_reduced_total:.3g}) that no "
+                    "candidate effect explains significantly")
+            return head + tail
         if last is not None and last.best is not None and not self.final.within_noise:
             # the last diagnosis added an effect and the model still does not reach the noise: the
             # search ran out of rounds, not of effects, and the effects found may stand in for the
@@ -1038,8 +1041,9 @@ def analyse_measurement(measurement, twin, forward_model=None, *, store=None,
         current = rf.state
         if rf.comparison.within_noise:
             break
-    if len(out.refits) >= 2:
-        # the backward step: an effect added early may have stood in for one added later
+    if len(out.refits) >= 2 or (out.refits and none_within(out.refits[0].magnitude())):
+        # the backward step: an effect added early may have stood in for one added later, and
+        # one alone within 2σ of none may owe its gain to its refit's search, not to itself
         history = out.versions
         pr = yield from step("retest_effects", lambda m: retest_effects(
             meas, current, twin, names=[r.effect for r in out.refits], history=history,
@@ -1054,6 +1058,11 @@ def analyse_measurement(measurement, twin, forward_model=None, *, store=None,
         uid = yield from _history_run(out.versions, {**md, "analysis_step": "error_history"})
         out.uids["error_history"] = uid
     return out
+
+
+def none_within(magnitude: Mapping[str, tuple[float, float]]) -> bool:
+    """Whether every parameter of an effect's ``{parameter: (value, sigma)}`` is within 2σ of its absence (zero)."""
+    return all(np.isfinite(s) and abs(v) <= 2 * s for v, s in magnitude.values())
 
 
 def _history_run(versions, md) -> MsgGenerator[str | None]:

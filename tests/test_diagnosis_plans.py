@@ -364,7 +364,7 @@ def test_the_verdict_says_what_its_numbers_do_not_support():
     out before the noise")."""
     from types import SimpleNamespace as NS
 
-    from plans.diagnose import Analysis
+    from plans.diagnose import Analysis, none_within
 
     def analysis(magnitudes, within, best="chamber_z", rounds=3):
         last = NS(diagnosis=NS(best=None if best is None else NS(name=best), rivals=[],
@@ -384,3 +384,9 @@ def test_the_verdict_says_what_its_numbers_do_not_support():
     text = verdict(analysis(found, False, best=None))
     assert text == "missing effect: chamber_z (z = 20.6 ± 1.1); then misfit beyond noise that no candidate " \
                    "effect explains significantly", text
+    # the one effect added, fitted within 2σ of none, dropped by the backward step: the model's verdict without it
+    alone = analysis({}, True, best="intensity_scale", rounds=1)
+    alone._pruned = NS(dropped="intensity_scale", tests=[{"effect": "intensity_scale", "beyond_noise_without": False}])
+    assert verdict(alone) == "no significant missing effect; intensity_scale was added before and dropped: " \
+                             "without it the model is within noise"
+    assert none_within({"delta": (-0.035, 0.02)}) and not none_within({"delta": (-0.035, 0.01)})

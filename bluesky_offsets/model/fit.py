@@ -155,7 +155,8 @@ class FitOptions:
         Off by default; the analysis's fits (:data:`bluesky_offsets.model.diagnosis.FIT`) turn it on.
     posterior_starts : int
         after the starts, this many more drawn from the Gaussian posterior at the best end (its
-        Gauss-Newton covariance, a named random stream), each fitted in full; every end is judged on
+        Gauss-Newton covariance, half of them at twice its σ, a named random stream), each fitted
+        in full, in rounds while a round gains (:data:`POSTERIOR_ROUNDS`); every end is judged on
         fresh rays as several starts are (``also_from`` of :func:`fit`), the lowest kept, the
         others within its joint 95 % region widening its covariance.  Why: on RAYX's hard counts
         Levenberg-Marquardt stalls short of the minimum along the directions the frames barely
