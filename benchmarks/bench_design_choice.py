@@ -77,7 +77,9 @@ def one(seed: int, fraction: float) -> list[dict]:
     subset[np.random.default_rng(seed).choice(POOL, SUBSET, replace=False)] = True
     k = 60 - beam.frames
     box, spread = prior_precision(len(T)), fraction / np.sqrt(3.0)
-    chooser = {rays: info(rays, seed, True) for rays in (JUDGE_RAYS, opts.rays)}
+    # each candidate's unbiased matrix, and its positive part as the design clips it: one trace per ray count
+    unbiased = {rays: info(rays, seed, False) for rays in (JUDGE_RAYS, opts.rays)}
+    clipped = {rays: positive_part(u.fisher) for rays, u in unbiased.items()}
     rows = []
 
     def judged(indices, how: str, allowed: np.ndarray) -> None:
@@ -91,20 +93,19 @@ def one(seed: int, fraction: float) -> list[dict]:
               f"{rows[-1]['least_rmse']:.3f}", flush=True)
 
     for rays in (JUDGE_RAYS, opts.rays):
-        clipped = chooser[rays].fisher
         allowed = bright
-        judged(select(clipped, box, k, allowed=allowed).indices, f"D-optimal, {POOL} candidates, {rays:,} rays",
+        judged(select(clipped[rays], box, k, allowed=allowed).indices, f"D-optimal, {POOL} candidates, {rays:,} rays",
                allowed)
         allowed = bright & subset
-        judged(select(clipped, box, k, allowed=allowed).indices, f"D-optimal, {SUBSET} candidates, {rays:,} rays",
-               allowed)
-        judged(unbiased_greedy(info(rays, seed, False).fisher, box, k, allowed), f"D-optimal unclipped, {SUBSET} candidates, {rays:,} rays",
-               allowed)
-    design = chooser[opts.rays]  # the design's own rays a candidate
+        judged(select(clipped[rays], box, k, allowed=allowed).indices,
+               f"D-optimal, {SUBSET} candidates, {rays:,} rays", allowed)
+        judged(unbiased_greedy(unbiased[rays].fisher, box, k, allowed),
+               f"D-optimal unclipped, {SUBSET} candidates, {rays:,} rays", allowed)
+    design = unbiased[opts.rays]  # the design's own rays a candidate
     for name, sigma in (("the truth's spread", spread), ("the table's prior", PRIOR_SIGMA)):
         allowed = design.intensity - opts.confidence * design.intensity_sigma(np.eye(len(T)) * sigma ** 2) \
             >= opts.floor
-        judged(select(design.fisher, box, k, allowed=allowed).indices,
+        judged(select(clipped[opts.rays], box, k, allowed=allowed).indices,
                f"D-optimal, {POOL} candidates, {opts.rays:,} rays, lit within {opts.confidence:g}σ of {name}", allowed)
     allowed = bright & subset
     pick = np.random.default_rng(seed + 9).choice(np.flatnonzero(allowed), k, replace=False)

@@ -39,9 +39,11 @@ from bluesky_offsets.store import open_store  # noqa: E402
 CLASSES = ("determined", "weak", "undetermined")
 
 
-def frames_fisher(run: Path, rays: int, photons: int, model_rays: int) -> tuple[np.ndarray, np.ndarray, int]:
-    """The Fisher matrix of ``run``'s measured frames at its hidden truth, the truth, and the frames' count."""
-    s = summary(run)
+def frames_fisher(run: Path, s: dict, rays: int, photons: int, model_rays: int) -> tuple[np.ndarray, np.ndarray, int]:
+    """The Fisher matrix of ``run``'s measured frames at its hidden truth, the truth, and the frames' count.
+
+    ``s``: the run's ``summary.json``.
+    """
     truth = np.array([s["hidden_offsets"][n] for n in T.names])
     shift = np.array([s["hidden_effects"].get(f"chamber_{a}", {}).get(a, 0.0) for a in "xyz"])
     m = open_store(str(run / "store")).load_measurement(s["uids"]["measurement"])
@@ -52,15 +54,11 @@ def frames_fisher(run: Path, rays: int, photons: int, model_rays: int) -> tuple[
     return positive_part(0.5 * (halves[0] + halves[1])), truth, m.n
 
 
-def summary(run: Path) -> dict:
-    """The run's ``summary.json``."""
-    return json.loads((run / "out" / "summary.json").read_text())
-
-
 def row(run: Path, a) -> dict:
     """One run's counts, σ ratio and pulls."""
     t0 = time.perf_counter()
-    fisher, truth, n = frames_fisher(run, a.rays, a.photons, a.model_rays)
+    s = json.loads((run / "out" / "summary.json").read_text())
+    fisher, truth, n = frames_fisher(run, s, a.rays, a.photons, a.model_rays)
     sig_f = predicted_sigma(prior_precision(len(T)) + fisher)
     cal = json.loads((run / "out" / "calibration.json").read_text())["offsets"]
     value = np.array([cal[name]["normalized"] for name in T.names])
@@ -75,7 +73,7 @@ def row(run: Path, a) -> dict:
             "pull_fisher": float(np.sqrt(np.mean((err / sig_f) ** 2))),
             "rmse_ratio": float(np.sqrt(np.mean(err ** 2)) / np.sqrt(np.mean(truth ** 2))),
             "fisher_rmse_ratio": float(np.sqrt(np.mean(sig_f ** 2)) / np.sqrt(np.mean(truth ** 2))),
-            "least_rmse_ratio": least_rmse(fisher, summary(run)["offsets_fraction"]),
+            "least_rmse_ratio": least_rmse(fisher, s["offsets_fraction"]),
             "seconds": time.perf_counter() - t0}
 
 
