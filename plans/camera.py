@@ -154,13 +154,13 @@ def take_darks(camera, n: int = 4, *, md: Mapping | None = None) -> MsgGenerator
     return cal
 
 
-def calibrate_where_bright(camera, beamline, m: Measurement, *, darks: int = 4, frames: int = 8,
-                           max_gain_error: float = 0.1, md: Mapping | None = None, report=None,
+def calibrate_where_bright(camera, beamline, m: Measurement, *, among: int | None = None, darks: int = 4,
+                           frames: int = 8, max_gain_error: float = 0.1, md: Mapping | None = None, report=None,
                            table: ParameterTable = METRIXS) -> MsgGenerator[Measurement]:
     """Calibrate ``camera`` where measurement ``m`` was brightest, and rescale ``m`` to the gain measured.
 
     After measurement ``m`` (taken with ``camera``): to its brightest frame's configuration (and
-    screen), :func:`calibrate_camera` there, the motors and the chamber's stage back where they
+    screen; the brightest of its first ``among`` frames where given), :func:`calibrate_camera` there, the motors and the chamber's stage back where they
     stood (what comes next starts where the measurement left the beamline, not at its brightest
     frame's screen position), and ``m`` rescaled from the gain it was reduced with to the one
     measured (unchanged where the gain was kept).  ``report(check)`` sees the result.
@@ -170,7 +170,7 @@ def calibrate_where_bright(camera, beamline, m: Measurement, *, darks: int = 4, 
 
     motors = {**resolve_motors(beamline, table), **(resolve_stage(beamline) or {})}
     here = yield from read_setpoints(motors, (yield from tolerances(motors)))
-    k = int(np.argmax(m.hist_x.sum(axis=1)))
+    k = int(np.argmax(m.hist_x[:among].sum(axis=1)))
     used = camera.calibration.gain
     screen = None if m.screen is None else m.screen[k][None]
 
@@ -190,8 +190,8 @@ def calibrate_where_bright(camera, beamline, m: Measurement, *, darks: int = 4, 
 def camera_steps(chamber, beamline, *, md: Mapping | None = None, say=print, table: ParameterTable = METRIXS):
     """What a session adds for a camera chamber: ``(darks, measured)``.
 
-    ``darks`` is the plan that takes its dark frames first, ``measured`` the hook that calibrates
-    its gain where the measurement was brightest (:func:`plans.workflow.calibration_session`'s
+    ``darks`` is the plan that takes its dark frames first, ``measured(m, among=None)`` the hook that
+    calibrates its gain where the measurement was brightest (:func:`plans.workflow.calibration_session`'s
     ``measured``); ``(None, None)`` for another chamber.
     """
     if not callable(getattr(chamber, "calibrate", None)):
@@ -202,7 +202,7 @@ def camera_steps(chamber, beamline, *, md: Mapping | None = None, say=print, tab
         say(f"      camera: dark from {cal.dark_frames:g} frames with the shutter closed, read noise "
             f"{cal.read_noise:.2f} ADU, {stray_text(cal)}; the data sheet's gain {cal.gain:g} ADU/photon until measured")
 
-    def measured(m):
-        return (yield from calibrate_where_bright(chamber, beamline, m, md=md, table=table,
+    def measured(m, among=None):
+        return (yield from calibrate_where_bright(chamber, beamline, m, among=among, md=md, table=table,
                                                   report=lambda check: say("      " + check.line())))
     return darks, measured

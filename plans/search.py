@@ -222,7 +222,7 @@ def find_beam(beamline, chamber, *, fraction: float = 0.15, twin=None, max_frame
     -------
     bluesky_offsets.offsets.beam_search.SearchResult
         The configuration (twin coordinates, motor readbacks), its intensity, whether it is
-        bright (``threshold``), the frames used, a line per step and the uids of its runs.
+        bright (``threshold``), the frames used, a line per step, the uids of its runs and their frames.
     """
     from bluesky_offsets.offsets.beam_search import acceptance, intensity, search
     from bluesky_offsets.physics.beamline import torch_engine
@@ -239,13 +239,13 @@ def find_beam(beamline, chamber, *, fraction: float = 0.15, twin=None, max_frame
                                                                                table=table))
     gen = search(here, *widths, fraction=fraction, threshold=threshold, max_frames=max_frames, table=table)
     cfgs = next(gen)
-    step, uids = 0, []
+    step, runs = 0, []
     while True:
         step += 1
         _md = {"plan_name": "find_beam", "purpose": "beam search", "search_step": step, "fraction": fraction,
                **dict(md or {})}
         m = yield from scan_configurations(cfgs, beamline, chamber, md=_md, table=table)
-        uids.append(m.uid)
+        runs.append(m)
         try:
             cfgs = gen.send(intensity(m.hist_x, m.hist_y))
         except StopIteration as done:
@@ -253,8 +253,24 @@ def find_beam(beamline, chamber, *, fraction: float = 0.15, twin=None, max_frame
             break
     motors = resolve_motors(beamline, table)
     yield from move_to(motors, {n: float(result.configuration[table.index(n)]) for n in motors})
-    result.uids = uids
+    result.uids, result.measurements = [r.uid for r in runs], runs
     return result
+
+
+def lit_frames(runs, threshold: float = HIGH_RAY_THRESHOLD):
+    """The frames of ``runs`` (measurements) with enough rays (:func:`enough_rays`), joined; None if none.
+
+    The beam search's bright frames say as much about the offsets as any other frame; its dark ones
+    only where the beam is not.
+    """
+    lit = [r.subset(np.flatnonzero(enough_rays(r.hist_x, r.hist_y, threshold))) for r in runs if r.n]
+    lit = [r for r in lit if r.n]
+    if not lit:
+        return None
+    out = lit[0]
+    for r in lit[1:]:
+        out = out.joined(r)
+    return out
 
 
 class DarkBeamline(RuntimeError):

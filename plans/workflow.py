@@ -35,7 +35,7 @@ from bluesky_offsets.model.measurement import Measurement
 from bluesky_offsets.physics.parameters import METRIXS, ParameterTable
 from bluesky_offsets.physics.screen import as_screen
 
-from .search import DarkBeamline, bright_beam
+from .search import DarkBeamline, bright_beam, lit_frames
 
 if TYPE_CHECKING:
     from bluesky_offsets.offsets.beam_search import SearchResult
@@ -293,15 +293,16 @@ def calibration_session(beamline, chamber, twin, forward_model, *, design: Measu
 
     With :class:`~bluesky_offsets.design.DesignOptions` (the default of the demo and ``calibrate``):
     :func:`plans.design.measure_designed`, then :func:`plans.diagnose.analyse_measurement` of every
-    designed frame from the bare twin and the design's last estimate of the offsets, then
-    validation frames no fit used
+    designed frame and the beam search's lit ones (:func:`plans.search.lit_frames`) from the bare
+    twin and the design's last estimate of the offsets, then validation frames no fit used
     (:func:`plans.design.measure_validation`).  With a :class:`MeasurementDesign` (the bright
     design): :func:`measure_bright`, :func:`surrogate_offsets` on it, then the analysis of the
     analysed configurations from the bare twin and the surrogate's offsets.  ``step(text)``
     announces each part (the demo numbers them); ``executor`` runs the analysis's independent fits
-    side by side (the same result); seeds from ``design.seed``.  ``measured(m)``, a plan, gets the
-    designed measurement before the analysis and returns the one to analyse (a camera calibrated
-    where its frames were brightest: :func:`plans.camera.calibrate_where_bright`).  ``table`` names
+    side by side (the same result); seeds from ``design.seed``.  ``measured(m, among=k)``, a plan, gets
+    the frames to fit before the analysis and returns them as they are to be analysed (a camera
+    calibrated where the first ``k`` of them, the measurement's own, were brightest:
+    :func:`plans.camera.calibrate_where_bright`).  ``table`` names
     the beamline; a described one (not METRIXS) is measured by design only: the surrogate is METRIXS's.
     """
     from bluesky_offsets.model.state import ModelState
@@ -368,16 +369,20 @@ def _designed_session(beamline, chamber, twin, *, design: DesignOptions, candida
          f"{design.criterion}-optimal batches of {design.batch} on the twin's exact Jacobians)")
     d = yield from measure_designed(beamline, chamber, options=design, md=measurement_md, table=table)
     m = d.measurement
-    if measured is not None:
-        d = replace(d, measurement=(yield from measured(m)))
-        m = d.measurement
+    lit = lit_frames(d.beam.measurements)
+    fitted = m if lit is None else m.joined(lit)
+    if measured is not None:  # the camera calibrated where the designed frames were brightest
+        fitted = yield from measured(fitted, among=m.n)
+        m = fitted.subset(np.arange(m.n))
+        d = replace(d, measurement=m)
     measured = Measured(d.beam, m, 0, np.arange(m.n), d)
     t["measure"] = t["finder"] = time.perf_counter()
     starts = [ModelState(np.zeros(len(table)), _flux_start(m, table), "twin"),
               ModelState(np.asarray(d.offsets, float), _flux_start(m, table), "design estimate")]
     step(f"compare → fit offsets (differentiable twin, exact Jacobians) → diagnose → add the winning effect "
-         f"→ refit → diagnose again ({m.n} designed frames)")
-    analysis = yield from analyse_measurement(m.for_analysis(resolution=resolution, table=table), twin, starts=starts,
+         f"→ refit → diagnose again ({m.n} designed frames + {fitted.n - m.n} lit frames of the beam search)")
+    analysis = yield from analyse_measurement(fitted.for_analysis(resolution=resolution, table=table), twin,
+                                              starts=starts,
                                               candidates=candidates, rounds=rounds, fit_options=fit,
                                               scan_options=scan, fit_top=fit_top, seed=design.seed,
                                               executor=executor, md=dict(analysis_md or {}), table=table)
@@ -447,6 +452,10 @@ def analyse(measurement: str = "last", offsets: str | None = "last", *, candidat
         from bluesky_offsets.physics import effects as E
         E.get(n)  # an unknown name fails before anything runs
     idx = m.metadata.get("analysed_configurations")
+    if designed:  # fitted as the session fitted it
+        runs = [store.load_measurement(u, table=METRIXS) for u in m.metadata.get("beam_search_uids", ())]
+        lit = lit_frames(runs)
+        m = m if lit is None else m.joined(lit)
     meas = m.for_analysis(resolution=resolution, table=METRIXS)
     if idx is not None:
         meas = meas.subset(np.asarray(idx, dtype=int))

@@ -262,6 +262,9 @@ def test_the_camera_chamber_measures_what_the_histogram_chamber_measures(tmp_pat
         assert cam.n_rays == 20000 and ref.n_rays == 20000
         assert cam.hist_x.shape == ref.hist_x.shape == (2, 50)
         assert cam.profile_x is not None and cam.profile_floor_x.shape == cam.profile_x.shape
+        both = cam.joined(cam.subset([1]))  # frames joined keep the camera's profiles and floors
+        np.testing.assert_array_equal(both.profile_x, cam.profile_x[[0, 1, 1]])
+        np.testing.assert_array_equal(both.profile_floor_y, cam.profile_floor_y[[0, 1, 1]])
         # the stray light as the dark frames saw it: what each pixel receives a second
         geo = camera.calibration.geometry
         stray = camera.calibration.stray_per_second / noise.gain * geo.width * geo.height  # photons/s
@@ -318,7 +321,8 @@ def test_the_camera_is_calibrated_where_bright_and_the_beamline_left_where_it_st
         configs = np.tile(default_start(), (2, 1))
         screen = np.array([[0.0, 0.0, 6.0], [0.5, 0.0, -4.0]])
         m = RE(measure_configurations(configs, beamline, camera, screen=screen)).plan_result
-        scaled = RE(calibrate_where_bright(camera, beamline, m, darks=2, frames=4, max_gain_error=1.0)).plan_result
+        scaled = RE(calibrate_where_bright(camera, beamline, m, among=1, darks=2, frames=4,
+                                                    max_gain_error=1.0)).plan_result
         after = RE(read_positions(motors)).plan_result
         assert after == pytest.approx(before, abs=1e-6), {k: (before[k], after[k]) for k in before
                                                           if abs(before[k] - after[k]) > 1e-6}

@@ -74,6 +74,21 @@ def test_the_designed_frames_stay_within_the_budget_and_move_the_screen(designed
     assert d.offsets.shape == (len(METRIXS),) and np.all(np.abs(d.offsets) <= 0.2)
 
 
+def test_the_beam_search_s_lit_frames_join_the_fitted_ones(designed, run_store):
+    """The beam search keeps its frames, run by run as stored; its lit ones are fitted beside the designed."""
+    from plans import enough_rays
+    from plans.search import lit_frames
+    beam = designed.beam
+    assert [r.uid for r in beam.measurements] == beam.uids and sum(r.n for r in beam.measurements) == beam.frames
+    for r in beam.measurements:
+        np.testing.assert_allclose(run_store.load_measurement(r.uid).hist_x, r.hist_x)
+    lit = lit_frames(beam.measurements)
+    assert lit is not None and lit.n >= 1 and enough_rays(lit.hist_x, lit.hist_y).all()  # it ended bright
+    both = designed.measurement.joined(lit)
+    assert both.n == designed.measurement.n + lit.n and both.uid == designed.uid
+    np.testing.assert_array_equal(both.screen[designed.measurement.n:], 0)  # the search left the stage at 0
+
+
 def test_validation_frames_lie_far_from_the_fitted_ones_and_judge_the_model(RE, devices, designed, run_store):
     twin = Twin(scheduler="inline", n_rays=3000)
     truth = ModelState(METRIXS.from_mapping(TRUTH["offsets"], base=np.zeros(len(METRIXS))),

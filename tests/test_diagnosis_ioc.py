@@ -171,6 +171,7 @@ class TestChamberZ(_HiddenEffect):
         n = summary["n_configurations"]
         assert summary["design"] == "optimal" and summary["frames"] <= int(MAIN_JOB[1])
         assert summary["frames"] == summary["beam_search"]["frames"] + n and len(summary["design_steps"]) >= 2
+        assert n < summary["n_analysed_configurations"] <= summary["frames"]  # the beam search's lit frames too
         labels = [h["model"] for h in summary["history"]]
         assert labels[:3] == ["twin", "design estimate", "+ offsets"]
         out = proc.stdout

@@ -131,7 +131,8 @@ def _results(args, session, pv_map, store, designed: bool, live, t0: float) -> N
     out.mkdir(parents=True, exist_ok=True)
     uids = {"measurement": measured.uid, **({"find_offsets": session.offsets.uid} if session.offsets else {}),
             **analysis.uids, **({"validation": validation.uid} if validation is not None else {})}
-    how = (f"{len(measured.measurement)} frames designed for the offsets" if designed else
+    how = (f"{len(measured.measurement)} frames designed for the offsets (with the beam search's lit ones, "
+           f"{analysis.measurement.n})" if designed else
            f"{len(measured.measurement)} configurations measured ({measured.n_open} with the slits open), "
            f"offsets found with the surrogate")
     extra = []

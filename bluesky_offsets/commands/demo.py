@@ -471,7 +471,8 @@ def _intro(s: DemoSettings, offsets: Mapping, session, location: str) -> list[tu
     how = (f"{len(m)} frames designed for the offsets ({designed.steps[0]['criterion'] if designed.steps else 'D'}"
            f"-optimal batches on the twin's exact Jacobians, the chamber's stage moved along the beam) after "
            f"{beam.frames} frames of the beam search, {session.measured.frames} in all; the offsets fitted through "
-           f"the differentiable twin to all of them" if designed is not None else
+           f"the differentiable twin to all of them and to the beam search's lit ones, "
+           f"{analysis.measurement.n} frames" if designed is not None else
            f"{len(m)} configurations measured through EPICS ({len(m) - n_open} bright ones, {n_open} of them again "
            f"with the slits open); offsets found with the shipped surrogate (on the configurations inside its "
            f"box) and fitted through the differentiable twin on {analysis.measurement.n}")

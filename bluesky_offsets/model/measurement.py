@@ -154,7 +154,8 @@ class Measurement:
     def joined(self, other: Measurement) -> Measurement:
         """One measurement of these frames, then ``other``'s (binned alike; this one's uid and metadata).
 
-        Each frame keeps where the chamber's stage stood.
+        Each frame keeps where the chamber's stage stood; a camera's profiles, images and floors are
+        kept where both have them.
         """
         if self.spec != other.spec:
             raise MeasurementError(f"cannot join frames binned as {other.spec.fingerprint()} to frames binned as "
@@ -166,10 +167,17 @@ class Measurement:
         if self.floor_x is not None or other.floor_x is not None:
             floors = [np.vstack([_or_zeros(a.floor_x if k == 0 else a.floor_y, a.hist_x if k == 0 else a.hist_y)
                                  for a in (self, other)]) for k in (0, 1)]
+
+        def both(name: str):
+            a, b = getattr(self, name), getattr(other, name)
+            return None if a is None or b is None else np.concatenate([np.asarray(a), np.asarray(b)])
+        profiles = {} if self.profile_spec != other.profile_spec else {
+            k: both(k) for k in ("profile_x", "profile_y", "profile_floor_x", "profile_floor_y", "images")}
         return Measurement(np.vstack([self.configurations, other.configurations]),
                            np.vstack([self.hist_x, other.hist_x]), np.vstack([self.hist_y, other.hist_y]),
                            n_rays=self.n_rays, spec=self.spec, names=self.names, uid=self.uid,
-                           metadata=dict(self.metadata), screen=screen, floor_x=floors[0], floor_y=floors[1])
+                           metadata=dict(self.metadata), screen=screen, floor_x=floors[0], floor_y=floors[1],
+                           total_counts=both("total_counts"), **profiles)
 
     def rebinned(self, coarse: HistogramSpec) -> Measurement:
         """The same measurement in coarser bins (e.g. the paper's, for the surrogate)."""

@@ -105,6 +105,7 @@ class SearchResult:
     frames: int
     log: list[str]
     uids: list[str] = field(default_factory=list)  # the runs that measured it (plans.search.find_beam)
+    measurements: list = field(default_factory=list, repr=False)  # their frames (Measurement), run by run
 
 
 def search(start, open_widths: np.ndarray, closed_widths: np.ndarray, *, threshold: float, fraction: float = 0.05,
