@@ -452,10 +452,8 @@ def analyse(measurement: str = "last", offsets: str | None = "last", *, candidat
         from bluesky_offsets.physics import effects as E
         E.get(n)  # an unknown name fails before anything runs
     idx = m.metadata.get("analysed_configurations")
-    if designed:  # fitted as the session fitted it
-        runs = [store.load_measurement(u, table=METRIXS) for u in m.metadata.get("beam_search_uids", ())]
-        lit = lit_frames(runs)
-        m = m if lit is None else m.joined(lit)
+    if designed:
+        m = with_lit_beam_frames(store, m)
     meas = m.for_analysis(resolution=resolution, table=METRIXS)
     if idx is not None:
         meas = meas.subset(np.asarray(idx, dtype=int))
@@ -488,6 +486,15 @@ def analyse(measurement: str = "last", offsets: str | None = "last", *, candidat
         return out
     finally:
         twin.close()
+
+
+def with_lit_beam_frames(store, m: Measurement, table: ParameterTable = METRIXS) -> Measurement:
+    """A stored designed measurement joined by its beam search's lit frames, as the session fits them.
+
+    The beam search's runs are the measurement's ``beam_search_uids``; :func:`plans.search.lit_frames`.
+    """
+    lit = lit_frames([store.load_measurement(u, table=table) for u in m.metadata.get("beam_search_uids", ())])
+    return m if lit is None else m.joined(lit)
 
 
 # --------------------------------------------------------------------------- #

@@ -78,6 +78,7 @@ def test_the_beam_search_s_lit_frames_join_the_fitted_ones(designed, run_store):
     """The beam search keeps its frames, run by run as stored; its lit ones are fitted beside the designed."""
     from plans import enough_rays
     from plans.search import lit_frames
+    from plans.workflow import with_lit_beam_frames
     beam = designed.beam
     assert [r.uid for r in beam.measurements] == beam.uids and sum(r.n for r in beam.measurements) == beam.frames
     for r in beam.measurements:
@@ -87,6 +88,9 @@ def test_the_beam_search_s_lit_frames_join_the_fitted_ones(designed, run_store):
     both = designed.measurement.joined(lit)
     assert both.n == designed.measurement.n + lit.n and both.uid == designed.uid
     np.testing.assert_array_equal(both.screen[designed.measurement.n:], 0)  # the search left the stage at 0
+    back = with_lit_beam_frames(run_store, run_store.load_measurement(designed.uid))  # an analysis from the store
+    np.testing.assert_allclose(back.configurations, both.configurations)
+    np.testing.assert_allclose(back.hist_y, both.hist_y)
 
 
 def test_validation_frames_lie_far_from_the_fitted_ones_and_judge_the_model(RE, devices, designed, run_store):
