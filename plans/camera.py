@@ -159,11 +159,12 @@ def calibrate_where_bright(camera, beamline, m: Measurement, *, among: int | Non
                            table: ParameterTable = METRIXS) -> MsgGenerator[Measurement]:
     """Calibrate ``camera`` where measurement ``m`` was brightest, and rescale ``m`` to the gain measured.
 
-    After measurement ``m`` (taken with ``camera``): to its brightest frame's configuration (and
-    screen; the brightest of its first ``among`` frames where given), :func:`calibrate_camera` there, the motors and the chamber's stage back where they
-    stood (what comes next starts where the measurement left the beamline, not at its brightest
-    frame's screen position), and ``m`` rescaled from the gain it was reduced with to the one
-    measured (unchanged where the gain was kept).  ``report(check)`` sees the result.
+    After measurement ``m`` (taken with ``camera``): to its brightest frame's configuration and
+    screen (the brightest of its first ``among`` frames where given), :func:`calibrate_camera`
+    there, the motors and the chamber's stage back where they stood (what comes next starts where
+    the measurement left the beamline, not at its brightest frame's screen position), and ``m``
+    rescaled from the gain it was reduced with to the one measured (unchanged where the gain was
+    kept).  ``report(check)`` sees the result.
     """
     from .measure import scan_configurations
     from .motion import read_setpoints, resolve_motors, resolve_stage, return_to, tolerances

@@ -299,11 +299,11 @@ def calibration_session(beamline, chamber, twin, forward_model, *, design: Measu
     design): :func:`measure_bright`, :func:`surrogate_offsets` on it, then the analysis of the
     analysed configurations from the bare twin and the surrogate's offsets.  ``step(text)``
     announces each part (the demo numbers them); ``executor`` runs the analysis's independent fits
-    side by side (the same result); seeds from ``design.seed``.  ``measured(m, among=k)``, a plan, gets
-    the frames to fit before the analysis and returns them as they are to be analysed (a camera
-    calibrated where the first ``k`` of them, the measurement's own, were brightest:
-    :func:`plans.camera.calibrate_where_bright`).  ``table`` names
-    the beamline; a described one (not METRIXS) is measured by design only: the surrogate is METRIXS's.
+    side by side (the same result); seeds from ``design.seed``.  ``measured(m, among=k)``, a plan,
+    gets the frames to fit before the analysis and returns them as they are to be analysed (a
+    camera calibrated where the first ``k`` of them, the measurement's own, were brightest:
+    :func:`plans.camera.calibrate_where_bright`).  ``table`` names the beamline; a described one
+    (not METRIXS) is measured by design only: the surrogate is METRIXS's.
     """
     from bluesky_offsets.model.state import ModelState
 
@@ -382,8 +382,7 @@ def _designed_session(beamline, chamber, twin, *, design: DesignOptions, candida
     step(f"compare → fit offsets (differentiable twin, exact Jacobians) → diagnose → add the winning effect "
          f"→ refit → diagnose again ({m.n} designed frames + {fitted.n - m.n} lit frames of the beam search)")
     analysis = yield from analyse_measurement(fitted.for_analysis(resolution=resolution, table=table), twin,
-                                              starts=starts,
-                                              candidates=candidates, rounds=rounds, fit_options=fit,
+                                              starts=starts, candidates=candidates, rounds=rounds, fit_options=fit,
                                               scan_options=scan, fit_top=fit_top, seed=design.seed,
                                               executor=executor, md=dict(analysis_md or {}), table=table)
     t["analysis"] = time.perf_counter()
