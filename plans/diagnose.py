@@ -299,8 +299,10 @@ class Analysis:
         tail = "" if last is None or last.best is not None else f"; then {last.verdict}"
         if pruned is not None:
             t = next(t for t in pruned.tests if t["effect"] == pruned.dropped)
+            others = "with the others in it " if len(pruned.tests) > 1 else ""
             why = ("without it the model is within noise" if not t["beyond_noise_without"] else
-                   f"with the others in it bought Δχ² = {t['gain']:.3g}, below its price {t['price']:.3g}")
+                   f"the model fits better without it (χ² lower by {-t['gain']:.3g})" if t["gain"] <= 0 else
+                   f"{others}it bought Δχ² = {t['gain']:.3g}, below its price {t['price']:.3g}")
             tail += f"; {pruned.dropped} was added before and dropped: {why}"
         if not found:  # the one effect added was dropped again
             head = ("no significant missing effect" if self.final.within_noise else

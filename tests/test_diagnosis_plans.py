@@ -348,8 +348,8 @@ def test_an_interrupted_analysis_resumes_from_the_store_to_the_same_verdict(RE, 
     assert len(aborted) == 1
     # the same verdict, ranking and numbers as the uninterrupted analysis
     assert a.verdict == fresh.verdict
-    # one round: an effect added and the model still beyond noise is said, not left out
-    short = a.ranking.diagnosis.best is not None and not a.final.within_noise
+    # one round: an effect added, kept, and the model still beyond noise is said, not left out
+    short = a.ranking.diagnosis.best is not None and a.dropped is None and not a.final.within_noise
     assert ("still beyond noise after 1 diagnosis" in a.verdict) == short, (a.verdict, a.final.total_row())
     assert [c.name for c in a.ranking.diagnosis.candidates] == [c.name for c in fresh.ranking.diagnosis.candidates]
     np.testing.assert_array_equal(a.refinement.state.offsets, fresh.refinement.state.offsets)
@@ -389,4 +389,11 @@ def test_the_verdict_says_what_its_numbers_do_not_support():
     alone._pruned = NS(dropped="intensity_scale", tests=[{"effect": "intensity_scale", "beyond_noise_without": False}])
     assert verdict(alone) == "no significant missing effect; intensity_scale was added before and dropped: " \
                              "without it the model is within noise"
+    # beyond noise without it too, where its refit without it ended lower: said so, not as a negative gain
+    beyond = analysis({}, False, best="intensity_scale", rounds=1)
+    beyond._pruned = NS(dropped="intensity_scale", tests=[{"effect": "intensity_scale", "beyond_noise_without": True,
+                                                          "gain": -36.5, "price": 17.2}])
+    assert verdict(beyond) == "misfit beyond noise (chi2/dof = 1.21) that no candidate effect explains " \
+                              "significantly; intensity_scale was added before and dropped: the model fits " \
+                              "better without it (χ² lower by 36.5)"
     assert none_within({"delta": (-0.035, 0.02)}) and not none_within({"delta": (-0.035, 0.01)})
