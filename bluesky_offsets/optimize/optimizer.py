@@ -116,7 +116,7 @@ class OptimizeOptions:
     screen: int = 48
     global_starts: int = 2
     draws: int = 0
-    iterations: int = 100
+    iterations: int = 30
     tolerance: float = 1e-4
     check_rays: int = 100_000
     check_seed: int = 12_345
