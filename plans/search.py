@@ -253,7 +253,7 @@ def find_beam(beamline, chamber, *, fraction: float = 0.15, twin=None, max_frame
             break
     motors = resolve_motors(beamline, table)
     yield from move_to(motors, {n: float(result.configuration[table.index(n)]) for n in motors})
-    result.uids, result.measurements = [r.uid for r in runs], runs
+    result.measurements = runs
     return result
 
 

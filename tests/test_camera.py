@@ -322,7 +322,7 @@ def test_the_camera_is_calibrated_where_bright_and_the_beamline_left_where_it_st
         screen = np.array([[0.0, 0.0, 6.0], [0.5, 0.0, -4.0]])
         m = RE(measure_configurations(configs, beamline, camera, screen=screen)).plan_result
         scaled = RE(calibrate_where_bright(camera, beamline, m, among=1, darks=2, frames=4,
-                                                    max_gain_error=1.0)).plan_result
+                                           max_gain_error=1.0)).plan_result
         after = RE(read_positions(motors)).plan_result
         assert after == pytest.approx(before, abs=1e-6), {k: (before[k], after[k]) for k in before
                                                           if abs(before[k] - after[k]) > 1e-6}

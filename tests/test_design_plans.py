@@ -80,7 +80,7 @@ def test_the_beam_search_s_lit_frames_join_the_fitted_ones(designed, run_store):
     from plans.search import lit_frames
     from plans.workflow import with_lit_beam_frames
     beam = designed.beam
-    assert [r.uid for r in beam.measurements] == beam.uids and sum(r.n for r in beam.measurements) == beam.frames
+    assert sum(r.n for r in beam.measurements) == beam.frames
     for r in beam.measurements:
         np.testing.assert_allclose(run_store.load_measurement(r.uid).hist_x, r.hist_x)
     lit = lit_frames(beam.measurements)

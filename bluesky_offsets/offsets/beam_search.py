@@ -104,8 +104,12 @@ class SearchResult:
     bright: bool
     frames: int
     log: list[str]
-    uids: list[str] = field(default_factory=list)  # the runs that measured it (plans.search.find_beam)
-    measurements: list = field(default_factory=list, repr=False)  # their frames (Measurement), run by run
+    measurements: list = field(default_factory=list, repr=False)  # the runs' frames (plans.search.find_beam)
+
+    @property
+    def uids(self) -> list[str]:
+        """The uids of the runs that measured it."""
+        return [m.uid for m in self.measurements]
 
 
 def search(start, open_widths: np.ndarray, closed_widths: np.ndarray, *, threshold: float, fraction: float = 0.05,
