@@ -139,8 +139,8 @@ def test_acceptance_measured_histograms_follow_the_hidden_truth(RE, acceptance_i
 
     # the twin's traces seeded, so that only the IOC's frames vary from run to run
     commanded = twin.trace_batch(configs, n_rays=N_RAYS, progress=False, seed=4242)
-    # the reference with 4x the rays: most profiles fill 2-3 bins, where one reference's own noise
-    # sets the tail of the two-sample chi^2
+    # the reference with 4x the rays: most profiles fill 2-3 bins, and one reference's own noise
+    # adds to every measured profile's chi^2 alike
     at_truth = twin.trace_batch(np.array([truth.true_values(c) for c in configs]), overrides=truth.overrides,
                                 n_rays=REFERENCE * N_RAYS, progress=False, seed=4343)
     meas_counts = np.concatenate([_counts(m.hist_x, N_RAYS), _counts(m.hist_y, N_RAYS)], axis=1)

@@ -569,6 +569,7 @@ def _true_best(truth: Mapping, beam):
             found.append(best_from(o.settings, local).predicted)
     return min(found, key=lambda f: first.target.cost(f, first.predicted_before))
 
+
 def _beam_summary(beam, best) -> dict:
     o = beam.optimum
     return {"uid": beam.uid, "target": o.target.name, "before": beam.before.as_dict(), "after": beam.after.as_dict(),
