@@ -5,16 +5,17 @@ Each scenario runs ``bluesky-offsets demo`` as a user does: the METRIXS IOC (twi
 each range, the demo's default draw) and a hidden effect (or none), then the calibration through
 the IOC into the run store and compare → fit the offsets → diagnose (camera-resolution
 profiles) → add the winner → refit → diagnose again, every step a run in the store.  The
-chamber_z scenario is the README's main job, the designed measurement (a smaller frame budget
-than the demo's default, for the suite's time) ranking all 15 candidates, read back from the
+chamber_z scenario is the README's main job on a smaller configuration, for the suite's time:
+the designed measurement at 32 frames (the demo's default: 60), its fits at 1,000 model rays (2,000),
+ranking chamber_z against the four effects the full ranking puts next to it, read back from the
 store by uid.  The scenario with no hidden effect measures as the bright design does
 (``--design bright``: 16 bright configurations and 4 of them again with the slits open, the
-surrogate finder on the 16; its fits at 2,000 model rays, the designed measurement's) and ranks
-all 15 candidates.  Other effects (a thermal bump on M1 and the source's divergence among them)
-through the IOC, and the whole grid over all 15, are ``benchmarks/bench_diagnosis_grid.py``;
-in-process, ``tests/test_diagnosis.py``.  The checks read ``summary.json``.
+surrogate finder on the 16; its fits at 1,000 model rays) and ranks all 15 candidates.  The main
+job at its own size is ``benchmarks/bench_demo.py``; other effects (a thermal bump on M1 and the
+source's divergence among them) through the IOC, and the whole grid over all 15, are
+``benchmarks/bench_diagnosis_grid.py``; in-process, ``tests/test_diagnosis.py``.  The checks read ``summary.json``.
 
-About 2-4 minutes per scenario on two cores (docs/explanations/diagnosis.md).
+About 4-8 minutes per scenario on two cores.
 ``BLUESKY_OFFSETS_SKIP_ACCEPTANCE=1`` skips them for a quick local run.
 """
 
@@ -59,9 +60,10 @@ def _demo(tmp_path: Path, effect: str, *extra: str) -> tuple[dict, subprocess.Co
     return json.loads((tmp_path / "out" / "summary.json").read_text()), proc
 
 
-# the main job (the camera, the designed measurement) with a smaller budget than the demo's 60 frames:
-# the suite's time
-MAIN_JOB = ("--frames", "32")
+# the main job (the camera, the designed measurement) on a smaller configuration, for the suite's time;
+# the candidates: chamber_z and the four the full ranking puts next to it
+MAIN_JOB = ("--frames", "32", "--fit-rays", "1000",
+            "--candidates", "chamber_z,slope_error_e2,chamber_x,chamber_y,source_size")
 
 
 class _Scenario:
@@ -226,8 +228,8 @@ class TestChamberZ(_HiddenEffect):
 
 @_scenario("none")
 class TestNoHiddenEffect(_Scenario):
-    # the bright design's fits at the designed measurement's model rays: the suite's time
-    options = ("--design", "bright", "--fit-rays", "2000")
+    # the bright design's fits at 1,000 model rays (its default: 5,000): the suite's time
+    options = ("--design", "bright", "--fit-rays", "1000")
 
     def test_no_hidden_effect_reports_none(self, demo):
         _, s, _ = demo

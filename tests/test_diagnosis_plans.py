@@ -288,7 +288,7 @@ def test_diagnose_command_end_to_end_and_its_errors(RE, measured, tmp_path, caps
     assert rc == 2 and "--fit-rays must be at least 100" in io.err
 
     report = tmp_path / "report.html"
-    rc, io = run("--uid", dim_uid, "--effects", ",".join(CANDIDATES), "--fit-rays", "1500", "--rounds", "1",
+    rc, io = run("--uid", dim_uid, "--effects", ",".join(CANDIDATES), "--fit-rays", "600", "--rounds", "1",
                  "--resolution", "paper", "--scheduler", "inline", "--report", str(report), "--json")
     assert rc == 0, io.err
     out = json.loads(io.out)
