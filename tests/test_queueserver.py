@@ -111,7 +111,8 @@ def test_the_session_runs_from_the_queue_and_every_run_loads_back(queue):
     RM.item_add(BPlan("export_calibration", str(work / "calibration.json")))
     # the better beam on the model of the calibration file (the fitted model "last" found), a small configuration
     RM.item_add(BPlan("optimize", "metrixs", "chamber", {"kind": "smallest_focus"}, str(work / "calibration.json"),
-                      options={"rays": 2000, "starts": 1, "iterations": 4, "check_rays": 20000, "samples": 4}))
+                      options={"rays": 2000, "starts": 1, "iterations": 4, "check_rays": 20000, "samples": 4,
+                               "screen": 8, "global_starts": 1}))
     RM.queue_start()
     RM.wait_for_idle(timeout=400)
     items = RM.history_get()["items"]

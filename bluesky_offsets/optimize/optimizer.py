@@ -10,8 +10,9 @@ How: Levenberg-Marquardt within the limits (the fit engine's step,
 :func:`bluesky_offsets.model.fit.lm_step`) on the target's residuals, from the current setting,
 ``starts - 1`` random ones near it and the ``global_starts`` best of ``screen`` settings drawn
 over the reachable box (half-widths up to each free motor's whole range: the focus a local
-search misses lies elsewhere), on one set of rays (common random numbers: the objective is a
-deterministic function of the settings).  With ``draws`` and the calibration's covariance the
+search misses lies elsewhere), each for ``survey`` steps and the ``keep`` lowest on to the end,
+on one set of rays (common random numbers: the objective is a deterministic function of the
+settings).  With ``draws`` and the calibration's covariance the
 objective is the target's residuals averaged over the fitted state and states drawn from the
 posterior: a setting whose beam is right only for the fitted offsets pays for it.  The
 residuals' Jacobian in the motors is exact: every ray's derivatives from
@@ -95,6 +96,9 @@ class OptimizeOptions:
     iterations : int
         Levenberg-Marquardt steps per start at most; ``tolerance`` the relative gain
         below which a start ends.
+    survey, keep : int
+        with more than ``keep`` starts, each runs ``survey`` steps first and only the ``keep``
+        lowest then run on to ``iterations`` (a start that converged within its survey ends there).
     check_rays, check_seed : int
         the prediction: the hard beam, fresh rays.
     flag_above : float
@@ -113,8 +117,10 @@ class OptimizeOptions:
     seed: int = 11
     starts: int = 3
     spread: float = 0.03
-    screen: int = 48
-    global_starts: int = 2
+    screen: int = 192
+    global_starts: int = 16
+    survey: int = 6
+    keep: int = 4
     draws: int = 0
     iterations: int = 30
     tolerance: float = 1e-4
@@ -129,7 +135,7 @@ class OptimizeOptions:
         for k in ("samples", "screen", "global_starts", "draws"):
             if int(getattr(self, k)) < 0:
                 raise InputError(f"optimize option {k} must be >= 0, got {getattr(self, k)!r}")
-        for k in ("rays", "starts", "iterations", "check_rays"):
+        for k in ("rays", "starts", "iterations", "check_rays", "survey", "keep"):
             if int(getattr(self, k)) < 1:
                 raise InputError(f"optimize option {k} must be at least 1, got {getattr(self, k)!r}")
         for k in ("spread", "tolerance", "flag_above", "trust_below"):
@@ -395,12 +401,18 @@ def _soft_focus(rays: Rays) -> Focus:
                  float(rays.rms("x")), float(rays.rms("y")))
 
 
-def _lm(pb: _Problem, u0: np.ndarray, progress, label: str) -> tuple[np.ndarray, float, list[dict]]:
+def _lm(pb: _Problem, u0: np.ndarray, progress, label: str, iterations: int,
+        done: int = 0) -> tuple[np.ndarray, float, list[dict]]:
+    """Levenberg-Marquardt from ``u0`` for ``iterations`` at most, numbered after the ``done`` before.
+
+    Its history's last entry says ``"converged"``: whether it stopped by itself (more would gain nothing).
+    """
     lo, hi = pb.bounds_u()
     u = np.clip(u0, lo, hi)
     cost = pb.cost(pb.config(u))
-    hist = [{"start": label, "iteration": 0, "cost": cost, "accepted": True}]
+    hist = [{"start": label, "iteration": done, "cost": cost, "accepted": True, "converged": False}]
     if not math.isfinite(cost):
+        hist[-1]["converged"] = True
         return u, cost, hist
     lam, small = 1e-3, 0
 
@@ -410,7 +422,7 @@ def _lm(pb: _Problem, u0: np.ndarray, progress, label: str) -> tuple[np.ndarray,
         return 2.0 * J.T @ J, g * pb.span
 
     A, g = linear(u)
-    for it in range(1, pb.o.iterations + 1):
+    for it in range(done + 1, done + iterations + 1):
         # motors at a bound that the gradient pushes further out stay there; the step is
         # solved for the others (a clipped full step wastes most iterations at a bound)
         pinned = ((u - lo < 1e-9) & (g > 0)) | ((hi - u < 1e-9) & (g < 0))
@@ -429,12 +441,34 @@ def _lm(pb: _Problem, u0: np.ndarray, progress, label: str) -> tuple[np.ndarray,
             lam = max(lam / 3.0, 1e-9)
         else:
             lam *= 4.0
-        hist.append({"start": label, "iteration": it, "cost": cost, "accepted": bool(ok), "damping": lam})
+        converged = small >= 2 or lam > 1e6
+        hist.append({"start": label, "iteration": it, "cost": cost, "accepted": bool(ok), "damping": lam,
+                     "converged": converged})
         if progress:
             progress(hist[-1])
-        if small >= 2 or lam > 1e6:
+        if converged:
             break
     return u, cost, hist
+
+
+def _search(pb: _Problem, inits: list[tuple[str, np.ndarray]], progress,
+            executor: Executor | None) -> list[tuple[np.ndarray, float, list[dict]]]:
+    """Every start for ``survey`` iterations, then the ``keep`` lowest of those not yet converged to the end.
+
+    Why: the global starts' screened costs say little about where their descents end (a valley
+    a few µm wide lies between screen points); a few iterations each do.
+    """
+    from bluesky_offsets.model.fit import gather
+    o = pb.o
+    first = o.iterations if len(inits) <= o.keep else min(o.survey, o.iterations)
+    runs = gather([lambda u0=u0, label=label: _lm(pb, u0, progress, label, first) for label, u0 in inits], executor)
+    more = o.iterations - first
+    open_ = [k for k, (_, cost, hist) in enumerate(runs) if not hist[-1]["converged"] and math.isfinite(cost)]
+    go_on = sorted(open_, key=lambda k: (runs[k][1], k))[:o.keep] if more else []
+    later = gather([lambda k=k: _lm(pb, runs[k][0], progress, inits[k][0], more, first) for k in go_on], executor)
+    for k, (u, cost, hist) in zip(go_on, later):
+        runs[k] = (u, cost, runs[k][2] + hist[1:])
+    return runs
 
 
 def _root(covariance) -> np.ndarray:
@@ -649,10 +683,9 @@ def optimize_settings(target, state, current, *, limits=None, constraints: Const
     if not free.any():
         raise InputError("no motor is free to move (all held, fixed or at zero travel)")
 
-    from bluesky_offsets.model.fit import gather
     inits = _starts(pb, o)
     ulo, uhi = pb.bounds_u()
-    runs = gather([lambda u0=u0, label=label: _lm(pb, u0, progress, label) for label, u0 in inits], executor)
+    runs = _search(pb, inits, progress, executor)
     best: tuple[np.ndarray, float] | None = None
     history: list[dict] = []
     starts: list[dict] = []
