@@ -26,7 +26,8 @@ def pin_kernels() -> None:
     arithmetic").
     MKL honours a named branch such as ``AVX2`` on Intel CPUs only and runs its automatic
     dispatch elsewhere, so an AMD and an Intel CPU took different paths; ``COMPATIBLE`` is the
-    one branch it runs alike on every x86-64 CPU, at no measurable cost to the per-ray Jacobian.
+    one branch it runs alike on every x86-64 CPU; its cost is the CPU's: none measurable on an Intel
+    Xeon, 1.6× the per-ray Jacobian's time on an AMD EPYC (docs/explanations/diagnosis.md).
     It must happen before numpy or torch is imported: the command line calls it first thing,
     the test suite through its plugin (:mod:`bluesky_offsets.testing`), and every process they
     start (the IOC, the Dask workers) inherits the environment.
