@@ -147,6 +147,21 @@ def test_global_starts_and_an_objective_averaged_over_the_posterior():
         optimize_settings("smallest_focus", ModelState(), start, options={**SMALL, "draws": -1})
 
 
+def test_every_start_is_surveyed_and_only_the_lowest_run_on():
+    """More starts than ``keep``: each runs ``survey`` steps, then only the ``keep`` lowest of those
+    still falling run on; the result is the lowest end of all."""
+    start = METRIXS.reference.copy()
+    opts = {**SMALL, "screen": 16, "global_starts": 4, "survey": 2, "keep": 2, "iterations": 8}
+    res = optimize_settings("smallest_focus", ModelState(), start, overrides=DEFOCUSED, options=opts)
+    assert len(res.starts) == 5 and res.cost == min(s["cost"] for s in res.starts)
+    # the starts still falling at the survey's end, by their cost there: the lowest two ran on
+    still = sorted((h["cost"], h["start"]) for h in res.history if h["iteration"] == 2 and not h["converged"])
+    on = {s["start"] for s in res.starts if s["iterations"] > 2}
+    assert len(still) > 2 and on == {label for _, label in still[:2]}, (still, res.starts)
+    with pytest.raises(ValueError, match="survey"):
+        optimize_settings("smallest_focus", ModelState(), start, options={**SMALL, "survey": 0})
+
+
 def test_a_target_beyond_the_limits_is_refused_before_anything_moves():
     motors = {n: SynAxis(name=n.replace(".", "_")) for n in METRIXS.motorized_names}
     start = METRIXS.reference.copy()
