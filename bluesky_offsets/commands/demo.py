@@ -564,8 +564,8 @@ def _true_best(truth: Mapping, beam):
     first = best_from(computed[-1].current, beam.options)
     found = [first.predicted]
     local = replace(beam.options, starts=1, global_starts=0)
-    # the last move's start (the closed loop: the first move's settings) is already the search's own first start
-    for settings in (o.settings for o in computed if not np.array_equal(o.settings, computed[-1].current)):
+    # the last move's start too: the search's survey can leave its own first start behind
+    for settings in (o.settings for o in computed):
         with contextlib.suppress(DarkStart, TargetUnreachable):
             found.append(best_from(settings, local).predicted)
     return min(found, key=lambda f: first.target.cost(f, first.predicted_before))
