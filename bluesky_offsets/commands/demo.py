@@ -553,7 +553,6 @@ def _true_best(truth: Mapping, beam):
     """
     from bluesky_offsets.model.state import ModelState
     from bluesky_offsets.optimize import DarkStart, TargetUnreachable, optimize_settings
-    from bluesky_offsets.optimize.optimizer import predict
     true = ModelState(METRIXS.from_mapping(truth["offsets"], base=np.zeros(len(METRIXS))), label="hidden truth")
     computed = [st.optimum for st in beam.steps if not st.note]
 
@@ -565,14 +564,13 @@ def _true_best(truth: Mapping, beam):
     first = best_from(computed[-1].current, beam.options)
     found = [first.predicted]
     local = replace(beam.options, starts=1, global_starts=0)
-    opts = beam.options
     # the last move's start too: the search's survey can leave its own first start behind
     for settings in (o.settings for o in computed):
         with contextlib.suppress(DarkStart, TargetUnreachable):
-            found.append(best_from(settings, local).predicted)
-        # the moves' own settings on the truth: the soft beam the search descends can part from the hard one
-        found.append(predict(true, settings, rays=opts.check_rays, seed=opts.check_seed,
-                             overrides=truth.get("overrides") or None)[0])
+            refined = best_from(settings, local)
+            # the move's own settings on the truth as well: the soft beam the refinement descends can
+            # part from the hard one
+            found += [refined.predicted, refined.predicted_before]
     return min(found, key=lambda f: first.target.cost(f, first.predicted_before))
 
 
