@@ -550,13 +550,11 @@ def predict_many(states, configuration, *, rays: int = 100_000, seed: int = 12_3
     return out
 
 
-def sampled_sigma(state, configuration, covariance, names, *, samples: int = 24, rays: int = 30_000, seed: int = 0,
-                  overrides=None, engine=None, table: ParameterTable = METRIXS) -> dict[str, float]:
-    """The spread of the predicted rms widths over states drawn from the calibration's covariance.
+def covariance_states(state, covariance, names, n: int, *, seed: int = 0, table: ParameterTable = METRIXS) -> list:
+    """``n`` model states drawn from the calibration's Gaussian covariance around ``state``.
 
-    The covariance is over the normalized offsets, then effect parameters, ``names`` in that order;
-    each state is read as a frame is (hard beam, camera pixels): what the linear propagation misses
-    at an optimum, where a shifted centroid lands the spot on other pixels, is in it.
+    The covariance is over the normalized offsets, then effect parameters, ``names`` in that
+    order; an effect parameter is clipped to its range, an offset is not.
     """
     from bluesky_offsets.model.state import ModelState
     P = len(table)
@@ -566,15 +564,27 @@ def sampled_sigma(state, configuration, covariance, names, *, samples: int = 24,
                                for n in eff_names]]
     rng = np.random.default_rng(seed)
     draws = []
-    for _ in range(samples):
+    for _ in range(n):
         z = z0 + root @ rng.standard_normal(len(z0))
         effects = {e: dict(v) for e, v in state.effects.items()}
-        for n, v in zip(eff_names, z[P:]):
-            e, p = n.split(".", 1)
+        for name, v in zip(eff_names, z[P:]):
+            e, p = name.split(".", 1)
             if e in effects:
                 q = next(q for q in E.get(e).parameters if q.name == p)
                 effects[e][p] = float(np.clip(v, q.low, q.high))
         draws.append(ModelState(z[:P], effects, state.label))
+    return draws
+
+
+def sampled_sigma(state, configuration, covariance, names, *, samples: int = 24, rays: int = 30_000, seed: int = 0,
+                  overrides=None, engine=None, table: ParameterTable = METRIXS) -> dict[str, float]:
+    """The spread of the predicted rms widths over states drawn from the calibration's covariance.
+
+    The covariance is over the normalized offsets, then effect parameters, ``names`` in that order;
+    each state is read as a frame is (hard beam, camera pixels): what the linear propagation misses
+    at an optimum, where a shifted centroid lands the spot on other pixels, is in it.
+    """
+    draws = covariance_states(state, covariance, names, samples, seed=seed, table=table)
     traces = stream(seed, "optimizer.posterior_draws")  # the draws' rays, apart from the draws themselves
     foci = [f for f, _, _ in predict_many(draws, configuration, rays=rays, seed=traces, overrides=overrides,
                                           engine=engine, table=table)]
