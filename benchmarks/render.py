@@ -26,7 +26,7 @@ ORDER = ("twin", "find_defaults", "find_defaults_seeds7-9", "harness", "harness_
          "finder_fast", "finder_gpu", "walker_start", "finder_twin", "calibration_session", "dataset_engines", "dataset_gpu",
          "surrogate_models", "surrogate_bright", "surrogate_pipeline", "surrogate_inference", "diagnosis_grid",
          "demo_wall_time", "cluster_idle", "pair_fit", "effect_identifiability", "torch_engine", "torch_engine_cuda", "ray_jacobian",
-         "optimize_beam", "design_5pct", "design_20pct", "design_ceiling", "design_ceiling_20pct", "design_choice", "design_gap",
+         "optimize_beam", "focus_sigma", "design_5pct", "design_20pct", "design_ceiling", "design_ceiling_20pct", "design_choice", "design_gap",
          "design_main_job",
          "demo_no_effect_5pct", "demo_no_effect_20pct", "motors", "step_scale", "camera",
          "demo_energize_seed2", "demo_energize_seed1", "ci")

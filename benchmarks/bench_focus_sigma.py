@@ -1,0 +1,153 @@
+"""The focus's σ "from the calibration" against the focus measured: how often it covers, and why it is wide.
+
+For finished demos (``bench_demo.py``'s folders, each with ``out/`` and ``store/``), every move of
+the beam optimization: the predicted rms widths, their printed σ and the widths measured after
+the move, as ``measured / predicted − 1`` and that over σ.  With ``--draws N`` also, at the
+calibration the first move used (``out/calibration.json``): N states drawn from its covariance,
+as the optimizer draws them (:func:`bluesky_offsets.optimize.optimizer.sampled_sigma`), each
+state's χ² on the frames the analysis fitted (the designed ones and the beam search's lit ones,
+the last stage of :data:`bluesky_offsets.model.diagnosis.DESIGNED_FIT`) above the calibration's
+own: whether the frames allow the states the σ is read from (their joint 95 % region is
+``chi2.ppf(0.95, k)`` above it, k the fitted parameters).  A drawn offset beyond its bound is
+traced at the bound.
+
+    python benchmarks/bench_focus_sigma.py [LABEL=]DIR [[LABEL=]DIR ...] [--draws 16] [--result focus_sigma]
+
+Each run's draws are kept in its folder (``focus_sigma_draws.json``) and read again by a later call.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+
+def moves(run: Path, label: str) -> list[dict]:
+    """Each move's predicted widths, their σ and the widths measured after it (µm)."""
+    beam = json.loads((run / "out" / "summary.json").read_text()).get("beam") or {}
+    rows = []
+    for k, st in enumerate(beam.get("steps", [])[:2]):  # a third step goes back to the first's settings
+        for a in "xy":
+            p, s, m = (1e3 * st[key][f"rms_{a}"] if key != "predicted_sigma" else 1e3 * st[key][a]
+                       for key in ("predicted", "predicted_sigma", "after"))
+            rows.append({"run": label, "move": k + 1, "axis": a, "predicted": p, "sigma": s, "measured": m,
+                         "error": m / p - 1.0, "pull": abs(m - p) / s})
+    return rows
+
+
+def drawn_chi2(run: Path, label: str, n: int) -> dict:
+    """χ² of ``n`` states drawn from the calibration's covariance, above the calibration's own.
+
+    Kept in the run's folder (``focus_sigma_draws.json``): a run measured with as many draws is read, not measured again.
+    """
+    kept = run / "focus_sigma_draws.json"
+    if kept.exists() and len((got := json.loads(kept.read_text()))["above"]) == n:
+        return {**got, "run": label}
+    got = _drawn_chi2(run, n)
+    kept.write_text(json.dumps(got))
+    return {**got, "run": label}
+
+
+def _drawn_chi2(run: Path, n: int) -> dict:
+    import bluesky_offsets.blas as blas
+    blas.pin_kernels()
+    from scipy.stats import chi2 as chi2_dist
+
+    from bluesky_offsets import load_calibration
+    from bluesky_offsets.model.diagnosis import DESIGNED_FIT
+    from bluesky_offsets.model.fit import _Model
+    from bluesky_offsets.model.state import ModelState
+    from bluesky_offsets.optimize.optimizer import OptimizeOptions, covariance_states
+    from bluesky_offsets.physics.beamline import torch_engine
+    from bluesky_offsets.physics.parameters import MAX_OFFSET, METRIXS
+    from bluesky_offsets.store import open_store
+    from plans.workflow import with_lit_beam_frames
+
+    summary = json.loads((run / "out" / "summary.json").read_text())
+    cal = load_calibration(run / "out" / "calibration.json")
+    store = open_store(run / "store")
+    m = with_lit_beam_frames(store, store.load_measurement(summary["uids"]["measurement"], table=METRIXS))
+    meas = m.for_analysis(resolution="camera", table=METRIXS)
+    engine, o, P = torch_engine(METRIXS), DESIGNED_FIT, len(METRIXS)
+    stage = o.stages[-1][0]
+
+    def chi2(state: ModelState) -> tuple[float, float]:
+        st = ModelState(np.clip(state.offsets, -MAX_OFFSET, MAX_OFFSET), state.effects, state.label)
+        mdl = _Model(meas, st, engine, o, METRIXS)
+        r, _, dof, _ = mdl.residuals(stage, mdl.products(stage, mdl.vector(st), False))
+        return float(r @ r), float(dof)
+
+    c0, dof = chi2(cal.state)
+    # the draws the optimizer's sampled σ reads (sampled_sigma: the same seed)
+    states = covariance_states(cal.state, cal.covariance, cal.names, n, seed=OptimizeOptions().check_seed)
+    above = np.sort([chi2(st)[0] - c0 for st in states])
+    return {"run": run.name, "frames": meas.n, "dof": dof, "chi2": c0,
+            "region": float(chi2_dist.ppf(0.95, len(cal.names or ()) or P)), "above": above.tolist()}
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("runs", nargs="+", help="finished demos: folders with out/ and store/, each as DIR or LABEL=DIR")
+    p.add_argument("--draws", type=int, default=0, help="states drawn from each calibration's covariance")
+    p.add_argument("--result", default="focus_sigma")
+    p.add_argument("--title", default="The focus's σ against the focus measured")
+    p.add_argument("--note", action="append", default=[])
+    args = p.parse_args(argv)
+    given = [(a.split("=", 1) if "=" in a else (Path(a).name, a)) for a in args.runs]
+    runs = [(label, Path(d)) for label, d in given if (Path(d) / "out" / "summary.json").exists()]
+    rows = [row for label, r in runs for row in moves(r, label)]
+    if not rows:
+        raise SystemExit("no finished demo with a beam optimization among the folders given")
+    err = np.abs([r["error"] for r in rows])
+    rel = np.array([r["sigma"] / r["predicted"] for r in rows])
+    within = float(np.mean(err <= rel))
+    for r in rows:
+        print(f"{r['run']} move {r['move']} {r['axis']}: predicted {r['predicted']:.2f} ± {r['sigma']:.2f} µm, "
+              f"measured {r['measured']:.2f} ({r['error']:+.1%})", flush=True)
+    chis = []
+    for label, r in runs if args.draws else []:
+        c = drawn_chi2(r, label, args.draws)
+        chis.append(c)
+        print(f"{c['run']}: χ² {c['chi2']:.0f} on {c['dof']:.0f} dof; {args.draws} draws above it by "
+              f"{c['above'][0]:.0f} … {c['above'][-1]:.0f} (the 95 % region: {c['region']:.1f})", flush=True)
+
+    from results import Table, write_result
+    tables = [Table("Each move's predicted rms width, its printed σ (the calibration's) and the width measured after "
+                    "the move", ("run", "move", "axis", "predicted (µm)", "σ (µm)", "measured (µm)",
+                                 "measured / predicted − 1", "|measured − predicted| / σ"),
+                    [(r["run"], r["move"], r["axis"], round(r["predicted"], 2), round(r["sigma"], 2),
+                      round(r["measured"], 2), f"{r['error']:+.1%}", round(r["pull"], 3)) for r in rows])]
+    if chis:
+        tables.append(Table(f"{args.draws} states drawn from each calibration's covariance: their χ² on the "
+                            "frames the analysis fitted, above the calibration's", (
+                                "run", "frames", "dof", "χ² of the calibration", "above it: least",
+                                "median", "most", "draws within the 95 % region"),
+                            [(c["run"], c["frames"], round(c["dof"]), round(c["chi2"], 1), round(c["above"][0], 1),
+                              round(float(np.median(c["above"])), 1), round(c["above"][-1], 1),
+                              int(np.sum(np.asarray(c["above"]) <= c["region"]))) for c in chis]))
+    summary = (f"Over {len(rows)} predicted widths ({len(rows) // 2} moves, {len(runs)} demos) the widths measured "
+               f"after the move lay a median {np.median(err):.1%} (at most {err.max():.1%}) from the prediction, "
+               f"while the printed σ was a median {np.median(rel):.0%} of it ({rel.min():.0%} to {rel.max():.0%}); "
+               f"{within:.0%} of them within 1σ (a 1σ that holds covers 68 %).")
+    if chis:
+        above = np.concatenate([c["above"] for c in chis])
+        inside = sum(int(np.sum(np.asarray(c["above"]) <= c["region"])) for c in chis)
+        regions = sorted({round(c["region"]) for c in chis})
+        summary += (f" Of the {len(above)} states drawn from the calibrations' covariances ({args.draws} each, as the "
+                    f"optimizer draws them for its σ), {inside} fit the frames within their joint 95 % region of the "
+                    f"calibration ({'–'.join(map(str, regions))} above its χ²); the median lay {np.median(above):,.0f} "
+                    "above it.")
+    write_result(args.result, title=args.title, summary=summary, tables=tables, notes=args.note,
+                 data=[str(r) for _, r in runs])
+    print(summary)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
