@@ -147,6 +147,21 @@ def test_global_starts_and_an_objective_averaged_over_the_posterior():
         optimize_settings("smallest_focus", ModelState(), start, options={**SMALL, "draws": -1})
 
 
+def test_the_sigma_s_states_are_drawn_from_the_covariance_effects_within_their_range():
+    """The states the sampled σ reads: offsets and effect parameters drawn jointly, an effect clipped to its range."""
+    from bluesky_offsets.optimize.optimizer import covariance_states
+    P = len(METRIXS)
+    state = ModelState(np.zeros(P), {"chamber_z": {"z": 32.0}})
+    cov = np.diag(np.r_[np.full(P, 1e-4), 100.0])
+    states = covariance_states(state, cov, (*METRIXS.names, "chamber_z.z"), 300, seed=5)
+    offsets = np.array([s.offsets for s in states])
+    z = np.array([s.effects["chamber_z"]["z"] for s in states])
+    assert offsets.shape == (300, P) and np.std(offsets, axis=0) == pytest.approx(np.full(P, 1e-2), rel=0.25)
+    assert z.max() == 33.0 and z.min() < 32.0  # chamber_z's range ends at 33 mm
+    again = covariance_states(state, cov, (*METRIXS.names, "chamber_z.z"), 300, seed=5)
+    assert np.array_equal(offsets, [s.offsets for s in again])
+
+
 def test_every_start_is_surveyed_and_only_the_lowest_run_on():
     """More starts than ``keep``: each runs ``survey`` steps, then only the ``keep`` lowest of those
     still falling run on; the result is the lowest end of all."""
