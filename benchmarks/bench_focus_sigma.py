@@ -55,6 +55,7 @@ def drawn_chi2(run: Path, label: str, n: int) -> dict:
 
 
 def _drawn_chi2(run: Path, n: int) -> dict:
+    """:func:`drawn_chi2` measured: the calibration and the analysed frames read from the run's folder."""
     import bluesky_offsets.blas as blas
     blas.pin_kernels()
     from scipy.stats import chi2 as chi2_dist

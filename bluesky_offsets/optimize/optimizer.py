@@ -560,8 +560,8 @@ def covariance_states(state, covariance, names, n: int, *, seed: int = 0, table:
     P = len(table)
     root = _root(covariance)
     eff_names = list(names[P:]) if names is not None else []
-    z0 = np.r_[state.offsets, [state.effects.get(n.split(".", 1)[0], {}).get(n.split(".", 1)[1], 0.0)
-                               for n in eff_names]]
+    z0 = np.r_[state.offsets, [state.effects.get(name.split(".", 1)[0], {}).get(name.split(".", 1)[1], 0.0)
+                               for name in eff_names]]
     rng = np.random.default_rng(seed)
     draws = []
     for _ in range(n):
