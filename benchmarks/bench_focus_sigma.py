@@ -4,7 +4,7 @@ For finished demos (``bench_demo.py``'s folders, each with ``out/`` and ``store/
 the beam optimization: the predicted rms widths, their printed σ and the widths measured after
 the move, as ``measured / predicted − 1`` and that over σ.  With ``--draws N`` also, at the
 calibration the first move used (``out/calibration.json``): N states drawn from its covariance,
-as the optimizer draws them (:func:`bluesky_offsets.optimize.optimizer.sampled_sigma`), each
+as the optimizer draws them (:func:`bluesky_offsets.optimize.optimizer.covariance_states`), each
 state's χ² on the frames the analysis fitted (the designed ones and the beam search's lit ones,
 the last stage of :data:`bluesky_offsets.model.diagnosis.DESIGNED_FIT`) above the calibration's
 own: whether the frames allow the states the σ is read from (their joint 95 % region is
@@ -34,8 +34,7 @@ def moves(run: Path, label: str) -> list[dict]:
     rows = []
     for k, st in enumerate(beam.get("steps", [])[:2]):  # a third step goes back to the first's settings
         for a in "xy":
-            p, s, m = (1e3 * st[key][f"rms_{a}"] if key != "predicted_sigma" else 1e3 * st[key][a]
-                       for key in ("predicted", "predicted_sigma", "after"))
+            p, s, m = 1e3 * st["predicted"][f"rms_{a}"], 1e3 * st["predicted_sigma"][a], 1e3 * st["after"][f"rms_{a}"]
             rows.append({"run": label, "move": k + 1, "axis": a, "predicted": p, "sigma": s, "measured": m,
                          "error": m / p - 1.0, "pull": abs(m - p) / s})
     return rows
@@ -88,7 +87,7 @@ def _drawn_chi2(run: Path, n: int) -> dict:
     # the draws the optimizer's sampled σ reads (sampled_sigma: the same seed)
     states = covariance_states(cal.state, cal.covariance, cal.names, n, seed=OptimizeOptions().check_seed)
     above = np.sort([chi2(st)[0] - c0 for st in states])
-    return {"run": run.name, "frames": meas.n, "dof": dof, "chi2": c0,
+    return {"frames": meas.n, "dof": dof, "chi2": c0,
             "region": float(chi2_dist.ppf(0.95, len(cal.names or ()) or P)), "above": above.tolist()}
 
 
