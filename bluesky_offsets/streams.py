@@ -21,6 +21,8 @@ OFFSETS: dict[str, int] = {
     "diagnosis.fits": 7919,            # the diagnosis's fits and detection limits, apart from the offsets fit
     "diagnosis.fresh_rays": 104729,    # fresh rays no fit traced, one block per draw (times 1 + draw)
     "fit.posterior_starts": 15_485_863,  # the fit's starts drawn from its posterior
+    "fit.posterior_samples": 32_452_843,  # the noise and prior draws that move posterior samples onto the frames
+    "fit.posterior_sample_rays": 49_979_687,  # each posterior sample's model rays
     "grid.photons": 31,                # which of a grid source's rays a trace's photons are
     "noise_floor.second_trace": 10_000_019,  # the second of two independent traces of each configuration
     "optimizer.posterior_draws": 1,    # the focus's spread over draws of the posterior

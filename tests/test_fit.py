@@ -321,6 +321,44 @@ def test_a_fit_ends_under_the_offsets_spread_the_data_prefer(defocus_case):
     assert np.all(narrow.offset_sigma <= wide.offset_sigma * 1.5)
 
 
+def test_posterior_samples_fit_the_frames_where_the_covariance_s_draws_do_not(defocus_case):
+    """Randomize-then-optimize: each sample is the fit of the frames perturbed by their noise and
+    of the prior's mean perturbed by its spread, a few steps from the fitted state on rays of its
+    own.  The samples fit the frames about as well as a posterior draw should (their χ² a few tens
+    above the fit's, where the Gaussian covariance's draws lie far above), spread where the frames
+    leave room, and the same seed gives the same samples, side by side or not."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from scipy.stats import chi2 as chi2_dist
+
+    from bluesky_offsets.model.fit import posterior_samples
+    from bluesky_offsets.optimize.optimizer import covariance_states
+    from bluesky_offsets.streams import stream
+    meas, truth, twin = defocus_case
+    opts = FitOptions(rays=1500, seed=3, stages=(("features", 3), ("bins", 4)))
+    eng = TorchEngine(hist=CAMERA)
+    res = fit(meas, ModelState(np.zeros(len(METRIXS)), {"chamber_z": {"z": 15.0}}), eng, opts)
+    samples = posterior_samples(meas, res.state, eng, opts, n=4, seed=5)
+    with ThreadPoolExecutor(2) as ex:
+        again = posterior_samples(meas, res.state, eng, opts, n=4, seed=5, executor=ex)
+    assert all(np.array_equal(a.offsets, b.offsets) and a.effects == b.effects for a, b in zip(samples, again))
+
+    def above(st, seed=opts.seed):  # on the rays ``seed`` draws; a state beyond a bound traced at the bound
+        mdl = _Model(meas, res.state, eng, opts.replace(seed=seed), METRIXS)
+        r, r0 = (mdl.residuals("bins", mdl.products("bins", np.clip(mdl.vector(s), *mdl.bounds()), False))[0]
+                 for s in (st, res.state))
+        return float(r @ r) - float(r0 @ r0)
+    region = chi2_dist.ppf(0.999, len(res.names))
+    # each sample on its own rays (the fitted state too), against the unperturbed frames
+    fitted = [above(st, stream(5, "fit.posterior_sample_rays", draw=k)) for k, st in enumerate(samples)]
+    drawn = [above(st) for st in covariance_states(res.state, res.covariance, res.names, 4, seed=5)]
+    print(f"chi2 above the fit: samples {np.round(fitted, 1)}, covariance draws {np.round(drawn, 1)} "
+          f"(99.9 % region {region:.1f})")
+    assert max(fitted) < region, fitted
+    z = np.array([np.r_[st.offsets, st.effect_vector()] for st in samples])
+    assert np.all(np.ptp(z, axis=0)[:len(METRIXS)] > 0)  # every offset moved: the prior's draw at least
+
+
 @contextlib.contextmanager
 def _side_by_side(where: str):
     """Two threads of this process, or the two worker processes of a twin's Dask cluster."""

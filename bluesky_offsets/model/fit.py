@@ -489,23 +489,24 @@ class _Model:
             self._measured[stage] = (hm.numpy(), None if floor is None else floor.numpy())
         return self._measured[stage]
 
-    def residuals(self, stage: str, pr: _Products):
+    def residuals(self, stage: str, pr: _Products, shift: np.ndarray | None = None):
         """Normalized residuals (measured − model)/σ of ``stage`` (flat), with their Jacobian and dof.
 
         Returns the residuals, their Jacobian in z (rows, P + p; d model / dz / σ) when ``pr`` has
-        one, the degrees of freedom and each row's configuration.
+        one, the degrees of freedom and each row's configuration.  ``shift`` (the stage's values'
+        shape, in units of σ) is subtracted from the residuals: frames perturbed by a draw of their noise.
         """
         n_conf = self.meas.n
         if stage == "features":
             sd = np.sqrt(self.vm + pr.variance)
-            r = ((self.fm - pr.values) / sd).reshape(-1)
+            r = ((self.fm - pr.values) / sd - (0.0 if shift is None else shift)).reshape(-1)
             G = None if pr.jacobian is None else (pr.jacobian / sd[..., None]).reshape(r.size, -1)
             return r, G, float(r.size), np.repeat(np.arange(n_conf), 5)
         m, floor = self.measured(stage)
         f = pr.values
         var = bin_variance(m, f, self.n_rays, pr.rays, floor=floor, model_noise=pr.noise)
         signal = compared(m, f, floor)
-        r = np.where(signal, (m - f) / np.sqrt(var), 0.0)
+        r = np.where(signal, (m - f) / np.sqrt(var) - (0.0 if shift is None else shift), 0.0)
         dof = float(expected_pull2(m, f, self.n_rays, floor).sum())
         keep = signal.reshape(-1)
         G = None
@@ -982,6 +983,55 @@ def _settle(mdl: _Model, stage: str, z: np.ndarray, pr: _Products, ridge: np.nda
     if progress:
         progress(history[-1])
     return (zc, mdl.products(stage, zc, True)) if kept else (z, pr)
+
+
+POSTERIOR_SAMPLE_STEPS = 3
+"""Levenberg-Marquardt steps that move each of :func:`posterior_samples`' draws onto its frames."""
+
+
+def posterior_samples(meas, state, engine, options: FitOptions | Mapping | None = None, *, n: int = 12,
+                      seed: int = 0, table: ParameterTable = METRIXS, executor: Executor | None = None) -> list:
+    """``n`` states drawn from the posterior of the fitted ``state`` that fit ``meas``: randomize-then-optimize.
+
+    Each draw perturbs the frames by a draw of their noise and the offsets' prior mean by a draw of
+    the prior (``options.prior_sigma``), then moves from ``state`` by :data:`POSTERIOR_SAMPLE_STEPS`
+    Levenberg-Marquardt steps on the options' last stage, traced with model rays of its own (named
+    random streams of ``seed``).  For a linear model these are exact posterior draws; where the
+    χ² bends they follow its valley, which a Gaussian covariance does not: the calibration's
+    covariance, widened by other starts and ray draws, spreads where the frames forbid
+    (docs/explanations/optimize.md, "What that σ is worth").  The draws run side by side on
+    ``executor`` (the same states without one).
+    """
+    o = FitOptions.resolve(options)
+    calls = [lambda k=k: _posterior_sample(meas, state, engine, o, table, seed, k) for k in range(int(n))]
+    return gather(calls, executor)
+
+
+def _posterior_sample(meas, state, engine, o: FitOptions, table: ParameterTable, seed: int, k: int):
+    """:func:`posterior_samples`' ``k``-th state."""
+    mdl = _Model(meas, state, engine, o.replace(seed=stream(seed, "fit.posterior_sample_rays", draw=k)), table)
+    stage, ridge = o.stages[-1][0], _ridge(mdl, o)
+    lo, hi = mdl.bounds()
+    z = np.clip(mdl.vector(state), lo, hi)
+    pr = mdl.products(stage, z, True)
+    rng = np.random.default_rng(stream(seed, "fit.posterior_samples", draw=k))
+    shift = rng.standard_normal(pr.values.shape)  # the frames' noise, in units of their σ
+    mean = np.where(ridge > 0, rng.standard_normal(len(z)) / np.sqrt(np.where(ridge > 0, ridge, 1.0)), 0.0)
+    r, G, _, _ = mdl.residuals(stage, pr, shift)
+    obj, lam, accepted = _objective(r, z - mean, ridge), o.damping, 0
+    # a refused step costs a value, a tenth of a Jacobian: the damping grows fast and tries again
+    for _ in range(3 * POSTERIOR_SAMPLE_STEPS):
+        zc = np.clip(z + _lm_step(G, r, z - mean, lam, ridge), lo, hi)
+        rc = mdl.residuals(stage, mdl.products(stage, zc, False), shift)[0]
+        oc = _objective(rc, zc - mean, ridge)
+        if oc >= obj:
+            lam *= 10.0
+            continue
+        z, obj, lam, accepted = zc, oc, max(lam / 3.0, 1e-9), accepted + 1
+        if accepted == POSTERIOR_SAMPLE_STEPS:
+            break
+        r, G, _, _ = mdl.residuals(stage, mdl.products(stage, z, True), shift)
+    return mdl.state(z)
 
 
 def _posterior_covariance(F: np.ndarray, ridge: np.ndarray) -> np.ndarray:
