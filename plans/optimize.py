@@ -95,7 +95,8 @@ class BeamResult:
         for k, s in enumerate(self.steps):
             tag = "" if len(self.steps) == 1 else f" ({k + 1})"
             o = s.optimum
-            sig = (f" (± {o.sigma['x'] * 1e3:.1f}, ± {o.sigma['y'] * 1e3:.1f} µm from the calibration)"
+            whence = f"{o.sampled} posterior states fitting the frames" if o.sampled else "the calibration"
+            sig = (f" (± {o.sigma['x'] * 1e3:.1f}, ± {o.sigma['y'] * 1e3:.1f} µm from {whence})"
                    if all(np.isfinite(o.sigma[a]) for a in "xy") else "")
             p = o.predicted
             out.append(f"predicted{tag:5s}   {p.rms_x * 1e3:7.1f} x {p.rms_y * 1e3:6.1f} µm rms, {p.intensity:.3f} of "
@@ -148,7 +149,8 @@ def _optimum_md(o: BeamOptimum, table: ParameterTable) -> dict:
             "moved": list(o.moved), "predicted": o.predicted.as_dict(), "predicted_before": o.predicted_before.as_dict(),
             "predicted_sigma": {a: float(v) for a, v in o.sigma.items()}, "trusted": bool(o.trusted),
             "flags": [f.text() for f in o.flags], "at_limit": list(o.at_limit), "cost": float(o.cost),
-            "posterior_states": int(o.states), "starts": [{k: float(v) if isinstance(v, (int, float)) else v for k, v in s.items()} for s in o.starts]}
+            "posterior_states": int(o.states), "sigma_samples": int(o.sampled),
+            "starts": [{k: float(v) if isinstance(v, (int, float)) else v for k, v in s.items()} for s in o.starts]}
 
 
 def _beam_rows(before: Focus, o: BeamOptimum, after: Focus) -> list[dict]:
@@ -239,14 +241,17 @@ def optimize_beam(target, model, beamline, chamber, *, constraints: Constraints 
     start = yield from read_positions(motors)
     limits = yield from motor_limits(motors, table)
 
-    def compute(cal: CalibratedState, current: np.ndarray):
+    def compute(cal: CalibratedState, current: np.ndarray, frames_of: Measurement | None):
+        samples = None
+        if frames_of is not None and o.posterior_samples > 1:
+            samples = yield from _posterior(cal, frames_of, o, refit, executor, table)
         return (yield from run_in_thread(
             lambda progress: optimize_settings(target, cal.state, current, limits=limits, constraints=cons,
-                                               covariance=cal.covariance, names=cal.names, options=o,
-                                               progress=progress, executor=executor, table=table),
+                                               covariance=cal.covariance, names=cal.names, samples=samples,
+                                               options=o, progress=progress, executor=executor, table=table),
             stream=None, desc=f"optimize the beam ({target.name}) on the calibrated twin"))
 
-    opt = yield from compute(cal, table.from_mapping(start))
+    opt = yield from compute(cal, table.from_mapping(start), measurement)
     base_md = {"plan_name": "optimize_beam", "purpose": "optimize the beam with the calibrated twin",
                "target": _jsonable_target(target), "constraints": {"hold": list(cons.hold),
                                                                    "keep_transmission": cons.keep_transmission,
@@ -262,8 +267,8 @@ def optimize_beam(target, model, beamline, chamber, *, constraints: Constraints 
     result = BeamResult(before, steps, m, cal, int(frames), profiles, limits, cons, o)
     if closed_loop:
         assert measurement is not None  # refused above without one
-        cal2 = yield from _refit(cal, measurement, m, int(frames), refit, executor, table)
-        opt2 = yield from compute(cal2, opt.settings)
+        cal2, both = yield from _refit(cal, measurement, m, int(frames), refit, executor, table)
+        opt2 = yield from compute(cal2, opt.settings, both)
         m2, read2 = yield from _move_and_measure(opt2, beamline, chamber, int(frames), False,
                                                  {**base_md, "step": 2, "previous_uid": m.uid,
                                                   **_optimum_md(opt2, table)}, table, after)
@@ -278,27 +283,53 @@ def optimize_beam(target, model, beamline, chamber, *, constraints: Constraints 
     return result
 
 
-def _refit(cal: CalibratedState, measurement: Measurement, m: Measurement, frames: int, refit,
-           executor: Executor | None, table: ParameterTable) -> MsgGenerator[CalibratedState]:
-    """The calibration refitted on its ``measurement`` and the frames after the move (``m``'s last ``frames``)."""
+def _refit_options(cal: CalibratedState, refit):
+    """The fit options of the closed loop's refit and of the posterior samples: ``refit``'s, under the calibration's spread.
+
+    Returns the options and the spread they hold where the calibration estimated one (else None).
+    """
     from bluesky_offsets.model.diagnosis import FIT
     from bluesky_offsets.model.fit import FitOptions
+
+    # one draw of the model's rays (FitOptions.ray_draws): this refit sets the next move, where
+    # frames are measured and the prediction is checked, and each further draw costs a whole fit
+    ro = FIT.replace(ray_draws=1) if refit is None else FitOptions.resolve(refit)
+    if ro.estimate_spread and cal.prior_sigma is not None:
+        # the calibration's spread: the frames after the move barely change it, estimating it costs two fits
+        return ro.replace(prior_sigma=cal.prior_sigma, estimate_spread=False), cal.prior_sigma
+    return ro, None
+
+
+def _posterior(cal: CalibratedState, measurement: Measurement, o: OptimizeOptions, refit,
+               executor: Executor | None, table: ParameterTable) -> MsgGenerator[list]:
+    """``o.posterior_samples`` states of the calibration's posterior that fit ``measurement`` (its frames, as analysed)."""
+    from bluesky_offsets.model.fit import engine_for, posterior_samples
+
+    ro, _ = _refit_options(cal, refit)
+    engine = engine_for(measurement, ro, table)
+    return (yield from run_in_thread(
+        lambda progress: posterior_samples(measurement, cal.state, engine, ro, n=o.posterior_samples, seed=o.seed,
+                                           table=table, executor=executor),
+        stream=None, desc=f"draw {o.posterior_samples} states of the posterior onto the calibration's frames"))
+
+
+def _refit(cal: CalibratedState, measurement: Measurement, m: Measurement, frames: int, refit,
+           executor: Executor | None, table: ParameterTable) -> MsgGenerator[tuple[CalibratedState, Measurement]]:
+    """The calibration refitted on its ``measurement`` and the frames after the move (``m``'s last ``frames``).
+
+    Returns it and the frames it was fitted on.
+    """
     from bluesky_offsets.model.state import refine
 
     new = m.for_analysis(measurement.n_rays, table, resolution="camera" if measurement.spec.bins_x > 50
                          else "paper").subset(slice(frames, None))
     both = _joined(measurement, new)
-    # one draw of the model's rays (FitOptions.ray_draws): this refit sets the next move, where
-    # frames are measured and the prediction is checked, and each further draw costs a whole fit
-    ro, spread = (FIT.replace(ray_draws=1) if refit is None else FitOptions.resolve(refit)), None
-    if ro.estimate_spread and cal.prior_sigma is not None:
-        # the calibration's spread: the frames after the move barely change it, estimating it costs two fits
-        ro, spread = ro.replace(prior_sigma=cal.prior_sigma, estimate_spread=False), cal.prior_sigma
+    ro, spread = _refit_options(cal, refit)
     res = yield from run_in_thread(lambda progress: refine(both, cal.state, options=ro, progress=progress,
                                                            executor=executor, table=table),
                                    stream=None, desc="refit the model with the frames after the move")
     return CalibratedState(res.state, res.fit.covariance, tuple(res.fit.names), m.uid,
-                           res.fit.prior_sigma if spread is None else spread)
+                           res.fit.prior_sigma if spread is None else spread), both
 
 
 def _back_if_worse(result: BeamResult, target, beamline, chamber, md: dict,

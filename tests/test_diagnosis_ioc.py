@@ -32,6 +32,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from bluesky_offsets.optimize import OptimizeOptions
 from bluesky_offsets.physics.parameters import METRIXS
 from bluesky_offsets.store import open_store
 from plans.diagnose import load_results
@@ -126,6 +127,9 @@ class TestChamberZ(_HiddenEffect):
         assert len(steps) in (2, 3) and steps[-1]["uid"] == b["uid"]
         assert f"{len(steps)} moves (closed loop)" in proc.stdout
         assert all(n.startswith(("E1", "E2")) for st in steps for n in st["moved"])
+        # each move's σ read from posterior states fitted to the calibration's frames (the refit's after the first)
+        assert all(st["sigma_samples"] == OptimizeOptions().posterior_samples for st in steps)
+        assert "posterior states fitting the frames" in proc.stdout
         with open_store(tmp_path / "runs") as store:
             settings = []
             for k, st in enumerate(steps):

@@ -123,7 +123,16 @@ def test_smallest_focus_on_a_defocused_twin_shrinks_within_limits():
     cov = np.diag(np.full(len(METRIXS), 1e-4))
     res2 = optimize_settings("smallest_focus", ModelState(), start, overrides=DEFOCUSED, options=SMALL,
                              covariance=cov, names=METRIXS.names)
-    assert all(np.isfinite(res2.sigma[a]) and res2.sigma[a] > 0 for a in "xy")
+    assert all(np.isfinite(res2.sigma[a]) and res2.sigma[a] > 0 for a in "xy") and res2.sampled == 0
+    # posterior samples given: the sigma is read from them, not from the covariance; the settings
+    # do not depend on them
+    rng = np.random.default_rng(1)
+    samples = [ModelState(rng.normal(0.0, 1e-2, len(METRIXS))) for _ in range(8)]
+    res3 = optimize_settings("smallest_focus", ModelState(), start, overrides=DEFOCUSED, options=SMALL,
+                             covariance=100 * cov, names=METRIXS.names, samples=samples)
+    assert res3.sampled == 8 and np.array_equal(res3.settings, res2.settings)
+    for a in "xy":   # the samples spread as the covariance res2 read: about its sigma, far below 100 cov's
+        assert 0.4 < res3.sigma[a] / res2.sigma[a] < 2.5, (a, res3.sigma, res2.sigma)
 
 
 def test_global_starts_and_an_objective_averaged_over_the_posterior():

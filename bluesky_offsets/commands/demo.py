@@ -581,7 +581,8 @@ def _beam_summary(beam, best) -> dict:
             "flags": [f.text() for f in o.flags], "moved": list(o.moved), "at_limit": list(o.at_limit),
             "true_best": None if best is None else best.as_dict(), "frames": beam.frames,
             "steps": [{"uid": st.uid, "predicted": st.optimum.predicted.as_dict(),
-                       "predicted_sigma": dict(st.optimum.sigma), "after": st.after.as_dict(),
+                       "predicted_sigma": dict(st.optimum.sigma), "sigma_samples": st.optimum.sampled,
+                       "after": st.after.as_dict(),
                        "moved": list(st.optimum.moved), **({"note": st.note} if st.note else {})}
                       for st in beam.steps]}
 

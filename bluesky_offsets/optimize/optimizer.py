@@ -109,6 +109,11 @@ class OptimizeOptions:
     samples : int
         states drawn from the calibration's covariance to read the prediction's spread as
         frames would (:func:`sampled_sigma`); 0 or 1: the linear propagation alone.
+    posterior_samples : int
+        where the calibration's frames are at hand (``plans.optimize.optimize_beam``'s
+        ``measurement``): states drawn from its posterior onto them
+        (:func:`~bluesky_offsets.model.fit.posterior_samples`) that the spread is read from
+        instead; 0 or 1: the covariance's draws.
     engine : mapping, optional
         torch engine options (:class:`~bluesky_offsets.physics.engine.TorchOptions`).
     """
@@ -129,10 +134,11 @@ class OptimizeOptions:
     flag_above: float = 0.02
     trust_below: float = 0.10
     samples: int = 24
+    posterior_samples: int = 12
     engine: Mapping | None = None
 
     def __post_init__(self):
-        for k in ("samples", "screen", "global_starts", "draws"):
+        for k in ("samples", "posterior_samples", "screen", "global_starts", "draws"):
             if int(getattr(self, k)) < 0:
                 raise InputError(f"optimize option {k} must be >= 0, got {getattr(self, k)!r}")
         for k in ("rays", "starts", "iterations", "check_rays", "survey", "keep"):
@@ -190,6 +196,7 @@ class BeamOptimum:
     starts: list[dict] = field(default_factory=list)
     profiles: tuple[np.ndarray, np.ndarray] | None = None   # predicted camera profiles at ``settings``
     states: int = 1                 # states the objective averaged over (the fitted one and the posterior's draws)
+    sampled: int = 0                # posterior states fitted to the frames that ``sigma`` is read from (0: covariance)
 
     def relative_sigma(self, axis: str) -> float:
         """The predicted rms width's uncertainty along ``axis`` (``"x"``/``"y"``) over the width."""
@@ -585,10 +592,33 @@ def sampled_sigma(state, configuration, covariance, names, *, samples: int = 24,
     at an optimum, where a shifted centroid lands the spot on other pixels, is in it.
     """
     draws = covariance_states(state, covariance, names, samples, seed=seed, table=table)
+    return states_sigma(draws, configuration, rays=rays, seed=seed, overrides=overrides, engine=engine, table=table)
+
+
+def states_sigma(states, configuration, *, about=None, rays: int = 30_000, seed: int = 0, overrides=None,
+                 engine=None, table: ParameterTable = METRIXS) -> dict[str, float]:
+    """The spread of the predicted rms widths over ``states`` at ``configuration``, each read as a frame is.
+
+    Their standard deviation, or with ``about`` (the fitted state, traced with the same rays) their
+    root-mean-square distance from its width: where the posterior's mean focus lies off the fitted
+    state's, the prediction misses by that too.
+    """
     traces = stream(seed, "optimizer.posterior_draws")  # the draws' rays, apart from the draws themselves
-    foci = [f for f, _, _ in predict_many(draws, configuration, rays=rays, seed=traces, overrides=overrides,
+    batch = [*states, *([] if about is None else [about])]
+    foci = [f for f, _, _ in predict_many(batch, configuration, rays=rays, seed=traces, overrides=overrides,
                                           engine=engine, table=table)]
-    return {a: float(np.nanstd([getattr(f, f"rms_{a}") for f in foci], ddof=1)) for a in "xy"}
+    out = {}
+    for a in "xy":
+        w = np.array([getattr(f, f"rms_{a}") for f in foci], float)
+        out[a] = (float(np.nanstd(w, ddof=1)) if about is None
+                  else float(np.sqrt(np.nanmean((w[:-1] - w[-1]) ** 2))))
+    return out
+
+
+def samples_covariance(samples) -> np.ndarray:
+    """The covariance of posterior samples (model states), over the normalized offsets, then effect parameters."""
+    z = np.asarray([np.r_[st.offsets, st.effect_vector()] for st in samples], float)
+    return np.atleast_2d(np.cov(z.T, ddof=1))
 
 
 def _uncertainty(pb: _Problem, cfg, covariance, names, o: OptimizeOptions, table: ParameterTable):
@@ -642,9 +672,25 @@ def _uncertainty(pb: _Problem, cfg, covariance, names, o: OptimizeOptions, table
     return sig, flags, True
 
 
+def _sigma(pb: _Problem, settings, covariance, names, samples, o: OptimizeOptions, table: ParameterTable):
+    """The predicted widths' σ at ``settings``, the flags, whether known: from ``samples`` where given, else ``covariance``.
+
+    The larger of the linear propagation and the spread over the states, read as frames are.
+    """
+    sigma, flags, known = _uncertainty(pb, settings, covariance if samples is None else samples_covariance(samples),
+                                       names, o, table)
+    if known and (samples is not None or o.samples > 1):
+        drawn = (sampled_sigma(pb.state, settings, covariance, names, samples=o.samples, seed=o.check_seed,
+                               overrides=pb.extra, engine=pb.engine, table=table) if samples is None else
+                 states_sigma(samples, settings, about=pb.state, seed=o.check_seed, overrides=pb.extra,
+                              engine=pb.engine, table=table))
+        sigma = {a: max(sigma[a], drawn[a]) for a in "xy"}
+    return sigma, flags, known
+
+
 def optimize_settings(target, state, current, *, limits=None, constraints: Constraints | Mapping | None = None,
-                      covariance=None, names=None, options: OptimizeOptions | Mapping | None = None, overrides=None,
-                      engine=None, progress: Callable[[dict], None] | None = None,
+                      covariance=None, names=None, samples=None, options: OptimizeOptions | Mapping | None = None,
+                      overrides=None, engine=None, progress: Callable[[dict], None] | None = None,
                       executor: Executor | None = None, table: ParameterTable = METRIXS) -> BeamOptimum:
     """The motor settings that give ``target`` on the model ``state``, within the limits.
 
@@ -660,6 +706,10 @@ def optimize_settings(target, state, current, *, limits=None, constraints: Const
     constraints : Constraints or mapping (held motors, travel, narrower limits, transmission).
     covariance, names : the calibration's covariance (normalized offsets, then effect parameters,
         ``names`` in that order); None: the prediction's uncertainty is unknown (not trusted).
+    samples : states drawn from the calibration's posterior that fit its frames
+        (:func:`~bluesky_offsets.model.fit.posterior_samples`, two or more): the prediction's σ
+        and flags are read from them instead of from ``covariance``, whose Gaussian spreads along
+        combinations the frames forbid.
     overrides : extra RML overrides of the state (e.g. a hidden truth's effects).
     progress : called with a dict per iteration.
     executor : runs the starts side by side (the same result: the best in the starts' order).
@@ -726,14 +776,10 @@ def optimize_settings(target, state, current, *, limits=None, constraints: Const
         raise TargetUnreachable(f"{target.name}: {why} — " + (
             "it needs " + ", ".join(pushing) + " beyond its limit; nothing was moved" if pushing else
             "no motor within its limits gets there in the model; nothing was moved"))
-    sigma, flags, known = _uncertainty(pb, settings, covariance, names, o, table)
-    if known and o.samples > 1:
-        # the spread over states drawn from the covariance, read as frames are, where it is larger
-        drawn = sampled_sigma(state, settings, covariance, names, samples=o.samples, seed=o.check_seed,
-                              overrides=overrides, engine=engine, table=table)
-        sigma = {a: max(sigma[a], drawn[a]) for a in "xy"}
+    fitted = samples is not None and len(samples) > 1
+    sigma, flags, known = _sigma(pb, settings, covariance, names, samples if fitted else None, o, table)
     rel = max(sigma[a] / getattr(predicted, f"rms_{a}") for a in "xy") if known else math.inf
     trusted = known and rel < o.trust_below
     moved = moved_names(current, settings, table, free)
     return BeamOptimum(target, settings, current, moved, predicted, before, sigma, flags, trusted, at_limit, cost,
-                       history, starts, (px, py), len(pb.offsets))
+                       history, starts, (px, py), len(pb.offsets), len(samples) if fitted else 0)
