@@ -9,11 +9,15 @@ state's χ² on the frames the analysis fitted (the designed ones and the beam s
 the last stage of :data:`bluesky_offsets.model.diagnosis.DESIGNED_FIT`) above the calibration's
 own: whether the frames allow the states the σ is read from (their joint 95 % region is
 ``chi2.ppf(0.95, k)`` above it, k the fitted parameters).  A drawn offset beyond its bound is
-traced at the bound.
+traced at the bound.  With ``--samples N``, the first move's σ as the optimizer reads it where it
+has the calibration's frames: from N posterior samples fitted to them
+(:func:`bluesky_offsets.model.fit.posterior_samples`), against the widths measured after the move
+with their own σ.
 
-    python benchmarks/bench_focus_sigma.py [LABEL=]DIR [[LABEL=]DIR ...] [--draws 16] [--result focus_sigma]
+    python benchmarks/bench_focus_sigma.py [LABEL=]DIR ... [--draws 16] [--samples 12] [--result focus_sigma]
 
-Each run's draws are kept in its folder (``focus_sigma_draws.json``) and read again by a later call.
+Each run's draws and samples are kept in its folder (``focus_sigma_draws.json``,
+``focus_sigma_samples.json``) and read again by a later call.
 """
 
 from __future__ import annotations
@@ -91,10 +95,67 @@ def _drawn_chi2(run: Path, n: int) -> dict:
             "region": float(chi2_dist.ppf(0.95, len(cal.names or ()) or P)), "above": above.tolist()}
 
 
+def sampled_move(run: Path, label: str, n: int) -> list[dict]:
+    """The first move's σ read from ``n`` posterior samples fitted to the calibration's frames, per axis.
+
+    As ``plans.optimize.optimize_beam`` reads it where it is given the calibration's measurement
+    (:func:`bluesky_offsets.model.fit.posterior_samples`, then
+    :func:`bluesky_offsets.optimize.optimizer.states_sigma` at the move's settings); against the
+    widths measured after the move, with their own σ.  Kept in the run's folder
+    (``focus_sigma_samples.json``).
+    """
+    kept = run / "focus_sigma_samples.json"
+    if kept.exists() and (got := json.loads(kept.read_text()))["samples"] == n:
+        return [{**row, "run": label} for row in got["rows"]]
+    rows = _sampled_move(run, n)
+    kept.write_text(json.dumps({"samples": n, "rows": rows}))
+    return [{**row, "run": label} for row in rows]
+
+
+def _sampled_move(run: Path, n: int) -> list[dict]:
+    """:func:`sampled_move` measured."""
+    import time
+
+    import bluesky_offsets.blas as blas
+    blas.pin_kernels()
+    from bluesky_offsets import load_calibration
+    from bluesky_offsets.model.diagnosis import DESIGNED_FIT
+    from bluesky_offsets.model.fit import engine_for, posterior_samples
+    from bluesky_offsets.optimize.optimizer import OptimizeOptions, states_sigma
+    from bluesky_offsets.physics.parameters import METRIXS
+    from bluesky_offsets.store import open_store
+    from plans.workflow import with_lit_beam_frames
+
+    summary = json.loads((run / "out" / "summary.json").read_text())
+    cal = load_calibration(run / "out" / "calibration.json")
+    store = open_store(run / "store")
+    m = with_lit_beam_frames(store, store.load_measurement(summary["uids"]["measurement"], table=METRIXS))
+    meas = m.for_analysis(resolution="camera", table=METRIXS)
+    # the closed loop's refit options (the demo's): one ray draw, under the calibration's spread
+    o = DESIGNED_FIT.replace(ray_draws=1, estimate_spread=False,
+                             **({"prior_sigma": cal.prior_sigma} if cal.prior_sigma is not None else {}))
+    t0 = time.perf_counter()
+    samples = posterior_samples(meas, cal.state, engine_for(meas, o, METRIXS), o, n=n, seed=0)
+    seconds = time.perf_counter() - t0
+    step = summary["beam"]["steps"][0]
+    settings = np.asarray(store[step["uid"]].metadata["start"]["settings"], float)
+    sig = states_sigma(samples, settings, about=cal.state, seed=OptimizeOptions().check_seed)
+    rows = []
+    for a in "xy":
+        p, m_ = 1e3 * step["predicted"][f"rms_{a}"], 1e3 * step["after"][f"rms_{a}"]
+        sm, sp = 1e3 * step["after"][f"sigma_rms_{a}"], 1e3 * sig[a]
+        rows.append({"axis": a, "predicted": p, "printed": 1e3 * step["predicted_sigma"][a], "sampled": sp,
+                     "measured": m_, "measured_sigma": sm, "pull": abs(m_ - p) / float(np.hypot(sp, sm)),
+                     "frames": meas.n, "seconds": seconds})
+    return rows
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("runs", nargs="+", help="finished demos: folders with out/ and store/, each as DIR or LABEL=DIR")
     p.add_argument("--draws", type=int, default=0, help="states drawn from each calibration's covariance")
+    p.add_argument("--samples", type=int, default=0,
+                   help="posterior samples fitted to each calibration's frames: the first move's σ read from them")
     p.add_argument("--result", default="focus_sigma")
     p.add_argument("--title", default="The focus's σ against the focus measured")
     p.add_argument("--note", action="append", default=[])
@@ -117,6 +178,12 @@ def main(argv=None) -> int:
         print(f"{c['run']}: χ² {c['chi2']:.0f} on {c['dof']:.0f} dof; {args.draws} draws above it by "
               f"{c['above'][0]:.0f} … {c['above'][-1]:.0f} (the 95 % region: {c['region']:.1f})", flush=True)
 
+    sampled = [row for label, r in runs if args.samples for row in sampled_move(r, label, args.samples)]
+    for r in sampled:
+        print(f"{r['run']} move 1 {r['axis']}: predicted {r['predicted']:.2f} ± {r['sampled']:.2f} µm from "
+              f"{args.samples} posterior samples (printed ± {r['printed']:.2f}), measured {r['measured']:.2f} ± "
+              f"{r['measured_sigma']:.2f}: {r['pull']:.2f} σ", flush=True)
+
     from results import Table, write_result
     tables = [Table("Each move's predicted rms width, its printed σ (the calibration's) and the width measured after "
                     "the move", ("run", "move", "axis", "predicted (µm)", "σ (µm)", "measured (µm)",
@@ -131,6 +198,15 @@ def main(argv=None) -> int:
                             [(c["run"], c["frames"], round(c["dof"]), round(c["chi2"], 1), round(c["above"][0], 1),
                               round(float(np.median(c["above"])), 1), round(c["above"][-1], 1),
                               int(np.sum(np.asarray(c["above"]) <= c["region"]))) for c in chis]))
+    if sampled:
+        tables.append(Table(f"The first move's σ read from {args.samples} posterior samples fitted to the "
+                            "calibration's frames (randomize-then-optimize), against the width measured after the move "
+                            "with its own σ", ("run", "axis", "predicted (µm)", "printed σ (µm)", "σ from the samples (µm)",
+                                               "measured (µm)", "its σ (µm)", "|measured − predicted| / both σ",
+                                               "samples' time (s)"),
+                            [(r["run"], r["axis"], round(r["predicted"], 2), round(r["printed"], 2),
+                              round(r["sampled"], 2), round(r["measured"], 2), round(r["measured_sigma"], 2),
+                              round(r["pull"], 2), round(r["seconds"])) for r in sampled]))
     summary = (f"Over {len(rows)} predicted widths ({len(rows) // 2} moves, {len(runs)} demos) the widths measured "
                f"after the move lay a median {np.median(err):.1%} (at most {err.max():.1%}) from the prediction, "
                f"while the printed σ was a median {np.median(rel):.0%} of it ({rel.min():.0%} to {rel.max():.0%}); "
@@ -143,6 +219,13 @@ def main(argv=None) -> int:
                     f"optimizer draws them for its σ), {inside} fit the frames within their joint 95 % region of the "
                     f"calibration ({'–'.join(map(str, regions))} above its χ²); the median lay {np.median(above):,.0f} "
                     "above it.")
+    if sampled:
+        pulls = np.array([r["pull"] for r in sampled])
+        rel_s = np.array([r["sampled"] / r["predicted"] for r in sampled])
+        summary += (f" Read from {args.samples} posterior samples fitted to the frames, the first move's σ was a median "
+                    f"{np.median(rel_s):.1%} of the width ({rel_s.min():.1%} to {rel_s.max():.1%}); with the measured "
+                    f"width's own σ, {np.mean(pulls <= 1):.0%} of {len(pulls)} widths lay within 1σ and "
+                    f"{np.mean(pulls <= 2):.0%} within 2σ (68 % and 95 % claimed), the farthest {pulls.max():.1f}σ.")
     write_result(args.result, title=args.title, summary=summary, tables=tables, notes=args.note,
                  data=[str(r) for _, r in runs])
     print(summary)
