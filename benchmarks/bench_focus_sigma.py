@@ -57,19 +57,12 @@ def drawn_chi2(run: Path, label: str, n: int) -> dict:
     return {**got, "run": label}
 
 
-def _drawn_chi2(run: Path, n: int) -> dict:
-    """:func:`drawn_chi2` measured: the calibration and the analysed frames read from the run's folder."""
+def _calibrated(run: Path):
+    """A finished demo's summary, its calibration, its run store and the frames its analysis fitted."""
     import bluesky_offsets.blas as blas
     blas.pin_kernels()
-    from scipy.stats import chi2 as chi2_dist
-
     from bluesky_offsets import load_calibration
-    from bluesky_offsets.model.diagnosis import DESIGNED_FIT
-    from bluesky_offsets.model.fit import _Model
-    from bluesky_offsets.model.state import ModelState
-    from bluesky_offsets.optimize.optimizer import OptimizeOptions, covariance_states
-    from bluesky_offsets.physics.beamline import torch_engine
-    from bluesky_offsets.physics.parameters import MAX_OFFSET, METRIXS
+    from bluesky_offsets.physics.parameters import METRIXS
     from bluesky_offsets.store import open_store
     from plans.workflow import with_lit_beam_frames
 
@@ -77,7 +70,21 @@ def _drawn_chi2(run: Path, n: int) -> dict:
     cal = load_calibration(run / "out" / "calibration.json")
     store = open_store(run / "store")
     m = with_lit_beam_frames(store, store.load_measurement(summary["uids"]["measurement"], table=METRIXS))
-    meas = m.for_analysis(resolution="camera", table=METRIXS)
+    return summary, cal, store, m.for_analysis(resolution="camera", table=METRIXS)
+
+
+def _drawn_chi2(run: Path, n: int) -> dict:
+    """:func:`drawn_chi2` measured: the calibration and the analysed frames read from the run's folder."""
+    from scipy.stats import chi2 as chi2_dist
+
+    from bluesky_offsets.model.diagnosis import DESIGNED_FIT
+    from bluesky_offsets.model.fit import _Model
+    from bluesky_offsets.model.state import ModelState
+    from bluesky_offsets.optimize.optimizer import OptimizeOptions, covariance_states
+    from bluesky_offsets.physics.beamline import torch_engine
+    from bluesky_offsets.physics.parameters import MAX_OFFSET, METRIXS
+
+    _, cal, _, meas = _calibrated(run)
     engine, o, P = torch_engine(METRIXS), DESIGNED_FIT, len(METRIXS)
     stage = o.stages[-1][0]
 
@@ -116,21 +123,12 @@ def _sampled_move(run: Path, n: int) -> list[dict]:
     """:func:`sampled_move` measured."""
     import time
 
-    import bluesky_offsets.blas as blas
-    blas.pin_kernels()
-    from bluesky_offsets import load_calibration
     from bluesky_offsets.model.diagnosis import DESIGNED_FIT
     from bluesky_offsets.model.fit import engine_for, posterior_samples
     from bluesky_offsets.optimize.optimizer import OptimizeOptions, states_sigma
     from bluesky_offsets.physics.parameters import METRIXS
-    from bluesky_offsets.store import open_store
-    from plans.workflow import with_lit_beam_frames
 
-    summary = json.loads((run / "out" / "summary.json").read_text())
-    cal = load_calibration(run / "out" / "calibration.json")
-    store = open_store(run / "store")
-    m = with_lit_beam_frames(store, store.load_measurement(summary["uids"]["measurement"], table=METRIXS))
-    meas = m.for_analysis(resolution="camera", table=METRIXS)
+    summary, cal, store, meas = _calibrated(run)
     # the closed loop's refit options (the demo's): one ray draw, under the calibration's spread
     o = DESIGNED_FIT.replace(ray_draws=1, estimate_spread=False,
                              **({"prior_sigma": cal.prior_sigma} if cal.prior_sigma is not None else {}))
