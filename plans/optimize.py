@@ -210,11 +210,15 @@ def optimize_beam(target, model, beamline, chamber, *, constraints: Constraints 
         limits, the transmission kept (:class:`~bluesky_offsets.optimize.Constraints`).
     options : :class:`~bluesky_offsets.optimize.OptimizeOptions` (rays, starts, iterations ...).
     frames : frames taken before and after the move (their profiles averaged).
-    closed_loop : refit the model on ``measurement`` (the calibration's, as analysed) and the
-        frames after the move (``refit``: FitOptions for it, default ``diagnosis.FIT`` on one draw
-        of the model's rays; under the calibration's offsets' spread where it estimated one),
+    measurement : the calibration's frames, as analysed: the prediction's σ is read from states of
+        the posterior that fit them (``options.posterior_samples``; without them, from the
+        calibration's covariance).
+    closed_loop : refit the model on ``measurement`` and the frames after the move (``refit``:
+        FitOptions for it and for the posterior samples, default ``diagnosis.FIT`` on one draw of
+        the model's rays; under the calibration's offsets' spread where it estimated one),
         optimize and move once more.
-    executor : runs the optimizer's starts and the refit's side by side (the same result).
+    executor : runs the optimizer's starts, the posterior samples and the refit's starts side by
+        side (the same result).
 
     Returns
     -------
