@@ -451,11 +451,7 @@ def analyse(measurement: str = "last", offsets: str | None = "last", *, candidat
         from bluesky_offsets.physics import effects as E
         E.get(n)  # an unknown name fails before anything runs
     idx = m.metadata.get("analysed_configurations")
-    if designed:
-        m = with_lit_beam_frames(store, m)
-    meas = m.for_analysis(resolution=resolution, table=METRIXS)
-    if idx is not None:
-        meas = meas.subset(np.asarray(idx, dtype=int))
+    meas = as_analysed(store, m, resolution)
     starts = [ModelState(label="twin")]
     if designed:
         from .diagnose import load_results
@@ -485,6 +481,42 @@ def analyse(measurement: str = "last", offsets: str | None = "last", *, candidat
         return out
     finally:
         twin.close()
+
+
+def as_analysed(store, m: Measurement, resolution: str = "camera", table: ParameterTable = METRIXS) -> Measurement:
+    """A stored measurement as :func:`analyse` fits it.
+
+    A designed one joined by its beam search's lit frames; its ``analysed_configurations``
+    (written by :func:`measure_bright`) chosen, all of them otherwise; at ``resolution``.
+    """
+    idx = m.metadata.get("analysed_configurations")
+    if "design_options" in m.metadata:
+        m = with_lit_beam_frames(store, m, table)
+    meas = m.for_analysis(resolution=resolution, table=table)
+    return meas if idx is None else meas.subset(np.asarray(idx, dtype=int))
+
+
+def calibration_frames(cal, store=None, table: ParameterTable = METRIXS):
+    """The frames a calibration was fitted on, as its fit read them, and the fit's options.
+
+    Read from the calibration's fitted model's run (``cal.uid``) and its measurement in ``store``;
+    None where the store lacks either or they no longer agree (frames, binning).
+    """
+    from bluesky_offsets.model.fit import FitOptions
+
+    from .diagnose import load_results
+    try:
+        start = load_results(store, cal.uid)["start"] if cal.uid else {}
+        m = store.load_measurement(start["measurement_uid"], table=table) if "fit_options" in start else None
+    except (KeyError, LookupError):
+        return None
+    if m is None:
+        return None
+    for resolution in ("camera", "paper"):
+        meas = as_analysed(store, m, resolution, table)
+        if meas.spec.fingerprint() == start.get("histogram") and meas.n == start.get("n_configurations"):
+            return meas, FitOptions.from_mapping(start["fit_options"])
+    return None
 
 
 def with_lit_beam_frames(store, m: Measurement, table: ParameterTable = METRIXS) -> Measurement:
@@ -527,12 +559,18 @@ def optimize(beamline, chamber, target: dict | None = None, model: str = "last",
     smallest focus), ``model`` the uid of a fitted model's run, ``"last"`` or a calibration file
     (:func:`calibrated_in_store`), ``constraints``/``options`` mappings of
     :class:`bluesky_offsets.optimize.Constraints` / :class:`~bluesky_offsets.optimize.OptimizeOptions`
-    fields.
+    fields.  Where the store holds the frames the model was fitted on (:func:`calibration_frames`),
+    the prediction's σ is read from posterior samples that fit them, else from its covariance.
     """
     from .optimize import optimize_beam
+    store = _store(store)
     cal = calibrated_in_store(model, store)
+    # the calibration's frames, where the store holds them: the prediction's σ from posterior samples
+    fitted = calibration_frames(cal, store)
     return (yield from optimize_beam(target or "smallest_focus", cal, beamline, chamber, frames=frames,
                                      constraints=constraints, options=options,
+                                     measurement=None if fitted is None else fitted[0],
+                                     refit=None if fitted is None else fitted[1].replace(ray_draws=1),
                                      md={"model_uid": cal.uid, **dict(md or {})}))
 
 

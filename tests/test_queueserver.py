@@ -112,7 +112,7 @@ def test_the_session_runs_from_the_queue_and_every_run_loads_back(queue):
     # the better beam on the model of the calibration file (the fitted model "last" found), a small configuration
     RM.item_add(BPlan("optimize", "metrixs", "chamber", {"kind": "smallest_focus"}, str(work / "calibration.json"),
                       options={"rays": 2000, "starts": 1, "iterations": 4, "check_rays": 20000, "samples": 4,
-                               "screen": 8, "global_starts": 1}))
+                               "posterior_samples": 4, "screen": 8, "global_starts": 1}))
     RM.queue_start()
     RM.wait_for_idle(timeout=400)
     items = RM.history_get()["items"]
@@ -164,6 +164,8 @@ def test_the_session_runs_from_the_queue_and_every_run_loads_back(queue):
                   if a["start"]["plan_name"] in ("refine_offsets", "add_effect_and_refit")]
         assert start["plan_name"] == "optimize_beam" and start["model_uid"] == fitted[-1]  # the file's model
         assert len(store.load_measurement(beam_uid)) == 2 and start["predicted"]["rms_x"] > 0
+        # the prediction's σ from posterior samples fitted to the frames the file's model was fitted on
+        assert start["sigma_samples"] == 4
 
 
 def test_manager_command_names_the_startup_module_and_the_lists():
