@@ -64,13 +64,13 @@ def _calibrated(run: Path):
     from bluesky_offsets import load_calibration
     from bluesky_offsets.physics.parameters import METRIXS
     from bluesky_offsets.store import open_store
-    from plans.workflow import with_lit_beam_frames
+    from plans.workflow import as_analysed
 
     summary = json.loads((run / "out" / "summary.json").read_text())
     cal = load_calibration(run / "out" / "calibration.json")
     store = open_store(run / "store")
-    m = with_lit_beam_frames(store, store.load_measurement(summary["uids"]["measurement"], table=METRIXS))
-    return summary, cal, store, m.for_analysis(resolution="camera", table=METRIXS)
+    return summary, cal, store, as_analysed(store, store.load_measurement(summary["uids"]["measurement"],
+                                                                          table=METRIXS))
 
 
 def _drawn_chi2(run: Path, n: int) -> dict:
@@ -127,11 +127,11 @@ def _sampled_move(run: Path, n: int) -> list[dict]:
     from bluesky_offsets.model.fit import engine_for, posterior_samples
     from bluesky_offsets.optimize.optimizer import OptimizeOptions, states_sigma
     from bluesky_offsets.physics.parameters import METRIXS
+    from plans.optimize import _refit_options
 
     summary, cal, store, meas = _calibrated(run)
-    # the closed loop's refit options (the demo's): one ray draw, under the calibration's spread
-    o = DESIGNED_FIT.replace(ray_draws=1, estimate_spread=False,
-                             **({"prior_sigma": cal.prior_sigma} if cal.prior_sigma is not None else {}))
+    # the closed loop's refit options, the samples' (the demo's): one ray draw, under the calibration's spread
+    o, _ = _refit_options(cal, DESIGNED_FIT.replace(ray_draws=1))
     t0 = time.perf_counter()
     samples = posterior_samples(meas, cal.state, engine_for(meas, o, METRIXS), o, n=n, seed=0)
     seconds = time.perf_counter() - t0

@@ -510,13 +510,14 @@ def calibration_frames(cal, store=None, table: ParameterTable = METRIXS):
         m = store.load_measurement(start["measurement_uid"], table=table) if "fit_options" in start else None
     except (KeyError, LookupError):
         return None
-    if m is None:
+    hist = start.get("histogram") or {}
+    if m is None or "bins_x" not in hist:
         return None
-    for resolution in ("camera", "paper"):
-        meas = as_analysed(store, m, resolution, table)
-        if meas.spec.fingerprint() == start.get("histogram") and meas.n == start.get("n_configurations"):
-            return meas, FitOptions.from_mapping(start["fit_options"])
-    return None
+    # the binning the fit read: the camera's profiles, or the paper's 50 x 50 histograms
+    meas = as_analysed(store, m, "camera" if hist["bins_x"] > 50 else "paper", table)
+    if meas.spec.fingerprint() != hist or meas.n != start.get("n_configurations"):
+        return None
+    return meas, FitOptions.from_mapping(start["fit_options"])
 
 
 def with_lit_beam_frames(store, m: Measurement, table: ParameterTable = METRIXS) -> Measurement:
