@@ -133,6 +133,13 @@ def test_smallest_focus_on_a_defocused_twin_shrinks_within_limits():
     assert res3.sampled == 8 and np.array_equal(res3.settings, res2.settings)
     for a in "xy":   # the samples spread as the covariance res2 read: about its sigma, far below 100 cov's
         assert 0.4 < res3.sigma[a] / res2.sigma[a] < 2.5, (a, res3.sigma, res2.sigma)
+    # a covariance of zero: the sigma is the prediction's own ray noise (its check_rays), never 0
+    res4 = optimize_settings("smallest_focus", ModelState(), start, overrides=DEFOCUSED, options=SMALL,
+                             covariance=0 * cov, names=METRIXS.names)
+    counted = focus_from_profiles(*res4.profiles, CAMERA, n_rays=SMALL["check_rays"])
+    for a in "xy":
+        assert res4.sigma[a] == pytest.approx(getattr(counted, f"sigma_rms_{a}"), rel=1e-9) and res4.sigma[a] > 0
+        assert res2.sigma[a] > res4.sigma[a]
 
 
 def test_global_starts_and_an_objective_averaged_over_the_posterior():

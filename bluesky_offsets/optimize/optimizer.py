@@ -187,7 +187,7 @@ class BeamOptimum:
     moved: list[str]                # parameters whose setting changes
     predicted: Focus                # the model's beam at ``settings`` (hard, fresh rays, as a frame is read)
     predicted_before: Focus         # the model's beam at ``current``
-    sigma: dict[str, float]         # uncertainty of the predicted rms width per axis (mm); NaN: none given
+    sigma: dict[str, float]         # σ of the predicted rms width per axis (mm), its ray noise in; NaN: none given
     flags: list[Flag]
     trusted: bool
     at_limit: list[str]             # free motors that end at a bound
@@ -688,6 +688,16 @@ def _sigma(pb: _Problem, settings, covariance, names, samples, o: OptimizeOption
     return sigma, flags, known
 
 
+def _with_ray_noise(sigma: Mapping[str, float], px, py, rays: int) -> dict[str, float]:
+    """``sigma`` with the prediction's own ray noise added in quadrature.
+
+    The prediction traces ``rays`` rays, and the states' spread is read on rays they share, so it
+    leaves that noise out.
+    """
+    counted = focus_from_profiles(px, py, CAMERA, n_rays=rays)
+    return {a: math.hypot(sigma[a], float(np.nan_to_num(getattr(counted, f"sigma_rms_{a}")))) for a in "xy"}
+
+
 def optimize_settings(target, state, current, *, limits=None, constraints: Constraints | Mapping | None = None,
                       covariance=None, names=None, samples=None, options: OptimizeOptions | Mapping | None = None,
                       overrides=None, engine=None, progress: Callable[[dict], None] | None = None,
@@ -778,6 +788,8 @@ def optimize_settings(target, state, current, *, limits=None, constraints: Const
             "no motor within its limits gets there in the model; nothing was moved"))
     fitted = samples is not None and len(samples) > 1
     sigma, flags, known = _sigma(pb, settings, covariance, names, samples if fitted else None, o, table)
+    if known:
+        sigma = _with_ray_noise(sigma, px, py, o.check_rays)
     rel = max(sigma[a] / getattr(predicted, f"rms_{a}") for a in "xy") if known else math.inf
     trusted = known and rel < o.trust_below
     moved = moved_names(current, settings, table, free)
