@@ -327,6 +327,9 @@ class _Model:
         # the rays' values last traced without derivatives ((z, rays), Beam): an accepted step
         # asks for the Jacobian where its values were just traced, which then traces no value again
         self._last: tuple | None = None
+        # the rays' derivatives last taken ((z, rays), RayJacobian): a stage's last Jacobian is the
+        # next stage's first where both trace the same rays
+        self._last_rj: tuple | None = None
 
     # -- z <-> state -----------------------------------------------------------------
     def vector(self, st) -> np.ndarray:
@@ -358,12 +361,17 @@ class _Model:
         vals = self.meas.configurations + self.table.offsets_to_physical(st.offsets)
         twin_eff = {e: st.effects[e] for e in self.twin_effects}
         spec = self.meas.spec
-        self.n_traces += self.meas.n
         key = (np.asarray(z, float).tobytes(), rays)
         stage = tensor_overrides(self.meas.screen, self.meas.n)  # the chamber's stage, frame by frame
         if jacobian:
-            full = self._last[1] if self._last is not None and self._last[0] == key else None
-            rj = self.engine.ray_jacobian(vals, twin_eff, n_rays=rays, seed=self.o.seed, full=full, overrides=stage)
+            if self._last_rj is not None and self._last_rj[0] == key:
+                rj = self._last_rj[1]
+            else:
+                self.n_traces += self.meas.n
+                full = self._last[1] if self._last is not None and self._last[0] == key else None
+                rj = self.engine.ray_jacobian(vals, twin_eff, n_rays=rays, seed=self.o.seed, full=full,
+                                              overrides=stage)
+                self._last_rj = (key, rj)
             h, J = rj.histograms(spec, self.o.kernel, soft=soft)
             # offsets are normalized: d/dz = d/dvalue * span; effect columns in the state's order
             cols = [J[..., :self.P] * self.span]
@@ -374,6 +382,7 @@ class _Model:
                     k += 1
             J = torch.cat(cols, -1)
         else:
+            self.n_traces += self.meas.n
             # with the soft edge whether or not the values are soft: RAYX's hard counts (the rays'
             # ``alive``) are the same bit for bit, and the Jacobian can take these rays
             with torch.no_grad():
@@ -708,6 +717,7 @@ def _run(mdl: _Model, z: np.ndarray, ridge: np.ndarray, progress: Callable[[dict
     """
     part: list[dict] = []
     z, pr, exact = _stages(mdl, z, ridge, part, progress, tag)
+    mdl._last_rj = None  # tens of MB a model, and a fit keeps every start's model
     return z, pr, exact, part, mdl.n_traces
 
 
