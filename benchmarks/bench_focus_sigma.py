@@ -149,9 +149,11 @@ def _sampled_move(run: Path, n: int) -> list[dict]:
 
 
 def truth_check(run: Path, label: str) -> dict[str, dict]:
-    """Per axis, at the first move's settings: the prediction's own ray noise (as the optimizer adds it) and
-    the hidden truth's width there (two traces of 200,000 rays) with its ray noise.  Kept in the run's folder
-    (``focus_sigma_truth.json``)."""
+    """Per axis at the first move's settings: the prediction's own ray noise and the hidden truth's width.
+
+    The ray noise as the optimizer adds it; the truth's width read as a frame is, from two traces of
+    200,000 rays, with its own ray noise.  Kept in the run's folder (``focus_sigma_truth.json``).
+    """
     kept = run / "focus_sigma_truth.json"
     if kept.exists():
         return json.loads(kept.read_text())
