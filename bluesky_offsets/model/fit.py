@@ -333,7 +333,7 @@ class _Model:
 
     # -- z <-> state -----------------------------------------------------------------
     def vector(self, st) -> np.ndarray:
-        return np.r_[st.offsets, st.effect_vector()]
+        return st.vector()
 
     def state(self, z):
         z = np.asarray(z, float)

@@ -32,6 +32,10 @@ class ModelState:
         return ModelState(self.offsets.copy(), {**self.effects, name: eff.values(values)},
                           f"{self.label} + {name}")
 
+    def vector(self) -> np.ndarray:
+        """The normalized offsets, then :meth:`effect_vector`: the parameters a fit moves, in its order."""
+        return np.r_[self.offsets, self.effect_vector()]
+
     def effect_vector(self) -> np.ndarray:
         """The included effects' values as one vector, effect by effect in inclusion order."""
         return np.array([v for name in self.effects for v in self.effects[name].values()], dtype=float)

@@ -617,7 +617,7 @@ def states_sigma(states, configuration, *, about=None, rays: int = 30_000, seed:
 
 def samples_covariance(samples) -> np.ndarray:
     """The covariance of posterior samples (model states), over the normalized offsets, then effect parameters."""
-    z = np.asarray([np.r_[st.offsets, st.effect_vector()] for st in samples], float)
+    z = np.asarray([st.vector() for st in samples], float)
     return np.atleast_2d(np.cov(z.T, ddof=1))
 
 
