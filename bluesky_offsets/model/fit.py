@@ -997,6 +997,10 @@ def _settle(mdl: _Model, stage: str, z: np.ndarray, pr: _Products, ridge: np.nda
 
 POSTERIOR_SAMPLE_STEPS = 3
 """Levenberg-Marquardt steps that move each of :func:`posterior_samples`' draws onto its frames."""
+POSTERIOR_SAMPLE_REGION = 0.999
+"""A sample whose χ² on the frames exceeds the fitted state's by more than this joint region of the
+fitted parameters goes back toward the fitted state, halving, until the frames allow it."""
+POSTERIOR_SAMPLE_HALVINGS = 6
 
 
 def posterior_samples(meas, state, engine, options: FitOptions | Mapping | None = None, *, n: int = 12,
@@ -1004,13 +1008,15 @@ def posterior_samples(meas, state, engine, options: FitOptions | Mapping | None 
     """``n`` states drawn from the posterior of the fitted ``state`` that fit ``meas``: randomize-then-optimize.
 
     Each draw perturbs the frames by a draw of their noise and the offsets' prior mean by a draw of
-    the prior (``options.prior_sigma``), then moves from ``state`` by :data:`POSTERIOR_SAMPLE_STEPS`
-    Levenberg-Marquardt steps on the options' last stage, traced with model rays of its own (named
-    random streams of ``seed``).  For a linear model these are exact posterior draws; where the
-    χ² bends they follow its valley, which a Gaussian covariance does not: the calibration's
-    covariance, widened by other starts and ray draws, spreads where the frames forbid
-    (docs/explanations/optimize.md, "What that σ is worth").  The draws run side by side on
-    ``executor`` (the same states without one).
+    the prior (``options.prior_sigma``); the undamped Gauss-Newton step from ``state`` on that
+    perturbed problem is a draw of the linearized posterior, and :data:`POSTERIOR_SAMPLE_STEPS`
+    Levenberg-Marquardt steps from there fit it where the χ² bends, on the options' last stage,
+    traced with model rays of its own (named random streams of ``seed``).  For a linear model these
+    are exact posterior draws.  Starting at the fitted state instead, the damped steps barely move
+    along the directions the frames leave to the prior, and the samples miss the spread there
+    (docs/explanations/optimize.md, "What that σ is worth").  A sample the frames forbid
+    (:data:`POSTERIOR_SAMPLE_REGION`) is moved back toward ``state``.  The draws run side by side
+    on ``executor`` (the same states without one).
     """
     o = FitOptions.resolve(options)
     calls = [lambda k=k: _posterior_sample(meas, state, engine, o, table, seed, k) for k in range(int(n))]
@@ -1022,12 +1028,15 @@ def _posterior_sample(meas, state, engine, o: FitOptions, table: ParameterTable,
     mdl = _Model(meas, state, engine, o.replace(seed=stream(seed, "fit.posterior_sample_rays", draw=k)), table)
     stage, ridge = o.stages[-1][0], _ridge(mdl, o)
     lo, hi = mdl.bounds()
-    z = np.clip(mdl.vector(state), lo, hi)
-    pr = mdl.products(stage, z, True)
+    z0 = np.clip(mdl.vector(state), lo, hi)
+    pr = mdl.products(stage, z0, True)
     rng = np.random.default_rng(stream(seed, "fit.posterior_samples", draw=k))
     shift = rng.standard_normal(pr.values.shape)  # the frames' noise, in units of their σ
-    mean = np.where(ridge > 0, rng.standard_normal(len(z)) / np.sqrt(np.where(ridge > 0, ridge, 1.0)), 0.0)
+    mean = np.where(ridge > 0, rng.standard_normal(len(z0)) / np.sqrt(np.where(ridge > 0, ridge, 1.0)), 0.0)
+    fitted = _objective(mdl.residuals(stage, pr)[0], z0, 0.0 * ridge)  # its χ² on these rays
     r, G, _, _ = mdl.residuals(stage, pr, shift)
+    z = np.clip(z0 + _lm_step(G, r, z0 - mean, 0.0, ridge), lo, hi)  # the linearized posterior's draw
+    r, G, _, _ = mdl.residuals(stage, mdl.products(stage, z, True), shift)
     obj, lam, accepted = _objective(r, z - mean, ridge), o.damping, 0
     # a refused step costs a value, a tenth of a Jacobian: the damping grows fast and tries again
     for _ in range(3 * POSTERIOR_SAMPLE_STEPS):
@@ -1041,6 +1050,11 @@ def _posterior_sample(meas, state, engine, o: FitOptions, table: ParameterTable,
         if accepted == POSTERIOR_SAMPLE_STEPS:
             break
         r, G, _, _ = mdl.residuals(stage, mdl.products(stage, z, True), shift)
+    region = float(chi2_dist.ppf(POSTERIOR_SAMPLE_REGION, len(z)))
+    for _ in range(POSTERIOR_SAMPLE_HALVINGS):
+        if _objective(mdl.residuals(stage, mdl.products(stage, z, False))[0], z, 0.0 * ridge) - fitted <= region:
+            break
+        z = z0 + 0.5 * (z - z0)
     return mdl.state(z)
 
 
