@@ -108,8 +108,8 @@ def sampled_move(run: Path, label: str, n: int) -> list[dict]:
     As ``plans.optimize.optimize_beam`` reads it where it is given the calibration's measurement
     (:func:`bluesky_offsets.model.fit.posterior_samples`, then
     :func:`bluesky_offsets.optimize.optimizer.states_sigma` at the move's settings: the spread,
-    which the printed σ is at least); against the widths measured after the move, with their own σ.  Kept in the run's folder
-    (``focus_sigma_samples.json``).
+    which the printed σ is at least); against the widths measured after the move, with their own
+    σ.  Kept in the run's folder (``focus_sigma_samples.json``).
     """
     kept = run / "focus_sigma_samples.json"
     if kept.exists() and (got := json.loads(kept.read_text()))["samples"] == n:

@@ -1001,6 +1001,7 @@ POSTERIOR_SAMPLE_REGION = 0.999
 """A sample whose χ² on the frames exceeds the fitted state's by more than this joint region of the
 fitted parameters goes back toward the fitted state, halving, until the frames allow it."""
 POSTERIOR_SAMPLE_HALVINGS = 6
+"""Halvings at most of a forbidden sample's distance from the fitted state."""
 
 
 def posterior_samples(meas, state, engine, options: FitOptions | Mapping | None = None, *, n: int = 12,
@@ -1033,7 +1034,8 @@ def _posterior_sample(meas, state, engine, o: FitOptions, table: ParameterTable,
     rng = np.random.default_rng(stream(seed, "fit.posterior_samples", draw=k))
     shift = rng.standard_normal(pr.values.shape)  # the frames' noise, in units of their σ
     mean = np.where(ridge > 0, rng.standard_normal(len(z0)) / np.sqrt(np.where(ridge > 0, ridge, 1.0)), 0.0)
-    fitted = _objective(mdl.residuals(stage, pr)[0], z0, 0.0 * ridge)  # its χ² on these rays
+    r0 = mdl.residuals(stage, pr)[0]
+    fitted = float(r0 @ r0)  # the fitted state's χ² on this sample's rays
     r, G, _, _ = mdl.residuals(stage, pr, shift)
     z = np.clip(z0 + _lm_step(G, r, z0 - mean, 0.0, ridge), lo, hi)  # the linearized posterior's draw
     r, G, _, _ = mdl.residuals(stage, mdl.products(stage, z, True), shift)
@@ -1050,12 +1052,18 @@ def _posterior_sample(meas, state, engine, o: FitOptions, table: ParameterTable,
         if accepted == POSTERIOR_SAMPLE_STEPS:
             break
         r, G, _, _ = mdl.residuals(stage, mdl.products(stage, z, True), shift)
+    return mdl.state(_allowed(mdl, stage, z0, fitted, z))
+
+
+def _allowed(mdl: _Model, stage: str, z0: np.ndarray, fitted: float, z: np.ndarray) -> np.ndarray:
+    """``z``, or halfway back toward ``z0`` while its χ² on the frames exceeds ``fitted`` beyond :data:`POSTERIOR_SAMPLE_REGION`."""
     region = float(chi2_dist.ppf(POSTERIOR_SAMPLE_REGION, len(z)))
     for _ in range(POSTERIOR_SAMPLE_HALVINGS):
-        if _objective(mdl.residuals(stage, mdl.products(stage, z, False))[0], z, 0.0 * ridge) - fitted <= region:
+        r = mdl.residuals(stage, mdl.products(stage, z, False))[0]
+        if float(r @ r) - fitted <= region:
             break
         z = z0 + 0.5 * (z - z0)
-    return mdl.state(z)
+    return z
 
 
 def _posterior_covariance(F: np.ndarray, ridge: np.ndarray) -> np.ndarray:
