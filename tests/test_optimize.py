@@ -26,6 +26,7 @@ from bluesky_offsets.optimize import (
     focus_from_profiles,
     measured_cost,
     optimize_settings,
+    prediction_sigma,
     target_from,
 )
 from bluesky_offsets.physics.parameters import METRIXS
@@ -133,6 +134,11 @@ def test_smallest_focus_on_a_defocused_twin_shrinks_within_limits():
     assert res3.sampled == 8 and np.array_equal(res3.settings, res2.settings)
     for a in "xy":   # the samples spread as the covariance res2 read: about its sigma, far below 100 cov's
         assert 0.4 < res3.sigma[a] / res2.sigma[a] < 2.5, (a, res3.sigma, res2.sigma)
+    # the sigma of a prediction at given settings, without the search: what the optimizer gave at its optimum
+    for res, given in ((res2, {}), (res3, {"samples": samples})):
+        again = prediction_sigma(ModelState(), res.settings, covariance=(100 if given else 1) * cov,
+                                 names=METRIXS.names, options=SMALL, overrides=DEFOCUSED, **given)
+        assert again == res.sigma
     # a covariance of zero: the sigma is the prediction's own ray noise (its check_rays), never 0
     res4 = optimize_settings("smallest_focus", ModelState(), start, overrides=DEFOCUSED, options=SMALL,
                              covariance=0 * cov, names=METRIXS.names)

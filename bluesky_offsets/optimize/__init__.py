@@ -12,6 +12,7 @@ from .optimizer import (
     moved_names,
     optimize_settings,
     predict,
+    prediction_sigma,
 )
 from .targets import (
     MONOCHROMATOR,
@@ -31,5 +32,5 @@ from .targets import (
 __all__ = [
     "MONOCHROMATOR", "REFOCUSING", "BeamOptimum", "Constraints", "DarkStart", "Focus", "FocusAt", "MaxTransmission",
     "OptimizeOptions", "SmallestFocus", "SpotSize", "Target", "TargetUnreachable", "bounds", "focus_from_profiles",
-    "measured_cost", "moved_names", "optimize_settings", "predict", "target_from",
+    "measured_cost", "moved_names", "optimize_settings", "predict", "prediction_sigma", "target_from",
 ]

@@ -672,10 +672,11 @@ def _uncertainty(pb: _Problem, cfg, covariance, names, o: OptimizeOptions, table
     return sig, flags, True
 
 
-def _sigma(pb: _Problem, settings, covariance, names, samples, o: OptimizeOptions, table: ParameterTable):
+def _sigma(pb: _Problem, settings, covariance, names, samples, profiles, o: OptimizeOptions, table: ParameterTable):
     """The predicted widths' σ at ``settings``, the flags, whether known: from ``samples`` where given, else ``covariance``.
 
-    The larger of the linear propagation and the spread over the states, read as frames are.
+    The larger of the linear propagation and the spread over the states, read as frames are, and
+    the prediction's own ray noise (its ``profiles``, x and y).
     """
     sigma, flags, known = _uncertainty(pb, settings, covariance if samples is None else samples_covariance(samples),
                                        names, o, table)
@@ -685,7 +686,28 @@ def _sigma(pb: _Problem, settings, covariance, names, samples, o: OptimizeOption
                  states_sigma(samples, settings, about=pb.state, seed=o.check_seed, overrides=pb.extra,
                               engine=pb.engine, table=table))
         sigma = {a: max(sigma[a], drawn[a]) for a in "xy"}
-    return sigma, flags, known
+    return (_with_ray_noise(sigma, *profiles, o.check_rays) if known else sigma), flags, known
+
+
+def prediction_sigma(state, settings, *, covariance=None, names=None, samples=None,
+                     options: OptimizeOptions | Mapping | None = None, overrides=None, engine=None,
+                     table: ParameterTable = METRIXS) -> dict[str, float]:
+    """The σ (mm, per axis) of the rms widths predicted at ``settings``, as :func:`optimize_settings` gives it.
+
+    From ``samples`` (two or more posterior states fitting the frames) where given, else from
+    ``covariance`` over ``names``; NaN with neither.  ``options`` as the optimization's: its rays
+    and seeds are the σ's.
+    """
+    from bluesky_offsets.physics.beamline import torch_engine
+    o = OptimizeOptions.resolve(options)
+    settings = table.validate(settings, "settings").astype(float)
+    engine = engine or torch_engine(table, options=dict(o.engine or {}))
+    pb = _Problem(target_from("smallest_focus"), state, settings, settings, settings, np.ones(len(table), bool), o,
+                  engine, overrides, table)
+    _, px, py = predict(state, settings, rays=o.check_rays, seed=o.check_seed, overrides=overrides, engine=engine,
+                        table=table)
+    fitted = samples is not None and len(samples) > 1
+    return _sigma(pb, settings, covariance, names, samples if fitted else None, (px, py), o, table)[0]
 
 
 def _with_ray_noise(sigma: Mapping[str, float], px, py, rays: int) -> dict[str, float]:
@@ -787,9 +809,7 @@ def optimize_settings(target, state, current, *, limits=None, constraints: Const
             "it needs " + ", ".join(pushing) + " beyond its limit; nothing was moved" if pushing else
             "no motor within its limits gets there in the model; nothing was moved"))
     fitted = samples is not None and len(samples) > 1
-    sigma, flags, known = _sigma(pb, settings, covariance, names, samples if fitted else None, o, table)
-    if known:
-        sigma = _with_ray_noise(sigma, px, py, o.check_rays)
+    sigma, flags, known = _sigma(pb, settings, covariance, names, samples if fitted else None, (px, py), o, table)
     rel = max(sigma[a] / getattr(predicted, f"rms_{a}") for a in "xy") if known else math.inf
     trusted = known and rel < o.trust_below
     moved = moved_names(current, settings, table, free)
