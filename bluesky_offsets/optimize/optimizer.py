@@ -686,7 +686,8 @@ def _sigma(pb: _Problem, settings, covariance, names, samples, profiles, o: Opti
                  states_sigma(samples, settings, about=pb.state, seed=o.check_seed, overrides=pb.extra,
                               engine=pb.engine, table=table))
         sigma = {a: max(sigma[a], drawn[a]) for a in "xy"}
-    return (_with_ray_noise(sigma, *profiles, o.check_rays) if known else sigma), flags, known
+    px, py = profiles
+    return (_with_ray_noise(sigma, px, py, o.check_rays) if known else sigma), flags, known
 
 
 def prediction_sigma(state, settings, *, covariance=None, names=None, samples=None,
