@@ -230,8 +230,8 @@ def main(argv=None) -> int:
         r["pull_true_samples"] = abs(r["true"] - r["predicted"]) / float(np.hypot(r["sampled"], c["true_noise"]))
     for r in sampled:
         print(f"{r['run']} move 1 {r['axis']}: predicted {r['predicted']:.2f} ± {r['sigma']:.2f} µm from "
-              f"{args.samples} posterior samples (spread {r['sampled']:.2f}; printed then ± {r['printed']:.2f}), measured {r['measured']:.2f} ± "
-              f"{r['measured_sigma']:.2f}: {r['pull']:.2f} σ; the truth's {r['true']:.2f}: {r['pull_true']:.2f} σ",
+              f"{args.samples} posterior samples (spread {r['sampled']:.2f}; printed then ± {r['printed']:.2f}), "
+              f"measured {r['measured']:.2f} ± {r['measured_sigma']:.2f}: {r['pull']:.2f} σ; the truth's {r['true']:.2f}: {r['pull_true']:.2f} σ",
               flush=True)
 
     from results import Table, write_result
