@@ -160,33 +160,31 @@ def _sampled_move(run: Path, n: int) -> list[dict]:
 
 
 def truth_check(run: Path, label: str) -> dict[str, dict]:
-    """Per axis at the first move's settings: the prediction's own ray noise and the hidden truth's width.
+    """Per axis, the hidden truth's width at the first move's settings, with its own ray noise.
 
-    The ray noise as the optimizer adds it; the truth's width read as a frame is, from two traces of
-    200,000 rays, with its own ray noise.  Kept in the run's folder (``focus_sigma_truth.json``).
+    Read as a frame is, from two traces of 200,000 rays.  Kept in the run's folder
+    (``focus_sigma_truth.json``).
     """
     kept = run / "focus_sigma_truth.json"
     if kept.exists():
         return json.loads(kept.read_text())
     from bluesky_offsets.model.state import ModelState
-    from bluesky_offsets.optimize.optimizer import OptimizeOptions, predict
+    from bluesky_offsets.optimize.optimizer import predict
     from bluesky_offsets.optimize.targets import focus_from_profiles
     from bluesky_offsets.physics.parameters import METRIXS
     from bluesky_offsets.physics.twin import CAMERA
 
-    summary, cal, store, _ = _calibrated(run)
+    summary, _, store, _ = _calibrated(run)
     settings = np.asarray(store[summary["beam"]["steps"][0]["uid"]].metadata["start"]["settings"], float)
     true = ModelState(METRIXS.from_mapping(summary["hidden_offsets"], base=np.zeros(len(METRIXS))),
                       summary.get("hidden_effects") or {}, "hidden truth")
-    o = OptimizeOptions()
 
     def focus(state, rays, seed):
         _, px, py = predict(state, settings, rays=rays, seed=seed)
         return focus_from_profiles(px, py, CAMERA, n_rays=rays)
 
-    pred, truth = focus(cal.state, o.check_rays, o.check_seed), [focus(true, 200_000, s) for s in (99, 100)]
-    got = {a: {"ray_noise": 1e3 * getattr(pred, f"sigma_rms_{a}"),
-               "true": 1e3 * float(np.mean([getattr(f, f"rms_{a}") for f in truth])),
+    truth = [focus(true, 200_000, s) for s in (99, 100)]
+    got = {a: {"true": 1e3 * float(np.mean([getattr(f, f"rms_{a}") for f in truth])),
                "true_noise": 1e3 * getattr(truth[0], f"sigma_rms_{a}") / np.sqrt(2)} for a in "xy"}
     kept.write_text(json.dumps(got))
     return got
@@ -231,7 +229,8 @@ def main(argv=None) -> int:
     for r in sampled:
         print(f"{r['run']} move 1 {r['axis']}: predicted {r['predicted']:.2f} ± {r['sigma']:.2f} µm from "
               f"{args.samples} posterior samples (spread {r['sampled']:.2f}; printed then ± {r['printed']:.2f}), "
-              f"measured {r['measured']:.2f} ± {r['measured_sigma']:.2f}: {r['pull']:.2f} σ; the truth's {r['true']:.2f}: {r['pull_true']:.2f} σ",
+              f"measured {r['measured']:.2f} ± {r['measured_sigma']:.2f}: {r['pull']:.2f} σ; "
+              f"the truth's {r['true']:.2f}: {r['pull_true']:.2f} σ",
               flush=True)
 
     from results import Table, write_result
