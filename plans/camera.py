@@ -24,6 +24,8 @@ from bluesky_offsets.model.measurement import Measurement
 from bluesky_offsets.physics.camera import CameraCalibration, DarkFrame, dark_frame, photon_transfer
 from bluesky_offsets.physics.parameters import METRIXS, ParameterTable
 
+from ._stubs import emit_rows
+
 
 @dataclasses.dataclass(frozen=True)
 class CameraCheck:
@@ -49,6 +51,14 @@ class CameraCheck:
             gain = f"gain {g.gain:.2f} ADU/photon kept: too little light for photon transfer"
         return (f"camera: dark from {self.dark_frames} frames, read noise {self.read_noise:.2f} ADU, "
                 f"{stray_text(g)}; {gain}")
+
+    def row(self, used: float) -> dict:
+        """The ``gain`` stream's event: the gain the camera had (``used``), the one measured, the one kept."""
+        nan = float("nan")
+        return {"gain_used": float(used), "gain": float(self.calibration.gain),
+                "measured_gain": nan if self.measured_gain is None else float(self.measured_gain),
+                "gain_sigma": nan if self.gain_sigma is None else float(self.gain_sigma),
+                "gain_measured": bool(self.gain_measured)}
 
 
 def calibrate_camera(camera, *, darks: int = 4, frames: int = 8, max_gain_error: float = 0.1,
@@ -77,23 +87,29 @@ def calibrate_camera(camera, *, darks: int = 4, frames: int = 8, max_gain_error:
     @bpp.stage_decorator([camera])
     @bpp.run_decorator(md=_md)
     def inner():
-        taken["dark"] = yield from _closed(camera, darks)
-        taken["light"] = yield from _stream(camera, frames, "primary")
+        dark = dark_frame((yield from _closed(camera, darks)))
+        light = yield from _stream(camera, frames, "primary")
+        taken["check"] = check = _checked(camera.calibration, dark, light, (yield from _exposure(camera)),
+                                          max_gain_error)
+        yield from emit_rows("gain", [check.row(camera.calibration.gain)])
 
     yield from inner()
-    dark, light = dark_frame(taken["dark"]), taken["light"]
-    base = _with_dark(camera.calibration, dark, (yield from _exposure(camera)))
+    camera.calibrate(taken["check"].calibration)
+    return taken["check"]
+
+
+def _checked(before: CameraCalibration, dark: DarkFrame, light: np.ndarray, exposure: float,
+             max_gain_error: float) -> CameraCheck:
+    """``before`` with the dark of ``dark`` and the photon-transfer gain of ``light`` where it is precise enough."""
+    base = _with_dark(before, dark, exposure)
     measured = sigma = None
     try:
         pt = photon_transfer(light, dark)
         measured, sigma = pt.gain, pt.gain_sigma
     except ValueError:
         pass
-    ok = False
-    cal = base
-    if measured is not None and sigma is not None and measured > 0 and sigma < max_gain_error * measured:
-        ok, cal = True, dataclasses.replace(base, gain=measured, gain_sigma=sigma)
-    camera.calibrate(cal)
+    ok = measured is not None and sigma is not None and measured > 0 and sigma < max_gain_error * measured
+    cal = dataclasses.replace(base, gain=measured, gain_sigma=sigma) if ok else base
     return CameraCheck(cal, measured, sigma, base.read_noise, dark.frames, len(light), ok)
 
 
@@ -164,7 +180,8 @@ def calibrate_where_bright(camera, beamline, m: Measurement, *, among: int | Non
     there, the motors and the chamber's stage back where they stood (what comes next starts where
     the measurement left the beamline, not at its brightest frame's screen position), and ``m``
     rescaled from the gain it was reduced with to the one measured (unchanged where the gain was
-    kept).  ``report(check)`` sees the result.
+    kept).  The calibration's run names ``m`` (``measurement_uid``), so that ``m`` read back from
+    the store is rescaled alike (:func:`gain_scale`).  ``report(check)`` sees the result.
     """
     from .measure import scan_configurations
     from .motion import read_setpoints, resolve_motors, resolve_stage, return_to, tolerances
@@ -180,12 +197,34 @@ def calibrate_where_bright(camera, beamline, m: Measurement, *, among: int | Non
                                        return_to_start=False, md={"purpose": "to the brightest frame, for the "
                                                                   "camera's calibration", **dict(md or {})})
         return (yield from calibrate_camera(camera, darks=darks, frames=frames, max_gain_error=max_gain_error,
-                                            md=md))
+                                            md={**dict(md or {}), "measurement_uid": m.uid or ""}))
 
     check = yield from bpp.finalize_wrapper(there(), return_to(motors, here))
     if report is not None:
         report(check)
-    return m.scaled(used / check.calibration.gain) if check.gain_measured else m
+    factor = _scale(check.row(used))
+    return m if factor == 1.0 else m.scaled(factor)
+
+
+def _scale(row: Mapping) -> float:
+    """The factor on frames reduced with the gain the camera had, for the gain measured (1 where kept)."""
+    return float(row["gain_used"]) / float(row["gain"]) if bool(row["gain_measured"]) else 1.0
+
+
+def gain_scale(store, uid: str | None) -> float:
+    """The factor on stored measurement ``uid``'s frames for the gain measured after it, 1 where none was.
+
+    The frames are stored as the camera reduced them; :func:`calibrate_where_bright`'s
+    ``calibrate_camera`` run names the measurement and holds the gain it measured (stream ``gain``).
+    """
+    found = None if uid is None else store.latest("calibrate_camera", measurement_uid=uid)
+    if found is None:
+        return 1.0
+    try:
+        ds = store[found]["gain"].read()
+    except KeyError:  # a run from before the gain was recorded
+        return 1.0
+    return _scale({k: np.asarray(ds[k])[-1] for k in ("gain_used", "gain", "gain_measured")})
 
 
 def camera_steps(chamber, beamline, *, md: Mapping | None = None, say=print, table: ParameterTable = METRIXS):

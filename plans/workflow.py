@@ -35,6 +35,7 @@ from bluesky_offsets.model.measurement import Measurement
 from bluesky_offsets.physics.parameters import METRIXS, ParameterTable
 from bluesky_offsets.physics.screen import as_screen
 
+from .camera import gain_scale
 from .search import DarkBeamline, bright_beam, lit_frames
 
 if TYPE_CHECKING:
@@ -486,12 +487,15 @@ def analyse(measurement: str = "last", offsets: str | None = "last", *, candidat
 def as_analysed(store, m: Measurement, resolution: str = "camera", table: ParameterTable = METRIXS) -> Measurement:
     """A stored measurement as :func:`analyse` fits it.
 
-    A designed one joined by its beam search's lit frames; its ``analysed_configurations``
-    (written by :func:`measure_bright`) chosen, all of them otherwise; at ``resolution``.
+    A designed one joined by its beam search's lit frames; rescaled to the camera's gain measured
+    after it (:func:`plans.camera.gain_scale`); its ``analysed_configurations`` (written by
+    :func:`measure_bright`) chosen, all of them otherwise; at ``resolution``.
     """
     idx = m.metadata.get("analysed_configurations")
     if "design_options" in m.metadata:
         m = with_lit_beam_frames(store, m, table)
+    scale = gain_scale(store, m.uid)
+    m = m if scale == 1.0 else m.scaled(scale)
     meas = m.for_analysis(resolution=resolution, table=table)
     return meas if idx is None else meas.subset(np.asarray(idx, dtype=int))
 

@@ -3,6 +3,8 @@ simulated IOC's areaDetector camera read by ophyd-async's own classes through a 
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -289,10 +291,12 @@ def test_the_camera_chamber_measures_what_the_histogram_chamber_measures(tmp_pat
         ca.put(ioc.prefix + "chamber:NumRays", rays)
 
 
-def test_the_camera_is_calibrated_where_bright_and_the_beamline_left_where_it_stood(tmp_path, metrixs_ioc, ca):
+def test_the_camera_is_calibrated_where_bright_and_the_beamline_left_where_it_stood(tmp_path, metrixs_ioc, ca,
+                                                                                   run_store):
     """``calibrate_where_bright`` goes to a measurement's brightest frame (its motors and screen) for
     the camera's gain, then brings the motors and the chamber's stage back: the beam optimization
-    after it would else work at that frame's screen position."""
+    after it would else work at that frame's screen position.  The measurement read back from the
+    store is rescaled to the gain measured, as the session fitted it."""
     from bluesky import RunEngine
     from bluesky import plan_stubs as bps
     from ophyd_async.core import init_devices
@@ -300,9 +304,10 @@ def test_the_camera_is_calibrated_where_bright_and_the_beamline_left_where_it_st
     from bluesky_offsets.epics.camera import CameraChamber
     from bluesky_offsets.epics.devices import MetrixsBeamline
     from bluesky_offsets.physics.camera import CameraCalibration
-    from plans.camera import calibrate_where_bright
+    from plans.camera import calibrate_where_bright, gain_scale
     from plans.measure import measure_configurations
     from plans.motion import read_positions, resolve_motors, resolve_stage
+    from plans.workflow import as_analysed
     from sim_iocs.truth import default_start
 
     ioc = metrixs_ioc
@@ -316,18 +321,28 @@ def test_the_camera_is_calibrated_where_bright_and_the_beamline_left_where_it_st
     stage = resolve_stage(beamline)
     assert stage is not None
     motors = {**resolve_motors(beamline), **stage}
+    token = run_store.subscribe(RE)
     try:
         before = RE(read_positions(motors)).plan_result
         configs = np.tile(default_start(), (2, 1))
         screen = np.array([[0.0, 0.0, 6.0], [0.5, 0.0, -4.0]])
         m = RE(measure_configurations(configs, beamline, camera, screen=screen)).plan_result
+        assert gain_scale(run_store, m.uid) == 1.0  # not yet calibrated after it
         scaled = RE(calibrate_where_bright(camera, beamline, m, among=1, darks=2, frames=4,
                                            max_gain_error=1.0)).plan_result
         after = RE(read_positions(motors)).plan_result
         assert after == pytest.approx(before, abs=1e-6), {k: (before[k], after[k]) for k in before
                                                           if abs(before[k] - after[k]) > 1e-6}
         assert scaled.hist_x.sum() == pytest.approx(m.hist_x.sum() * noise.gain / camera.calibration.gain, rel=0.3)
+        run_store.flush()
+        assert gain_scale(run_store, m.uid) == pytest.approx(noise.gain / camera.calibration.gain, rel=1e-12)
+        # this camera's frames say no ray budget: one given, as a comparison needs
+        back = as_analysed(run_store, dataclasses.replace(run_store.load_measurement(m.uid), n_rays=1000))
+        fitted = dataclasses.replace(scaled, n_rays=1000).for_analysis()
+        assert np.allclose(back.hist_x, fitted.hist_x, rtol=1e-9, atol=0)
+        assert np.allclose(back.floor, fitted.floor, rtol=1e-9, atol=0)
     finally:
+        RE.unsubscribe(token)
         RE(bps.unstage(camera))
 
 
