@@ -35,6 +35,7 @@ import pytest
 from bluesky_offsets.optimize import OptimizeOptions
 from bluesky_offsets.physics.parameters import METRIXS
 from bluesky_offsets.store import open_store
+from plans.camera import gain_scale
 from plans.diagnose import load_results
 
 SKIP = os.environ.get("BLUESKY_OFFSETS_SKIP_ACCEPTANCE") == "1"
@@ -198,6 +199,10 @@ class TestChamberZ(_HiddenEffect):
         with open_store(tmp_path / "runs") as store:
             assert set(summary["all_run_uids"]) <= set(store.uids())
             m = store.load_measurement(uids["measurement"])
+            # its frames read back at the gain measured after it, as the session fitted them
+            sheet = float(re.search(r"the data sheet's gain ([\d.]+) ADU/photon until measured", out).group(1))
+            gain = float(re.search(r"gain ([\d.]+) ± [\d.]+ ADU/photon \(photon transfer", out).group(1))
+            assert gain_scale(store, m.uid) == pytest.approx(sheet / gain, rel=1e-3)
             assert m.hist_x.shape == (n, 50) and m.truth_id == summary["truth_id"] and np.isfinite(m.hist_y).all()
             assert m.screen.shape == (n, 3) and np.any(m.screen[:, 2] != 0)  # the screen moved along the beam
             design = load_results(store, uids["measurement"])["design"]

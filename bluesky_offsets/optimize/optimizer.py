@@ -676,8 +676,9 @@ def _sigma(pb: _Problem, settings, covariance, names, samples, profiles, o: Opti
     """The predicted widths' σ at ``settings``, the flags, whether known: from ``samples`` where given, else ``covariance``.
 
     The larger of the linear propagation and the spread over the states, read as frames are, and
-    the prediction's own ray noise (its ``profiles``, x and y).
+    the prediction's own ray noise (its ``profiles``, x and y).  Fewer than two samples count as none.
     """
+    samples = _fitted(samples)
     sigma, flags, known = _uncertainty(pb, settings, covariance if samples is None else samples_covariance(samples),
                                        names, o, table)
     if known and (samples is not None or o.samples > 1):
@@ -688,6 +689,11 @@ def _sigma(pb: _Problem, settings, covariance, names, samples, profiles, o: Opti
         sigma = {a: max(sigma[a], drawn[a]) for a in "xy"}
     px, py = profiles
     return (_with_ray_noise(sigma, px, py, o.check_rays) if known else sigma), flags, known
+
+
+def _fitted(samples):
+    """``samples`` where there are two or more (a spread), else None."""
+    return samples if samples is not None and len(samples) > 1 else None
 
 
 def prediction_sigma(state, settings, *, covariance=None, names=None, samples=None,
@@ -707,8 +713,7 @@ def prediction_sigma(state, settings, *, covariance=None, names=None, samples=No
                   engine, overrides, table)
     _, px, py = predict(state, settings, rays=o.check_rays, seed=o.check_seed, overrides=overrides, engine=engine,
                         table=table)
-    fitted = samples is not None and len(samples) > 1
-    return _sigma(pb, settings, covariance, names, samples if fitted else None, (px, py), o, table)[0]
+    return _sigma(pb, settings, covariance, names, samples, (px, py), o, table)[0]
 
 
 def _with_ray_noise(sigma: Mapping[str, float], px, py, rays: int) -> dict[str, float]:
@@ -809,10 +814,9 @@ def optimize_settings(target, state, current, *, limits=None, constraints: Const
         raise TargetUnreachable(f"{target.name}: {why} — " + (
             "it needs " + ", ".join(pushing) + " beyond its limit; nothing was moved" if pushing else
             "no motor within its limits gets there in the model; nothing was moved"))
-    fitted = samples is not None and len(samples) > 1
-    sigma, flags, known = _sigma(pb, settings, covariance, names, samples if fitted else None, (px, py), o, table)
+    sigma, flags, known = _sigma(pb, settings, covariance, names, samples, (px, py), o, table)
     rel = max(sigma[a] / getattr(predicted, f"rms_{a}") for a in "xy") if known else math.inf
     trusted = known and rel < o.trust_below
     moved = moved_names(current, settings, table, free)
     return BeamOptimum(target, settings, current, moved, predicted, before, sigma, flags, trusted, at_limit, cost,
-                       history, starts, (px, py), len(pb.offsets), len(samples) if fitted else 0)
+                       history, starts, (px, py), len(pb.offsets), len(_fitted(samples) or ()))
