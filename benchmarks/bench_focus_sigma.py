@@ -57,20 +57,34 @@ def drawn_chi2(run: Path, label: str, n: int) -> dict:
     return {**got, "run": label}
 
 
-def _calibrated(run: Path):
-    """A finished demo's summary, its calibration, its run store and the frames its analysis fitted."""
+def _opened(run: Path):
+    """A finished demo's summary and its run store."""
     import bluesky_offsets.blas as blas
     blas.pin_kernels()
-    from bluesky_offsets import load_calibration
-    from bluesky_offsets.physics.parameters import METRIXS
     from bluesky_offsets.store import open_store
-    from plans.workflow import as_analysed
+    return json.loads((run / "out" / "summary.json").read_text()), open_store(run / "store")
 
-    summary = json.loads((run / "out" / "summary.json").read_text())
+
+def _calibrated(run: Path):
+    """A finished demo's summary, its calibration, its run store, and the frames and fit options of its fit.
+
+    As the queue's ``optimize`` reads them (:func:`plans.workflow.calibration_frames`); for a demo
+    whose fitted model's run does not say its frame count, read from that run without the check.
+    """
+    from bluesky_offsets import load_calibration
+    from bluesky_offsets.model.fit import FitOptions
+    from bluesky_offsets.physics.parameters import METRIXS
+    from plans.diagnose import load_results
+    from plans.workflow import as_analysed, calibration_frames
+
+    summary, store = _opened(run)
     cal = load_calibration(run / "out" / "calibration.json")
-    store = open_store(run / "store")
-    return summary, cal, store, as_analysed(store, store.load_measurement(summary["uids"]["measurement"],
-                                                                          table=METRIXS))
+    fitted = calibration_frames(cal, store)
+    if fitted is None:
+        start = load_results(store, cal.uid)["start"]
+        fitted = (as_analysed(store, store.load_measurement(start["measurement_uid"], table=METRIXS)),
+                  FitOptions.from_mapping(start["fit_options"]))
+    return summary, cal, store, fitted
 
 
 def _drawn_chi2(run: Path, n: int) -> dict:
@@ -84,7 +98,7 @@ def _drawn_chi2(run: Path, n: int) -> dict:
     from bluesky_offsets.physics.beamline import torch_engine
     from bluesky_offsets.physics.parameters import MAX_OFFSET, METRIXS
 
-    _, cal, _, meas = _calibrated(run)
+    _, cal, _, (meas, _) = _calibrated(run)
     engine, o, P = torch_engine(METRIXS), DESIGNED_FIT, len(METRIXS)
     stage = o.stages[-1][0]
 
@@ -131,16 +145,15 @@ def _sampled_move(run: Path, n: int) -> list[dict]:
     """:func:`sampled_move` measured."""
     import time
 
-    from bluesky_offsets.model.diagnosis import DESIGNED_FIT
     from bluesky_offsets.model.fit import engine_for, posterior_samples
     from bluesky_offsets.optimize.optimizer import OptimizeOptions, prediction_sigma, states_sigma
     from bluesky_offsets.physics.parameters import METRIXS
     from bluesky_offsets.streams import stream
     from plans.optimize import _refit_options
 
-    summary, cal, store, meas = _calibrated(run)
+    summary, cal, store, (meas, fit) = _calibrated(run)
     # the closed loop's refit options, the samples' (the demo's): one ray draw, under the calibration's spread
-    o, _ = _refit_options(cal, DESIGNED_FIT.replace(ray_draws=1))
+    o, _ = _refit_options(cal, fit.replace(ray_draws=1))
     opt = OptimizeOptions(seed=stream(demo_seed(run), "demo.beam_optimizer"))  # the demo's optimizer options
     t0 = time.perf_counter()
     samples = posterior_samples(meas, cal.state, engine_for(meas, o, METRIXS), o, n=n, seed=opt.seed)
@@ -174,7 +187,7 @@ def truth_check(run: Path, label: str) -> dict[str, dict]:
     from bluesky_offsets.physics.parameters import METRIXS
     from bluesky_offsets.physics.twin import CAMERA
 
-    summary, _, store, _ = _calibrated(run)
+    summary, store = _opened(run)
     settings = np.asarray(store[summary["beam"]["steps"][0]["uid"]].metadata["start"]["settings"], float)
     true = ModelState(METRIXS.from_mapping(summary["hidden_offsets"], base=np.zeros(len(METRIXS))),
                       summary.get("hidden_effects") or {}, "hidden truth")

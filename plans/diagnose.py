@@ -688,9 +688,9 @@ def add_effect_and_refit(measurement, state: ModelState, effect: str, twin, forw
     opts = FitOptions.resolve(options, D.FIT)
     _md = {"plan_name": "add_effect_and_refit", "purpose": "add the missing effect and refit", **link,
            **_state_md(state, table), "effect": effect, "effect_parameters": [p.name for p in eff.parameters],
-           "effect_start": start_values, "fit_options": _jsonable(asdict(opts)), "version_label": label,
-           "versions": [v.label for v in history] + [label], "also_from": [st.label for st in also_from],
-           **dict(md or {})}
+           "effect_start": start_values, "fit_options": _jsonable(asdict(opts)), "n_configurations": meas.n,
+           "version_label": label, "versions": [v.label for v in history] + [label],
+           "also_from": [st.label for st in also_from], **dict(md or {})}
 
     def body():
         def work(progress):

@@ -36,6 +36,7 @@ from plans.diagnose import (
     retest_effects,
 )
 from plans._stubs import emit_rows
+from plans.workflow import calibrated_in_store, calibration_frames
 from sim_iocs.truth import default_start
 from conftest import start_metrixs_ioc
 
@@ -182,6 +183,9 @@ def test_add_effect_and_refit_stores_magnitude_and_error_history(RE, twin, measu
     assert res["error_history"][1]["effects"] == {"intensity_scale": {"delta": pytest.approx(value)}}
     assert len(res["misfit"]) == 4 and len(res["progress"]) >= 3
     assert res["start"]["fit_options"]["rays"] == 1500
+    # the frames it was fitted on load back with its fit's options: the queue's optimize reads its σ from them
+    frames, fitted_with = calibration_frames(calibrated_in_store(rf.uid, run_store), run_store)
+    assert frames.n == len(res["misfit"]) and fitted_with.rays == 1500
     # within noise after the refit: what could still hide, stored with it and read back as it was
     assert rf.comparison.within_noise == bool(rf.limits) == bool(res.get("limits")), (rf.comparison.total_row(),
                                                                                       rf.limits)
