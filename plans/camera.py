@@ -108,8 +108,9 @@ def _checked(before: CameraCalibration, dark: DarkFrame, light: np.ndarray, expo
         measured, sigma = pt.gain, pt.gain_sigma
     except ValueError:
         pass
-    ok = measured is not None and sigma is not None and measured > 0 and sigma < max_gain_error * measured
-    cal = dataclasses.replace(base, gain=measured, gain_sigma=sigma) if ok else base
+    ok, cal = False, base
+    if measured is not None and sigma is not None and measured > 0 and sigma < max_gain_error * measured:
+        ok, cal = True, dataclasses.replace(base, gain=measured, gain_sigma=sigma)
     return CameraCheck(cal, measured, sigma, base.read_noise, dark.frames, len(light), ok)
 
 
