@@ -39,8 +39,8 @@ from plans.camera import gain_scale
 from plans.diagnose import load_results
 
 SKIP = os.environ.get("BLUESKY_OFFSETS_SKIP_ACCEPTANCE") == "1"
-# a guard against a hang, not a time limit: the demo ran 600-700 s on one 2-core machine, past 1150 s on another
-pytestmark = [pytest.mark.slow, pytest.mark.timeout(2000),
+# a guard against a hang, not a time limit: beside the suite the main job's demo ran 1,440-1,540 s on 2 cores
+pytestmark = [pytest.mark.slow, pytest.mark.timeout(3100),
               pytest.mark.skipif(SKIP, reason="BLUESKY_OFFSETS_SKIP_ACCEPTANCE=1")]
 
 # (hidden effect as given to --effect, its name, the parameter checked, its hidden value)
@@ -55,7 +55,7 @@ def _demo(tmp_path: Path, effect: str, *extra: str) -> tuple[dict, subprocess.Co
     # overlap, so a second fit thread gains nothing
     cmd = [str(exe) if exe.exists() else shutil.which("bluesky-offsets"), "demo", "--effect", effect,
            "--out", str(tmp_path / "out"), "--store", str(tmp_path / "runs"), *extra]
-    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=1950,
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=3000,
                           env=dict(os.environ, PYTHONUNBUFFERED="1"))
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
     print(proc.stdout[-2500:])
