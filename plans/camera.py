@@ -203,8 +203,7 @@ def calibrate_where_bright(camera, beamline, m: Measurement, *, among: int | Non
     check = yield from bpp.finalize_wrapper(there(), return_to(motors, here))
     if report is not None:
         report(check)
-    factor = _scale(check.row(used))
-    return m if factor == 1.0 else m.scaled(factor)
+    return m.scaled(_scale(check.row(used)))
 
 
 def _scale(row: Mapping) -> float:

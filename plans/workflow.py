@@ -494,9 +494,7 @@ def as_analysed(store, m: Measurement, resolution: str = "camera", table: Parame
     idx = m.metadata.get("analysed_configurations")
     if "design_options" in m.metadata:
         m = with_lit_beam_frames(store, m, table)
-    scale = gain_scale(store, m.uid)
-    m = m if scale == 1.0 else m.scaled(scale)
-    meas = m.for_analysis(resolution=resolution, table=table)
+    meas = m.scaled(gain_scale(store, m.uid)).for_analysis(resolution=resolution, table=table)
     return meas if idx is None else meas.subset(np.asarray(idx, dtype=int))
 
 

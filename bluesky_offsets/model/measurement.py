@@ -230,8 +230,11 @@ class Measurement:
         """The measured fractions times ``factor``, the floors times its square.
 
         These are a camera's frames reduced with another gain (``factor`` = the gain used / the gain
-        measured).
+        measured); this measurement itself for a factor of 1.
         """
+        if factor == 1.0:
+            return self
+
         def times(a, f):
             return None if a is None else np.asarray(a, float) * f
         return replace(self, hist_x=self.hist_x * factor, hist_y=self.hist_y * factor,
