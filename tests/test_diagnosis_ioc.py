@@ -78,11 +78,12 @@ class _Scenario:
     options: tuple[str, ...] = ("--design", "bright")
 
     @pytest.fixture(scope="class")
-    def demo(self, scenario, tmp_path_factory) -> tuple[Path, dict, subprocess.CompletedProcess]:
+    @classmethod
+    def demo(cls, scenario, tmp_path_factory) -> tuple[Path, dict, subprocess.CompletedProcess]:
         """(folder, summary, process)"""
         tmp = tmp_path_factory.mktemp(scenario)
-        return (tmp, *_demo(tmp, SCENARIOS[scenario][0] if scenario in SCENARIOS else scenario, *self.options,
-                            *(() if self.optimize else ("--no-optimize",))))
+        return (tmp, *_demo(tmp, SCENARIOS[scenario][0] if scenario in SCENARIOS else scenario, *cls.options,
+                            *(() if cls.optimize else ("--no-optimize",))))
 
 
 class _HiddenEffect(_Scenario):
