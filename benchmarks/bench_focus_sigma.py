@@ -6,7 +6,7 @@ the move, as ``measured / predicted − 1`` and that over σ.  With ``--draws N`
 calibration the first move used (``out/calibration.json``): N states drawn from its covariance,
 as the optimizer draws them (:func:`bluesky_offsets.optimize.optimizer.covariance_states`), each
 state's χ² on the frames the analysis fitted (the designed ones and the beam search's lit ones,
-the last stage of :data:`bluesky_offsets.model.diagnosis.DESIGNED_FIT`) above the calibration's
+the last stage of the fit options its run recorded) above the calibration's
 own: whether the frames allow the states the σ is read from (their joint 95 % region is
 ``chi2.ppf(0.95, k)`` above it, k the fitted parameters).  A drawn offset beyond its bound is
 traced at the bound.  With ``--samples N``, the first move's σ as the optimizer reads it where it
@@ -91,15 +91,14 @@ def _drawn_chi2(run: Path, n: int) -> dict:
     """:func:`drawn_chi2` measured: the calibration and the analysed frames read from the run's folder."""
     from scipy.stats import chi2 as chi2_dist
 
-    from bluesky_offsets.model.diagnosis import DESIGNED_FIT
     from bluesky_offsets.model.fit import _Model
     from bluesky_offsets.model.state import ModelState
     from bluesky_offsets.optimize.optimizer import OptimizeOptions, covariance_states
     from bluesky_offsets.physics.beamline import torch_engine
     from bluesky_offsets.physics.parameters import MAX_OFFSET, METRIXS
 
-    _, cal, _, (meas, _) = _calibrated(run)
-    engine, o, P = torch_engine(METRIXS), DESIGNED_FIT, len(METRIXS)
+    _, cal, _, (meas, o) = _calibrated(run)  # the frames and the options the calibration was fitted with
+    engine, P = torch_engine(METRIXS), len(METRIXS)
     stage = o.stages[-1][0]
 
     def chi2(state: ModelState) -> tuple[float, float]:
