@@ -144,11 +144,12 @@ def main() -> None:
         parts = (parts + [float("nan")] * 6)[:6]
         if n == 5:  # --no-optimize: no beam step
             parts = parts[:4] + [float("nan"), parts[4]]
-        rows_out.append([r["seed"], f"{r['done']} s", *(f"{x:.0f} s" for x in parts), r["frames"],
+        # a step the demo did not take (no beam optimization: --no-optimize, a described beamline) is a dash
+        rows_out.append([r["seed"], f"{r['done']} s", *("—" if x != x else f"{x:.0f} s" for x in parts), r["frames"],
                          f"{_fmt(r['chi2'][0])} → {_fmt(r['chi2'][1])}", _fmt(r["validation_chi2"]),
                          " / ".join(_fmt(c, "{}") for c in r["offsets"]), _fmt(r["determined_right"], "{}"),
                          _fmt(r["rmse_ratio"]), _fmt(r["within_2sigma"]),
-                         "?" if not r.get("first_move") else " / ".join(_fmt(f) for f in r["first_move"]),
+                         "—" if not r.get("first_move") else " / ".join(_fmt(f) for f in r["first_move"]),
                          r["verdict"]])
     cmd = " ".join(["bluesky-offsets demo --seed S", *([f"--threads {a.threads}"] if a.threads else []), *a.extra])
     median = statistics.median(r["done"] for r in rows)
