@@ -15,7 +15,7 @@ job at its own size is ``benchmarks/bench_demo.py``; other effects (a thermal bu
 source's divergence among them) through the IOC, and the whole grid over all 15, are
 ``benchmarks/bench_diagnosis_grid.py``; in-process, ``tests/test_diagnosis.py``.  The checks read ``summary.json``.
 
-About 4-8 minutes per scenario on two cores.
+Beside the rest of the suite on two cores: the main job's scenario 11-26 minutes, the other 5-11.
 ``BLUESKY_OFFSETS_SKIP_ACCEPTANCE=1`` skips them for a quick local run.
 """
 
