@@ -19,6 +19,7 @@ from __future__ import annotations
 import argparse
 import collections
 import json
+import math
 import re
 import statistics
 import subprocess
@@ -145,7 +146,7 @@ def main() -> None:
         if n == 5:  # --no-optimize: no beam step
             parts = parts[:4] + [float("nan"), parts[4]]
         # a step the demo did not take (no beam optimization: --no-optimize, a described beamline) is a dash
-        rows_out.append([r["seed"], f"{r['done']} s", *("—" if x != x else f"{x:.0f} s" for x in parts), r["frames"],
+        rows_out.append([r["seed"], f"{r['done']} s", *("—" if math.isnan(x) else f"{x:.0f} s" for x in parts), r["frames"],
                          f"{_fmt(r['chi2'][0])} → {_fmt(r['chi2'][1])}", _fmt(r["validation_chi2"]),
                          " / ".join(_fmt(c, "{}") for c in r["offsets"]), _fmt(r["determined_right"], "{}"),
                          _fmt(r["rmse_ratio"]), _fmt(r["within_2sigma"]),

@@ -364,7 +364,7 @@ def test_ioc_keeps_serving_when_a_client_disconnects_mid_move(metrixs_ioc, ca, c
         while ca.get(rec + ".DMOV") == 0 and time.monotonic() < deadline:
             time.sleep(0.05)
         assert ca.get(rec + ".RBV") == pytest.approx(target, abs=1e-5)  # the move ran to its end
-        ca.put(rec, start, wait=True, timeout=30)  # and the IOC still serves puts and reads
+        ca.put(rec, start, wait=True)  # and the IOC still serves puts and reads (its 30 s timeout)
         assert ca.get(rec + ".RBV") == pytest.approx(start, abs=1e-5)
         assert metrixs_ioc.proc.poll() is None
     finally:
