@@ -136,6 +136,15 @@ VALIDATION_P = 1e-3
 """... when, too, noise alone would reach that χ² less often than this (few frames, few dof)."""
 
 
+def search_frames(frames: int) -> int:
+    """The frames the beam search may take of a designed measurement's ``frames`` in all.
+
+    All but two (:func:`measure_designed` keeps two for designed frames), and never fewer than the
+    search's first three: the start, the slits open, the slits as they were.
+    """
+    return max(3, frames - 2)
+
+
 def validation_limit(dof: float) -> float:
     """The χ²/dof a calibration must stay within on ``dof`` validation degrees of freedom.
 

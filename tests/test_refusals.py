@@ -10,7 +10,9 @@ checked on the captured stderr.
 from __future__ import annotations
 
 import json
+import re
 import shutil
+import socket
 import subprocess
 import sys
 from pathlib import Path
@@ -52,7 +54,31 @@ def test_a_dark_beamline_ends_in_one_line(tmp_path):
     lines = [line for line in proc.stderr.splitlines() if line.strip()]
     assert proc.returncode == 2 and "Traceback" not in proc.stdout + proc.stderr, proc.stderr[-3000:]
     assert lines[-1].startswith("bluesky-offsets calibrate: error: the beam search ended dim after 3 frames")
+    assert lines[-1].endswith("(--frames 5 let it take 3)"), lines[-1]
     assert not [line for line in lines[:-1] if "error" in line.lower()], lines  # the one line
+
+
+def test_a_demo_whose_beam_search_ends_dim_ends_in_one_line(tmp_path):
+    """The demo's own simulated beamline starts dark (its hidden offsets); four frames in all leave
+    the search its first three, which end dim: one line that names the budget, no traceback, and
+    the IOC stopped."""
+    exe = Path(sys.executable).parent / "bluesky-offsets"
+    proc = subprocess.run([str(exe) if exe.exists() else shutil.which("bluesky-offsets"), "demo", "--frames", "4",
+                           "--detector", "histograms", "--rays", "1000", "--out", str(tmp_path / "out"), "--store",
+                           str(tmp_path / "store")],
+                          capture_output=True, text=True, timeout=300)
+    lines = [line for line in proc.stderr.splitlines() if line.strip()]
+    assert proc.returncode == 2 and "Traceback" not in proc.stdout + proc.stderr, proc.stderr[-3000:]
+    assert len(lines) == 1 and lines[0].startswith("bluesky-offsets demo: error: the beam search ended dim after 3 "
+                                                   "frames"), lines
+    assert lines[0].endswith("(--frames 4 let it take 3)"), lines[0]
+    ioc = re.search(r"IOC (\S+): on 127\.0\.0\.1:(\d+)", proc.stdout)
+    assert ioc and not _listening(int(ioc.group(2))), proc.stdout[-2000:]  # the IOC is stopped
+
+
+def _listening(port: int) -> bool:
+    with socket.socket() as s:
+        return s.connect_ex(("127.0.0.1", port)) == 0
 
 
 def test_an_ioc_that_does_not_answer_is_named(tmp_path, capfd):

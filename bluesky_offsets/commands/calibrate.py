@@ -17,7 +17,7 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
-from bluesky_offsets.commands.cli import CliError
+from bluesky_offsets.commands.cli import CliError, dark_beamline
 
 
 def _cmd_calibrate(args) -> int:
@@ -108,7 +108,7 @@ def _calibrate(args, design, effects, pv_map, forward_model, store) -> int:
                 assert isinstance(result, RunEngineResult)  # call_returns_result=True
                 session = result.plan_result
         except DarkBeamline as exc:
-            raise CliError(str(exc)) from None
+            raise dark_beamline(exc, args.frames if designed else None) from None
         except RunEngineInterrupted:
             RE.abort("interrupted")
             raise KeyboardInterrupt from None

@@ -37,6 +37,17 @@ class CliError(Exception):
     """A user error: printed without a traceback, exit status 2."""
 
 
+def dark_beamline(exc: Exception, frames: int | None) -> CliError:
+    """The beam search's :class:`plans.workflow.DarkBeamline` as the one line a user reads.
+
+    ``frames``: the designed measurement's ``--frames`` (None: the bright design, whose search has a
+    budget of its own).
+    """
+    from plans.design import search_frames
+    more = "" if frames is None else f" (--frames {frames} let it take {search_frames(frames)})"
+    return CliError(f"{exc}{more}")
+
+
 def quiet_logs() -> None:
     """Set Dask's, tiled's, httpx's and bokeh's loggers to WARNING: their INFO lines would drown the progress.
 

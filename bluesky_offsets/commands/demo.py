@@ -757,7 +757,7 @@ def _check_beamline(args, hidden: Sequence[str]) -> bool:
 
 
 def _cmd_demo(args) -> int:
-    from bluesky_offsets.commands.cli import CliError, check_analysis_options
+    from bluesky_offsets.commands.cli import CliError, check_analysis_options, dark_beamline
     if args.configurations < 2:
         raise CliError("--configurations must be at least 2 (the paper asks for 16)")
     n_open = args.open_configurations if args.open_configurations is not None else 4
@@ -811,9 +811,12 @@ def _cmd_demo(args) -> int:
     def _terminate(signum, frame):
         raise SystemExit(128 + signum)
 
+    from plans.workflow import DarkBeamline
     previous = signal.signal(signal.SIGTERM, _terminate)
     try:
         run_demo(Path(args.out), s, args.store)
+    except DarkBeamline as exc:
+        raise dark_beamline(exc, args.frames if s.design_kind == "optimal" else None) from None
     finally:
         signal.signal(signal.SIGTERM, previous)
     return 0
