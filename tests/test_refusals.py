@@ -91,6 +91,16 @@ def test_a_store_that_cannot_be_written(tmp_path, capfd):
     bad = str(tmp_path / "a-file" / "store")
     refused(capfd, ["calibrate", "--store", bad], "run store", bad)
     refused(capfd, ["diagnose", "--uid", "x", "--store", bad], "run store", bad)
+    refused(capfd, ["pv-map", "--out", str(tmp_path)], "cannot write the PV map", str(tmp_path))
+    typo = tmp_path / "runz"
+    refused(capfd, ["diagnose", "--uid", "x", "--store", str(typo)], "no run store at", str(typo))
+    assert not typo.exists()  # no empty store left behind
+
+
+def test_a_budget_of_nothing(capfd):
+    """A zero budget is refused, not read as "the default"."""
+    refused(capfd, ["find", "--evaluations", "0"], "--evaluations must be positive")
+    refused(capfd, ["find", "--seconds", "0"], "--seconds must be positive")
 
 
 def test_an_unknown_effect(tmp_path, capfd):

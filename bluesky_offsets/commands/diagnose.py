@@ -83,10 +83,14 @@ def summary_dict(analysis) -> dict:
 
 
 def _cmd_diagnose(args) -> int:
-    from bluesky_offsets.store import open_store
+    from bluesky_offsets.store import default_store_location, open_store
     candidates = _effects(args.effects)
     check_analysis_options(args)
     fit_options = None if args.fit_rays is None else {"rays": args.fit_rays}
+    where = str(args.store or default_store_location())
+    if not where.startswith(("http://", "https://")) and not Path(where).exists():
+        # the measurement lives in a store: a mistyped path must not leave an empty one behind
+        raise CliError(f"no run store at {where}")
     try:
         store = open_store(args.store)
     except OSError as exc:

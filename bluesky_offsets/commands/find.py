@@ -78,6 +78,10 @@ def _checked_find_args(args) -> list[str]:
     args.iterations = sizes["iterations"] if args.iterations is None else args.iterations
     if args.candidates < 1 or args.iterations < 1:
         raise CliError("--candidates and --iterations must be positive")
+    if args.evaluations is not None and args.evaluations < 1:
+        raise CliError("--evaluations must be positive (leave it out for candidates x (iterations + 1))")
+    if args.seconds is not None and not args.seconds > 0:
+        raise CliError("--seconds must be positive")
     if args.min_hist_sum is None:
         args.min_hist_sum = F.PAPER_MIN_HIST_SUM
     if not 0 < args.fast_fraction <= 1:

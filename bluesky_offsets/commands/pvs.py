@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import json
 import sys
+from pathlib import Path
 
 
 def _table(args):
@@ -20,11 +21,14 @@ def _table(args):
 
 
 def _cmd_pv_map(args) -> int:
+    from bluesky_offsets.commands.cli import CliError
     from bluesky_offsets.epics.pvmap import PVMap
     text = PVMap.simulated(args.prefix, _table(args), camera_directory=args.camera).to_toml()
     if args.out:
-        with open(args.out, "w") as f:
-            f.write(text)
+        try:
+            Path(args.out).write_text(text)
+        except OSError as exc:
+            raise CliError(f"cannot write the PV map to {args.out}: {exc.strerror or exc}") from None
         print(f"PV map of the simulated IOC (prefix {args.prefix}) written to {args.out}: edit it for another IOC, "
               f"then bluesky-offsets check-pvs {args.out}")
     else:
