@@ -92,6 +92,8 @@ def test_a_store_that_cannot_be_written(tmp_path, capfd):
     refused(capfd, ["calibrate", "--store", bad], "run store", bad)
     refused(capfd, ["diagnose", "--uid", "x", "--store", bad], "run store", bad)
     refused(capfd, ["pv-map", "--out", str(tmp_path)], "cannot write the PV map", str(tmp_path))
+    refused(capfd, ["dataset", "generate", str(tmp_path / "a-file"), "--samples", "4"], "refusing to overwrite")
+    assert (tmp_path / "a-file").read_text() == ""  # the file left as it was
     typo = tmp_path / "runz"
     refused(capfd, ["diagnose", "--uid", "x", "--store", str(typo)], "no run store at", str(typo))
     assert not typo.exists()  # no empty store left behind

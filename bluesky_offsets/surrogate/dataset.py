@@ -449,7 +449,7 @@ class DatasetStore:
                 raise DatasetError(f"{self.path} was generated with different {', '.join(mismatch)} "
                                    f"({details}); use another output path or the store's settings")
             return prog
-        if self.path.exists() and any(self.path.iterdir()):
+        if self.path.exists() and (not self.path.is_dir() or any(self.path.iterdir())):
             raise DatasetError(f"{self.path} exists and is not a dataset store; refusing to overwrite")
         g = self._group("w")
         raw = g.require_group("raw")
