@@ -95,6 +95,11 @@ def test_factored_decoder_trains(store, tmp_path):
     assert ens.arch.members == 2 and len(ens.net.shape_members) == 2
     with pytest.raises(ValueError, match="ensemble"):
         _small(members=2)
+    with pytest.raises(ValueError, match="members must be positive"):
+        _small(members=0)
+    (tmp_path / "a-file").write_text("")
+    with pytest.raises(TrainingError, match="cannot use .*a-file as the run directory"):
+        training.train(data, tmp_path / "a-file", _small(epochs=1), progress=False)
 
 
 def test_resume_continues_exactly(store, tmp_path):

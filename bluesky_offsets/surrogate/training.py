@@ -128,7 +128,7 @@ class TrainConfig:
             raise InputError(f"split must be three fractions summing to 1, got {self.split}")
         if self.good_fraction is not None and not 0 < self.good_fraction < 1:
             raise InputError(f"good_fraction must be in (0, 1), got {self.good_fraction}")
-        for name in ("epochs", "batch_size", "width", "n_layers"):
+        for name in ("epochs", "batch_size", "width", "n_layers", "members"):
             if getattr(self, name) < 1:
                 raise InputError(f"{name} must be positive")
         if self.lr <= 0 or not 0 < self.gamma <= 1:
@@ -137,7 +137,7 @@ class TrainConfig:
             raise InputError(f"decoder must be one of {DECODERS}, got {self.decoder!r}")
         if self.activation not in ACTIVATIONS:
             raise InputError(f"activation must be one of {', '.join(ACTIVATIONS)}, got {self.activation!r}")
-        if self.members < 1 or (self.members > 1 and self.decoder not in LIKELIHOOD_DECODERS):
+        if self.members > 1 and self.decoder not in LIKELIHOOD_DECODERS:
             raise InputError("members > 1 (an ensemble) needs decoder 'factored' or 'joint'")
         if self.decoder in LIKELIHOOD_DECODERS:
             self.output_norm = "none"
@@ -448,7 +448,10 @@ def train(data: Dataset, run_dir: str | os.PathLike, config: TrainConfig | None 
     config = config or TrainConfig()
     hist = hist or HistogramSpec()
     run_dir = Path(run_dir)
-    run_dir.mkdir(parents=True, exist_ok=True)
+    try:
+        run_dir.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise TrainingError(f"cannot use {run_dir} as the run directory: {exc.strerror or exc}") from None
     device = config.resolved_device()
     if config.threads:
         torch.set_num_threads(config.threads)
