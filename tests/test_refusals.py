@@ -93,6 +93,11 @@ def test_a_store_that_cannot_be_written(tmp_path, capfd):
     refused(capfd, ["diagnose", "--uid", "x", "--store", bad], "run store", bad)
     refused(capfd, ["pv-map", "--out", str(tmp_path)], "cannot write the PV map", str(tmp_path))
     refused(capfd, ["dataset", "generate", str(tmp_path / "a-file"), "--samples", "4"], "refusing to overwrite")
+    # where the report would go, refused before anything runs
+    refused(capfd, ["demo", "--out", str(tmp_path / "a-file")], "--out", "is a file, not a folder")
+    refused(capfd, ["calibrate", "--out", str(tmp_path / "a-file" / "out")], "--out", "cannot make the folder")
+    refused(capfd, ["diagnose", "--uid", "x", "--store", str(tmp_path), "--report", str(tmp_path / "a-file" / "r.html")],
+            "--report", "is a file, not a folder")
     assert (tmp_path / "a-file").read_text() == ""  # the file left as it was
     typo = tmp_path / "runz"
     refused(capfd, ["diagnose", "--uid", "x", "--store", str(typo)], "no run store at", str(typo))

@@ -21,7 +21,7 @@ from bluesky_offsets.commands.cli import CliError, dark_beamline
 
 
 def _cmd_calibrate(args) -> int:
-    from bluesky_offsets.commands.cli import check_analysis_options, quiet_logs
+    from bluesky_offsets.commands.cli import check_analysis_options, output_folder, quiet_logs
     from bluesky_offsets.epics.pvmap import PVMap, PVMapError
     from bluesky_offsets.offsets.finder import FinderError, load_forward_model
     from bluesky_offsets.physics import effects as E
@@ -54,6 +54,7 @@ def _cmd_calibrate(args) -> int:
         pv_map = PVMap.from_file(args.pvs) if args.pvs else PVMap.simulated(args.prefix)
     except PVMapError as exc:
         raise CliError(str(exc)) from None
+    output_folder(args.out)  # before anything moves: the live views and the report go there
     quiet_logs()
     try:
         forward_model = load_forward_model(args.checkpoint)

@@ -48,6 +48,21 @@ def dark_beamline(exc: Exception, frames: int | None) -> CliError:
     return CliError(f"{exc}{more}")
 
 
+def output_folder(path, option: str = "--out"):
+    """``path`` made now as the folder a command writes into: one it cannot write is refused before any work."""
+    from pathlib import Path
+    folder = Path(path)
+    if folder.exists() and not folder.is_dir():
+        raise CliError(f"{option} {folder} is a file, not a folder")
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise CliError(f"{option} {folder}: cannot make the folder ({exc.strerror or exc})") from None
+    if not os.access(folder, os.W_OK | os.X_OK):
+        raise CliError(f"{option} {folder}: cannot write there")
+    return folder
+
+
 def quiet_logs() -> None:
     """Set Dask's, tiled's, httpx's and bokeh's loggers to WARNING: their INFO lines would drown the progress.
 

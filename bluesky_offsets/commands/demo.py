@@ -757,7 +757,7 @@ def _check_beamline(args, hidden: Sequence[str]) -> bool:
 
 
 def _cmd_demo(args) -> int:
-    from bluesky_offsets.commands.cli import CliError, check_analysis_options, dark_beamline
+    from bluesky_offsets.commands.cli import CliError, check_analysis_options, dark_beamline, output_folder
     if args.configurations < 2:
         raise CliError("--configurations must be at least 2 (the paper asks for 16)")
     n_open = args.open_configurations if args.open_configurations is not None else 4
@@ -812,6 +812,7 @@ def _cmd_demo(args) -> int:
         raise SystemExit(128 + signum)
 
     from plans.workflow import DarkBeamline
+    output_folder(args.out)  # before the IOC starts: a report that cannot be written is known now
     previous = signal.signal(signal.SIGTERM, _terminate)
     try:
         run_demo(Path(args.out), s, args.store)

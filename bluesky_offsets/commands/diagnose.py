@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from bluesky_offsets.commands.cli import CliError, add_analysis_options, check_analysis_options
+from bluesky_offsets.commands.cli import CliError, add_analysis_options, check_analysis_options, output_folder
 from bluesky_offsets.model.cluster import analysis_executor
 
 
@@ -91,6 +91,8 @@ def _cmd_diagnose(args) -> int:
     if not where.startswith(("http://", "https://")) and not Path(where).exists():
         # the measurement lives in a store: a mistyped path must not leave an empty one behind
         raise CliError(f"no run store at {where}")
+    if args.report:
+        output_folder(Path(args.report).parent, "--report")
     try:
         store = open_store(args.store)
     except OSError as exc:
