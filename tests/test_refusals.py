@@ -104,10 +104,16 @@ def test_a_store_that_cannot_be_written(tmp_path, capfd):
     assert not typo.exists()  # no empty store left behind
 
 
-def test_a_budget_of_nothing(capfd):
-    """A zero budget is refused, not read as "the default"."""
+def test_a_budget_of_nothing(tmp_path, capfd):
+    """A zero or negative budget is refused, not read as "the default"."""
     refused(capfd, ["find", "--evaluations", "0"], "--evaluations must be positive")
     refused(capfd, ["find", "--seconds", "0"], "--seconds must be positive")
+    refused(capfd, ["dataset", "generate", str(tmp_path / "d"), "--samples", "4", "--workers", "0"],
+            "--workers must be positive")
+    refused(capfd, ["dataset", "generate", str(tmp_path / "d"), "--samples", "4", "--rayx-check", "-1"],
+            "--rayx-check must be 0")
+    refused(capfd, ["surrogate", "evaluate", "--uniform", "-1"], "--uniform must be 0 or more")
+    assert not (tmp_path / "d").exists()
 
 
 def test_an_unknown_effect(tmp_path, capfd):

@@ -97,6 +97,10 @@ def test_factored_decoder_trains(store, tmp_path):
         _small(members=2)
     with pytest.raises(ValueError, match="members must be positive"):
         _small(members=0)
+    with pytest.raises(ValueError, match="threads must be positive"):
+        _small(threads=0)
+    with pytest.raises(ValueError, match="max_minutes must be positive"):
+        _small(max_minutes=0)
     (tmp_path / "a-file").write_text("")
     with pytest.raises(TrainingError, match="cannot use .*a-file as the run directory"):
         training.train(data, tmp_path / "a-file", _small(epochs=1), progress=False)

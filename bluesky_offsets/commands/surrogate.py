@@ -43,6 +43,10 @@ def _cmd_dataset_generate(args) -> int:
     from bluesky_offsets.surrogate.dataset import DatasetError, generate
     if args.samples < 1:
         raise CliError("--samples must be positive")
+    if args.workers is not None and args.workers < 1:
+        raise CliError("--workers must be positive (leave it out for all cores)")
+    if args.rayx_check < 0:
+        raise CliError("--rayx-check must be 0 (no check) or more")
     settings = _settings_from_args(args)
     _prepare_tracing(args)
     try:
@@ -197,6 +201,8 @@ def _cmd_surrogate_evaluate(args) -> int:
             raise CliError(str(exc)) from None
     if args.samples < 1 or args.min_nonempty < 0 or args.min_nonempty > args.samples:
         raise CliError("need --samples >= 1 and 0 <= --min-nonempty <= --samples")
+    if args.uniform < 0:
+        raise CliError("--uniform must be 0 or more")
     res = evaluate(model, n_samples=args.samples, min_nonempty=args.min_nonempty, n_uniform=args.uniform,
                    n_rays=args.rays, scheme=scheme, seed=args.seed, scheduler=args.scheduler,
                    n_workers=args.workers, progress=not args.no_progress, keep_data=bool(args.plot))

@@ -131,6 +131,10 @@ class TrainConfig:
         for name in ("epochs", "batch_size", "width", "n_layers", "members"):
             if getattr(self, name) < 1:
                 raise InputError(f"{name} must be positive")
+        if self.threads is not None and self.threads < 1:
+            raise InputError("threads must be positive (leave it out for torch's choice)")
+        if self.max_minutes is not None and not self.max_minutes > 0:
+            raise InputError("max_minutes must be positive (leave it out for no time budget)")
         if self.lr <= 0 or not 0 < self.gamma <= 1:
             raise InputError("lr must be > 0 and gamma in (0, 1]")
         if self.decoder not in DECODERS:
