@@ -113,6 +113,7 @@ def test_a_budget_of_nothing(tmp_path, capfd):
     refused(capfd, ["dataset", "generate", str(tmp_path / "d"), "--samples", "4", "--rayx-check", "-1"],
             "--rayx-check must be 0")
     refused(capfd, ["surrogate", "evaluate", "--uniform", "-1"], "--uniform must be 0 or more")
+    refused(capfd, ["demo", "--rays", "100000000", "--out", str(tmp_path / "d")], "--rays must be at most 1,000,000")
     assert not (tmp_path / "d").exists()
 
 

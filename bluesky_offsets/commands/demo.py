@@ -767,6 +767,9 @@ def _cmd_demo(args) -> int:
         raise CliError("--analysed-configurations must be at least 2")
     if args.rays < 100:
         raise CliError("--rays must be at least 100")
+    from sim_iocs.metrixs import MAX_RAYS
+    if args.rays > MAX_RAYS:
+        raise CliError(f"--rays must be at most {MAX_RAYS:,} (the simulated IOC's bound on a frame)")
     if args.frames < 4:
         raise CliError("--frames must be at least 4 (the beam search's and the designed ones)")
     if args.validation_frames < 0:
