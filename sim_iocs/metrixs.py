@@ -617,8 +617,13 @@ def _build(args) -> MetrixsIOC:
     table = METRIXS if bl is None else bl.table
     truth = Truth.from_file(args.truth, table) if args.truth else Truth.from_seed(_seed(args), table,
                                                                                  limit=args.max_offset)
-    if not 0 <= args.rays <= args.max_rays or args.move_time <= 0 or args.accel_time <= 0 or args.tick <= 0:
-        raise ParameterError("--rays must lie in [0, --max-rays]; --move-time, --accel-time, --tick must be positive")
+    if not 0 <= args.rays <= args.max_rays:
+        raise ParameterError(f"--rays must lie in [0, --max-rays = {args.max_rays}], not {args.rays}")
+    for option in ("move_time", "accel_time", "tick"):
+        if not getattr(args, option) > 0:
+            raise ParameterError(f"--{option.replace('_', '-')} must be positive, not {getattr(args, option)}")
+    if args.noise_seed is not None and args.noise_seed < 0:
+        raise ParameterError(f"--noise-seed must be 0 or more, not {args.noise_seed}")
     if args.dump_truth:
         with _private(args.dump_truth, "w") as f:
             json.dump(truth.to_dict(), f, indent=2)
