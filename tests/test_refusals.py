@@ -98,6 +98,11 @@ def test_a_store_that_cannot_be_written(tmp_path, capfd):
     refused(capfd, ["calibrate", "--out", str(tmp_path / "a-file" / "out")], "--out", "cannot make the folder")
     refused(capfd, ["diagnose", "--uid", "x", "--store", str(tmp_path), "--report", str(tmp_path / "a-file" / "r.html")],
             "--report", "is a file, not a folder")
+    # before Redis or the RE Manager start
+    refused(capfd, ["queue-server", "--store", str(tmp_path / "a-file")], "--store", "is a file, not a folder")
+    refused(capfd, ["queue-server", "--existing-plans-devices", str(tmp_path / "a-file" / "x.yaml")],
+            "--existing-plans-devices", "is a file, not a folder")
+    refused(capfd, ["queue-server", "--redis", "127.0.0.1:99999"], "port 99999 is not a TCP port")
     assert (tmp_path / "a-file").read_text() == ""  # the file left as it was
     typo = tmp_path / "runz"
     refused(capfd, ["diagnose", "--uid", "x", "--store", str(typo)], "no run store at", str(typo))

@@ -75,16 +75,18 @@ def _executable(name: str) -> str:
 
 
 def _cmd_queue_server(args) -> int:
-    from bluesky_offsets.commands.cli import CliError
+    from bluesky_offsets.commands.cli import CliError, output_folder
     from bluesky_offsets.epics.pvmap import ENV_PREFIX, ENV_PVS, PVMap, PVMapError
     from bluesky_offsets.queueserver import manager_command
-    from bluesky_offsets.store import ENV_STORE
+    from bluesky_offsets.store import ENV_STORE, default_store_location
 
     host, _, port_text = args.redis.rpartition(":")
     try:
         port = int(port_text)
     except ValueError:
         raise CliError(f"--redis expects HOST:PORT, got {args.redis!r}") from None
+    if not 0 < port < 65536:
+        raise CliError(f"--redis: port {port} is not a TCP port (1-65535)")
     env = dict(os.environ)
     if args.pvs:
         try:
@@ -96,6 +98,12 @@ def _cmd_queue_server(args) -> int:
         env[ENV_PREFIX] = args.prefix
     if args.store:
         env[ENV_STORE] = args.store
+    # refused here, in one line, not when the manager's worker first writes to them
+    store = str(args.store or default_store_location())
+    if not store.startswith(("http://", "https://")):
+        output_folder(store, "--store")
+    if args.existing_plans_devices:
+        output_folder(Path(args.existing_plans_devices).parent, "--existing-plans-devices")
     redis = None
     if not _answers(host, port):
         if host not in LOOPBACK:
