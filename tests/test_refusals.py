@@ -98,6 +98,8 @@ def test_a_store_that_cannot_be_written(tmp_path, capfd):
     refused(capfd, ["calibrate", "--out", str(tmp_path / "a-file" / "out")], "--out", "cannot make the folder")
     refused(capfd, ["diagnose", "--uid", "x", "--store", str(tmp_path), "--report", str(tmp_path / "a-file" / "r.html")],
             "--report", "is a file, not a folder")
+    refused(capfd, ["simulate", "--rays", "100", "--plot", str(tmp_path)], "--plot", "is a folder, not a file")
+    refused(capfd, ["find", "--out", str(tmp_path / "a-file")], "--out", "is a file, not a folder")
     # before Redis or the RE Manager start
     refused(capfd, ["queue-server", "--store", str(tmp_path / "a-file")], "--store", "is a file, not a folder")
     refused(capfd, ["queue-server", "--existing-plans-devices", str(tmp_path / "a-file" / "x.yaml")],

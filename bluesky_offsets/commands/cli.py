@@ -63,6 +63,16 @@ def output_folder(path, option: str = "--out"):
     return folder
 
 
+def output_file(path, option: str):
+    """``path`` as a file a command will write, its folder made and checked now (see :func:`output_folder`)."""
+    from pathlib import Path
+    file = Path(path)
+    if file.is_dir():
+        raise CliError(f"{option} {file} is a folder, not a file")
+    output_folder(file.parent, option)
+    return file
+
+
 def quiet_logs() -> None:
     """Set Dask's, tiled's, httpx's and bokeh's loggers to WARNING: their INFO lines would drown the progress.
 
@@ -203,6 +213,8 @@ def _cmd_simulate(args) -> int:
 
     if args.rays < 1:
         raise CliError(f"--rays must be positive, got {args.rays}")
+    if args.plot:
+        output_file(args.plot, "--plot")
     bl = _described(args.beamline)
     table = bl.table
     try:

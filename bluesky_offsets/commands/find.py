@@ -17,7 +17,7 @@ from typing import Any
 
 import numpy as np
 
-from bluesky_offsets.commands.cli import CliError
+from bluesky_offsets.commands.cli import CliError, output_folder
 
 DEFAULT_METHODS = "smart-walker,monte-carlo,gradient,levenberg-marquardt,cmaes"
 HEADLINE = {"candidates": 1024, "iterations": 400, "runs": 3}
@@ -100,8 +100,7 @@ def _find(args) -> int:
         model = F.load_forward_model(args.model, device=args.device)
     except F.FinderError as exc:
         raise CliError(str(exc)) from None
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
+    out = output_folder(args.out)
     twin = None
     if args.observe == "twin" or args.twin_check:
         from bluesky_offsets.physics.twin import Twin

@@ -7,7 +7,7 @@ import json
 import logging
 import os
 
-from bluesky_offsets.commands.cli import CliError
+from bluesky_offsets.commands.cli import CliError, output_file
 
 
 # --------------------------------------------------------------------------- #
@@ -188,6 +188,8 @@ def _cmd_surrogate_evaluate(args) -> int:
     from bluesky_offsets.surrogate.dataset import DrawScheme
     from bluesky_offsets.surrogate.evaluate import evaluate, plot_comparison
     model = _load_model(args.checkpoint)
+    if args.plot:
+        output_file(args.plot, "--plot")
     _prepare_tracing(args)
     scheme = None
     if args.screen_rays is not None or args.keep_fraction is not None:
