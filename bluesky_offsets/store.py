@@ -253,10 +253,14 @@ _WRITERS: dict[str, weakref.WeakSet] = {}
 """The queued writers of this process by catalog: a read waits for all that write to its catalog."""
 
 
+def store_path(location: str) -> Path | None:
+    """The folder of an embedded store at ``location`` (``~`` expanded); None for a tiled server's URL."""
+    return None if location.startswith(("http://", "https://")) else Path(location).expanduser()
+
+
 def _catalog_key(location: str) -> str:
-    if location.startswith(("http://", "https://")):
-        return location.rstrip("/")
-    return str(Path(location).expanduser().resolve())
+    path = store_path(location)
+    return location.rstrip("/") if path is None else str(path.resolve())
 
 
 class RunStore:
@@ -276,11 +280,12 @@ class RunStore:
         self.location = loc
         self._context: Context | None = None
         self._frames: Path | None = None
-        if loc.startswith(("http://", "https://")):
+        path = store_path(loc)
+        if path is None:
             from tiled.client import from_uri
             self._client = from_uri(loc, api_key=api_key or os.environ.get("TILED_API_KEY"))
         else:
-            self._client = self._embedded(Path(loc).expanduser())
+            self._client = self._embedded(path)
         self._writer = None
         self._catalog = _catalog_key(loc)  # every read looks up the writers by it
 
@@ -465,7 +470,7 @@ def shared_store(location: str | os.PathLike | None = None) -> RunStore:
     session, a script), and what its RunEngine writes to (``shared_store().subscribe(RE)``).
     """
     loc = str(location) if location is not None else default_store_location()
-    if loc not in _SHARED or _SHARED[loc]._context is None and not loc.startswith(("http://", "https://")):
+    if loc not in _SHARED or _SHARED[loc]._context is None and store_path(loc) is not None:
         _SHARED[loc] = RunStore(loc)
     return _SHARED[loc]
 

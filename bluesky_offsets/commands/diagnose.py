@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from bluesky_offsets.commands.cli import CliError, add_analysis_options, check_analysis_options, output_folder
+from bluesky_offsets.commands.cli import CliError, add_analysis_options, check_analysis_options, output_file
 from bluesky_offsets.model.cluster import analysis_executor
 
 
@@ -83,16 +83,17 @@ def summary_dict(analysis) -> dict:
 
 
 def _cmd_diagnose(args) -> int:
-    from bluesky_offsets.store import default_store_location, open_store
+    from bluesky_offsets.store import default_store_location, open_store, store_path
     candidates = _effects(args.effects)
     check_analysis_options(args)
     fit_options = None if args.fit_rays is None else {"rays": args.fit_rays}
     where = str(args.store or default_store_location())
-    if not where.startswith(("http://", "https://")) and not Path(where).exists():
+    folder = store_path(where)
+    if folder is not None and not folder.exists():
         # the measurement lives in a store: a mistyped path must not leave an empty one behind
         raise CliError(f"no run store at {where}")
     if args.report:
-        output_folder(Path(args.report).parent, "--report")
+        output_file(args.report, "--report")
     try:
         store = open_store(args.store)
     except OSError as exc:

@@ -78,7 +78,7 @@ def _cmd_queue_server(args) -> int:
     from bluesky_offsets.commands.cli import CliError, output_folder
     from bluesky_offsets.epics.pvmap import ENV_PREFIX, ENV_PVS, PVMap, PVMapError
     from bluesky_offsets.queueserver import manager_command
-    from bluesky_offsets.store import ENV_STORE, default_store_location
+    from bluesky_offsets.store import ENV_STORE, default_store_location, store_path
 
     host, _, port_text = args.redis.rpartition(":")
     try:
@@ -99,8 +99,8 @@ def _cmd_queue_server(args) -> int:
     if args.store:
         env[ENV_STORE] = args.store
     # refused here, in one line, not when the manager's worker first writes to them
-    store = str(args.store or default_store_location())
-    if not store.startswith(("http://", "https://")):
+    store = store_path(str(args.store or default_store_location()))
+    if store is not None:
         output_folder(store, "--store")
     if args.existing_plans_devices:
         output_folder(Path(args.existing_plans_devices).parent, "--existing-plans-devices")
