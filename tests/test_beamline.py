@@ -365,8 +365,8 @@ def test_the_demo_calibrates_a_described_beamline_end_to_end(tmp_path):
     exe = Path(sys.executable).parent / "bluesky-offsets"
     out = tmp_path / "out"
     proc = subprocess.run([str(exe), "demo", "--beamline", "energize", "--effect", "none", "--frames", "8",
-                           "--rays", "1000", "--fit-rays", "600", "--validation-frames", "2", "--rounds", "1",
-                           "--candidates", "chamber_z,detector_blur", "--detector", "histograms",
+                           "--rays", "1000", "--fit-rays", "600", "--fit-starts", "1", "--validation-frames", "2",
+                           "--rounds", "1", "--candidates", "chamber_z,detector_blur", "--detector", "histograms",
                            "--out", str(out), "--store", str(tmp_path / "runs")],
                           capture_output=True, text=True, timeout=880)
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]

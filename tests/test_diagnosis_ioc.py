@@ -6,14 +6,15 @@ each range, the demo's default draw) and a hidden effect (or none), then the cal
 the IOC into the run store and compare → fit the offsets → diagnose (camera-resolution
 profiles) → add the winner → refit → diagnose again, every step a run in the store.  The
 chamber_z scenario is the README's main job on a smaller configuration, for the suite's time:
-the designed measurement at 32 frames (the demo's default: 60), its fits at 1,000 model rays (2,000),
-ranking chamber_z against the four effects the full ranking puts next to it, read back from the
-store by uid.  The scenario with no hidden effect measures as the bright design does
-(``--design bright``: 16 bright configurations and 4 of them again with the slits open, the
-surrogate finder on the 16; its fits at 1,000 model rays) and ranks all 15 candidates.  The main
-job at its own size is ``benchmarks/bench_demo.py``; other effects (a thermal bump on M1 and the
-source's divergence among them) through the IOC, and the whole grid over all 15, are
-``benchmarks/bench_diagnosis_grid.py``; in-process, ``tests/test_diagnosis.py``.  The checks read ``summary.json``.
+the designed measurement at 32 frames (the demo's default: 60), its fits at 1,000 model rays (2,000)
+with one start a round drawn from their posterior (4), ranking chamber_z against the four effects the
+full ranking puts next to it, read back from the store by uid.  The scenario with no hidden effect
+measures as the bright design does (``--design bright``: 16 bright configurations and 4 of them again
+with the slits open, the surrogate finder on the 16; its fits at 1,000 model rays, one posterior start
+a round) and ranks all 15 candidates.  The main job at its own size is ``benchmarks/bench_demo.py``;
+other effects (a thermal bump on M1 and the source's divergence among them) through the IOC, and the
+whole grid over all 15, are ``benchmarks/bench_diagnosis_grid.py``; in-process,
+``tests/test_diagnosis.py``.  The checks read ``summary.json``.
 
 Beside the rest of the suite on two cores: the main job's scenario 11-26 minutes, the other 5-11.
 ``BLUESKY_OFFSETS_SKIP_ACCEPTANCE=1`` skips them for a quick local run.
@@ -63,8 +64,9 @@ def _demo(tmp_path: Path, effect: str, *extra: str) -> tuple[dict, subprocess.Co
 
 
 # the main job (the camera, the designed measurement) on a smaller configuration, for the suite's time;
-# the candidates: chamber_z and the four the full ranking puts next to it
-MAIN_JOB = ("--frames", "32", "--fit-rays", "1000",
+# the candidates: chamber_z and the four the full ranking puts next to it; one posterior start a round
+# (the default 4 costs a quarter of the demo's CPU; tests/test_fit.py checks the starts themselves)
+MAIN_JOB = ("--frames", "32", "--fit-rays", "1000", "--fit-starts", "1",
             "--candidates", "chamber_z,slope_error_e2,chamber_x,chamber_y,source_size")
 
 
@@ -212,6 +214,8 @@ class TestChamberZ(_HiddenEffect):
                                                                         "add_effect")}
             for step, res in back.items():
                 assert res["start"]["measurement_uid"] == uids["measurement"], step
+            starts = int(MAIN_JOB[MAIN_JOB.index("--fit-starts") + 1])
+            assert back["refine_offsets"]["start"]["fit_options"]["posterior_starts"] == starts
             ranking = back["diagnose"]["ranking"]
             assert [r["effect"] for r in ranking] == summary["rankings"][0]
             hist = back["add_effect"]["error_history"]
@@ -238,8 +242,8 @@ class TestChamberZ(_HiddenEffect):
 
 @_scenario("none")
 class TestNoHiddenEffect(_Scenario):
-    # the bright design's fits at 1,000 model rays (its default: 5,000): the suite's time
-    options = ("--design", "bright", "--fit-rays", "1000")
+    # the bright design's fits at 1,000 model rays (its default: 5,000), one posterior start a round: the suite's time
+    options = ("--design", "bright", "--fit-rays", "1000", "--fit-starts", "1")
 
     def test_no_hidden_effect_reports_none(self, demo):
         _, s, _ = demo

@@ -292,8 +292,8 @@ def test_diagnose_command_end_to_end_and_its_errors(RE, measured, tmp_path, caps
     assert rc == 2 and "--fit-rays must be at least 100" in io.err
 
     report = tmp_path / "report.html"
-    rc, io = run("--uid", dim_uid, "--effects", ",".join(CANDIDATES), "--fit-rays", "600", "--rounds", "1",
-                 "--resolution", "paper", "--scheduler", "inline", "--report", str(report), "--json")
+    rc, io = run("--uid", dim_uid, "--effects", ",".join(CANDIDATES), "--fit-rays", "600", "--fit-starts", "1",
+                 "--rounds", "1", "--resolution", "paper", "--scheduler", "inline", "--report", str(report), "--json")
     assert rc == 0, io.err
     out = json.loads(io.out)
     assert out["measurement_uid"] == dim_uid and out["verdict"]
@@ -305,6 +305,8 @@ def test_diagnose_command_end_to_end_and_its_errors(RE, measured, tmp_path, caps
     with open_store(loc) as store:
         for uid in out["uids"].values():
             assert store[uid].metadata["start"]["measurement_uid"] == dim_uid
+        start = store[out["uids"]["refine_offsets"]].metadata["start"]
+        assert start["fit_options"]["rays"] == 600 and start["fit_options"]["posterior_starts"] == 1
 
 
 def test_an_interrupted_analysis_resumes_from_the_store_to_the_same_verdict(RE, twin, measured, tmp_path):

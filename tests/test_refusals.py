@@ -121,6 +121,9 @@ def test_a_budget_of_nothing(tmp_path, capfd):
             "--rayx-check must be 0")
     refused(capfd, ["surrogate", "evaluate", "--uniform", "-1"], "--uniform must be 0 or more")
     refused(capfd, ["demo", "--rays", "100000000", "--out", str(tmp_path / "d")], "--rays must be at most 1,000,000")
+    refused(capfd, ["demo", "--fit-starts", "-1", "--out", str(tmp_path / "d")], "--fit-starts must be at least 0")
+    refused(capfd, ["diagnose", "--uid", "x", "--fit-starts", "-2", "--store", str(tmp_path / "d")],
+            "--fit-starts must be at least 0")
     refused(capfd, ["ioc", "--noise-seed", "-5"], "--noise-seed must be 0 or more")
     refused(capfd, ["ioc", "--tick", "0"], "--tick must be positive")
     assert not (tmp_path / "d").exists()

@@ -93,7 +93,7 @@ def _calibrate(args, design, effects, pv_map, forward_model, store) -> int:
         from bluesky_offsets.design import DesignOptions
         from bluesky_offsets.model import diagnosis as D
         designed = isinstance(design, DesignOptions)
-        fit, scan = D.fits_for(designed, args.fit_rays)
+        fit, scan = D.fits_for(designed, args.fit_rays, args.fit_starts)
         from plans.camera import camera_steps
         darks, measured_hook = camera_steps(chamber, beamline, md={"purpose": "calibrate"}, say=say, table=pv_map.table)
         try:

@@ -97,7 +97,7 @@ def add_analysis_options(p: argparse.ArgumentParser, *, fit_rays: int | None, fi
     """Add the options every verb that analyses a measurement shares to the parser ``p``.
 
     The verbs are ``demo``, ``diagnose`` and ``calibrate``; the options: rounds of diagnosis,
-    the fits' rays, screening, the binning fitted, threads.
+    the fits' rays and posterior starts, screening, the binning fitted, threads.
     """
     p.add_argument("--rounds", type=int, default=None,
                    help="diagnoses at most: after an effect is added the model is diagnosed again (default 3: two "
@@ -107,6 +107,10 @@ def add_analysis_options(p: argparse.ArgumentParser, *, fit_rays: int | None, fi
                    help="screen every start of every candidate first and fit only this many candidates to "
                         "convergence (faster; a screen can miss a defocus: docs/explanations/diagnosis.md); default 0: every "
                         "start fitted")
+    p.add_argument("--fit-starts", type=int, default=None,
+                   help="starts the offsets fits draw from their posterior, per round while a round gains (default "
+                        "4); fewer: faster, and a fit that stalls in a valley near its start is less often found out "
+                        "(0: none, the posterior from its curvature and the ray draws alone)")
     p.add_argument("--resolution", choices=("camera", "paper"), default="camera", help=resolution_help)
     p.add_argument("--threads", type=int, default=None,
                    help="fits that do not depend on each other (the starts, the candidates, the ray draws) run this "
@@ -125,6 +129,8 @@ def check_analysis_options(args) -> None:
         raise CliError("--rounds must be at least 1")
     if args.fit_rays is not None and args.fit_rays < 100:
         raise CliError("--fit-rays must be at least 100")
+    if args.fit_starts is not None and args.fit_starts < 0:
+        raise CliError("--fit-starts must be at least 0 (0: no starts drawn from the posterior)")
     if args.fit_top < 0:
         raise CliError("--fit-top must be at least 0 (0: every start of every candidate fitted)")
     if args.threads is None:

@@ -790,7 +790,7 @@ def _cmd_demo(args) -> int:
         raise CliError("--effect: the simulated IOC hides twin-level effects only (detector-level ones: "
                        + ", ".join(n for n in names if E.get(n).level == "detector") + ")")
     optimize = _check_beamline(args, names)
-    fit, scan = D.fits_for(args.design == "optimal", args.fit_rays)
+    fit, scan = D.fits_for(args.design == "optimal", args.fit_rays, args.fit_starts)
     s = DemoSettings(n_rays=args.rays, effects=effects, design_kind=args.design,
                      optimal=DesignOptions(frames=args.frames, validation=args.validation_frames),
                      measurement=_design(bright=args.configurations, reopened=n_open,

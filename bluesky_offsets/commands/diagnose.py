@@ -86,7 +86,8 @@ def _cmd_diagnose(args) -> int:
     from bluesky_offsets.store import default_store_location, open_store, store_path
     candidates = _effects(args.effects)
     check_analysis_options(args)
-    fit_options = None if args.fit_rays is None else {"rays": args.fit_rays}
+    fit_options = {k: v for k, v in (("rays", args.fit_rays), ("posterior_starts", args.fit_starts))
+                   if v is not None} or None
     where = str(args.store or default_store_location())
     folder = store_path(where)
     if folder is not None and not folder.exists():

@@ -335,13 +335,15 @@ frames of the bright design, each fitted with fewer model rays, all frames toget
 many as the bright design's 14 at :data:`FIT`'s and :data:`SCAN`'s."""
 
 
-def fits_for(designed: bool, rays: int | None = None) -> tuple[FitOptions, FitOptions]:
+def fits_for(designed: bool, rays: int | None = None, starts: int | None = None) -> tuple[FitOptions, FitOptions]:
     """The offsets fit's and the candidate fits' options for a designed (or the bright) measurement.
 
-    ``rays`` (``--fit-rays``): the fit's model rays, and the candidate fits' at most.
+    ``rays`` (``--fit-rays``): the fit's model rays, and the candidate fits' at most.  ``starts``
+    (``--fit-starts``): the offsets fit's :attr:`~FitOptions.posterior_starts` (None: its own).
     """
     fit, scan = (DESIGNED_FIT, DESIGNED_SCAN) if designed else (FIT, SCAN)
-    return fit.replace(rays=rays or fit.rays), scan.replace(rays=min(rays or scan.rays, scan.rays))
+    fit = fit.replace(rays=rays or fit.rays, posterior_starts=fit.posterior_starts if starts is None else starts)
+    return fit, scan.replace(rays=min(rays or scan.rays, scan.rays))
 
 
 ROUNDS = 3
