@@ -544,7 +544,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     src = parser.add_mutually_exclusive_group()
     src.add_argument("--truth", metavar="FILE.json", help="hidden offsets/effects/start positions (JSON)")
     src.add_argument("--seed-file", metavar="FILE",
-                     help=f"draw hidden offsets of all 34 parameters from the integer seed in FILE (or "
+                     help=f"draw hidden offsets of all the parameters (METRIXS: 34) from the integer seed in FILE (or "
                           f"${SEED_VARIABLE}; default: a random seed); never on the command line, where "
                           f"every process could read it")
     src.add_argument("--seed", type=int, help=argparse.SUPPRESS)  # refused: see _seed
@@ -654,6 +654,12 @@ def _truth_logger(path: str | None) -> Callable[[str], None] | None:
     return write
 
 
+def _client_address(interface: str) -> str:
+    """Where a client finds this IOC: the interface, and the port where the server's environment moved it."""
+    port = (os.environ.get("EPICS_CAS_SERVER_PORT") or os.environ.get("EPICS_CA_SERVER_PORT") or "").strip()
+    return interface if port in ("", "5064") else f"{interface}:{port}"
+
+
 def _interfaces(given: list[str] | None) -> list[str]:
     if given:
         return list(given)
@@ -703,7 +709,7 @@ def serve(args) -> int:
     _beacon_environment(interfaces)
     if all(i.startswith("127.") for i in interfaces):
         print(f"serving {', '.join(interfaces)} only: clients in another shell need "
-              f"EPICS_CA_ADDR_LIST={interfaces[0]} EPICS_CA_AUTO_ADDR_LIST=NO", flush=True)
+              f"EPICS_CA_ADDR_LIST={_client_address(interfaces[0])} EPICS_CA_AUTO_ADDR_LIST=NO", flush=True)
     try:
         asyncio.run(_serve(ioc.pvdb, interfaces))
     except KeyboardInterrupt:

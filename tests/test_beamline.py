@@ -382,6 +382,34 @@ def test_the_demo_calibrates_a_described_beamline_end_to_end(tmp_path):
     assert (out / "report.html").stat().st_size > 10_000
 
 
+def _shifted(text: str, at: int, by: np.ndarray) -> str:
+    """``text`` with the world position of the object at ``at`` moved by ``by`` (mm)."""
+    start = text.index('id="worldPosition"', at)
+    for axis, d in zip("xyz", by):
+        a = text.index(f"<{axis}>", start) + len(f"<{axis}>")
+        end = text.index(f"</{axis}>", a)
+        text = text[:a] + repr(float(text[a:end]) + float(d)) + text[end:]
+    return text
+
+
+def test_a_plane_mirror_centred_elsewhere_on_its_own_plane_is_traced_where_the_beam_meets_it(tmp_path):
+    """RAY-UI puts an SX700 premirror's centre off the point where the central ray meets it, on the
+    mirror's own plane (HB 1200's by 21 mm): the same surface for RAYX, accepted and placed at the
+    chain's point.  Moved off its plane, or farther than a tenth of its length, it is refused."""
+    from bluesky_offsets.physics.rml import read_world_vectors
+    rml = shipped("energize").with_name("Energize_EN_500.rml")
+    text = rml.read_text()
+    world = read_world_vectors(rml)["Plane Mirror"]
+    at = text.index('<object name="Plane Mirror"')
+    path = _write(tmp_path, GOOD)
+    (tmp_path / "x.rml").write_text(_shifted(text, at, 15.0 * world["worldZdirection"]))  # 200 mm long
+    assert load_beamline(path).table.names and main(["params", "--beamline", str(path)]) == 0
+    for by in (0.01 * world["worldYdirection"], 25.0 * world["worldZdirection"]):
+        (tmp_path / "x.rml").write_text(_shifted(text, at, by))
+        with pytest.raises(BeamlineError, match="object 'Plane Mirror' \\(Plane Mirror\\).*its position"):
+            load_beamline(path)
+
+
 def test_a_grid_source_s_frames_count_photons_from_its_grid_in_both_engines(capsys):
     """RAY-UI's matrix source emits the same grid for every seed: traced as it is, frames would carry
     no counting noise and no misfit could be judged.  Each photon is a ray of its grid, drawn by the

@@ -528,6 +528,8 @@ def test_seeded_truth_is_dumped_not_published(ioc_factory, tmp_path, ca):
     ioc = ioc_factory(args=["--seed-file", seed, "--max-offset", 0.05, "--dump-truth", dump, *METRIXS_IOC_ARGS],
                       ready="chamber:Message", ready_value="ready", timeout=90)
     truth = Truth.from_file(dump)
+    # the clients' environment it prints names the port it serves on
+    assert f"EPICS_CA_ADDR_LIST=127.0.0.1:{ioc.port} EPICS_CA_AUTO_ADDR_LIST=NO" in ioc.log()
     assert np.abs(truth.offsets).max() <= 0.05 and np.count_nonzero(truth.offsets) == 34
     assert ca.get(ioc.prefix + "chamber:TruthId", as_string=True) == truth.truth_id
     np.testing.assert_array_equal(truth.offsets, Truth.from_seed(11, limit=0.05).offsets)

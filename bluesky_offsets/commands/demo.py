@@ -594,7 +594,8 @@ def _print_summary(summary: dict, analysis, location: str) -> None:
     if analysis.could_hide:
         print(analysis.could_hide_line)
     for k, ranking in enumerate(summary["rankings"], 1):
-        print(f"ranking {k}: " + ", ".join(ranking[:5]) + (" ..." if len(ranking) > 5 else ""))
+        print(f"ranking {k}: " + (", ".join(ranking[:5]) + (" ..." if len(ranking) > 5 else "") if ranking
+                                  else "no candidate fitted (the model fits the frames within noise)"))
     print("hidden: " + (", ".join(f"{k} {v}" for k, v in summary["hidden_effects"].items()) or "no effect"))
     for name, vals in summary["fitted_effects"].items():
         hidden = summary["hidden_effects"].get(name, {})

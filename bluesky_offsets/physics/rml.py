@@ -314,6 +314,23 @@ def read_world_vectors(path: str | Path) -> dict[str, dict[str, np.ndarray]]:
 
 FRAME_TOLERANCE = (1e-3, 1e-6)
 """How far (mm, and in a direction's components) a chained world frame may lie from the RML's own."""
+IN_PLANE_SHARE = 0.1
+"""How far a plane mirror's RML centre may lie within its own surface from the chain's, as a share of
+its length (along the beam) and width: RAYX traces the same plane, its edges barely moved."""
+
+
+def _in_own_plane(obj: RmlObject, frame: Frame, position: np.ndarray) -> bool:
+    """Whether ``position`` lies in the plane mirror ``obj``'s surface at ``frame``, near its centre there.
+
+    RAY-UI puts an SX700 premirror's centre off the point where the central ray meets it (HB 1200's
+    by 21 mm along the mirror); the chain puts it at that point, on the same plane.
+    """
+    if obj.type != "Plane Mirror":
+        return False
+    d = position - frame.position
+    return (abs(float(d @ frame.y)) <= FRAME_TOLERANCE[0]
+            and abs(float(d @ frame.z)) <= IN_PLANE_SHARE * obj.get_float("totalLength", 0.0)
+            and abs(float(d @ frame.x)) <= IN_PLANE_SHARE * obj.get_float("totalWidth", 0.0))
 
 
 def check_frames(bl: RmlBeamline, path: str | Path) -> None:
@@ -322,15 +339,19 @@ def check_frames(bl: RmlBeamline, path: str | Path) -> None:
     RAYX places each element by the world vectors the RML stores; every edit of an element
     (a parameter set, a misalignment) writes them anew from the chain (:meth:`RmlBeamline.to_xml`).
     An element type whose placement the chain does not know (a paraboloid's) or cannot chain at all
-    (a crystal) would be traced somewhere else than the RML says.  Objects without stored world
-    vectors are not compared; the message names the object.
+    (a crystal) would be traced somewhere else than the RML says.  A plane mirror whose centre the
+    RML puts elsewhere on the same plane (:func:`_in_own_plane`) is traced at the chain's point, its
+    misalignments' pivot there.  Objects without stored world vectors are not compared; the message
+    names the object.
     """
     stored = read_world_vectors(path)
     for obj, frame in zip(bl.objects, bl.frames()):
         ref = stored.get(obj.name, {})
         if obj.is_source or len(ref) < len(WORLD_KEYS):
             continue
-        off = [("position", float(np.abs(frame.position - ref["worldPosition"]).max()), FRAME_TOLERANCE[0])]
+        moved = 0.0 if _in_own_plane(obj, frame, ref["worldPosition"]) else float(
+            np.abs(frame.position - ref["worldPosition"]).max())
+        off = [("position", moved, FRAME_TOLERANCE[0])]
         off += [(key, float(np.abs(vec - ref[key]).max()), FRAME_TOLERANCE[1])
                 for key, vec in zip(WORLD_KEYS[1:], (frame.x, frame.y, frame.z))]
         for what, d, tol in off:
