@@ -274,7 +274,14 @@ def lit_frames(runs, threshold: float = HIGH_RAY_THRESHOLD):
 
 
 class DarkBeamline(RuntimeError):
-    """The beam search or the bright-configuration search came back without enough light."""
+    """The beam search or the bright-configuration search came back without enough light.
+
+    ``what`` says what ended dim; ``advice`` what a plan's caller can change (a command line says its own).
+    """
+
+    def __init__(self, what: str, advice: str = ""):
+        super().__init__(f"{what}: {advice}" if advice else what)
+        self.what = what
 
 
 def bright_beam(beamline, chamber, *, fraction: float, max_frames: int,
@@ -286,6 +293,7 @@ def bright_beam(beamline, chamber, *, fraction: float, max_frames: int,
         steps_log.info("  %s", line)
     if not beam.bright:
         raise DarkBeamline(f"the beam search ended dim after {beam.frames} frames ({beam.intensity:.3g} of the "
-                           f"source rays on the screen, {HIGH_RAY_THRESHOLD:.3g} needed): check the shutter, the "
-                           f"source and the slits, or widen the search (fraction, the frames it may take)")
+                           f"source rays on the screen, {HIGH_RAY_THRESHOLD:.3g} needed)",
+                           "check the shutter, the source and the slits, or widen the search (fraction, the frames "
+                           "it may take)")
     return beam

@@ -16,7 +16,7 @@ other effects (a thermal bump on M1 and the source's divergence among them) thro
 whole grid over all 15, are ``benchmarks/bench_diagnosis_grid.py``; in-process,
 ``tests/test_diagnosis.py``.  The checks read ``summary.json``.
 
-Beside the rest of the suite on two cores: the main job's scenario 11-26 minutes, the other 5-11.
+Beside the rest of the suite on two cores: the main job's scenario 10-26 minutes, the other 4-11.
 ``BLUESKY_OFFSETS_SKIP_ACCEPTANCE=1`` skips them for a quick local run.
 """
 

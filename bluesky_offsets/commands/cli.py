@@ -44,8 +44,10 @@ def dark_beamline(exc: Exception, frames: int | None) -> CliError:
     budget of its own).
     """
     from plans.design import search_frames
-    more = "" if frames is None else f" (--frames {frames} let it take {search_frames(frames)})"
-    return CliError(f"{exc}{more}")
+    if frames is None:
+        return CliError(str(exc))
+    return CliError(f"{getattr(exc, 'what', exc)}: check the shutter, the source and the slits, or give the search "
+                    f"more frames (--frames {frames} let it take {search_frames(frames)})")
 
 
 def output_folder(path, option: str = "--out"):
