@@ -74,8 +74,9 @@ def live(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def ioc(tmp_path_factory):
-    """This module's own IOC (the mild truth): its frames do not depend on what other tests left the session's in."""
-    ioc = start_metrixs_ioc(tmp_path_factory.mktemp("diagnosis_ioc"))
+    """This module's own IOC (the mild truth): its frames do not depend on what other tests left the session's in,
+    and their noise is seeded: whether a fit ends within noise must not change from run to run."""
+    ioc = start_metrixs_ioc(tmp_path_factory.mktemp("diagnosis_ioc"), extra=("--noise-seed", 3))
     yield ioc
     ioc.stop()
 
