@@ -655,9 +655,10 @@ def _truth_logger(path: str | None) -> Callable[[str], None] | None:
 
 
 def _client_address(interface: str) -> str:
-    """Where a client finds this IOC: the interface, and the port where the server's environment moved it."""
-    port = (os.environ.get("EPICS_CAS_SERVER_PORT") or os.environ.get("EPICS_CA_SERVER_PORT") or "").strip()
-    return interface if port in ("", "5064") else f"{interface}:{port}"
+    """Where a client finds this IOC: the interface, and the search port the server reads as caproto does."""
+    from caproto import get_environment_variables
+    port = int(get_environment_variables()["EPICS_CA_SERVER_PORT"])
+    return interface if port == 5064 else f"{interface}:{port}"
 
 
 def _interfaces(given: list[str] | None) -> list[str]:
